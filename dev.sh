@@ -1,0 +1,48 @@
+#!/usr/bin/env bash
+# The project's two entry points on a fresh machine:
+#   ./dev.sh demo   set up .venv, then align generated example data end to end
+#   ./dev.sh test   set up .venv (and redis-server if missing), then run the test suite
+# Extra arguments go to `gsa demo` or pytest.
+set -euo pipefail
+cd "$(dirname "$0")"
+VENV=${GSA_VENV:-.venv}
+
+setup_python() {
+    if [ ! -x "$VENV/bin/python" ]; then
+        python3 -m venv "$VENV"
+    fi
+    # Reinstall only when the dependency list changed.
+    local stamp="$VENV/.installed-$(sha1sum pyproject.toml | cut -c1-16)"
+    if [ ! -f "$stamp" ]; then
+        "$VENV/bin/python" -m pip install -q --disable-pip-version-check -e ".[service,dev]"
+        rm -f "$VENV"/.installed-*
+        touch "$stamp"
+    fi
+}
+
+setup_redis() {
+    # Tests start their own redis-server on a free port; they only need the binary.
+    if ! command -v redis-server >/dev/null 2>&1; then
+        local sudo=""
+        [ "$(id -u)" -ne 0 ] && sudo="sudo"
+        $sudo apt-get update -qq && $sudo apt-get install -y -qq redis-server >/dev/null
+    fi
+}
+
+cmd=${1:-}
+[ $# -gt 0 ] && shift
+case "$cmd" in
+    demo)
+        setup_python
+        exec "$VENV/bin/gsa" demo "$@"
+        ;;
+    test)
+        setup_python
+        setup_redis
+        exec "$VENV/bin/python" -m pytest -q "$@"
+        ;;
+    *)
+        echo "usage: ./dev.sh demo|test [args...]" >&2
+        exit 2
+        ;;
+esac

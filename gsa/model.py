@@ -1,0 +1,268 @@
+"""The 3D Gaussian Splatting model as plain arrays.
+
+Storage follows the INRIA conventions so that files round-trip losslessly:
+quaternions are w,x,y,z, scales are logs, opacities are logits, and the
+spherical-harmonic coefficients are kept per Gaussian as (K, 3) with
+K = (degree + 1)**2 and coefficient 0 the DC term.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field, replace
+
+import numpy as np
+
+SH_C0 = 0.28209479177387814
+
+
+class ModelError(ValueError):
+    """A GaussianModel whose arrays are inconsistent or not finite."""
+
+
+def sh_coeff_count(degree: int) -> int:
+    return (degree + 1) ** 2
+
+
+def sh_degree_from_count(count: int) -> int:
+    degree = int(round(np.sqrt(count))) - 1
+    if degree < 0 or (degree + 1) ** 2 != count or degree > 3:
+        raise ModelError(f"{count} SH coefficients per channel is not a degree 0..3 layout")
+    return degree
+
+
+@dataclass
+class GaussianModel:
+    """N Gaussians.
+
+    means: (N, 3) float32; quats: (N, 4) float32 unit w,x,y,z;
+    log_scales: (N, 3) float32; opacity_logits: (N,) float32;
+    sh: (N, K, 3) float32 with K in {1, 4, 9, 16};
+    features: optional (N, D) float32 per-Gaussian feature vectors (GSA uses D = 3).
+    """
+
+    means: np.ndarray
+    quats: np.ndarray
+    log_scales: np.ndarray
+    opacity_logits: np.ndarray
+    sh: np.ndarray
+    features: np.ndarray | None = None
+    metadata: dict = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        self.means = np.ascontiguousarray(self.means, dtype=np.float32)
+        self.quats = np.ascontiguousarray(self.quats, dtype=np.float32)
+        self.log_scales = np.ascontiguousarray(self.log_scales, dtype=np.float32)
+        self.opacity_logits = np.ascontiguousarray(self.opacity_logits, dtype=np.float32).reshape(-1)
+        self.sh = np.ascontiguousarray(self.sh, dtype=np.float32)
+        if self.features is not None:
+            self.features = np.ascontiguousarray(self.features, dtype=np.float32)
+            if self.features.ndim == 1:
+                self.features = self.features[:, None]
+        self._check_shapes()
+
+    def _check_shapes(self) -> None:
+        n = self.means.shape[0] if self.means.ndim == 2 else -1
+        expected = {
+            "means": (self.means, (n, 3)),
+            "quats": (self.quats, (n, 4)),
+            "log_scales": (self.log_scales, (n, 3)),
+            "opacity_logits": (self.opacity_logits, (n,)),
+        }
+        for name, (arr, shape) in expected.items():
+            if arr.shape != shape:
+                raise ModelError(f"{name} has shape {arr.shape}, expected {shape}")
+        if self.sh.ndim != 3 or self.sh.shape[0] != n or self.sh.shape[2] != 3:
+            raise ModelError(f"sh has shape {self.sh.shape}, expected ({n}, K, 3)")
+        sh_degree_from_count(self.sh.shape[1])
+        if self.features is not None and (self.features.ndim != 2 or self.features.shape[0] != n):
+            raise ModelError(f"features has shape {self.features.shape}, expected ({n}, D)")
+
+    # ------------------------------------------------------------------ views
+    def __len__(self) -> int:
+        return int(self.means.shape[0])
+
+    @property
+    def sh_degree(self) -> int:
+        return sh_degree_from_count(self.sh.shape[1])
+
+    @property
+    def feature_dim(self) -> int:
+        return 0 if self.features is None else int(self.features.shape[1])
+
+    @property
+    def opacities(self) -> np.ndarray:
+        return 1.0 / (1.0 + np.exp(-self.opacity_logits.astype(np.float64)))
+
+    @property
+    def scales(self) -> np.ndarray:
+        return np.exp(self.log_scales.astype(np.float64))
+
+    @property
+    def base_colors(self) -> np.ndarray:
+        """(N, 3) view-independent RGB from the DC coefficient, clipped to [0, 1]."""
+        return np.clip(0.5 + SH_C0 * self.sh[:, 0, :], 0.0, 1.0)
+
+    # ------------------------------------------------------------ constructors
+    @classmethod
+    def from_colors(
+        cls,
+        means: np.ndarray,
+        colors: np.ndarray,
+        *,
+        quats: np.ndarray | None = None,
+        scales: np.ndarray | None = None,
+        opacities: np.ndarray | float = 0.9,
+        sh_degree: int = 0,
+        features: np.ndarray | None = None,
+    ) -> GaussianModel:
+        """Build a model from RGB colours in [0, 1] and linear scales/opacities."""
+        n = len(means)
+        if quats is None:
+            quats = np.tile(np.array([1.0, 0.0, 0.0, 0.0], np.float32), (n, 1))
+        if scales is None:
+            scales = np.full((n, 3), 0.01, np.float32)
+        op = np.clip(np.broadcast_to(np.asarray(opacities, np.float64), (n,)), 1e-6, 1 - 1e-6)
+        sh = np.zeros((n, sh_coeff_count(sh_degree), 3), np.float32)
+        sh[:, 0, :] = (np.asarray(colors, np.float64) - 0.5) / SH_C0
+        return cls(
+            means=means,
+            quats=normalize_quats(quats),
+            log_scales=np.log(np.maximum(np.asarray(scales, np.float64), 1e-12)),
+            opacity_logits=np.log(op / (1 - op)),
+            sh=sh,
+            features=features,
+        )
+
+    # ------------------------------------------------------------- operations
+    def validate(self, source: str = "model") -> None:
+        """Raise ModelError if the model is empty or holds NaN/Inf."""
+        if len(self) == 0:
+            raise ModelError(f"{source}: the model has zero Gaussians")
+        for name in ("means", "quats", "log_scales", "opacity_logits", "sh", "features"):
+            arr = getattr(self, name)
+            if arr is not None and not np.isfinite(arr).all():
+                bad = int((~np.isfinite(arr)).reshape(len(self), -1).any(axis=1).sum())
+                raise ModelError(f"{source}: {name} holds NaN or Inf in {bad} Gaussian(s)")
+        qn = np.linalg.norm(self.quats, axis=1)
+        if (qn < 1e-12).any():
+            raise ModelError(f"{source}: {(qn < 1e-12).sum()} Gaussian(s) have a zero quaternion")
+
+    def subset(self, index: np.ndarray) -> GaussianModel:
+        """The Gaussians selected by a boolean mask or an index array."""
+        return GaussianModel(
+            means=self.means[index],
+            quats=self.quats[index],
+            log_scales=self.log_scales[index],
+            opacity_logits=self.opacity_logits[index],
+            sh=self.sh[index],
+            features=None if self.features is None else self.features[index],
+            metadata=dict(self.metadata),
+        )
+
+    def with_features(self, features: np.ndarray | None) -> GaussianModel:
+        return replace(self, features=features, metadata=dict(self.metadata))
+
+    def with_sh_degree(self, degree: int) -> GaussianModel:
+        """Truncate or zero-pad the SH coefficients to `degree`."""
+        k = sh_coeff_count(degree)
+        sh = np.zeros((len(self), k, 3), np.float32)
+        keep = min(k, self.sh.shape[1])
+        sh[:, :keep] = self.sh[:, :keep]
+        return replace(self, sh=sh, metadata=dict(self.metadata))
+
+    def transformed(self, sim3) -> GaussianModel:
+        """This model mapped by a similarity transform x -> s R x + t.
+
+        Means, log-scales (+ log s), rotations (q_R ⊗ q) and SH bands 1..3
+        (rotated exactly) change; opacities, DC colours and features do not.
+        """
+        from gsa.sh import rotate_sh
+
+        rot = np.asarray(sim3.rotation, np.float64)
+        means = sim3.apply(self.means.astype(np.float64))
+        q_r = rotation_to_quat(rot)
+        quats = quat_multiply(np.broadcast_to(q_r, self.quats.shape), self.quats.astype(np.float64))
+        return GaussianModel(
+            means=means,
+            quats=normalize_quats(quats),
+            log_scales=self.log_scales.astype(np.float64) + np.log(sim3.scale),
+            opacity_logits=self.opacity_logits,
+            sh=rotate_sh(self.sh, rot),
+            features=self.features,
+            metadata=dict(self.metadata),
+        )
+
+
+def merge_models(*models: GaussianModel) -> GaussianModel:
+    """Concatenate models. SH is padded to the highest degree; features are kept
+    when every model has them with one dimension, else dropped for all."""
+    if not models:
+        raise ModelError("merge needs at least one model")
+    degree = max(m.sh_degree for m in models)
+    models = tuple(m if m.sh_degree == degree else m.with_sh_degree(degree) for m in models)
+    dims = {m.feature_dim for m in models}
+    keep_features = len(dims) == 1 and 0 not in dims
+    return GaussianModel(
+        means=np.concatenate([m.means for m in models]),
+        quats=np.concatenate([m.quats for m in models]),
+        log_scales=np.concatenate([m.log_scales for m in models]),
+        opacity_logits=np.concatenate([m.opacity_logits for m in models]),
+        sh=np.concatenate([m.sh for m in models]),
+        features=np.concatenate([m.features for m in models]) if keep_features else None,
+    )
+
+
+# ----------------------------------------------------------------- quaternions
+def normalize_quats(q: np.ndarray) -> np.ndarray:
+    q = np.asarray(q, np.float64)
+    n = np.linalg.norm(q, axis=-1, keepdims=True)
+    return q / np.maximum(n, 1e-300)
+
+
+def quat_multiply(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Hamilton product a ⊗ b of (..., 4) w,x,y,z quaternions."""
+    aw, ax, ay, az = np.moveaxis(np.asarray(a, np.float64), -1, 0)
+    bw, bx, by, bz = np.moveaxis(np.asarray(b, np.float64), -1, 0)
+    return np.stack(
+        [
+            aw * bw - ax * bx - ay * by - az * bz,
+            aw * bx + ax * bw + ay * bz - az * by,
+            aw * by - ax * bz + ay * bw + az * bx,
+            aw * bz + ax * by - ay * bx + az * bw,
+        ],
+        axis=-1,
+    )
+
+
+def quat_to_rotation(q: np.ndarray) -> np.ndarray:
+    """(..., 4) w,x,y,z (any norm) -> (..., 3, 3) rotation matrices."""
+    w, x, y, z = np.moveaxis(normalize_quats(q), -1, 0)
+    return np.stack(
+        [
+            np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)], -1),
+            np.stack([2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)], -1),
+            np.stack([2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], -1),
+        ],
+        axis=-2,
+    )
+
+
+def rotation_to_quat(r: np.ndarray) -> np.ndarray:
+    """(3, 3) rotation -> (4,) unit w,x,y,z with w >= 0 (Shepperd's method)."""
+    r = np.asarray(r, np.float64)
+    tr = np.trace(r)
+    if tr > 0:
+        s = 2.0 * np.sqrt(tr + 1.0)
+        q = [0.25 * s, (r[2, 1] - r[1, 2]) / s, (r[0, 2] - r[2, 0]) / s, (r[1, 0] - r[0, 1]) / s]
+    elif r[0, 0] > r[1, 1] and r[0, 0] > r[2, 2]:
+        s = 2.0 * np.sqrt(1.0 + r[0, 0] - r[1, 1] - r[2, 2])
+        q = [(r[2, 1] - r[1, 2]) / s, 0.25 * s, (r[0, 1] + r[1, 0]) / s, (r[0, 2] + r[2, 0]) / s]
+    elif r[1, 1] > r[2, 2]:
+        s = 2.0 * np.sqrt(1.0 + r[1, 1] - r[0, 0] - r[2, 2])
+        q = [(r[0, 2] - r[2, 0]) / s, (r[0, 1] + r[1, 0]) / s, 0.25 * s, (r[1, 2] + r[2, 1]) / s]
+    else:
+        s = 2.0 * np.sqrt(1.0 + r[2, 2] - r[0, 0] - r[1, 1])
+        q = [(r[1, 0] - r[0, 1]) / s, (r[0, 2] + r[2, 0]) / s, (r[1, 2] + r[2, 1]) / s, 0.25 * s]
+    q = np.asarray(q)
+    q = q / np.linalg.norm(q)
+    return q if q[0] >= 0 else -q
