@@ -13,6 +13,7 @@ from pathlib import Path
 from gsa.align.pipeline import AlignmentResult
 from gsa.io.ply import write_ply
 from gsa.model import GaussianModel, merge_models
+from gsa.sim3 import Sim3
 
 OUTPUTS = ("result", "aligned", "merged", "renders")
 
@@ -56,10 +57,7 @@ def write_outputs(
     if "renders" in outputs:
         from gsa.render.views import write_alignment_renders
 
-        coarse_before = result.coarse.history and result.coarse.transform
-        renders = write_alignment_renders(
-            source, target, None, result.transform, out / "renders", coarse=coarse_before or None
-        )
+        renders = write_alignment_renders(source, target, Sim3.identity(), result.transform, out / "renders")
         paths.update({f"renders/{p.name}": p for p in renders.values()})
     if "result" in outputs:
         data = result.to_dict()
