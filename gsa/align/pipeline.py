@@ -20,6 +20,7 @@ from gsa.align.coarse import (
     coarse_align,
     find_candidates,
     icp_refine,
+    query_workers,
 )
 from gsa.model import GaussianModel, ModelError
 from gsa.sim3 import Sim3
@@ -42,13 +43,13 @@ class AlignOptions:
     # weight-free canonical features (see gsa.align.coarse.icp_refine).
     refine: str = "auto"
     # Ambiguous canonical frames: each hypothesis is tried on a source subsample.
-    hypothesis_points: int = 4000
-    hypothesis_iterations: int = 10
-    refine_points: int = 30_000  # source Gaussians sampled for the refinement ICP
+    hypothesis_points: int = 2000
+    hypothesis_iterations: int = 8
+    refine_points: int = 20_000  # source Gaussians sampled for the refinement ICP
     refine_iterations: int = 100  # cheap: cached neighbour tables, see icp_refine
     # The feature stage and the quality metrics use at most this many source
     # Gaussians (the authors subsample to 30k-50k); the target is always used whole.
-    max_points: int = 50_000
+    max_points: int = 30_000
     inlier_threshold: float = 0.03  # GT-free inlier distance, as a fraction of the target's RMS radius
     seed: int = 0
     fine_iterations: int = 60
@@ -222,7 +223,7 @@ def align(
                 res = coarse_align(src_pts[sub], dst_pts, cand, hyp.init, short, rows_of(weights, sub))
                 if refine:
                     res = icp_refine(src_pts[sub], dst_pts, dst_tree, res.transform, short, rows_of(weights, sub))
-                fwd_d, _ = dst_tree.query(res.transform.apply(src_pts[sub]), k=1, workers=-1)
+                fwd_d, _ = dst_tree.query(res.transform.apply(src_pts[sub]), k=1, workers=query_workers(len(sub)))
                 fwd = float(np.mean(fwd_d <= threshold))
                 rev = _reverse_inliers(res.transform, dst_pts[rev_sub], src_tree, threshold)
                 entry.update(score=0.5 * (fwd + rev), inliers_forward=fwd, inliers_reverse=rev)
@@ -336,7 +337,9 @@ def _label(g: np.ndarray) -> str:
 
 
 def _reverse_inliers(transform: Sim3, target_points: np.ndarray, source_tree: cKDTree, threshold: float) -> float:
-    d, _ = source_tree.query(transform.inverse().apply(target_points), k=1, workers=-1)
+    d, _ = source_tree.query(
+        transform.inverse().apply(target_points), k=1, workers=query_workers(len(target_points))
+    )
     return float(np.mean(d * transform.scale <= threshold))
 
 
@@ -355,7 +358,7 @@ def quality_metrics(
     source (forward) and target (reverse) Gaussians with a partner within the
     inlier threshold, the RMS distance of forward inliers, and how well the
     features of spatial nearest neighbours agree."""
-    fwd_d, fwd_i = dst_tree.query(transform.apply(src_pts), k=1, workers=-1)
+    fwd_d, fwd_i = dst_tree.query(transform.apply(src_pts), k=1, workers=query_workers(len(src_pts)))
     reverse = _reverse_inliers(transform, dst_pts[reverse_rows], src_tree, threshold)
     inlier = fwd_d <= threshold
     forward = float(inlier.mean())
