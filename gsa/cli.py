@@ -200,7 +200,8 @@ def cmd_synth(args: argparse.Namespace) -> int:
 def cmd_bench(args: argparse.Namespace) -> int:
     from gsa.bench.protocols import run_protocols
 
-    return run_protocols(args.protocols, quick=args.quick, out=args.out, seed=args.seed)
+    peers = None if args.peers == "all" else [p for p in args.peers.split(",") if p and p != "none"]
+    return run_protocols(args.protocols, quick=args.quick, out=args.out, seed=args.seed, peers=peers)
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -246,6 +247,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--quick", action="store_true", help="small sizes, a few minutes")
     p.add_argument("--out", default="out/bench", help="folder for the JSON results")
     p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--peers", default="all", help="comma list of icp,open3d,splatreg; 'none' or 'all' (default)")
     p.set_defaults(func=cmd_bench)
 
     _add_optional_commands(sub)

@@ -1,10 +1,16 @@
 """Benchmark protocols on generated data: each deterministic by seed, each
-printing a markdown table and writing JSON.
+printing a markdown table and writing JSON. Peers (gsa.bench.peers) run in the
+same loop as GSA on the very same pairs.
 
-dup       paper App. C: a model duplicated under a random Sim(3) (≤180° per axis, ≤10× scale)
-same      paper Table 1 analogue: two independent samplings of one object, authors' perturbation
-category  paper Table 2 analogue: different instances of one category, random Sim(3)
-speed     coarse alignment time and peak memory against Gaussian count
+dup       paper App. C: 30 models (5 per category), each duplicated under a random
+          Sim(3) (≤180° per axis, ≤10× scale); GSA coarse, coarse+fine and peers
+same      paper Table 1 analogue: 15 objects, two independent samplings each,
+          the authors' perturbation; RRE, ATE, scale error
+category  paper Table 2 analogue: 6 categories × 5 instances, all 10 pairs per
+          category (60 pairs), random Sim(3); RRE per category
+ablation  paper Table 4 / Sec. 4.5: coarse iterations (1, 3, until convergence),
+          fine views (3 similar, 3 diverse, 30), fine on colours, features off
+speed     coarse, fine, lifting and rendering time and peak memory vs Gaussian count
 io        PLY write/read time and memory for a 1M-Gaussian file
 """
 
@@ -25,54 +31,127 @@ from pathlib import Path
 import numpy as np
 
 from gsa.align.pipeline import AlignOptions, align
+from gsa.bench.peers import Peer, available_peers
 from gsa.metrics import accuracy
+from gsa.sim3 import Sim3
 from gsa.synth import CATEGORIES, make_object, paper_perturbation, random_sim3
 
 SUCCESS_RRE_DEG = 5.0
+GSA_COARSE = "GSA coarse"
+GSA_FINE = "GSA coarse+fine"
+NOISE_NOTE = ("Timings: 2 shared CPU cores, other jobs running; seconds are noisy "
+              "(compare ratios measured in one run, not absolute values across runs).")
+
+Pair = tuple[str, Callable[[], tuple]]  # (label, make() -> (source, target, truth))
+Runner = Callable[[object, object], dict]  # (source, target) -> {method: (Sim3 | Exception, seconds)}
 
 
-def _stages_available() -> list[tuple[str, ...]]:
+def fine_available() -> bool:
     try:
         import gsa.align.fine  # noqa: F401
     except ImportError:
-        return [("coarse",)]
-    return [("coarse",), ("coarse", "fine")]
+        return False
+    return True
 
 
-def _run_pairs(name: str, pairs: list[tuple[str, Callable]], stages_list, out: Path) -> list[dict]:
-    """pairs: (label, make() -> (source, target, truth)). Returns one row per stages."""
-    rows = []
-    for stages in stages_list:
-        records = []
-        for label, make in pairs:
-            source, target, truth = make()
-            t0 = time.perf_counter()
-            result = align(source, target, AlignOptions(stages=stages))
-            seconds = time.perf_counter() - t0
-            acc = accuracy(result.transform, truth, source.means, target.means)
-            records.append({"pair": label, "seconds": seconds, **acc,
-                            "inlier_fraction": result.metrics["inlier_fraction"]})
-        rre = np.array([r["rre_deg"] for r in records])
-        row = {
-            "protocol": name,
-            "stages": "+".join(stages),
-            "pairs": len(records),
-            "mean_rre_deg": float(rre.mean()),
-            "median_rre_deg": float(np.median(rre)),
-            "mean_scale_error_pct": float(np.mean([r["scale_error_pct"] for r in records])),
-            "mean_ate_normalized": float(np.mean([r["ate_normalized"] for r in records])),
-            "success_rate": float(np.mean(rre < SUCCESS_RRE_DEG)),
-            "seconds_per_pair": float(np.mean([r["seconds"] for r in records])),
-            "records": records,
-        }
-        rows.append(row)
-    _save(out, name, rows)
+# ---------------------------------------------------------------- runners
+
+
+def gsa_runner(fine: bool, **options) -> Runner:
+    """One align() call gives both rows: the coarse transform is kept on the
+    result, and its time is the total less the fine stage."""
+
+    def run(source, target):
+        stages = ("coarse", "fine") if fine else ("coarse",)
+        t0 = time.perf_counter()
+        result = align(source, target, AlignOptions(stages=stages, **options))
+        total = time.perf_counter() - t0
+        out = {GSA_COARSE: (result.coarse.transform, total - result.timings.get("fine", 0.0))}
+        if fine:
+            out[GSA_FINE] = (result.transform, total)
+        return out
+
+    return run
+
+
+def peer_runner(peer: Peer, seed: int) -> Runner:
+    def run(source, target):
+        t0 = time.perf_counter()
+        try:
+            est = peer.register(source, target, seed=seed)
+        except Exception as exc:  # a peer failing on a pair is a result, not a crash
+            est = exc
+        return {peer.label: (est, time.perf_counter() - t0)}
+
+    return run
+
+
+def default_runners(seed: int, peers: list[str] | None, fine: bool = True) -> list[Runner]:
+    runners = [gsa_runner(fine and fine_available())]
+    if fine and not fine_available():
+        print("note: gsa.align.fine is not importable; GSA rows are coarse only")
+    runners += [peer_runner(p, seed) for p in available_peers(peers)]
+    return runners
+
+
+# ---------------------------------------------------------------- evaluation
+
+
+def evaluate(name: str, pairs: list[Pair], runners: list[Runner], extra: Callable[[str], dict] | None = None) -> list[dict]:
+    """Every runner on every pair (generated once, in turn); one row per method."""
+    records: dict[str, list[dict]] = {}
+    for label, make in pairs:
+        source, target, truth = make()
+        for run in runners:
+            for method, (est, seconds) in run(source, target).items():
+                rec = {"pair": label, "seconds": seconds, **(extra(label) if extra else {})}
+                if isinstance(est, Sim3):
+                    rec.update(accuracy(est, truth, source.means, target.means))
+                else:
+                    rec.update(error=f"{type(est).__name__}: {est}", rre_deg=float("nan"),
+                               scale_error_pct=float("nan"), ate=float("nan"), ate_normalized=float("nan"))
+                records.setdefault(method, []).append(rec)
+        print(f"  {name}: {label} done", file=sys.stderr, flush=True)
+    rows = [summarise(name, method, recs) for method, recs in records.items()]
+    add_time_ratio(rows)
     return rows
 
 
-def protocol_dup(quick: bool, seed: int, out: Path) -> list[dict]:
+def summarise(protocol: str, method: str, records: list[dict]) -> dict:
+    ok = [r for r in records if "error" not in r]
+    rre = np.array([r["rre_deg"] for r in ok]) if ok else np.array([np.nan])
+
+    def mean(key):
+        return float(np.mean([r[key] for r in ok])) if ok else float("nan")
+
+    return {
+        "protocol": protocol,
+        "method": method,
+        "pairs": len(records),
+        "failed": len(records) - len(ok),
+        "mean_rre_deg": float(rre.mean()),
+        "median_rre_deg": float(np.median(rre)),
+        "mean_scale_error_pct": mean("scale_error_pct"),
+        "mean_ate_normalized": mean("ate_normalized"),
+        # A failed pair is not a success.
+        "success_rate": float(np.sum(rre < SUCCESS_RRE_DEG) / len(records)),
+        "seconds_per_pair": float(np.mean([r["seconds"] for r in records])),
+        "records": records,
+    }
+
+
+def add_time_ratio(rows: list[dict]) -> None:
+    ref = next((r["seconds_per_pair"] for r in rows if r["method"] == GSA_COARSE), None)
+    for r in rows:
+        r["time_ratio_vs_gsa_coarse"] = r["seconds_per_pair"] / ref if ref else float("nan")
+
+
+# ---------------------------------------------------------------- pairs
+
+
+def dup_pairs(quick: bool, seed: int) -> list[Pair]:
     per_category = 1 if quick else 5
-    n = 5000 if quick else 30_000
+    n = 3000 if quick else 30_000
     pairs = []
     for cat, i in itertools.product(CATEGORIES, range(per_category)):
 
@@ -83,33 +162,34 @@ def protocol_dup(quick: bool, seed: int, out: Path) -> list[dict]:
             return model, model.transformed(truth), truth
 
         pairs.append((f"{cat}-{i}", make))
-    return _run_pairs("dup", pairs, _stages_available(), out)
+    return pairs
 
 
-def protocol_same(quick: bool, seed: int, out: Path) -> list[dict]:
+def same_pairs(quick: bool, seed: int) -> list[Pair]:
     count = 6 if quick else 15
+    n_src, n_dst = (2500, 3000) if quick else (25_000, 35_000)
     pairs = []
     for i in range(count):
         cat = CATEGORIES[i % len(CATEGORIES)]
 
         def make(cat=cat, i=i):
             rng = np.random.default_rng([seed, 77, i])
-            n_src, n_dst = (4000, 5000) if quick else (25_000, 35_000)
             truth = paper_perturbation(rng)
             source = make_object(cat, seed=200 + i, n_gaussians=n_src, sample_seed=1000 + i, floaters=0.02)
             target = make_object(cat, seed=200 + i, n_gaussians=n_dst, sample_seed=2000 + i, floaters=0.02)
             return source, target.transformed(truth), truth
 
         pairs.append((f"{cat}-{i}", make))
-    return _run_pairs("same", pairs, _stages_available(), out)
+    return pairs
 
 
-def protocol_category(quick: bool, seed: int, out: Path) -> list[dict]:
-    instances = 3 if quick else 5
-    n = 3000 if quick else 15_000
-    rows = []
+def category_pairs(quick: bool, seed: int, instances: int | None = None) -> list[Pair]:
+    """All C(instances, 2) pairs of each category; the source is instance a, the
+    target instance b under a random Sim(3). Labels are 'category-a-b'."""
+    instances = instances or (3 if quick else 5)
+    n = 2000 if quick else 15_000
+    pairs = []
     for cat in CATEGORIES:
-        pairs = []
         for a, b in itertools.combinations(range(instances), 2):
 
             def make(cat=cat, a=a, b=b):
@@ -120,36 +200,201 @@ def protocol_category(quick: bool, seed: int, out: Path) -> list[dict]:
                 return source, target, truth
 
             pairs.append((f"{cat}-{a}-{b}", make))
-        for row in _run_pairs(f"category-{cat}", pairs, _stages_available(), out):
-            row["category"] = cat
-            rows.append(row)
+    return pairs
+
+
+def _category_of(label: str) -> dict:
+    return {"category": label.split("-")[0]}
+
+
+# ---------------------------------------------------------------- protocols
+
+
+def protocol_dup(quick: bool, seed: int, out: Path, peers: list[str] | None = None) -> list[dict]:
+    rows = evaluate("dup", dup_pairs(quick, seed), default_runners(seed, peers))
+    _save(out, "dup", rows)
+    return rows
+
+
+def protocol_same(quick: bool, seed: int, out: Path, peers: list[str] | None = None) -> list[dict]:
+    rows = evaluate("same", same_pairs(quick, seed), default_runners(seed, peers))
+    _save(out, "same", rows)
+    return rows
+
+
+def protocol_category(quick: bool, seed: int, out: Path, peers: list[str] | None = None) -> list[dict]:
+    rows = evaluate("category", category_pairs(quick, seed), default_runners(seed, peers), _category_of)
+    for row in rows:
+        row["per_category_mean_rre_deg"] = _per_category(row["records"])
     _save(out, "category", rows)
     return rows
 
 
-def _speed_child(n: int, seed: int) -> dict:
-    """One size in a fresh process so peak RSS belongs to this size alone."""
+def _per_category(records: list[dict]) -> dict:
+    out = {}
+    for cat in CATEGORIES:
+        rre = [r["rre_deg"] for r in records if r.get("category") == cat]
+        if rre:
+            out[cat] = float(np.mean(rre))
+    return out
+
+
+# ---------------------------------------------------------------- ablation
+
+
+ABLATION_COARSE = [
+    # refine="off": the feature stage (Alg. 3) alone, as the paper's rows; our
+    # default pipeline follows it with nearest-neighbour refinement (last row).
+    ("coarse, 1 iteration", dict(coarse_iterations=1, refine="off")),
+    ("coarse, 3 iterations", dict(coarse_iterations=3, refine="off")),
+    ("coarse, until convergence", dict(coarse_iterations=200, refine="off")),
+    ("coarse (default: feature stage + NN refinement)", dict()),
+]
+FINE_BASE = dict(coarse_iterations=3, refine="off")  # the paper's "coarse 3 iterations + fine"
+
+
+def similar_cameras(target, n: int = 3, pool: int = 60, image_size: int = 128, seed: int = 0):
+    """n mutually close orbit cameras: the first of a dense orbit and its n-1 nearest."""
+    from gsa.render.cameras import cameras_around
+
+    cams = cameras_around(target.means, pool, image_size, seed=seed)
+    centers = cams.centers() - target.means.astype(np.float64).mean(0)
+    dirs = centers / np.linalg.norm(centers, axis=1, keepdims=True)
+    order = np.argsort(-(dirs @ dirs[0]))[:n]
+    return cams[np.sort(order)]
+
+
+def _fine_from(source, target, coarse_result, cameras, on: str, views: int, seed: int) -> Sim3:
+    """The pipeline's fine stage (gsa.align.pipeline._Pair.fine) from a given coarse
+    result with an explicit camera set: canonical features from the frames the
+    coarse stage chose, as align() builds them."""
+    from gsa.align.canonical import canonical_features
+    from gsa.align.fine import FineOptions, fine_align
+
+    if coarse_result.features == "canonical":
+        source = source.with_features(canonical_features(source.means.astype(np.float64), coarse_result.source_frame))
+        target = target.with_features(canonical_features(target.means.astype(np.float64), coarse_result.target_frame))
+    defaults = AlignOptions()
+    opts = FineOptions(iterations=defaults.fine_iterations, lr=defaults.fine_lr, views=views,
+                       image_size=defaults.fine_image_size, loss=defaults.fine_loss, on=on, seed=seed)
+    return fine_align(source, target, coarse_result.coarse.transform, opts, cameras=cameras).transform
+
+
+def ablation_runner(seed: int) -> Runner:
+    from gsa.align.coarse import CoarseOptions, icp_refine
+    from gsa.align.canonical import model_frame
+    from scipy.spatial import cKDTree
+
+    def run(source, target):
+        out = {}
+        for label, opts in ABLATION_COARSE:
+            t0 = time.perf_counter()
+            res = align(source, target, AlignOptions(**opts))
+            out[label] = (res.transform, time.perf_counter() - t0)
+
+        # Features off: our closed-form ICP on spatial nearest neighbours only,
+        # from the authors' centroid start plus the RMS-radius scale ratio.
+        t0 = time.perf_counter()
+        sf, df = model_frame(source), model_frame(target)
+        s = df.radius / sf.radius
+        init = Sim3(s, np.eye(3), df.center - s * sf.center)
+        dst = target.means.astype(np.float64)
+        rows = np.random.default_rng(seed).permutation(len(source))[:20_000]
+        res = icp_refine(source.means.astype(np.float64)[rows], dst, cKDTree(dst), init, CoarseOptions(max_iterations=200))
+        out["features off (plain ICP, centroid/RMS start)"] = (res.transform, time.perf_counter() - t0)
+
+        if not fine_available():
+            return out
+        from gsa.render.cameras import cameras_around
+
+        t0 = time.perf_counter()
+        base = align(source, target, AlignOptions(**FINE_BASE))
+        coarse_s = time.perf_counter() - t0
+        size = AlignOptions().fine_image_size
+        variants = [
+            ("coarse 3 + fine, 3 similar views", similar_cameras(target, 3, image_size=size, seed=seed), "features", 3),
+            ("coarse 3 + fine, 3 diverse views", cameras_around(target.means, 3, size, seed=seed), "features", 3),
+            ("coarse 3 + fine, 30 views", cameras_around(target.means, 30, size, seed=seed), "features", 30),
+            ("coarse 3 + fine on colours, 3 diverse views", cameras_around(target.means, 3, size, seed=seed), "colors", 3),
+        ]
+        for label, cams, on, views in variants:
+            t0 = time.perf_counter()
+            try:
+                est = _fine_from(source, target, base, cams, on, views, seed)
+            except Exception as exc:
+                est = exc
+            out[label] = (est, coarse_s + time.perf_counter() - t0)
+        return out
+
+    return run
+
+
+def protocol_ablation(quick: bool, seed: int, out: Path, peers: list[str] | None = None) -> list[dict]:
+    # Cross-instance pairs like Table 4. Full: 3 instances per category (18 pairs)
+    # rather than 5 (60): 9 configurations per pair, 4 of them rendering.
+    pairs = category_pairs(quick, seed, instances=2 if quick else 3)
+    if not fine_available():
+        print("note: gsa.align.fine is not importable; fine-stage ablation rows skipped")
+    rows = evaluate("ablation", pairs, [ablation_runner(seed)], _category_of)
+    for row in rows:
+        row["per_category_mean_rre_deg"] = _per_category(row["records"])
+    _save(out, "ablation", rows)
+    return rows
+
+
+# ---------------------------------------------------------------- speed
+
+
+def _speed_child(n: int, seed: int, stage: str) -> dict:
+    """One (size, stage) in a fresh process so peak RSS belongs to it alone."""
     truth = random_sim3(np.random.default_rng(seed))
     source = make_object("car", seed=1, n_gaussians=n, sample_seed=1, floaters=0.02)
     target = make_object("car", seed=1, n_gaussians=n, sample_seed=2).transformed(truth)
-    align(source.subset(np.arange(2000)), target.subset(np.arange(2000)))  # compile kernels outside the timing
-    base = _rss_now_mb()
+    small_s, small_t = source.subset(np.arange(2000)), target.subset(np.arange(2000))
+    row = {"gaussians": n, "stage": stage}
+    if stage == "coarse":
+        align(small_s, small_t)  # compile kernels outside the timing
+        fn = lambda: align(source, target)  # noqa: E731
+    elif stage == "fine":
+        align(small_s, small_t, AlignOptions(stages=("coarse", "fine"), fine_iterations=1))
+        coarse = align(source, target)
+        from gsa.align.canonical import canonical_features
+        from gsa.align.fine import FineOptions, fine_align
+
+        src = source.with_features(canonical_features(source.means.astype(np.float64), coarse.source_frame))
+        dst = target.with_features(canonical_features(target.means.astype(np.float64), coarse.target_frame))
+        d = AlignOptions()
+        opts = FineOptions(iterations=d.fine_iterations, lr=d.fine_lr, views=d.fine_views, image_size=d.fine_image_size)
+        row.update(views=d.fine_views, image_size=d.fine_image_size, iterations=d.fine_iterations)
+        fn = lambda: fine_align(src, dst, coarse.transform, opts)  # noqa: E731
+    elif stage == "render":
+        from gsa.render import render_model
+        from gsa.render.cameras import cameras_around
+
+        cams = cameras_around(target.means, 1, 256)
+        render_model(small_t, cams, features=False)
+        row.update(views=1, image_size=256)
+        fn = lambda: render_model(target, cams, features=False)  # noqa: E731
+    elif stage == "lift":
+        from gsa.features import CanonicalExtractor, lift_features
+
+        lift_features(small_t, CanonicalExtractor("cpu"), views=2, image_size=32, iterations=1, backend="cpu")
+        row.update(views=24, image_size=128, iterations=150)
+        fn = lambda: lift_features(target, CanonicalExtractor("cpu"), views=24, image_size=128,  # noqa: E731
+                                   iterations=150, backend="cpu")
+    else:
+        raise ValueError(stage)
     peak_before = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+    base = _rss_now_mb()
     t0 = time.perf_counter()
-    result = align(source, target)
-    seconds = time.perf_counter() - t0
+    result = fn()
+    row["seconds"] = time.perf_counter() - t0
     peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
-    acc = accuracy(result.transform, truth, source.means, target.means)
-    return {
-        "gaussians": n,
-        "align_seconds": seconds,
-        "coarse_seconds": sum(result.timings[k] for k in ("features", "hypotheses", "coarse")),
-        "timings": result.timings,
-        "peak_rss_mb": peak,
-        "alignment_peak_mb": max(peak - max(base, peak_before), 0.0) if peak > peak_before else 0.0,
-        "process_rss_before_mb": base,
-        "rre_deg": acc["rre_deg"],
-    }
+    row["peak_rss_mb"] = peak
+    row["stage_peak_mb"] = max(peak - base, 0.0) if peak > peak_before else 0.0
+    if stage == "coarse":
+        row["rre_deg"] = accuracy(result.transform, truth, source.means, target.means)["rre_deg"]
+    return row
 
 
 def _rss_now_mb() -> float:
@@ -160,74 +405,51 @@ def _rss_now_mb() -> float:
         return 0.0
 
 
-def protocol_speed(quick: bool, seed: int, out: Path) -> list[dict]:
-    sizes = [10_000, 50_000] if quick else [10_000, 50_000, 100_000, 200_000]
+def speed_stages() -> list[str]:
+    stages = ["coarse"]
+    if fine_available():
+        stages.append("fine")
+    else:
+        print("note: speed: gsa.align.fine absent, fine timing skipped")
+    try:
+        import gsa.render  # noqa: F401
+
+        stages.append("render")
+    except ImportError:
+        print("note: speed: gsa.render absent, rendering timing skipped")
+    try:
+        import gsa.features.lift  # noqa: F401
+
+        stages.append("lift")
+    except ImportError:
+        print("note: speed: gsa.features.lift absent, lifting timing skipped")
+    return stages
+
+
+def protocol_speed(quick: bool, seed: int, out: Path, peers: list[str] | None = None) -> list[dict]:
+    sizes = [2_000, 5_000] if quick else [10_000, 50_000, 100_000, 200_000]
     rows = []
-    for n in sizes:
+    for n, stage in itertools.product(sizes, speed_stages()):
         proc = subprocess.run(
-            [sys.executable, "-c", f"import json; from gsa.bench.protocols import _speed_child; "
-             f"print(json.dumps(_speed_child({n}, {seed})))"],
-            capture_output=True, text=True, check=True,
+            [sys.executable, "-c", "import json; from gsa.bench.protocols import _speed_child; "
+             f"print(json.dumps(_speed_child({n}, {seed}, {stage!r})))"],
+            capture_output=True, text=True,
         )
+        if proc.returncode != 0:
+            tail = (proc.stderr.strip().splitlines() or ["?"])[-1]
+            print(f"note: speed {stage} at {n} failed: {tail}")
+            rows.append({"protocol": "speed", "gaussians": n, "stage": stage, "error": tail})
+            continue
         row = json.loads(proc.stdout.strip().splitlines()[-1])
         row["protocol"] = "speed"
         rows.append(row)
-        print(f"  {n} Gaussians: {row['align_seconds']:.2f} s, peak RSS {row['peak_rss_mb']:.0f} MB", file=sys.stderr)
+        print(f"  {n} Gaussians, {stage}: {row['seconds']:.2f} s, peak RSS {row['peak_rss_mb']:.0f} MB",
+              file=sys.stderr, flush=True)
     _save(out, "speed", rows)
     return rows
 
 
-PROTOCOLS = {"dup": protocol_dup, "same": protocol_same, "category": protocol_category, "speed": protocol_speed}
-
-
-def _save(out: Path, name: str, rows: list[dict]) -> None:
-    out.mkdir(parents=True, exist_ok=True)
-    meta = {"date": date.today().isoformat(), "machine": f"{platform.machine()}, {os.cpu_count()} CPU cores",
-            "python": platform.python_version()}
-    (out / f"{name}.json").write_text(json.dumps({"meta": meta, "rows": rows}, indent=2))
-
-
-def format_table(name: str, rows: list[dict]) -> str:
-    if name == "io":
-        lines = ["| Gaussians (SH degree 3) | file (MB) | write (s) | read (s) | RSS growth after read (MB) |",
-                 "|---:|---:|---:|---:|---:|"]
-        for r in rows:
-            lines.append(f"| {r['gaussians']:,} | {r['file_mb']:.0f} | {r['write_seconds']:.2f} | "
-                         f"{r['read_seconds']:.2f} | {r['rss_growth_mb']:.0f} |")
-        return "\n".join(lines)
-    if name == "speed":
-        lines = ["| Gaussians (each model) | align total (s) | coarse (s) | peak RSS (MB) | alignment's own peak (MB) | RRE (°) |",
-                 "|---:|---:|---:|---:|---:|---:|"]
-        for r in rows:
-            lines.append(f"| {r['gaussians']:,} | {r['align_seconds']:.2f} | {r['coarse_seconds']:.2f} | "
-                         f"{r['peak_rss_mb']:.0f} | {r['alignment_peak_mb']:.0f} | {r['rre_deg']:.3f} |")
-        return "\n".join(lines)
-    lines = ["| protocol | stages | pairs | mean RRE (°) | median RRE (°) | mean scale err (%) | mean ATE / diag | success (RRE<5°) | s / pair |",
-             "|---|---|---:|---:|---:|---:|---:|---:|---:|"]
-    for r in rows:
-        lines.append(
-            f"| {r['protocol']} | {r['stages']} | {r['pairs']} | {r['mean_rre_deg']:.4f} | {r['median_rre_deg']:.4f} | "
-            f"{r['mean_scale_error_pct']:.4f} | {r['mean_ate_normalized']:.5f} | {r['success_rate'] * 100:.0f}% | "
-            f"{r['seconds_per_pair']:.2f} |"
-        )
-    return "\n".join(lines)
-
-
-def run_protocols(names: list[str], quick: bool = False, out: str = "out/bench", seed: int = 0) -> int:
-    unknown = [n for n in names if n not in PROTOCOLS]
-    if unknown:
-        raise ValueError(f"unknown protocol(s) {', '.join(unknown)}; choose from {', '.join(PROTOCOLS)}")
-    out_dir = Path(out)
-    print(f"GSA benchmarks — {date.today().isoformat()}, {platform.machine()}, {os.cpu_count()} CPU cores"
-          f"{' (quick)' if quick else ''}")
-    for name in names:
-        t0 = time.perf_counter()
-        rows = PROTOCOLS[name](quick, seed, out_dir)
-        print(f"\n### {name} ({time.perf_counter() - t0:.0f} s)\n")
-        print(format_table(name, rows))
-        sys.stdout.flush()
-    print(f"\nJSON: {out_dir}/")
-    return 0
+# ---------------------------------------------------------------- io
 
 
 def _io_child(n: int) -> dict:
@@ -252,7 +474,7 @@ def _io_child(n: int) -> dict:
                 "rss_growth_mb": _rss_now_mb() - base, "peak_rss_mb": peak}
 
 
-def protocol_io(quick: bool, seed: int, out: Path) -> list[dict]:
+def protocol_io(quick: bool, seed: int, out: Path, peers: list[str] | None = None) -> list[dict]:
     n = 200_000 if quick else 1_000_000
     proc = subprocess.run(
         [sys.executable, "-c", f"import json; from gsa.bench.protocols import _io_child; print(json.dumps(_io_child({n})))"],
@@ -263,4 +485,90 @@ def protocol_io(quick: bool, seed: int, out: Path) -> list[dict]:
     return rows
 
 
-PROTOCOLS["io"] = protocol_io
+PROTOCOLS = {
+    "dup": protocol_dup,
+    "same": protocol_same,
+    "category": protocol_category,
+    "ablation": protocol_ablation,
+    "speed": protocol_speed,
+    "io": protocol_io,
+}
+
+
+# ---------------------------------------------------------------- output
+
+
+def _save(out: Path, name: str, rows: list[dict]) -> None:
+    out.mkdir(parents=True, exist_ok=True)
+    meta = {"date": date.today().isoformat(), "machine": f"{platform.machine()}, {os.cpu_count()} CPU cores",
+            "python": platform.python_version(), "note": NOISE_NOTE}
+    (out / f"{name}.json").write_text(json.dumps({"meta": meta, "rows": rows}, indent=2, default=str))
+
+
+def _f(x: float, digits: int) -> str:
+    return "—" if x is None or not np.isfinite(x) else f"{x:.{digits}f}"
+
+
+def format_table(name: str, rows: list[dict]) -> str:
+    if name == "io":
+        lines = ["| Gaussians (SH degree 3) | file (MB) | write (s) | read (s) | RSS growth after read (MB) |",
+                 "|---:|---:|---:|---:|---:|"]
+        for r in rows:
+            lines.append(f"| {r['gaussians']:,} | {r['file_mb']:.0f} | {r['write_seconds']:.2f} | "
+                         f"{r['read_seconds']:.2f} | {r['rss_growth_mb']:.0f} |")
+        return "\n".join(lines)
+    if name == "speed":
+        lines = ["| Gaussians (each model) | stage | s | peak RSS (MB) | stage's own peak (MB) | note |",
+                 "|---:|---|---:|---:|---:|---|"]
+        for r in rows:
+            if "error" in r:
+                lines.append(f"| {r['gaussians']:,} | {r['stage']} | — | — | — | failed: {r['error'][:60]} |")
+                continue
+            note = ", ".join(f"{k} {r[k]}" for k in ("views", "image_size", "iterations") if k in r)
+            if "rre_deg" in r:
+                note = f"RRE {r['rre_deg']:.3f}°"
+            lines.append(f"| {r['gaussians']:,} | {r['stage']} | {r['seconds']:.2f} | {r['peak_rss_mb']:.0f} | "
+                         f"{r['stage_peak_mb']:.0f} | {note} |")
+        return "\n".join(lines)
+    if name in ("category", "ablation"):
+        cats = [c for c in CATEGORIES if any(c in r.get("per_category_mean_rre_deg", {}) for r in rows)]
+        head = "method" if name == "category" else "configuration"
+        lines = [f"| {head} | " + " | ".join(f"{c} RRE (°)" for c in cats)
+                 + " | mean RRE (°) | success (RRE<5°) | s / pair | time ratio vs GSA coarse |",
+                 "|---|" + "---:|" * (len(cats) + 4)]
+        for r in rows:
+            per = r["per_category_mean_rre_deg"]
+            lines.append(f"| {r['method']} | " + " | ".join(_f(per.get(c, float('nan')), 2) for c in cats)
+                         + f" | {_f(r['mean_rre_deg'], 2)} | {r['success_rate'] * 100:.0f}% | "
+                           f"{r['seconds_per_pair']:.2f} | {_f(r['time_ratio_vs_gsa_coarse'], 2)} |")
+        return "\n".join(lines)
+    lines = ["| method | pairs | mean RRE (°) | median RRE (°) | mean scale err (%) | mean ATE / diag | "
+             "success (RRE<5°) | s / pair | time ratio vs GSA coarse |",
+             "|---|---:|---:|---:|---:|---:|---:|---:|---:|"]
+    for r in rows:
+        failed = f" ({r['failed']} failed)" if r.get("failed") else ""
+        lines.append(
+            f"| {r['method']} | {r['pairs']}{failed} | {_f(r['mean_rre_deg'], 4)} | {_f(r['median_rre_deg'], 4)} | "
+            f"{_f(r['mean_scale_error_pct'], 4)} | {_f(r['mean_ate_normalized'], 5)} | {r['success_rate'] * 100:.0f}% | "
+            f"{r['seconds_per_pair']:.2f} | {_f(r['time_ratio_vs_gsa_coarse'], 2)} |"
+        )
+    return "\n".join(lines)
+
+
+def run_protocols(names: list[str], quick: bool = False, out: str = "out/bench", seed: int = 0,
+                  peers: list[str] | None = None) -> int:
+    unknown = [n for n in names if n not in PROTOCOLS]
+    if unknown:
+        raise ValueError(f"unknown protocol(s) {', '.join(unknown)}; choose from {', '.join(PROTOCOLS)}")
+    out_dir = Path(out)
+    print(f"GSA benchmarks — {date.today().isoformat()}, {platform.machine()}, {os.cpu_count()} CPU cores"
+          f"{' (quick)' if quick else ''}\n{NOISE_NOTE}")
+    start = time.perf_counter()
+    for name in names:
+        t0 = time.perf_counter()
+        rows = PROTOCOLS[name](quick, seed, out_dir, peers)
+        print(f"\n### {name} ({time.perf_counter() - t0:.0f} s wall)\n")
+        print(format_table(name, rows))
+        sys.stdout.flush()
+    print(f"\nTotal wall time {time.perf_counter() - start:.0f} s. JSON: {out_dir}/")
+    return 0
