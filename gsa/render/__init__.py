@@ -95,7 +95,12 @@ def render_gaussians(means, cov3d, opacities, viewmats, intrinsics, width: int, 
                              features=features, background=background, feature_background=feature_background,
                              depth=depth)
     dtype = means.dtype
-    means2d, conics, z, cov_diag, valid = project(means, cov3d, viewmats, intrinsics, width, height)
+    if backend == "cpu":
+        from gsa.render.cpu import project_cpu
+
+        means2d, conics, z, cov_diag, valid = project_cpu(means, cov3d, viewmats, intrinsics, width, height)
+    else:
+        means2d, conics, z, cov_diag, valid = project(means, cov3d, viewmats, intrinsics, width, height)
     chans, bgs = [], []
     if sh is not None:
         if sh.ndim != 3 or sh.shape[0] != n or sh.shape[2] != 3 or sh.shape[1] not in (1, 4, 9, 16):
