@@ -30,7 +30,7 @@ from gsa.render.reference import ALPHA_MAX, ALPHA_MIN, MAHA_CUTOFF, T_MIN
 TILE = 16
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def _pixel_box(mx, my, ex, ey, x0, y0, x1, y1):
     """Pixels (inclusive ranges) whose centres lie inside [m - e, m + e], clipped to a tile."""
     px0 = max(x0, int(math.ceil(mx - ex - 0.5)))
@@ -40,7 +40,7 @@ def _pixel_box(mx, my, ex, ey, x0, y0, x1, y1):
     return px0, px1, py0, py1
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def _extents(cov_diag, opac, valid):
     """(C,N,2) half-extents of each Gaussian's footprint; -1 for culled ones.
 
@@ -63,7 +63,7 @@ def _extents(cov_diag, opac, valid):
     return ext
 
 
-@njit(parallel=True, cache=True)
+@njit(parallel=True, cache=True, error_model="numpy")
 def _bin(means2d, ext, depths, width, height, tile):
     """Per (camera, tile) lists of Gaussian ids sorted front to back.
 
@@ -97,7 +97,7 @@ def _bin(means2d, ext, depths, width, height, tile):
     ids = np.empty(offsets[-1], np.int32)
     for c in prange(c_count):
         cursor = offsets[c * nt:(c + 1) * nt].copy()
-        order = np.argsort(depths[c], kind="mergesort")  # stable, like the reference
+        order = np.argsort(depths[c])  # exact depth ties (measure zero) may order differently from the reference
         for i in order:
             if rects[c, i, 0] < 0:
                 continue
@@ -109,15 +109,16 @@ def _bin(means2d, ext, depths, width, height, tile):
     return offsets, ids
 
 
-@njit(parallel=True, cache=True)
+@njit(parallel=True, cache=True, error_model="numpy")
 def _forward(means2d, conics, opac, chans, ext, bg, offsets, ids, width, height, tile):
     """-> out (C,H,W,F), t_final (C,H,W), n_contrib (C,H,W) int32 (list position past the last contributor)."""
     c_count, n, f = chans.shape
     tx_n = (width + tile - 1) // tile
     ty_n = (height + tile - 1) // tile
     nt = tx_n * ty_n
-    out = np.empty((c_count, height, width, f), chans.dtype)
-    t_final = np.empty((c_count, height, width), chans.dtype)
+    dt = chans.dtype
+    out = np.empty((c_count, height, width, f), dt)
+    t_final = np.empty((c_count, height, width), dt)
     n_contrib = np.zeros((c_count, height, width), np.int32)
     for job in prange(c_count * nt):
         c = job // nt
@@ -128,10 +129,10 @@ def _forward(means2d, conics, opac, chans, ext, bg, offsets, ids, width, height,
         y1 = min(y0 + tile, height)
         tw = x1 - x0
         th = y1 - y0
-        trans = np.ones((th, tw), chans.dtype)
-        acc = np.zeros((th, tw, f), chans.dtype)
-        done = np.zeros((th, tw), np.bool_)
-        last = np.zeros((th, tw), np.int32)
+        trans = np.ones(th * tw, dt)
+        acc = np.zeros((th * tw, f), dt)
+        done = np.zeros(th * tw, np.bool_)
+        last = np.zeros(th * tw, np.int32)
         n_done = 0
         start = offsets[job]
         for k in range(start, offsets[job + 1]):
@@ -144,13 +145,14 @@ def _forward(means2d, conics, opac, chans, ext, bg, offsets, ids, width, height,
             cb = conics[c, g, 1]
             cc = conics[c, g, 2]
             o = opac[c, g]
+            col = chans[c, g]
             px0, px1, py0, py1 = _pixel_box(mx, my, ext[c, g, 0], ext[c, g, 1], x0, y0, x1, y1)
             for py in range(py0, py1 + 1):
                 dy = my - (py + 0.5)
-                ly = py - y0
+                row = (py - y0) * tw - x0
                 for px in range(px0, px1 + 1):
-                    lx = px - x0
-                    if done[ly, lx]:
+                    lp = row + px
+                    if done[lp]:
                         continue
                     dx = mx - (px + 0.5)
                     m2 = ca * dx * dx + 2.0 * cb * dx * dy + cc * dy * dy
@@ -159,29 +161,31 @@ def _forward(means2d, conics, opac, chans, ext, bg, offsets, ids, width, height,
                     alpha = min(ALPHA_MAX, o * math.exp(-0.5 * m2))
                     if alpha < ALPHA_MIN:
                         continue
-                    t_next = trans[ly, lx] * (1.0 - alpha)
+                    tr = trans[lp]
+                    t_next = tr * (1.0 - alpha)
                     if t_next < T_MIN:
-                        done[ly, lx] = True
+                        done[lp] = True
                         n_done += 1
                         continue
-                    w = alpha * trans[ly, lx]
+                    w = alpha * tr
                     for ch in range(f):
-                        acc[ly, lx, ch] += w * chans[c, g, ch]
-                    trans[ly, lx] = t_next
-                    last[ly, lx] = k - start + 1
+                        acc[lp, ch] += w * col[ch]
+                    trans[lp] = t_next
+                    last[lp] = k - start + 1
         for ly in range(th):
             for lx in range(tw):
+                lp = ly * tw + lx
                 for ch in range(f):
-                    out[c, y0 + ly, x0 + lx, ch] = acc[ly, lx, ch] + trans[ly, lx] * bg[ch]
-                t_final[c, y0 + ly, x0 + lx] = trans[ly, lx]
-                n_contrib[c, y0 + ly, x0 + lx] = last[ly, lx]
+                    out[c, y0 + ly, x0 + lx, ch] = acc[lp, ch] + trans[lp] * bg[ch]
+                t_final[c, y0 + ly, x0 + lx] = trans[lp]
+                n_contrib[c, y0 + ly, x0 + lx] = last[lp]
     return out, t_final, n_contrib
 
 
-@njit(parallel=True, cache=True)
+@njit(parallel=True, cache=True, error_model="numpy")
 def _backward(means2d, conics, opac, chans, ext, bg, offsets, ids, t_final, n_contrib, g_out, g_alpha,
-              width, height, tile):
-    """Per-pair gradients: g_xy (P,2), g_conic (P,3), g_opac (P,), g_chan (P,F)."""
+              width, height, tile, want_chans):
+    """Per-pair gradients: g_xy (P,2), g_conic (P,3), g_opac (P,), g_chan (P,F) (zero-size unless want_chans)."""
     c_count, n, f = chans.shape
     tx_n = (width + tile - 1) // tile
     ty_n = (height + tile - 1) // tile
@@ -191,7 +195,7 @@ def _backward(means2d, conics, opac, chans, ext, bg, offsets, ids, t_final, n_co
     g_xy = np.zeros((p_count, 2), dt)
     g_con = np.zeros((p_count, 3), dt)
     g_op = np.zeros(p_count, dt)
-    g_ch = np.zeros((p_count, f), dt)
+    g_ch = np.zeros((p_count if want_chans else 0, f), dt)
     for job in prange(c_count * nt):
         c = job // nt
         t = job % nt
@@ -202,20 +206,28 @@ def _backward(means2d, conics, opac, chans, ext, bg, offsets, ids, t_final, n_co
         tw = x1 - x0
         th = y1 - y0
         start = offsets[job]
-        trans = np.empty((th, tw), dt)
-        accum = np.zeros((th, tw, f), dt)
-        last_ch = np.zeros((th, tw, f), dt)
-        last_alpha = np.zeros((th, tw), dt)
-        bg_dot = np.zeros((th, tw), dt)
+        npx = th * tw
+        trans = np.empty(npx, dt)
+        tfin = np.empty(npx, dt)
+        ncon = np.empty(npx, np.int32)
+        accum = np.zeros((npx, f), dt)
+        last_ch = np.zeros((npx, f), dt)
+        gout = np.empty((npx, f), dt)
+        last_alpha = np.zeros(npx, dt)
+        alpha_term = np.empty(npx, dt)
         max_n = 0
         for ly in range(th):
             for lx in range(tw):
-                trans[ly, lx] = t_final[c, y0 + ly, x0 + lx]
+                lp = ly * tw + lx
+                tfin[lp] = t_final[c, y0 + ly, x0 + lx]
+                trans[lp] = tfin[lp]
+                ncon[lp] = n_contrib[c, y0 + ly, x0 + lx]
                 s = 0.0
                 for ch in range(f):
-                    s += bg[ch] * g_out[c, y0 + ly, x0 + lx, ch]
-                bg_dot[ly, lx] = s
-                max_n = max(max_n, n_contrib[c, y0 + ly, x0 + lx])
+                    gout[lp, ch] = g_out[c, y0 + ly, x0 + lx, ch]
+                    s += bg[ch] * gout[lp, ch]
+                alpha_term[lp] = g_alpha[c, y0 + ly, x0 + lx] - s
+                max_n = max(max_n, ncon[lp])
         for kk in range(max_n - 1, -1, -1):
             k = start + kk
             g = ids[k]
@@ -225,13 +237,20 @@ def _backward(means2d, conics, opac, chans, ext, bg, offsets, ids, t_final, n_co
             cb = conics[c, g, 1]
             cc = conics[c, g, 2]
             o = opac[c, g]
+            col = chans[c, g]
             px0, px1, py0, py1 = _pixel_box(mx, my, ext[c, g, 0], ext[c, g, 1], x0, y0, x1, y1)
+            gx = 0.0
+            gy = 0.0
+            ga = 0.0
+            gb = 0.0
+            gc = 0.0
+            go_ = 0.0
             for py in range(py0, py1 + 1):
                 dy = my - (py + 0.5)
-                ly = py - y0
+                row = (py - y0) * tw - x0
                 for px in range(px0, px1 + 1):
-                    lx = px - x0
-                    if kk >= n_contrib[c, py, px]:
+                    lp = row + px
+                    if kk >= ncon[lp]:
                         continue
                     dx = mx - (px + 0.5)
                     m2 = ca * dx * dx + 2.0 * cb * dx * dy + cc * dy * dy
@@ -242,41 +261,49 @@ def _backward(means2d, conics, opac, chans, ext, bg, offsets, ids, t_final, n_co
                     alpha = min(ALPHA_MAX, raw)
                     if alpha < ALPHA_MIN:
                         continue
-                    tr = trans[ly, lx] / (1.0 - alpha)
-                    trans[ly, lx] = tr
+                    inv = 1.0 / (1.0 - alpha)
+                    tr = trans[lp] * inv
+                    trans[lp] = tr
                     d_alpha = 0.0
-                    la = last_alpha[ly, lx]
+                    la = last_alpha[lp]
                     for ch in range(f):
-                        go = g_out[c, py, px, ch]
-                        g_ch[k, ch] += alpha * tr * go
+                        go = gout[lp, ch]
+                        if want_chans:
+                            g_ch[k, ch] += alpha * tr * go
                         # colour of everything behind this Gaussian, as seen through it
-                        accum[ly, lx, ch] = la * last_ch[ly, lx, ch] + (1.0 - la) * accum[ly, lx, ch]
-                        last_ch[ly, lx, ch] = chans[c, g, ch]
-                        d_alpha += (chans[c, g, ch] - accum[ly, lx, ch]) * go
-                    d_alpha *= tr
-                    last_alpha[ly, lx] = alpha
-                    tf = t_final[c, py, px] / (1.0 - alpha)
-                    d_alpha += tf * (g_alpha[c, py, px] - bg_dot[ly, lx])
+                        acc = la * last_ch[lp, ch] + (1.0 - la) * accum[lp, ch]
+                        accum[lp, ch] = acc
+                        last_ch[lp, ch] = col[ch]
+                        d_alpha += (col[ch] - acc) * go
+                    d_alpha = d_alpha * tr + tfin[lp] * inv * alpha_term[lp]
+                    last_alpha[lp] = alpha
                     if raw <= ALPHA_MAX:  # clamped alpha has no gradient
-                        g_op[k] += gauss * d_alpha
+                        go_ += gauss * d_alpha
                         d_m2 = -0.5 * raw * d_alpha
-                        g_xy[k, 0] += d_m2 * 2.0 * (ca * dx + cb * dy)
-                        g_xy[k, 1] += d_m2 * 2.0 * (cb * dx + cc * dy)
-                        g_con[k, 0] += d_m2 * dx * dx
-                        g_con[k, 1] += d_m2 * 2.0 * dx * dy
-                        g_con[k, 2] += d_m2 * dy * dy
+                        gx += d_m2 * 2.0 * (ca * dx + cb * dy)
+                        gy += d_m2 * 2.0 * (cb * dx + cc * dy)
+                        ga += d_m2 * dx * dx
+                        gb += d_m2 * 2.0 * dx * dy
+                        gc += d_m2 * dy * dy
+            g_xy[k, 0] = gx
+            g_xy[k, 1] = gy
+            g_con[k, 0] = ga
+            g_con[k, 1] = gb
+            g_con[k, 2] = gc
+            g_op[k] = go_
     return g_xy, g_con, g_op, g_ch
 
 
-@njit(parallel=True, cache=True)
+@njit(parallel=True, cache=True, error_model="numpy")
 def _reduce(g_xy, g_con, g_op, g_ch, offsets, ids, c_count, n, nt):
-    """Sum per-pair gradients into per-(camera, Gaussian) arrays."""
+    """Sum per-pair gradients into per-(camera, Gaussian) arrays (r_ch is zero-size if g_ch is)."""
     f = g_ch.shape[1]
-    dt = g_ch.dtype
+    want_chans = g_ch.shape[0] > 0
+    dt = g_xy.dtype
     r_xy = np.zeros((c_count, n, 2), dt)
     r_con = np.zeros((c_count, n, 3), dt)
     r_op = np.zeros((c_count, n), dt)
-    r_ch = np.zeros((c_count, n, f), dt)
+    r_ch = np.zeros((c_count if want_chans else 0, n, f), dt)
     for c in prange(c_count):
         for k in range(offsets[c * nt], offsets[(c + 1) * nt]):
             g = ids[k]
@@ -285,8 +312,9 @@ def _reduce(g_xy, g_con, g_op, g_ch, offsets, ids, c_count, n, nt):
             for j in range(3):
                 r_con[c, g, j] += g_con[k, j]
             r_op[c, g] += g_op[k]
-            for ch in range(f):
-                r_ch[c, g, ch] += g_ch[k, ch]
+            if want_chans:
+                for ch in range(f):
+                    r_ch[c, g, ch] += g_ch[k, ch]
     return r_xy, r_con, r_op, r_ch
 
 
@@ -315,14 +343,16 @@ class _CompositeCPU(torch.autograd.Function):
         c_count, n, _ = ch.shape
         g_out = _np(g_out, dt) if g_out is not None else np.zeros((c_count, height, width, ch.shape[2]), dt)
         g_alpha = _np(g_alpha[..., 0], dt) if g_alpha is not None else np.zeros((c_count, height, width), dt)
+        want_chans = bool(ctx.needs_input_grad[3])
         pairs = _backward(m2d, con, op, ch, ext, bg, offsets, ids, t_final, n_contrib, g_out, g_alpha,
-                          width, height, tile)
+                          width, height, tile, want_chans)
         nt = ((width + tile - 1) // tile) * ((height + tile - 1) // tile)
         r_xy, r_con, r_op, r_ch = _reduce(*pairs, offsets, ids, c_count, n, nt)
         # background gradient: d out / d bg = T_final
         g_bg = np.einsum("chw,chwf->f", t_final, g_out)
         as_t = lambda a: torch.from_numpy(a).to(ctx.torch_dtype)  # noqa: E731
-        return (as_t(r_xy), as_t(r_con), as_t(r_op), as_t(r_ch), None, None, None, as_t(g_bg),
+        return (as_t(r_xy), as_t(r_con), as_t(r_op), as_t(r_ch) if want_chans else None, None, None, None,
+                as_t(g_bg),
                 None, None, None)
 
 
@@ -351,7 +381,7 @@ NEAR = 0.01
 _CHUNKS = 64
 
 
-@njit(parallel=True, cache=True)
+@njit(parallel=True, cache=True, error_model="numpy")
 def _project_fwd(means, cov, view, intr, width, height):
     n = means.shape[0]
     c_count = view.shape[0]
@@ -403,14 +433,14 @@ def _project_fwd(means, cov, view, intr, width, height):
     return m2d, con, depth, cdiag, valid
 
 
-@njit(parallel=True, cache=True)
-def _project_bwd(means, cov, view, intr, width, height, con, valid, g_m2d, g_con, g_depth):
-    """-> g_view (C,4,4), g_means (N,3), g_cov (N,3,3)."""
+@njit(parallel=True, cache=True, error_model="numpy")
+def _project_bwd(means, cov, view, intr, width, height, con, valid, g_m2d, g_con, g_depth, want_geom):
+    """-> g_view (C,4,4), g_means (N,3), g_cov (N,3,3) (the last two zero-size unless want_geom)."""
     n = means.shape[0]
     c_count = view.shape[0]
     dt = means.dtype
-    g_means = np.zeros((n, 3), dt)
-    g_cov = np.zeros((n, 3, 3), dt)
+    g_means = np.zeros((n if want_geom else 0, 3), dt)
+    g_cov = np.zeros((n if want_geom else 0, 3, 3), dt)
     chunk = (n + _CHUNKS - 1) // _CHUNKS
     g_view_part = np.zeros((_CHUNKS, c_count, 4, 4), np.float64)
     for k in prange(_CHUNKS):
@@ -449,8 +479,9 @@ def _project_bwd(means, cov, view, intr, width, height, con, valid, g_m2d, g_con
                     s1 = cov[i, j, 0] * m1[0] + cov[i, j, 1] * m1[1] + cov[i, j, 2] * m1[2]
                     gm0[j] = 2 * g_caa * s0 + g_cab * s1
                     gm1[j] = 2 * g_cbb * s1 + g_cab * s0
-                    for l in range(3):
-                        g_cov[i, j, l] += g_caa * m0[j] * m0[l] + g_cab * m0[j] * m1[l] + g_cbb * m1[j] * m1[l]
+                    if want_geom:
+                        for l in range(3):
+                            g_cov[i, j, l] += g_caa * m0[j] * m0[l] + g_cab * m0[j] * m1[l] + g_cbb * m1[j] * m1[l]
                 # M0 = fx/z (A0 - tu A2), M1 = fy/z (A1 - tv A2)
                 g_tu = 0.0
                 g_tv = 0.0
@@ -471,7 +502,8 @@ def _project_bwd(means, cov, view, intr, width, height, con, valid, g_m2d, g_con
                     g_view_part[k, c, 0, j] += g_x * mvec[j]
                     g_view_part[k, c, 1, j] += g_y * mvec[j]
                     g_view_part[k, c, 2, j] += g_z * mvec[j]
-                    g_means[i, j] += g_x * view[c, 0, j] + g_y * view[c, 1, j] + g_z * view[c, 2, j]
+                    if want_geom:
+                        g_means[i, j] += g_x * view[c, 0, j] + g_y * view[c, 1, j] + g_z * view[c, 2, j]
                 g_view_part[k, c, 0, 3] += g_x
                 g_view_part[k, c, 1, 3] += g_y
                 g_view_part[k, c, 2, 3] += g_z
@@ -503,9 +535,12 @@ class _ProjectCPU(torch.autograd.Function):
         g_m2d = z2((c_count, n, 2)) if g_m2d is None else _np(g_m2d, dt)
         g_con = z2((c_count, n, 3)) if g_con is None else _np(g_con, dt)
         g_depth = z2((c_count, n)) if g_depth is None else _np(g_depth, dt)
+        want_geom = bool(ctx.needs_input_grad[0] or ctx.needs_input_grad[1])
         g_view, g_means, g_cov = _project_bwd(means, cov, view, intr, width, height, con, valid, g_m2d, g_con,
-                                              g_depth)
+                                              g_depth, want_geom)
         t = lambda a: torch.from_numpy(a).to(ctx.dtype)  # noqa: E731
+        if not want_geom:
+            return None, None, t(g_view), None, None, None
         return t(g_means), t(g_cov), t(g_view), None, None, None
 
 
