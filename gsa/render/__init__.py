@@ -192,6 +192,8 @@ def render_model(model, cameras: Cameras, *, features: bool = True, background=(
     if sim3 is not None:
         cameras = cameras.for_transformed_model(sim3)
     with torch.no_grad():
-        return rasterize(model.means, model.quats, model.log_scales, model.opacity_logits, model.sh,
-                         model.features if features else None, cameras, background=background,
-                         feature_background=feature_background, depth=depth, backend=backend)
+        out = rasterize(model.means, model.quats, model.log_scales, model.opacity_logits, model.sh,
+                        model.features if features else None, cameras, background=background,
+                        feature_background=feature_background, depth=depth, backend=backend)
+    cpu = lambda t: None if t is None else t.cpu()  # noqa: E731  (gsplat renders live on the GPU)
+    return RenderOutput(cpu(out.colors), cpu(out.features), cpu(out.alpha), cpu(out.depth))
