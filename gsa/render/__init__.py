@@ -167,7 +167,13 @@ def rasterize(means, quats, log_scales, opacity_logits, colors_or_sh, features=N
     means = _as_tensor(means)
     dtype = means.dtype
     quats, log_scales, opacity_logits = (_as_tensor(a, dtype) for a in (quats, log_scales, opacity_logits))
-    cov3d = covariance_3d(quats, log_scales)
+    backend = _resolve_backend(backend)
+    if backend == "cpu":
+        from gsa.render.cpu import covariance_cpu
+
+        cov3d = covariance_cpu(quats, log_scales)
+    else:
+        cov3d = covariance_3d(quats, log_scales)
     vm, intr = camera_tensors(cameras, dtype)
     if viewmats is not None:
         vm = _as_tensor(viewmats, dtype)
