@@ -408,20 +408,22 @@ def _project_fwd(means, cov, view, intr, width, height):
             tan_y = 0.5 * height / fy
             tu = max(min(u, (width - cx) / fx + 0.3 * tan_x), -(cx / fx + 0.3 * tan_x))
             tv = max(min(v, (height - cy) / fy + 0.3 * tan_y), -(cy / fy + 0.3 * tan_y))
-            m0 = np.empty(3, dt)
-            m1 = np.empty(3, dt)
-            for j in range(3):
-                m0[j] = fx / z * (view[c, 0, j] - tu * view[c, 2, j])
-                m1[j] = fy / z * (view[c, 1, j] - tv * view[c, 2, j])
-            caa = EPS2D
-            cab = 0.0
-            cbb = EPS2D
-            for j in range(3):
-                s0 = m0[0] * cov[i, 0, j] + m0[1] * cov[i, 1, j] + m0[2] * cov[i, 2, j]
-                s1 = m1[0] * cov[i, 0, j] + m1[1] * cov[i, 1, j] + m1[2] * cov[i, 2, j]
-                caa += s0 * m0[j]
-                cab += s0 * m1[j]
-                cbb += s1 * m1[j]
+            # rows of J A (J: perspective Jacobian at the clamped point)
+            m00 = fx / z * (view[c, 0, 0] - tu * view[c, 2, 0])
+            m01 = fx / z * (view[c, 0, 1] - tu * view[c, 2, 1])
+            m02 = fx / z * (view[c, 0, 2] - tu * view[c, 2, 2])
+            m10 = fy / z * (view[c, 1, 0] - tv * view[c, 2, 0])
+            m11 = fy / z * (view[c, 1, 1] - tv * view[c, 2, 1])
+            m12 = fy / z * (view[c, 1, 2] - tv * view[c, 2, 2])
+            s00 = m00 * cov[i, 0, 0] + m01 * cov[i, 1, 0] + m02 * cov[i, 2, 0]
+            s01 = m00 * cov[i, 0, 1] + m01 * cov[i, 1, 1] + m02 * cov[i, 2, 1]
+            s02 = m00 * cov[i, 0, 2] + m01 * cov[i, 1, 2] + m02 * cov[i, 2, 2]
+            s11 = m10 * cov[i, 0, 1] + m11 * cov[i, 1, 1] + m12 * cov[i, 2, 1]
+            s10 = m10 * cov[i, 0, 0] + m11 * cov[i, 1, 0] + m12 * cov[i, 2, 0]
+            s12 = m10 * cov[i, 0, 2] + m11 * cov[i, 1, 2] + m12 * cov[i, 2, 2]
+            caa = EPS2D + s00 * m00 + s01 * m01 + s02 * m02
+            cab = s00 * m10 + s01 * m11 + s02 * m12
+            cbb = EPS2D + s10 * m10 + s11 * m11 + s12 * m12
             det = max(caa * cbb - cab * cab, 1e-12)
             con[c, i, 0] = cbb / det
             con[c, i, 1] = -cab / det
