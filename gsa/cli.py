@@ -200,7 +200,10 @@ def cmd_synth(args: argparse.Namespace) -> int:
 def cmd_bench(args: argparse.Namespace) -> int:
     from gsa.bench.protocols import run_protocols
 
-    peers = None if args.peers == "all" else [p for p in args.peers.split(",") if p and p != "none"]
+    from gsa.bench.peers import PEERS
+
+    names = {"all": list(PEERS), "default": None, "none": []}
+    peers = names[args.peers] if args.peers in names else [p for p in args.peers.split(",") if p]
     return run_protocols(args.protocols, quick=args.quick, out=args.out, seed=args.seed, peers=peers)
 
 
@@ -247,7 +250,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--quick", action="store_true", help="small sizes, a few minutes")
     p.add_argument("--out", default="out/bench", help="folder for the JSON results")
     p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--peers", default="all", help="comma list of icp,open3d,splatreg; 'none' or 'all' (default)")
+    p.add_argument("--peers", default="default", help="comma list of icp,open3d,splatreg, or default (icp,open3d), all, none")
     p.set_defaults(func=cmd_bench)
 
     _add_optional_commands(sub)

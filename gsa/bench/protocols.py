@@ -57,6 +57,10 @@ def fine_available() -> bool:
 # ---------------------------------------------------------------- runners
 
 
+# --quick keeps the fine stage but makes it cheap enough for a smoke run.
+QUICK_FINE = dict(fine_iterations=10, fine_image_size=64, fine_views=3)
+
+
 def gsa_runner(fine: bool, **options) -> Runner:
     """One align() call gives both rows: the coarse transform is kept on the
     result, and its time is the total less the fine stage."""
@@ -86,9 +90,9 @@ def peer_runner(peer: Peer, seed: int) -> Runner:
     return run
 
 
-def default_runners(seed: int, peers: list[str] | None, fine: bool = True) -> list[Runner]:
-    runners = [gsa_runner(fine and fine_available())]
-    if fine and not fine_available():
+def default_runners(seed: int, peers: list[str] | None, quick: bool) -> list[Runner]:
+    runners = [gsa_runner(fine_available(), **(QUICK_FINE if quick else {}))]
+    if not fine_available():
         print("note: gsa.align.fine is not importable; GSA rows are coarse only")
     runners += [peer_runner(p, seed) for p in available_peers(peers)]
     return runners
@@ -97,10 +101,13 @@ def default_runners(seed: int, peers: list[str] | None, fine: bool = True) -> li
 # ---------------------------------------------------------------- evaluation
 
 
-def evaluate(name: str, pairs: list[Pair], runners: list[Runner], extra: Callable[[str], dict] | None = None) -> list[dict]:
-    """Every runner on every pair (generated once, in turn); one row per method."""
+def evaluate(name: str, pairs: list[Pair], runners: list[Runner], extra: Callable[[str], dict] | None = None,
+             out: Path | None = None) -> list[dict]:
+    """Every runner on every pair (generated once, in turn); one row per method.
+    With `out`, the rows so far are saved after each pair (as NAME.partial.json),
+    so a run cut short still leaves its numbers."""
     records: dict[str, list[dict]] = {}
-    for label, make in pairs:
+    for done, (label, make) in enumerate(pairs, 1):
         source, target, truth = make()
         for run in runners:
             for method, (est, seconds) in run(source, target).items():
@@ -111,9 +118,15 @@ def evaluate(name: str, pairs: list[Pair], runners: list[Runner], extra: Callabl
                     rec.update(error=f"{type(est).__name__}: {est}", rre_deg=float("nan"),
                                scale_error_pct=float("nan"), ate=float("nan"), ate_normalized=float("nan"))
                 records.setdefault(method, []).append(rec)
-        print(f"  {name}: {label} done", file=sys.stderr, flush=True)
+        print(f"  {name}: {label} done ({done}/{len(pairs)})", file=sys.stderr, flush=True)
+        if out is not None and done < len(pairs):
+            partial = [summarise(name, method, recs) for method, recs in records.items()]
+            add_time_ratio(partial)
+            _save(out, f"{name}.partial", partial)
     rows = [summarise(name, method, recs) for method, recs in records.items()]
     add_time_ratio(rows)
+    if out is not None:
+        (out / f"{name}.partial.json").unlink(missing_ok=True)
     return rows
 
 
@@ -140,8 +153,8 @@ def summarise(protocol: str, method: str, records: list[dict]) -> dict:
     }
 
 
-def add_time_ratio(rows: list[dict]) -> None:
-    ref = next((r["seconds_per_pair"] for r in rows if r["method"] == GSA_COARSE), None)
+def add_time_ratio(rows: list[dict], reference: str = GSA_COARSE) -> None:
+    ref = next((r["seconds_per_pair"] for r in rows if r["method"] == reference), None)
     for r in rows:
         r["time_ratio_vs_gsa_coarse"] = r["seconds_per_pair"] / ref if ref else float("nan")
 
@@ -186,7 +199,7 @@ def same_pairs(quick: bool, seed: int) -> list[Pair]:
 def category_pairs(quick: bool, seed: int, instances: int | None = None) -> list[Pair]:
     """All C(instances, 2) pairs of each category; the source is instance a, the
     target instance b under a random Sim(3). Labels are 'category-a-b'."""
-    instances = instances or (3 if quick else 5)
+    instances = instances or (2 if quick else 5)
     n = 2000 if quick else 15_000
     pairs = []
     for cat in CATEGORIES:
@@ -211,19 +224,19 @@ def _category_of(label: str) -> dict:
 
 
 def protocol_dup(quick: bool, seed: int, out: Path, peers: list[str] | None = None) -> list[dict]:
-    rows = evaluate("dup", dup_pairs(quick, seed), default_runners(seed, peers))
+    rows = evaluate("dup", dup_pairs(quick, seed), default_runners(seed, peers, quick), out=out)
     _save(out, "dup", rows)
     return rows
 
 
 def protocol_same(quick: bool, seed: int, out: Path, peers: list[str] | None = None) -> list[dict]:
-    rows = evaluate("same", same_pairs(quick, seed), default_runners(seed, peers))
+    rows = evaluate("same", same_pairs(quick, seed), default_runners(seed, peers, quick), out=out)
     _save(out, "same", rows)
     return rows
 
 
 def protocol_category(quick: bool, seed: int, out: Path, peers: list[str] | None = None) -> list[dict]:
-    rows = evaluate("category", category_pairs(quick, seed), default_runners(seed, peers), _category_of)
+    rows = evaluate("category", category_pairs(quick, seed), default_runners(seed, peers, quick), _category_of, out=out)
     for row in rows:
         row["per_category_mean_rre_deg"] = _per_category(row["records"])
     _save(out, "category", rows)
@@ -245,12 +258,15 @@ def _per_category(records: list[dict]) -> dict:
 ABLATION_COARSE = [
     # refine="off": the feature stage (Alg. 3) alone, as the paper's rows; our
     # default pipeline follows it with nearest-neighbour refinement (last row).
-    ("coarse, 1 iteration", dict(coarse_iterations=1, refine="off")),
-    ("coarse, 3 iterations", dict(coarse_iterations=3, refine="off")),
+    # hypothesis_iterations too: each frame hypothesis is first run that many
+    # feature-stage iterations on a subsample, which would otherwise hide the count.
+    ("coarse, 1 iteration", dict(coarse_iterations=1, hypothesis_iterations=1, refine="off")),
+    ("coarse, 3 iterations", dict(coarse_iterations=3, hypothesis_iterations=3, refine="off")),
     ("coarse, until convergence", dict(coarse_iterations=200, refine="off")),
-    ("coarse (default: feature stage + NN refinement)", dict()),
+    (ABLATION_REFERENCE := "coarse (default: feature stage + NN refinement)", dict()),
 ]
-FINE_BASE = dict(coarse_iterations=3, refine="off")  # the paper's "coarse 3 iterations + fine"
+# the paper's "coarse 3 iterations + fine"
+FINE_BASE = dict(coarse_iterations=3, hypothesis_iterations=3, refine="off")
 
 
 def similar_cameras(target, n: int = 3, pool: int = 60, image_size: int = 128, seed: int = 0):
@@ -264,7 +280,7 @@ def similar_cameras(target, n: int = 3, pool: int = 60, image_size: int = 128, s
     return cams[np.sort(order)]
 
 
-def _fine_from(source, target, coarse_result, cameras, on: str, views: int, seed: int) -> Sim3:
+def _fine_from(source, target, coarse_result, cameras, on: str, views: int, seed: int, quick: bool = False) -> Sim3:
     """The pipeline's fine stage (gsa.align.pipeline._Pair.fine) from a given coarse
     result with an explicit camera set: canonical features from the frames the
     coarse stage chose, as align() builds them."""
@@ -274,13 +290,13 @@ def _fine_from(source, target, coarse_result, cameras, on: str, views: int, seed
     if coarse_result.features == "canonical":
         source = source.with_features(canonical_features(source.means.astype(np.float64), coarse_result.source_frame))
         target = target.with_features(canonical_features(target.means.astype(np.float64), coarse_result.target_frame))
-    defaults = AlignOptions()
+    defaults = AlignOptions(**(QUICK_FINE if quick else {}))
     opts = FineOptions(iterations=defaults.fine_iterations, lr=defaults.fine_lr, views=views,
                        image_size=defaults.fine_image_size, loss=defaults.fine_loss, on=on, seed=seed)
     return fine_align(source, target, coarse_result.coarse.transform, opts, cameras=cameras).transform
 
 
-def ablation_runner(seed: int) -> Runner:
+def ablation_runner(seed: int, quick: bool = False) -> Runner:
     from gsa.align.coarse import CoarseOptions, icp_refine
     from gsa.align.canonical import model_frame
     from scipy.spatial import cKDTree
@@ -310,7 +326,7 @@ def ablation_runner(seed: int) -> Runner:
         t0 = time.perf_counter()
         base = align(source, target, AlignOptions(**FINE_BASE))
         coarse_s = time.perf_counter() - t0
-        size = AlignOptions().fine_image_size
+        size = AlignOptions(**(QUICK_FINE if quick else {})).fine_image_size
         variants = [
             ("coarse 3 + fine, 3 similar views", similar_cameras(target, 3, image_size=size, seed=seed), "features", 3),
             ("coarse 3 + fine, 3 diverse views", cameras_around(target.means, 3, size, seed=seed), "features", 3),
@@ -320,7 +336,7 @@ def ablation_runner(seed: int) -> Runner:
         for label, cams, on, views in variants:
             t0 = time.perf_counter()
             try:
-                est = _fine_from(source, target, base, cams, on, views, seed)
+                est = _fine_from(source, target, base, cams, on, views, seed, quick)
             except Exception as exc:
                 est = exc
             out[label] = (est, coarse_s + time.perf_counter() - t0)
@@ -335,7 +351,8 @@ def protocol_ablation(quick: bool, seed: int, out: Path, peers: list[str] | None
     pairs = category_pairs(quick, seed, instances=2 if quick else 3)
     if not fine_available():
         print("note: gsa.align.fine is not importable; fine-stage ablation rows skipped")
-    rows = evaluate("ablation", pairs, [ablation_runner(seed)], _category_of)
+    rows = evaluate("ablation", pairs, [ablation_runner(seed, quick)], _category_of, out=out)
+    add_time_ratio(rows, ABLATION_REFERENCE)  # no "GSA coarse" row here: ratio vs the default pipeline
     for row in rows:
         row["per_category_mean_rre_deg"] = _per_category(row["records"])
     _save(out, "ablation", rows)
@@ -345,7 +362,7 @@ def protocol_ablation(quick: bool, seed: int, out: Path, peers: list[str] | None
 # ---------------------------------------------------------------- speed
 
 
-def _speed_child(n: int, seed: int, stage: str) -> dict:
+def _speed_child(n: int, seed: int, stage: str, quick: bool = False) -> dict:
     """One (size, stage) in a fresh process so peak RSS belongs to it alone."""
     truth = random_sim3(np.random.default_rng(seed))
     source = make_object("car", seed=1, n_gaussians=n, sample_seed=1, floaters=0.02)
@@ -363,7 +380,7 @@ def _speed_child(n: int, seed: int, stage: str) -> dict:
 
         src = source.with_features(canonical_features(source.means.astype(np.float64), coarse.source_frame))
         dst = target.with_features(canonical_features(target.means.astype(np.float64), coarse.target_frame))
-        d = AlignOptions()
+        d = AlignOptions(**(QUICK_FINE if quick else {}))
         opts = FineOptions(iterations=d.fine_iterations, lr=d.fine_lr, views=d.fine_views, image_size=d.fine_image_size)
         row.update(views=d.fine_views, image_size=d.fine_image_size, iterations=d.fine_iterations)
         fn = lambda: fine_align(src, dst, coarse.transform, opts)  # noqa: E731
@@ -379,9 +396,10 @@ def _speed_child(n: int, seed: int, stage: str) -> dict:
         from gsa.features import CanonicalExtractor, lift_features
 
         lift_features(small_t, CanonicalExtractor("cpu"), views=2, image_size=32, iterations=1, backend="cpu")
-        row.update(views=24, image_size=128, iterations=150)
-        fn = lambda: lift_features(target, CanonicalExtractor("cpu"), views=24, image_size=128,  # noqa: E731
-                                   iterations=150, backend="cpu")
+        views, size, iters = (6, 64, 20) if quick else (24, 128, 150)  # lifting's own defaults when full
+        row.update(views=views, image_size=size, iterations=iters)
+        fn = lambda: lift_features(target, CanonicalExtractor("cpu"), views=views, image_size=size,  # noqa: E731
+                                   iterations=iters, backend="cpu")
     else:
         raise ValueError(stage)
     peak_before = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
@@ -432,7 +450,7 @@ def protocol_speed(quick: bool, seed: int, out: Path, peers: list[str] | None = 
     for n, stage in itertools.product(sizes, speed_stages()):
         proc = subprocess.run(
             [sys.executable, "-c", "import json; from gsa.bench.protocols import _speed_child; "
-             f"print(json.dumps(_speed_child({n}, {seed}, {stage!r})))"],
+             f"print(json.dumps(_speed_child({n}, {seed}, {stage!r}, {quick})))"],
             capture_output=True, text=True,
         )
         if proc.returncode != 0:
@@ -533,8 +551,9 @@ def format_table(name: str, rows: list[dict]) -> str:
     if name in ("category", "ablation"):
         cats = [c for c in CATEGORIES if any(c in r.get("per_category_mean_rre_deg", {}) for r in rows)]
         head = "method" if name == "category" else "configuration"
+        ratio = "time ratio vs GSA coarse" if name == "category" else "time ratio vs default coarse"
         lines = [f"| {head} | " + " | ".join(f"{c} RRE (°)" for c in cats)
-                 + " | mean RRE (°) | success (RRE<5°) | s / pair | time ratio vs GSA coarse |",
+                 + f" | mean RRE (°) | success (RRE<5°) | s / pair | {ratio} |",
                  "|---|" + "---:|" * (len(cats) + 4)]
         for r in rows:
             per = r["per_category_mean_rre_deg"]
