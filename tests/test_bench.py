@@ -8,6 +8,7 @@ lists), not the --quick sizes.
 from __future__ import annotations
 
 import json
+import os
 
 import numpy as np
 import pytest
@@ -70,11 +71,30 @@ def test_open3d_recovers_easy_pair():
     _assert_recovers(peer)
 
 
+@pytest.mark.skipif(not os.environ.get("GSA_TEST_SLOW_PEERS"),
+                    reason="splatreg needs minutes per pair on 2 CPU cores; set GSA_TEST_SLOW_PEERS=1")
 def test_splatreg_recovers_easy_pair():
     """splatreg is an optional extra (gsa[peers]) not installed in CI: importorskip.
-    A 120-Gaussian subsample keeps its O(N·M) autodiff within seconds."""
+    Even on a 120-Gaussian subsample its autodiffed SDF term took over 4 minutes
+    on the shared 2-core machine, past this file's time budget, so it also needs
+    GSA_TEST_SLOW_PEERS=1."""
     pytest.importorskip("splatreg")
     _assert_recovers(peers_mod.SplatReg(max_points=120), rre_deg=5.0, scale_pct=5.0)
+
+
+def test_splatreg_matrix_convention():
+    """splatreg is an optional extra (gsa[peers]) not installed in CI: importorskip.
+    Fast check of what the wrapper relies on: our models convert to its
+    Gaussians, and its 4x4 [[sR, t], [0, 1]] maps source into target."""
+    pytest.importorskip("splatreg")
+    import torch
+    from splatreg import Gaussians, apply_transform
+
+    source, target, truth = _easy_pair(n=200)
+    g = peers_mod._to_splatreg(source, Gaussians)
+    moved = apply_transform(g, torch.as_tensor(truth.matrix(), dtype=torch.float32), truth.scale)
+    assert np.allclose(moved.means.numpy(), target.means, atol=1e-3 * np.abs(target.means).max())
+    assert abs(Sim3.from_matrix(truth.matrix()).scale - truth.scale) < 1e-9
 
 
 def test_unknown_peer_is_an_error():
