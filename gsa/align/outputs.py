@@ -1,0 +1,68 @@
+"""Files an alignment produces: result JSON, aligned and merged models, renders.
+
+The CLI and the service worker both write their artifacts through here.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import tempfile
+from pathlib import Path
+
+from gsa.align.pipeline import AlignmentResult
+from gsa.io.ply import write_ply
+from gsa.model import GaussianModel, merge_models
+from gsa.sim3 import Sim3
+
+OUTPUTS = ("result", "aligned", "merged", "renders")
+
+
+def write_json(data: dict, path: Path) -> Path:
+    """Atomic JSON write (temp file + rename): readers never see half a file."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", dir=path.parent)
+    try:
+        with os.fdopen(fd, "w") as fh:
+            json.dump(data, fh, indent=2)
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+    return path
+
+
+def write_outputs(
+    result: AlignmentResult,
+    source: GaussianModel,
+    target: GaussianModel,
+    out_dir: str | os.PathLike,
+    outputs: set[str] | frozenset[str] = frozenset({"result", "aligned", "merged"}),
+    extra: dict | None = None,
+) -> dict[str, Path]:
+    """Write the requested outputs into out_dir; returns {artifact name: path}."""
+    unknown = set(outputs) - set(OUTPUTS)
+    if unknown:
+        raise ValueError(f"unknown outputs {sorted(unknown)}; choose from {', '.join(OUTPUTS)}")
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    paths: dict[str, Path] = {}
+    aligned = None
+    if "aligned" in outputs or "merged" in outputs:
+        aligned = source.transformed(result.transform)
+    if "aligned" in outputs:
+        paths["aligned.ply"] = write_ply(aligned, out / "aligned.ply")
+    if "merged" in outputs:
+        paths["merged.ply"] = write_ply(merge_models(aligned, target), out / "merged.ply")
+    if "renders" in outputs:
+        from gsa.render.views import write_alignment_renders
+
+        renders = write_alignment_renders(source, target, Sim3.identity(), result.transform, out / "renders")
+        paths.update({f"renders/{p.name}": p for p in renders.values()})
+    if "result" in outputs:
+        data = result.to_dict()
+        if extra:
+            data.update(extra)
+        data["artifacts"] = sorted(paths)
+        paths["result.json"] = write_json(data, out / "result.json")
+    return paths
