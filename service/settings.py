@@ -62,6 +62,9 @@ class Settings(BaseSettings):
     # unless explicitly allowed (SSRF).
     webhook_allow_private: bool = False
 
+    # /docs and /openapi.json hold no data; serve them without a key unless turned off.
+    public_docs: bool = True
+
     grpc_port: int | None = None
     result_ttl_days: int | None = None
 

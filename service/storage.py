@@ -19,7 +19,7 @@ from typing import BinaryIO, Protocol
 from service.problems import too_large
 
 CHUNK = 1 << 20
-_KEY_RE = re.compile(r"^[a-z0-9]+(/[A-Za-z0-9][A-Za-z0-9._-]{0,127}){1,4}$")
+_KEY_RE = re.compile(r"^[a-z0-9]+(/[A-Za-z0-9][A-Za-z0-9._-]{0,127}){1,6}$")
 
 
 def new_key(prefix: str, name: str = "blob") -> str:

@@ -177,13 +177,28 @@ def _load(backend: Backend, ref: InputRef, workdir: Path, name: str, progress: _
 
 
 def _collect(paths: dict, prefix: str) -> list[tuple[str, Path]]:
+    """write_outputs' {artifact name: path} -> (public name, file); names may hold
+    one folder level ("renders/before.png"), served as artifacts/renders/before.png."""
+    import re
+
+    clean = lambda n: "/".join(re.sub(r"[^A-Za-z0-9._-]", "_", seg).lstrip("._-") or "x" for seg in n.split("/"))  # noqa: E731
     out = []
-    for _, p in sorted(paths.items()):
-        p = Path(p)
-        files = sorted(f for f in p.rglob("*") if f.is_file()) if p.is_dir() else [p]
-        for f in files:
-            out.append((prefix + f.name, f))
+    for name, p in sorted(paths.items()):
+        p, name = Path(p), clean(name)
+        if p.is_dir():
+            out += [(f"{prefix}{name}/{f.name}", f) for f in sorted(p.iterdir()) if f.is_file()]
+        else:
+            out.append((prefix + name, p))
     return out
+
+
+def renders_available() -> bool:
+    import importlib.util
+
+    try:
+        return importlib.util.find_spec("gsa.render.views") is not None
+    except ModuleNotFoundError:
+        return False
 
 
 def execute(job_id: str, backend: Backend) -> JobState | None:
@@ -224,9 +239,9 @@ def execute(job_id: str, backend: Backend) -> JobState | None:
     except JobFailed as exc:
         final = JobState.failed if _finish(backend, job_id, token, JobState.failed, error=exc.problem) else None
     except Exception as exc:
-        from gsa.io.ply import PlyError
-
-        if isinstance(exc, (PlyError, ValueError)) and exc.__class__.__name__ in ("PlyError", "ModelError"):
+        # The library's input errors (unreadable PLY, inconsistent model, a model
+        # the aligner cannot use) are the client's to fix: 422, not 500.
+        if isinstance(exc, ValueError) and type(exc).__name__ in ("PlyError", "ModelError", "AlignmentError"):
             err = problem(422, "invalid-input", "Invalid input", str(exc))
         else:
             log.exception("job %s failed", job_id)
@@ -251,6 +266,10 @@ def _run(backend: Backend, job: Job, token: str, prog: _Progress, art_prefix: st
     outputs = set(opts_in.pop("outputs", None) or DEFAULT_OUTPUTS)
     if opts_in.pop("renders", True) is False:
         outputs.discard("renders")
+    notes = []
+    if "renders" in outputs and not renders_available():
+        outputs.discard("renders")
+        notes.append("renders skipped: this build has no renderer (gsa.render)")
     known = {f.name for f in dataclasses.fields(AlignOptions)}
     unknown = sorted(set(opts_in) - known)
     if unknown:
@@ -275,11 +294,12 @@ def _run(backend: Backend, job: Job, token: str, prog: _Progress, art_prefix: st
             res = align(source, target, opts, progress=prog)
             prog("writing", 0.99)
             out_dir = work / f"out{i}"
-            paths = write_outputs(res, source, target, out_dir, outputs=outputs)
+            extra = {"job_id": job.id, "source_asset_id": ref.asset_id, "target_asset_id": job.target.asset_id}
+            paths = write_outputs(res, source, target, out_dir, outputs=outputs, extra=extra)
             d = res.to_dict()
             d["source_asset_id"] = ref.asset_id
             results.append(d)
-            files += _collect(paths, f"s{i}-" if multi else "")
+            files += _collect(paths, f"s{i}/" if multi else "")
             del source, res
         prog.check(force=True)
         artifacts = []
@@ -290,6 +310,8 @@ def _run(backend: Backend, job: Job, token: str, prog: _Progress, art_prefix: st
             artifacts.append(Artifact(name=name, key=key, size=size, content_type=content_type(name)))
     result = dict(results[0]) if len(results) == 1 else {}
     result["results"] = results
+    if notes:
+        result["notes"] = notes
     ok = _finish(backend, job.id, token, JobState.succeeded, result=result, artifacts=artifacts, progress=1.0,
                  stage="done")
     return JobState.succeeded if ok else None

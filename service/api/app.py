@@ -58,6 +58,9 @@ def create_app(settings: Settings | None = None, backend: Backend | None = None,
         description="Jobs are asynchronous: POST /v1/jobs answers 202 with a Location to poll. "
         "Errors are RFC 9457 application/problem+json. Authenticate with `Authorization: Bearer <api key>`.",
         lifespan=lifespan,
+        docs_url="/docs" if settings.public_docs else None,
+        redoc_url=None,
+        openapi_url="/openapi.json" if settings.public_docs else None,
     )
     app.state.backend = backend or make_backend(settings)
     app.state.metrics = Metrics(app.state.backend)

@@ -51,9 +51,9 @@ def readyz(b: B):
     return Health(status="ready", checks=checks)
 
 
-@router.get("/metrics", tags=["ops"], summary="Prometheus metrics",
+@router.get("/metrics", tags=["ops"], summary="Prometheus metrics (any valid API key)",
             responses={200: {"content": {CONTENT_TYPE_LATEST: {}}}}, response_class=Response)
-def metrics(request: Request):
+def metrics(request: Request, owner: Owner):
     return Response(generate_latest(request.app.state.metrics.registry), media_type=CONTENT_TYPE_LATEST)
 
 
@@ -300,7 +300,7 @@ def cancel_job(job_id: str, owner: Owner, b: B):
 _RANGE = re.compile(r"^bytes=(\d*)-(\d*)$")
 
 
-@router.get("/v1/jobs/{job_id}/artifacts/{name}", tags=["jobs"], summary="Download an artifact",
+@router.get("/v1/jobs/{job_id}/artifacts/{name:path}", tags=["jobs"], summary="Download an artifact",
             description="Supports single byte ranges (Range: bytes=a-b) with 206 Partial Content.",
             response_class=StreamingResponse,
             responses={200: {"content": {"application/octet-stream": {}, "application/x-ply": {},
