@@ -68,7 +68,7 @@ def ingest(b: Backend, owner: str, data, filename: str | None, *, expect: str | 
                               content_type="application/zip", n_images=n, sha256=h.sha.hexdigest(),
                               created_at=time.time())
             else:
-                raise invalid_input(f"{name}: unsupported file type; expected a 3DGS .ply or a .zip of images")
+                raise invalid_input(f"{name}: not a 3DGS .ply or a .zip of images (unrecognised file type)")
         b.store.put_asset(asset)
         return asset
     except BaseException:
