@@ -65,6 +65,36 @@ class Proc:
             self.p.wait(5)
         self.fh.close()
 
+    def descendants(self) -> list[int]:
+        """Child pids, recursively, from /proc (an RQ work horse runs in its own
+        process group, so killpg alone would miss it)."""
+        parents: dict[int, list[int]] = {}
+        for d in Path("/proc").iterdir():
+            if d.name.isdigit():
+                try:
+                    ppid = int((d / "stat").read_text().rsplit(")", 1)[1].split()[1])
+                except (OSError, IndexError, ValueError):
+                    continue
+                parents.setdefault(ppid, []).append(int(d.name))
+        out, todo = [], [self.p.pid]
+        while todo:
+            kids = parents.get(todo.pop(), [])
+            out += kids
+            todo += kids
+        return out
+
+    def kill_tree(self):
+        """SIGKILL the process and all its descendants at once: a machine dying."""
+        victims = self.descendants()
+        for pid in [self.p.pid, *victims]:
+            try:
+                os.kill(pid, signal.SIGKILL)
+            except ProcessLookupError:
+                pass
+        self.p.wait(10)
+        self.fh.close()
+        return victims
+
     def stop(self):
         self.kill(signal.SIGTERM)
 
