@@ -8,10 +8,11 @@ from __future__ import annotations
 
 from functools import lru_cache
 from pathlib import Path
-from typing import Literal
+import json
+from typing import Annotated, Literal
 
 from pydantic import Field, field_validator
-from pydantic_settings import BaseSettings, SettingsConfigDict
+from pydantic_settings import BaseSettings, NoDecode, SettingsConfigDict
 
 
 class Settings(BaseSettings):
@@ -30,7 +31,7 @@ class Settings(BaseSettings):
     s3_endpoint_url: str | None = None
 
     # JSON object {"<key>": "<owner>"}; a key only sees its owner's jobs/assets.
-    api_keys: dict[str, str] = Field(default_factory=dict)
+    api_keys: Annotated[dict[str, str], NoDecode] = Field(default_factory=dict)
     # Dev only: every request is owner "anonymous". Must be set explicitly.
     auth_disabled: bool = False
 
@@ -71,8 +72,10 @@ class Settings(BaseSettings):
     @field_validator("api_keys", mode="before")
     @classmethod
     def _parse_keys(cls, v):
-        # Also accept "key1:owner1,key2:owner2" for shell convenience.
-        if isinstance(v, str) and v and not v.lstrip().startswith("{"):
+        # JSON object, or "key1:owner1,key2:owner2" for shell convenience.
+        if isinstance(v, str) and v.lstrip().startswith("{"):
+            return json.loads(v)
+        if isinstance(v, str):
             out = {}
             for part in v.split(","):
                 key, _, owner = part.strip().partition(":")
