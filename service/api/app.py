@@ -14,7 +14,7 @@ from contextlib import asynccontextmanager
 from fastapi import FastAPI
 from fastapi.openapi.utils import get_openapi
 
-from service.api.middleware import BodyLimit, install_error_handlers, install_metrics_middleware
+from service.api.middleware import BodyLimit, RequestMetrics, install_error_handlers
 from service.api.routes import router
 from service.api.schemas import JobCreate, Problem
 from service.backend import Backend, make_backend
@@ -65,7 +65,6 @@ def create_app(settings: Settings | None = None, backend: Backend | None = None,
     app.state.backend = backend or make_backend(settings)
     app.state.metrics = Metrics(app.state.backend)
     install_error_handlers(app)
-    install_metrics_middleware(app, app.state.metrics)
     s = app.state.backend.settings
     per_file = s.max_upload_bytes
 
@@ -77,6 +76,7 @@ def create_app(settings: Settings | None = None, backend: Backend | None = None,
         return 1 << 20
 
     app.add_middleware(BodyLimit, max_bytes_for=cap)
+    app.add_middleware(RequestMetrics, metrics=app.state.metrics)
     app.include_router(router)
 
     def openapi():

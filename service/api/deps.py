@@ -1,4 +1,8 @@
-"""Request dependencies: the backend and the caller's identity."""
+"""Request dependencies: the backend and the caller's identity.
+
+Dependencies and the small read handlers are `async` on purpose: their work
+is sub-millisecond (a Redis/SQLite point read), and a threadpool hop per
+request costs more than that under many concurrent pollers."""
 
 from __future__ import annotations
 
@@ -32,7 +36,7 @@ def owner_for_key(backend: Backend, presented: str | None) -> str | None:
     return found
 
 
-def require_owner(
+async def require_owner(
     request: Request,
     creds: HTTPAuthorizationCredentials | None = Depends(bearer),
 ) -> str:

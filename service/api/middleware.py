@@ -108,13 +108,29 @@ async def _send_problem(scope, send, p: Problem) -> None:
     await send({"type": "http.response.body", "body": body})
 
 
-def install_metrics_middleware(app: FastAPI, metrics) -> None:
-    @app.middleware("http")
-    async def _metrics(request: Request, call_next):
+class RequestMetrics:
+    """Pure ASGI (BaseHTTPMiddleware costs a task and a queue per request):
+    counts requests by route template and records latency."""
+
+    def __init__(self, app, metrics):
+        self.app = app
+        self.metrics = metrics
+
+    async def __call__(self, scope, receive, send):
+        if scope["type"] != "http":
+            return await self.app(scope, receive, send)
         t0 = time.perf_counter()
-        response = await call_next(request)
-        route = request.scope.get("route")
-        path = getattr(route, "path", "unmatched")
-        metrics.requests.labels(request.method, path, str(response.status_code)).inc()
-        metrics.latency.labels(request.method, path).observe(time.perf_counter() - t0)
-        return response
+        status = [500]
+
+        async def send_wrapper(msg):
+            if msg["type"] == "http.response.start":
+                status[0] = msg["status"]
+            await send(msg)
+
+        try:
+            await self.app(scope, receive, send_wrapper)
+        finally:
+            route = scope.get("route")
+            path = getattr(route, "path", "unmatched")
+            self.metrics.requests.labels(scope["method"], path, str(status[0])).inc()
+            self.metrics.latency.labels(scope["method"], path).observe(time.perf_counter() - t0)

@@ -36,7 +36,7 @@ router = APIRouter()
 
 # ------------------------------------------------------------------ health
 @router.get("/healthz", response_model=Health, tags=["ops"], summary="Liveness")
-def healthz() -> Health:
+async def healthz() -> Health:
     return Health(status="ok")
 
 
@@ -93,7 +93,7 @@ async def upload_asset(request: Request, response: Response, owner: Owner, b: B)
 
 @router.get("/v1/assets/{asset_id}", response_model=AssetOut, tags=["assets"], summary="Asset metadata",
             responses=_problems(401, 404))
-def get_asset(asset_id: str, owner: Owner, b: B):
+async def get_asset(asset_id: str, owner: Owner, b: B):
     return AssetOut.from_asset(core.get_asset(b, owner, asset_id))
 
 
@@ -254,7 +254,7 @@ def _etag_matches(header: str | None, etag: str) -> bool:
 @router.get("/v1/jobs/{job_id}", response_model=JobOut, tags=["jobs"], summary="Job state, progress and result",
             description="Carries an ETag; send it back in If-None-Match to get 304 while nothing changed.",
             responses={304: {"description": "not modified"}, **_problems(401, 404)})
-def get_job(job_id: str, owner: Owner, b: B,
+async def get_job(job_id: str, owner: Owner, b: B,
             if_none_match: Annotated[str | None, Header(alias="If-None-Match")] = None):
     job = core.get_job(b, owner, job_id)
     body = JobOut.from_job(job).model_dump_json().encode()
@@ -279,7 +279,7 @@ def _decode_cursor(c: str) -> tuple[float, str]:
 
 @router.get("/v1/jobs", response_model=JobList, tags=["jobs"], summary="List your jobs, newest first",
             responses=_problems(401, 422))
-def list_jobs(owner: Owner, b: B, state: JobState | None = None,
+async def list_jobs(owner: Owner, b: B, state: JobState | None = None,
               limit: Annotated[int, Query(ge=1, le=200)] = 50, cursor: str | None = None):
     jobs = b.store.list(owner, state, limit + 1, _decode_cursor(cursor) if cursor else None)
     more = len(jobs) > limit
@@ -293,7 +293,7 @@ def list_jobs(owner: Owner, b: B, state: JobState | None = None,
              description="A queued job is cancelled at once; a running job stops at its next progress report "
              "(cancel_requested is true until then). 409 if the job already succeeded or failed.",
              responses=_problems(401, 404, 409))
-def cancel_job(job_id: str, owner: Owner, b: B):
+async def cancel_job(job_id: str, owner: Owner, b: B):
     return JobOut.from_job(core.cancel_job(b, owner, job_id))
 
 
