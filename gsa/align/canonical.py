@@ -77,10 +77,40 @@ def canonical_frame(points: np.ndarray, weights: np.ndarray | None = None) -> Ca
         weakest = int(np.argmin(np.abs(skews)))
         axes[weakest] *= -1
         skews[weakest] *= -1
+    axes, extents, skews = _settle_close_pair(axes, extents, skews, xc, w)
     radius = float(np.sqrt(w @ np.einsum("ij,ij->i", xc, xc)))
     if not radius > 0:
         raise ValueError("all Gaussians coincide; the model has no extent to align")
     return CanonicalFrame(center, axes, extents, skews, radius)
+
+
+def _settle_close_pair(axes, extents, skews, xc, w):
+    """When two extents are near-equal, second moments leave the axes in their
+    plane undetermined (eigen-solvers return an arbitrary pair). Third moments
+    still fix them: turn the pair so the first axis maximises the third moment
+    in the plane. This is covariant, so it holds across samplings and poses."""
+    gaps = [abs(extents[i] - extents[i + 1]) / max(extents[i], 1e-300) for i in range(2)]
+    i = int(np.argmin(gaps))
+    if gaps[i] >= EXTENT_TOLERANCE:
+        return axes, extents, skews
+    j = i + 1
+    u, v = xc @ axes[i], xc @ axes[j]
+    m = np.array([w @ u**3, w @ (u * u * v), w @ (u * v * v), w @ v**3])
+    theta = np.linspace(0.0, 2 * np.pi, 1441)
+    c, s = np.cos(theta), np.sin(theta)
+    m3 = m[0] * c**3 + 3 * m[1] * c * c * s + 3 * m[2] * c * s * s + m[3] * s**3
+    k = int(np.argmax(m3))
+    sigma = np.sqrt(max(w @ (c[k] * u + s[k] * v) ** 2, 1e-300))
+    if m3[k] / sigma**3 < SKEW_TOLERANCE:
+        return axes, extents, skews  # no usable asymmetry either: hypotheses cover it
+    axes = axes.copy()
+    a_i = c[k] * axes[i] + s[k] * axes[j]
+    a_j = -s[k] * axes[i] + c[k] * axes[j]  # a rotation in the plane keeps det +1
+    axes[i], axes[j] = a_i, a_j
+    proj = xc @ axes.T
+    extents = np.sqrt(np.maximum(w @ proj**2, 0.0))
+    skews = (w @ proj**3) / np.maximum(extents, 1e-300) ** 3
+    return axes, extents, skews
 
 
 def model_frame(model: GaussianModel) -> CanonicalFrame:

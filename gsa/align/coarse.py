@@ -14,8 +14,9 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
+import numba
 import numpy as np
 from scipy.spatial import cKDTree
 
@@ -35,9 +36,10 @@ class CoarseOptions:
     max_candidates: int = 32  # K: the most feature-similar candidates kept per source
     weight_by_opacity: bool = False
     trim: float | None = 3.0  # drop matches beyond trim × median residual (None: keep all)
-    rotation_tolerance: float = 1e-7  # radians; convergence when the update is below these
-    scale_tolerance: float = 1e-8
-    workers: int = -1  # KD-tree query threads (-1: all cores)
+    # Convergence: the update is below these (radians; relative scale), or the matches repeat.
+    rotation_tolerance: float = 2e-5
+    scale_tolerance: float = 2e-6
+    workers: int = -1  # KD-tree query threads for large queries (-1: all cores)
 
 
 @dataclass
@@ -81,7 +83,8 @@ def find_candidates(
     tree = target_tree if target_tree is not None else cKDTree(np.asarray(target_features, np.float64))
     k = int(min(max_candidates + 1, len(target_features)))
     dist, idx = tree.query(
-        np.asarray(source_features, np.float64), k=k, distance_upper_bound=tau_f, workers=workers
+        np.asarray(source_features, np.float64), k=k, distance_upper_bound=tau_f,
+        workers=query_workers(len(source_features), workers),
     )
     dist = dist.reshape(len(source_features), k)
     idx = idx.reshape(len(source_features), k)
@@ -180,23 +183,40 @@ def coarse_align(
     p = np.asarray(source_points, np.float64)[candidates.source_index]
     w = None if weights is None else np.asarray(weights, np.float64)[candidates.source_index]
     table = candidates.target_index
-    valid = table >= 0
-    # Gathered once: the candidates' positions never change, only the source moves.
-    q_cand = np.asarray(target_points, np.float32)[np.where(valid, table, 0)]  # (S, K, 3)
-    big = np.float32(np.finfo(np.float32).max)
-    rows = np.arange(len(p))
+    q_all = np.ascontiguousarray(target_points, np.float64)
 
     def match(x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        d2 = ((q_cand - x.astype(np.float32)[:, None, :]) ** 2).sum(axis=2)
-        d2[~valid] = big
-        best = d2.argmin(axis=1)
-        return np.sqrt(d2[rows, best].astype(np.float64)), table[rows, best]
+        return _nearest_candidate(np.ascontiguousarray(x), q_all, table)
 
-    q = np.asarray(target_points, np.float64)
-    result = _icp(p, q, match, init, opts, w, progress, "features")
+    result = _icp(p, q_all, match, init, opts, w, progress, "features")
     result.candidates = candidates.pair_count
     result.truncated_sources = candidates.truncated
     return result
+
+
+@numba.njit(parallel=True, cache=True)
+def _nearest_candidate(x, q, table):  # pragma: no cover - compiled
+    """Per row i: the candidate table[i, k] (-1 = none) closest to x[i]."""
+    n, k = table.shape
+    dist = np.empty(n)
+    index = np.empty(n, np.int64)
+    for i in numba.prange(n):
+        best = np.inf
+        arg = -1
+        for j in range(k):
+            t = table[i, j]
+            if t < 0:
+                continue
+            d0 = x[i, 0] - q[t, 0]
+            d1 = x[i, 1] - q[t, 1]
+            d2 = x[i, 2] - q[t, 2]
+            d = d0 * d0 + d1 * d1 + d2 * d2
+            if d < best:
+                best = d
+                arg = t
+        dist[i] = np.sqrt(best)
+        index[i] = arg
+    return dist, index
 
 
 def icp_refine(
@@ -207,6 +227,7 @@ def icp_refine(
     options: CoarseOptions | None = None,
     weights: np.ndarray | None = None,
     progress: Progress | None = None,
+    neighbours: int = 8,
 ) -> CoarseResult:
     """Plain trimmed nearest-neighbour ICP with the same closed-form step.
 
@@ -218,12 +239,40 @@ def icp_refine(
     misalignment, free nearest neighbours converge to the geometric optimum.
     """
     opts = options or CoarseOptions()
-
-    def match(x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        return target_tree.query(x, k=1, workers=opts.workers)
-
     p = np.asarray(source_points, np.float64)
-    return _icp(p, np.asarray(target_points, np.float64), match, init, opts, weights, progress, "refine")
+    q = np.ascontiguousarray(target_points, np.float64)
+    # KD-tree queries dominate plain ICP. Near convergence the nearest neighbour
+    # is almost always among the previous k nearest, so query k at a time and
+    # iterate on that cached table (a cheap compiled scan), re-querying only
+    # until a fresh table no longer changes the answer.
+    result: CoarseResult | None = None
+    transform = init
+    history: list[dict] = []
+    budget = opts.max_iterations
+    while budget > 0:
+        _, table = target_tree.query(transform.apply(p), k=min(neighbours, len(q)), workers=query_workers(len(p), opts.workers))
+        table = np.ascontiguousarray(table.reshape(len(p), -1), np.int64)
+
+        def match(x: np.ndarray, table: np.ndarray = table) -> tuple[np.ndarray, np.ndarray]:
+            return _nearest_candidate(np.ascontiguousarray(x), q, table)
+
+        inner = replace(opts, max_iterations=budget)
+        result = _icp(p, q, match, transform, inner, weights, progress, "refine")
+        history += result.history
+        budget -= result.iterations
+        transform = result.transform
+        if result.iterations <= 2:
+            break
+    assert result is not None
+    result.history = history
+    result.iterations = len(history)
+    return result
+
+
+def query_workers(n_queries: int, workers: int = -1) -> int:
+    """scipy starts fresh threads on every parallel query; below ~20k queries
+    that costs more than it saves."""
+    return workers if n_queries >= 20_000 else 1
 
 
 def rotation_angle(r: np.ndarray) -> float:
