@@ -30,7 +30,9 @@ class GSAError(Exception):
     def __init__(self, status: int, problem: dict):
         self.status = status
         self.problem = problem
-        super().__init__(f"{status} {problem.get('title', '')}: {problem.get('detail', '')}".strip())
+        super().__init__(
+            f"{status} {problem.get('title', '')}: {problem.get('detail', '')}".strip()
+        )
 
 
 class JobFailed(GSAError):
@@ -41,12 +43,19 @@ class JobFailed(GSAError):
 
 
 class GSAClient:
-    def __init__(self, base_url: str | None = None, api_key: str | None = None, timeout: float = 60.0,
-                 transport: httpx.BaseTransport | None = None):
+    def __init__(
+        self,
+        base_url: str | None = None,
+        api_key: str | None = None,
+        timeout: float = 60.0,
+        transport: httpx.BaseTransport | None = None,
+    ):
         base_url = base_url or os.environ.get("GSA_SERVER", "http://127.0.0.1:8000")
         api_key = api_key if api_key is not None else os.environ.get("GSA_API_KEY")
         headers = {"Authorization": f"Bearer {api_key}"} if api_key else {}
-        self.http = httpx.Client(base_url=base_url, headers=headers, timeout=timeout, transport=transport)
+        self.http = httpx.Client(
+            base_url=base_url, headers=headers, timeout=timeout, transport=transport
+        )
         self._etags: dict[str, tuple[str, dict]] = {}
 
     def close(self) -> None:
@@ -72,7 +81,9 @@ class GSAClient:
     def upload(self, path: str | os.PathLike) -> dict:
         p = Path(path)
         with open(p, "rb") as fh:
-            return self._check(self.http.post("/v1/assets", files={"file": (p.name, fh)})).json()
+            return self._check(
+                self.http.post("/v1/assets", files={"file": (p.name, fh)})
+            ).json()
 
     # ------------------------------------------------------------------ jobs
     def submit(
@@ -96,18 +107,36 @@ class GSAClient:
                 data["webhook_secret"] = webhook_secret
         headers = {"Idempotency-Key": idempotency_key} if idempotency_key else {}
         with ExitStack() as stack:
-            files = [("source", (Path(s).name, stack.enter_context(open(s, "rb")))) for s in sources]
-            files.append(("target", (Path(target).name, stack.enter_context(open(target, "rb")))))
+            files = [
+                ("source", (Path(s).name, stack.enter_context(open(s, "rb"))))
+                for s in sources
+            ]
+            files.append(
+                ("target", (Path(target).name, stack.enter_context(open(target, "rb"))))
+            )
             r = self.http.post("/v1/jobs", files=files, data=data, headers=headers)
         return self._check(r).json()
 
-    def submit_assets(self, source_ids: Sequence[str], target_id: str, options: dict | None = None, *,
-                      webhook: dict | None = None, idempotency_key: str | None = None) -> dict:
-        body = {"sources": list(source_ids), "target": target_id, "options": options or {}}
+    def submit_assets(
+        self,
+        source_ids: Sequence[str],
+        target_id: str,
+        options: dict | None = None,
+        *,
+        webhook: dict | None = None,
+        idempotency_key: str | None = None,
+    ) -> dict:
+        body = {
+            "sources": list(source_ids),
+            "target": target_id,
+            "options": options or {},
+        }
         if webhook:
             body["webhook"] = webhook
         headers = {"Idempotency-Key": idempotency_key} if idempotency_key else {}
-        return self._check(self.http.post("/v1/jobs", json=body, headers=headers)).json()
+        return self._check(
+            self.http.post("/v1/jobs", json=body, headers=headers)
+        ).json()
 
     def status(self, job_id: str) -> dict:
         """The job; polls reuse the ETag so an unchanged job costs a 304."""
@@ -123,20 +152,35 @@ class GSAClient:
             self._etags[job_id] = (r.headers["etag"], job)
         return job
 
-    def list(self, state: str | None = None, limit: int = 50, cursor: str | None = None) -> dict:
-        params = {k: v for k, v in {"state": state, "limit": limit, "cursor": cursor}.items() if v is not None}
+    def list(
+        self, state: str | None = None, limit: int = 50, cursor: str | None = None
+    ) -> dict:
+        params = {
+            k: v
+            for k, v in {"state": state, "limit": limit, "cursor": cursor}.items()
+            if v is not None
+        }
         return self._check(self.http.get("/v1/jobs", params=params)).json()
 
     def cancel(self, job_id: str) -> dict:
         return self._check(self.http.post(f"/v1/jobs/{job_id}:cancel")).json()
 
-    def wait(self, job_id: str, timeout: float | None = None, poll: float = 0.5,
-             on_progress: Callable[[dict], None] | None = None, raise_on_failure: bool = True) -> dict:
+    def wait(
+        self,
+        job_id: str,
+        timeout: float | None = None,
+        poll: float = 0.5,
+        on_progress: Callable[[dict], None] | None = None,
+        raise_on_failure: bool = True,
+    ) -> dict:
         deadline = None if timeout is None else time.monotonic() + timeout
         last = None
         while True:
             job = self.status(job_id)
-            if on_progress and (job["state"], job.get("stage"), job.get("progress")) != last:
+            if (
+                on_progress
+                and (job["state"], job.get("stage"), job.get("progress")) != last
+            ):
                 last = (job["state"], job.get("stage"), job.get("progress"))
                 on_progress(job)
             if job["state"] in TERMINAL:
@@ -144,7 +188,9 @@ class GSAClient:
                     raise JobFailed(job)
                 return job
             if deadline is not None and time.monotonic() > deadline:
-                raise TimeoutError(f"job {job_id} still {job['state']} after {timeout} s")
+                raise TimeoutError(
+                    f"job {job_id} still {job['state']} after {timeout} s"
+                )
             time.sleep(poll)
 
     def fetch(self, job_id: str, name: str, dest: str | os.PathLike) -> Path:
@@ -154,7 +200,9 @@ class GSAClient:
         part = dest.with_name(dest.name + ".part")
         have = part.stat().st_size if part.exists() else 0
         headers = {"Range": f"bytes={have}-"} if have else {}
-        with self.http.stream("GET", f"/v1/jobs/{job_id}/artifacts/{name}", headers=headers) as r:
+        with self.http.stream(
+            "GET", f"/v1/jobs/{job_id}/artifacts/{name}", headers=headers
+        ) as r:
             if r.status_code == 416:
                 have = 0
             elif r.status_code >= 400:
@@ -163,14 +211,18 @@ class GSAClient:
             mode = "ab" if r.status_code == 206 else "wb"
             if r.status_code != 416:
                 with open(part, mode) as fh:
-                    for chunk in r.iter_bytes(1 << 20):
-                        fh.write(chunk)
+                    fh.writelines(r.iter_bytes(1 << 20))
         if not part.exists():
             return self.fetch(job_id, name, dest)
         os.replace(part, dest)
         return dest
 
-    def fetch_all(self, job_id: str, out_dir: str | os.PathLike, names: Sequence[str] | None = None) -> list[Path]:
+    def fetch_all(
+        self,
+        job_id: str,
+        out_dir: str | os.PathLike,
+        names: Sequence[str] | None = None,
+    ) -> list[Path]:
         job = self.status(job_id)
         arts = [a["name"] for a in job.get("artifacts", [])]
         return [self.fetch(job_id, n, Path(out_dir) / n) for n in (names or arts)]

@@ -38,8 +38,14 @@ def free_port() -> int:
 
 
 def start(args, env, log):
-    return subprocess.Popen(args, env=env, cwd=ROOT, stdout=open(log, "wb"), stderr=subprocess.STDOUT,
-                            start_new_session=True)
+    return subprocess.Popen(
+        args,
+        env=env,
+        cwd=ROOT,
+        stdout=open(log, "wb"),
+        stderr=subprocess.STDOUT,
+        start_new_session=True,
+    )
 
 
 def wait_http(url, timeout=60):
@@ -66,7 +72,11 @@ def make_pair(d: Path, n: int):
     from gsa.synth import make_object
 
     src = make_object("car", seed=3, n_gaussians=n)
-    gt = Sim3(1.4, Rotation.from_euler("xyz", [35, 80, -20], degrees=True).as_matrix(), np.array([0.4, -0.2, 0.7]))
+    gt = Sim3(
+        1.4,
+        Rotation.from_euler("xyz", [35, 80, -20], degrees=True).as_matrix(),
+        np.array([0.4, -0.2, 0.7]),
+    )
     write_ply(src, d / "source.ply")
     write_ply(src.transformed(gt), d / "target.ply")
     return d / "source.ply", d / "target.ply"
@@ -88,8 +98,11 @@ def direct(src, tgt, out: Path, outputs) -> float:
 def submit_and_wait(c: httpx.Client, src, tgt, outputs) -> tuple[float, float, dict]:
     t = time.perf_counter()
     with open(src, "rb") as a, open(tgt, "rb") as b:
-        r = c.post("/v1/jobs", files=[("source", ("s.ply", a)), ("target", ("t.ply", b))],
-                   data={"options": json.dumps({"outputs": outputs})})
+        r = c.post(
+            "/v1/jobs",
+            files=[("source", ("s.ply", a)), ("target", ("t.ply", b))],
+            data={"options": json.dumps({"outputs": outputs})},
+        )
     r.raise_for_status()
     accepted = time.perf_counter() - t
     jid, etag = r.json()["id"], None
@@ -110,8 +123,11 @@ async def pollers(url, job_id, n, seconds, etag=None):
     cost on a 2-core box would otherwise dominate the numbers being measured
     (the client shares the CPU with the server)."""
     host, port = url.split("//")[1].split(":")
-    req = (f"GET /v1/jobs/{job_id} HTTP/1.1\r\nHost: {host}\r\nAuthorization: Bearer {KEY}\r\n"
-           + (f"If-None-Match: {etag}\r\n" if etag else "") + "\r\n").encode()
+    req = (
+        f"GET /v1/jobs/{job_id} HTTP/1.1\r\nHost: {host}\r\nAuthorization: Bearer {KEY}\r\n"
+        + (f"If-None-Match: {etag}\r\n" if etag else "")
+        + "\r\n"
+    ).encode()
     lat: list[float] = []
     errors = 0
     stop = time.monotonic() + seconds
@@ -156,24 +172,66 @@ def main() -> int:
     try:
         src, tgt = make_pair(tmp, a.gaussians)
         env = {k: v for k, v in os.environ.items() if not k.startswith("GSA_")}
-        env.update(PYTHONPATH=str(ROOT), GSA_STORAGE_ROOT=str(tmp / "data"), GSA_API_KEYS=json.dumps({KEY: "bench"}))
+        env.update(
+            PYTHONPATH=str(ROOT),
+            GSA_STORAGE_ROOT=str(tmp / "data"),
+            GSA_API_KEYS=json.dumps({KEY: "bench"}),
+        )
         if a.mode == "redis":
             rport = free_port()
-            procs.append(subprocess.Popen([shutil.which("redis-server"), "--port", str(rport), "--bind", "127.0.0.1",
-                                           "--save", "", "--appendonly", "no", "--dir", str(tmp)],
-                                          stdout=subprocess.DEVNULL, start_new_session=True))
+            procs.append(
+                subprocess.Popen(
+                    [
+                        shutil.which("redis-server"),
+                        "--port",
+                        str(rport),
+                        "--bind",
+                        "127.0.0.1",
+                        "--save",
+                        "",
+                        "--appendonly",
+                        "no",
+                        "--dir",
+                        str(tmp),
+                    ],
+                    stdout=subprocess.DEVNULL,
+                    start_new_session=True,
+                )
+            )
             env["GSA_REDIS_URL"] = f"redis://127.0.0.1:{rport}/0"
         port = free_port()
         url = f"http://127.0.0.1:{port}"
-        procs.append(start([sys.executable, "-m", "service.cli", "serve", "--port", str(port), "--log-level",
-                            "warning"], env, tmp / "api.log"))
+        procs.append(
+            start(
+                [
+                    sys.executable,
+                    "-m",
+                    "service.cli",
+                    "serve",
+                    "--port",
+                    str(port),
+                    "--log-level",
+                    "warning",
+                ],
+                env,
+                tmp / "api.log",
+            )
+        )
         if a.mode == "redis":
-            procs.append(start([sys.executable, "-m", "service.cli", "worker"], env, tmp / "worker.log"))
+            procs.append(
+                start(
+                    [sys.executable, "-m", "service.cli", "worker"],
+                    env,
+                    tmp / "worker.log",
+                )
+            )
         wait_http(url + "/healthz")
 
         direct(src, tgt, tmp / "warm", outputs)  # warm imports/caches
         d_times = [direct(src, tgt, tmp / f"d{i}", outputs) for i in range(a.runs)]
-        with httpx.Client(base_url=url, headers={"Authorization": f"Bearer {KEY}"}, timeout=60) as c:
+        with httpx.Client(
+            base_url=url, headers={"Authorization": f"Bearer {KEY}"}, timeout=60
+        ) as c:
             submit_and_wait(c, src, tgt, outputs)  # warm
             runs = [submit_and_wait(c, src, tgt, outputs) for _ in range(a.runs)]
             job = runs[-1][2]
@@ -181,16 +239,28 @@ def main() -> int:
             etag = c.get(f"/v1/jobs/{job['id']}").headers["etag"]
         s_times = [r[1] for r in runs]
         acc = [r[0] for r in runs]
-        print(f"mode={a.mode} gaussians={a.gaussians} outputs={outputs} runs={a.runs} cores={os.cpu_count()}")
-        print(f"direct library (read+align+write):  median {1e3 * statistics.median(d_times):7.1f} ms")
-        print(f"service submit->result:             median {1e3 * statistics.median(s_times):7.1f} ms "
-              f"(p90 {1e3 * pct(s_times, 90):.1f} ms); POST accepted in median {1e3 * statistics.median(acc):.1f} ms")
-        print(f"overhead:                            median {1e3 * (statistics.median(s_times) - statistics.median(d_times)):7.1f} ms")
+        print(
+            f"mode={a.mode} gaussians={a.gaussians} outputs={outputs} runs={a.runs} cores={os.cpu_count()}"
+        )
+        print(
+            f"direct library (read+align+write):  median {1e3 * statistics.median(d_times):7.1f} ms"
+        )
+        print(
+            f"service submit->result:             median {1e3 * statistics.median(s_times):7.1f} ms "
+            f"(p90 {1e3 * pct(s_times, 90):.1f} ms); POST accepted in median {1e3 * statistics.median(acc):.1f} ms"
+        )
+        print(
+            f"overhead:                            median {1e3 * (statistics.median(s_times) - statistics.median(d_times)):7.1f} ms"
+        )
         for label, tag in (("200 (full body)", None), ("304 (If-None-Match)", etag)):
-            lat, errors = asyncio.run(pollers(url, job["id"], a.pollers, a.seconds, tag))
-            print(f"GET /v1/jobs/{{id}} {label}, {a.pollers} concurrent pollers, {a.seconds:.0f} s: "
-                  f"n={len(lat)} ({len(lat) / a.seconds:.0f} req/s) p50 {1e3 * pct(lat, 50):.1f} ms "
-                  f"p99 {1e3 * pct(lat, 99):.1f} ms errors={errors}")
+            lat, errors = asyncio.run(
+                pollers(url, job["id"], a.pollers, a.seconds, tag)
+            )
+            print(
+                f"GET /v1/jobs/{{id}} {label}, {a.pollers} concurrent pollers, {a.seconds:.0f} s: "
+                f"n={len(lat)} ({len(lat) / a.seconds:.0f} req/s) p50 {1e3 * pct(lat, 50):.1f} ms "
+                f"p99 {1e3 * pct(lat, 99):.1f} ms errors={errors}"
+            )
     finally:
         for p in reversed(procs):
             try:

@@ -43,7 +43,9 @@ class RQQueue:
         self.hooks.enqueue(
             "service.webhooks.deliver_job",
             job_id,
-            retry=Retry(max=n, interval=[1, 5, 30, 120, 600][: max(n, 1)]) if n else None,
+            retry=Retry(max=n, interval=[1, 5, 30, 120, 600][: max(n, 1)])
+            if n
+            else None,
             job_timeout=60,
             result_ttl=600,
         )
@@ -65,7 +67,11 @@ class EmbeddedQueue:
     def enqueue_webhook(self, job_id: str) -> None:
         from service.webhooks import deliver_with_retries
 
-        threading.Thread(target=deliver_with_retries, args=(self.store, job_id, self.settings), daemon=True).start()
+        threading.Thread(
+            target=deliver_with_retries,
+            args=(self.store, job_id, self.settings),
+            daemon=True,
+        ).start()
 
     def depth(self) -> int:
         return len(self.store.queued_ids())

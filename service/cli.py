@@ -15,14 +15,26 @@ import sys
 
 
 def add_service_parsers(subparsers) -> None:
-    p = subparsers.add_parser("serve", help="run the HTTP (and optionally gRPC) API; no Redis = embedded mode")
+    p = subparsers.add_parser(
+        "serve", help="run the HTTP (and optionally gRPC) API; no Redis = embedded mode"
+    )
     p.add_argument("--host", default="127.0.0.1")
     p.add_argument("--port", type=int, default=8000)
     p.add_argument("--grpc-port", type=int, help="also serve gRPC on this port")
-    p.add_argument("--redis-url", help="Redis URL (default $GSA_REDIS_URL); none = embedded worker + SQLite")
-    p.add_argument("--storage-root", help="local storage folder (default $GSA_STORAGE_ROOT or ./gsa-data)")
+    p.add_argument(
+        "--redis-url",
+        help="Redis URL (default $GSA_REDIS_URL); none = embedded worker + SQLite",
+    )
+    p.add_argument(
+        "--storage-root",
+        help="local storage folder (default $GSA_STORAGE_ROOT or ./gsa-data)",
+    )
     p.add_argument("--workers", type=int, help="embedded-mode worker threads")
-    p.add_argument("--no-auth", action="store_true", help="DEV ONLY: accept requests without an API key")
+    p.add_argument(
+        "--no-auth",
+        action="store_true",
+        help="DEV ONLY: accept requests without an API key",
+    )
     p.add_argument("--log-level", default="info")
     p.set_defaults(func=cmd_serve)
 
@@ -34,11 +46,23 @@ def add_service_parsers(subparsers) -> None:
     p.set_defaults(func=cmd_worker)
 
     def client_args(p):
-        p.add_argument("--server", default=os.environ.get("GSA_SERVER", "http://127.0.0.1:8000"))
-        p.add_argument("--api-key", default=os.environ.get("GSA_API_KEY"), help="default $GSA_API_KEY")
+        p.add_argument(
+            "--server", default=os.environ.get("GSA_SERVER", "http://127.0.0.1:8000")
+        )
+        p.add_argument(
+            "--api-key",
+            default=os.environ.get("GSA_API_KEY"),
+            help="default $GSA_API_KEY",
+        )
 
-    p = subparsers.add_parser("submit", help="upload models to a server and create an alignment job")
-    p.add_argument("source", nargs="+", help="source model(s): .ply or .zip of images; several = multi-model")
+    p = subparsers.add_parser(
+        "submit", help="upload models to a server and create an alignment job"
+    )
+    p.add_argument(
+        "source",
+        nargs="+",
+        help="source model(s): .ply or .zip of images; several = multi-model",
+    )
     p.add_argument("--target", required=True, help="target (reference) model")
     p.add_argument("--options", default="{}", help="JSON object of alignment options")
     p.add_argument("--stages", help="e.g. coarse or coarse,fine")
@@ -48,7 +72,10 @@ def add_service_parsers(subparsers) -> None:
     client_args(p)
     p.set_defaults(func=cmd_submit)
 
-    for name, helptext in (("status", "show a job"), ("wait", "wait until a job finishes")):
+    for name, helptext in (
+        ("status", "show a job"),
+        ("wait", "wait until a job finishes"),
+    ):
         p = subparsers.add_parser(name, help=helptext)
         p.add_argument("job_id")
         if name == "wait":
@@ -87,12 +114,28 @@ def cmd_serve(args) -> int:
     from service.settings import Settings
 
     _settings_env(args)
-    logging.basicConfig(level=args.log_level.upper(), format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+    logging.basicConfig(
+        level=args.log_level.upper(),
+        format="%(asctime)s %(levelname)s %(name)s: %(message)s",
+    )
     settings = Settings()
-    mode = "embedded (SQLite + in-process worker)" if settings.embedded else f"distributed (Redis {settings.redis_url})"
-    print(f"gsa serve: {mode}; http://{args.host}:{args.port}", file=sys.stderr, flush=True)
-    uvicorn.run(create_app(settings), host=args.host, port=args.port, log_level=args.log_level,
-                timeout_graceful_shutdown=5)
+    mode = (
+        "embedded (SQLite + in-process worker)"
+        if settings.embedded
+        else f"distributed (Redis {settings.redis_url})"
+    )
+    print(
+        f"gsa serve: {mode}; http://{args.host}:{args.port}",
+        file=sys.stderr,
+        flush=True,
+    )
+    uvicorn.run(
+        create_app(settings),
+        host=args.host,
+        port=args.port,
+        log_level=args.log_level,
+        timeout_graceful_shutdown=5,
+    )
     return 0
 
 
@@ -102,7 +145,9 @@ def cmd_worker(args) -> int:
     from service.worker import run_rq_worker
 
     _settings_env(args)
-    logging.basicConfig(level="INFO", format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+    logging.basicConfig(
+        level="INFO", format="%(asctime)s %(levelname)s %(name)s: %(message)s"
+    )
     run_rq_worker(burst=args.burst, name=args.name)
     return 0
 
@@ -118,8 +163,11 @@ def _print(obj) -> None:
 
 
 def _progress(job) -> None:
-    print(f"{job['state']:>9} {job.get('stage') or '':<12} {100 * job.get('progress', 0):5.1f}%",
-          file=sys.stderr, flush=True)
+    print(
+        f"{job['state']:>9} {job.get('stage') or '':<12} {100 * job.get('progress', 0):5.1f}%",
+        file=sys.stderr,
+        flush=True,
+    )
 
 
 def _errors(fn):
@@ -142,8 +190,13 @@ def cmd_submit(args) -> int:
     if args.stages:
         options["stages"] = args.stages.split(",")
     with _client(args) as c:
-        job = c.submit(args.source, args.target, options, webhook_url=args.webhook_url,
-                       idempotency_key=args.idempotency_key)
+        job = c.submit(
+            args.source,
+            args.target,
+            options,
+            webhook_url=args.webhook_url,
+            idempotency_key=args.idempotency_key,
+        )
         if args.wait:
             job = c.wait(job["id"], on_progress=_progress, raise_on_failure=False)
     _print(job)
@@ -160,7 +213,12 @@ def cmd_status(args) -> int:
 @_errors
 def cmd_wait(args) -> int:
     with _client(args) as c:
-        job = c.wait(args.job_id, timeout=args.timeout, on_progress=_progress, raise_on_failure=False)
+        job = c.wait(
+            args.job_id,
+            timeout=args.timeout,
+            on_progress=_progress,
+            raise_on_failure=False,
+        )
     _print(job)
     return 0 if job["state"] == "succeeded" else 1
 

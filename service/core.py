@@ -28,7 +28,11 @@ class _Hashing:
         self.head = b""
 
     def __iter__(self):
-        it = iter(lambda: self.data.read(CHUNK), b"") if hasattr(self.data, "read") else iter(self.data)
+        it = (
+            iter(lambda: self.data.read(CHUNK), b"")
+            if hasattr(self.data, "read")
+            else iter(self.data)
+        )
         for chunk in it:
             if len(self.head) < 65536:
                 self.head += chunk[: 65536 - len(self.head)]
@@ -42,7 +46,9 @@ def _local(b: Backend, key: str, tmpdir: Path) -> Path:
     return b.storage.download(key, tmpdir / "blob")
 
 
-def ingest(b: Backend, owner: str, data, filename: str | None, *, expect: str | None = None) -> Asset:
+def ingest(
+    b: Backend, owner: str, data, filename: str | None, *, expect: str | None = None
+) -> Asset:
     """Stream one upload to storage, validate it, record it. Nothing remains on failure."""
     s = b.settings
     key = new_key("uploads", filename or "upload")
@@ -54,21 +60,43 @@ def ingest(b: Backend, owner: str, data, filename: str | None, *, expect: str | 
         if size == 0:
             raise invalid_input(f"{name}: the upload is empty")
         if expect == "ply" and kind != "ply":
-            raise invalid_input(f"{name}: not a PLY file (it does not start with 'ply')")
+            raise invalid_input(
+                f"{name}: not a PLY file (it does not start with 'ply')"
+            )
         with tempfile.TemporaryDirectory() as tmp:
             path = _local(b, key, Path(tmp))
             if kind == "ply":
                 n = validate_ply(path, s.max_gaussians, name)
-                asset = Asset(id=new_id("ast"), owner=owner, kind="ply", key=key, size=size, filename=filename,
-                              content_type="application/x-ply", n_gaussians=n, sha256=h.sha.hexdigest(),
-                              created_at=time.time())
+                asset = Asset(
+                    id=new_id("ast"),
+                    owner=owner,
+                    kind="ply",
+                    key=key,
+                    size=size,
+                    filename=filename,
+                    content_type="application/x-ply",
+                    n_gaussians=n,
+                    sha256=h.sha.hexdigest(),
+                    created_at=time.time(),
+                )
             elif kind == "zip":
                 n = validate_zip(path, s, name)
-                asset = Asset(id=new_id("ast"), owner=owner, kind="images", key=key, size=size, filename=filename,
-                              content_type="application/zip", n_images=n, sha256=h.sha.hexdigest(),
-                              created_at=time.time())
+                asset = Asset(
+                    id=new_id("ast"),
+                    owner=owner,
+                    kind="images",
+                    key=key,
+                    size=size,
+                    filename=filename,
+                    content_type="application/zip",
+                    n_images=n,
+                    sha256=h.sha.hexdigest(),
+                    created_at=time.time(),
+                )
             else:
-                raise invalid_input(f"{name}: not a 3DGS .ply or a .zip of images (unrecognised file type)")
+                raise invalid_input(
+                    f"{name}: not a 3DGS .ply or a .zip of images (unrecognised file type)"
+                )
         b.store.put_asset(asset)
         return asset
     except BaseException:
@@ -76,11 +104,15 @@ def ingest(b: Backend, owner: str, data, filename: str | None, *, expect: str | 
         raise
 
 
-def ingest_images(b: Backend, owner: str, files: list[tuple[str | None, BinaryIO]], label: str) -> Asset:
+def ingest_images(
+    b: Backend, owner: str, files: list[tuple[str | None, BinaryIO]], label: str
+) -> Asset:
     """Several image uploads -> one image-set asset (stored as a zip)."""
     s = b.settings
     if len(files) > s.max_images:
-        raise too_large(f"{label}: {len(files)} images exceeds the limit of {s.max_images}")
+        raise too_large(
+            f"{label}: {len(files)} images exceeds the limit of {s.max_images}"
+        )
     with tempfile.TemporaryFile() as tmp:
         with zipfile.ZipFile(tmp, "w", zipfile.ZIP_STORED) as zf:
             for i, (fname, fh) in enumerate(files):
@@ -93,7 +125,9 @@ def ingest_images(b: Backend, owner: str, files: list[tuple[str | None, BinaryIO
                     while chunk := fh.read(CHUNK):
                         total += len(chunk)
                         if total > s.max_upload_bytes:
-                            raise too_large(f"{label}[{i}]: exceeds the limit of {s.max_upload_bytes} bytes")
+                            raise too_large(
+                                f"{label}[{i}]: exceeds the limit of {s.max_upload_bytes} bytes"
+                            )
                         out.write(chunk)
         tmp.seek(0)
         return ingest(b, owner, tmp, f"{label}.zip")
@@ -113,7 +147,10 @@ def validate_options(options: dict[str, Any]) -> dict[str, Any]:
     if known is not None:
         unknown = sorted(set(options) - known - SERVICE_OPTIONS)
         if unknown:
-            raise invalid_input(f"unknown option(s): {', '.join(unknown)}", allowed=sorted(known | SERVICE_OPTIONS))
+            raise invalid_input(
+                f"unknown option(s): {', '.join(unknown)}",
+                allowed=sorted(known | SERVICE_OPTIONS),
+            )
     outs = options.get("outputs")
     if outs is not None:
         bad = sorted(set(outs) - {"result", "aligned", "merged", "renders"})
@@ -122,17 +159,32 @@ def validate_options(options: dict[str, Any]) -> dict[str, Any]:
     return options
 
 
-def body_hash(source_ids: list[str], target_id: str, options: dict, webhook: dict | None, digests: dict) -> str:
+def body_hash(
+    source_ids: list[str],
+    target_id: str,
+    options: dict,
+    webhook: dict | None,
+    digests: dict,
+) -> str:
     # Uploaded files are identified by content digest, asset ids by id: the same
     # files uploaded twice with the same Idempotency-Key are "the same body".
     canon = json.dumps(
-        {"sources": source_ids, "target": target_id, "options": options, "webhook": webhook, "digests": digests},
-        sort_keys=True, separators=(",", ":"),
+        {
+            "sources": source_ids,
+            "target": target_id,
+            "options": options,
+            "webhook": webhook,
+            "digests": digests,
+        },
+        sort_keys=True,
+        separators=(",", ":"),
     )
     return hashlib.sha256(canon.encode()).hexdigest()
 
 
-def claim(b: Backend, owner: str, idempotency_key: str | None, fingerprint: str) -> tuple[str, Job | None]:
+def claim(
+    b: Backend, owner: str, idempotency_key: str | None, fingerprint: str
+) -> tuple[str, Job | None]:
     """Reserve a job id. With an Idempotency-Key already used: the earlier job
     (same body) or 422 (different body). Returns (job_id, existing_job)."""
     job_id = new_id("job")
@@ -145,12 +197,20 @@ def claim(b: Backend, owner: str, idempotency_key: str | None, fingerprint: str)
         return job_id, None
     prev_id, prev_hash = prev
     if prev_hash != fingerprint:
-        raise Problem(422, "idempotency-key-reused", "Idempotency-Key reused",
-                      "this Idempotency-Key was already used with a different request body")
+        raise Problem(
+            422,
+            "idempotency-key-reused",
+            "Idempotency-Key reused",
+            "this Idempotency-Key was already used with a different request body",
+        )
     job = b.store.get(prev_id)
     if job is None:  # the first request is still uploading
-        raise Problem(409, "idempotency-in-progress", "Request in progress",
-                      "a request with this Idempotency-Key is still being processed; retry shortly")
+        raise Problem(
+            409,
+            "idempotency-in-progress",
+            "Request in progress",
+            "a request with this Idempotency-Key is still being processed; retry shortly",
+        )
     return prev_id, job
 
 
@@ -165,7 +225,9 @@ def discard_asset(b: Backend, asset: Asset) -> None:
     b.store.delete_asset(asset.id)
 
 
-def check_request(b: Backend, n_sources: int, options: dict[str, Any], webhook: dict | None) -> None:
+def check_request(
+    b: Backend, n_sources: int, options: dict[str, Any], webhook: dict | None
+) -> None:
     s = b.settings
     if n_sources < 1:
         raise invalid_input("at least one source model is required")
@@ -192,10 +254,19 @@ def create_job(
     idempotency_key: str | None,
 ) -> Job:
     now = time.time()
-    ref = lambda a: InputRef(asset_id=a.id, key=a.key, kind=a.kind, filename=a.filename)  # noqa: E731
-    job = Job(id=job_id, owner=owner, created_at=now, updated_at=now, max_attempts=b.settings.max_attempts,
-              sources=[ref(a) for a in sources], target=ref(target), options=options, webhook=webhook,
-              idempotency_key=idempotency_key)
+    ref = lambda a: InputRef(asset_id=a.id, key=a.key, kind=a.kind, filename=a.filename)
+    job = Job(
+        id=job_id,
+        owner=owner,
+        created_at=now,
+        updated_at=now,
+        max_attempts=b.settings.max_attempts,
+        sources=[ref(a) for a in sources],
+        target=ref(target),
+        options=options,
+        webhook=webhook,
+        idempotency_key=idempotency_key,
+    )
     b.store.create(job)
     b.queue.enqueue(job.id)
     return job
@@ -213,12 +284,23 @@ def cancel_job(b: Backend, owner: str, job_id: str) -> Job:
     if job.state in TERMINAL:
         if job.state == JobState.cancelled:
             return job
-        raise Problem(409, "job-finished", "Job already finished", f"job {job_id} is {job.state.value}")
+        raise Problem(
+            409,
+            "job-finished",
+            "Job already finished",
+            f"job {job_id} is {job.state.value}",
+        )
     now = time.time()
     # A queued job is cancelled at once; a running one is flagged and its worker
     # stops at its next progress callback (then marks it cancelled).
-    if b.store.update(job_id, states={JobState.queued}, state=JobState.cancelled, cancel_requested=True,
-                      finished_at=now, stage="cancelled"):
+    if b.store.update(
+        job_id,
+        states={JobState.queued},
+        state=JobState.cancelled,
+        cancel_requested=True,
+        finished_at=now,
+        stage="cancelled",
+    ):
         from service.worker import _notify
 
         _notify(b, job_id)
@@ -230,8 +312,12 @@ def cancel_job(b: Backend, owner: str, job_id: str) -> Job:
 def get_artifact(b: Backend, owner: str, job_id: str, name: str):
     job = get_job(b, owner, job_id)
     if job.state != JobState.succeeded:
-        raise Problem(409, "job-not-finished", "Artifacts not available",
-                      f"job {job_id} is {job.state.value}; artifacts exist once it has succeeded")
+        raise Problem(
+            409,
+            "job-not-finished",
+            "Artifacts not available",
+            f"job {job_id} is {job.state.value}; artifacts exist once it has succeeded",
+        )
     for a in job.artifacts:
         if a.name == name:
             return job, a

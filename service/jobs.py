@@ -99,7 +99,9 @@ def _enc(v: Any) -> str:
     if isinstance(v, BaseModel):
         return v.model_dump_json()
     if isinstance(v, list):
-        return json.dumps([x.model_dump(mode="json") if isinstance(x, BaseModel) else x for x in v])
+        return json.dumps(
+            [x.model_dump(mode="json") if isinstance(x, BaseModel) else x for x in v]
+        )
     if isinstance(v, Enum):
         return json.dumps(v.value)
     return json.dumps(v)
@@ -111,14 +113,29 @@ class JobStore:
     def create(self, job: Job) -> None: ...
     def get(self, job_id: str) -> Job | None: ...
 
-    def update(self, job_id: str, *, states: set[JobState] | None = None, token: str | None = None, **fields) -> bool:
+    def update(
+        self,
+        job_id: str,
+        *,
+        states: set[JobState] | None = None,
+        token: str | None = None,
+        **fields,
+    ) -> bool:
         """Set fields iff the job is in one of `states` (any if None) and, if given, holds run_token `token`."""
 
-    def list(self, owner: str, state: JobState | None, limit: int, cursor: tuple[float, str] | None) -> list[Job]: ...
+    def list(
+        self,
+        owner: str,
+        state: JobState | None,
+        limit: int,
+        cursor: tuple[float, str] | None,
+    ) -> list[Job]: ...
     def running(self) -> list[Job]: ...
     def queued_ids(self) -> list[str]: ...
     def counts(self) -> dict[str, int]: ...
-    def claim_idempotency(self, owner: str, key: str, body_hash: str, job_id: str) -> tuple[str, str] | None: ...
+    def claim_idempotency(
+        self, owner: str, key: str, body_hash: str, job_id: str
+    ) -> tuple[str, str] | None: ...
     def release_idempotency(self, owner: str, key: str) -> None: ...
     def put_asset(self, asset: Asset) -> None: ...
     def delete_asset(self, asset_id: str) -> None: ...
@@ -180,7 +197,10 @@ class RedisJobStore(JobStore):
 
     def update(self, job_id, *, states=None, token=None, **fields) -> bool:
         fields.setdefault("updated_at", time.time())
-        argv = [",".join(_enc(s) for s in states) if states else "", _enc(token) if token else ""]
+        argv = [
+            ",".join(_enc(s) for s in states) if states else "",
+            _enc(token) if token else "",
+        ]
         for k, v in fields.items():
             argv += [k, _enc(v)]
         keys = [self._jk(job_id), f"{self.p}job:", f"{self.p}state:"]
@@ -198,7 +218,9 @@ class RedisJobStore(JobStore):
         top = "+inf" if cursor is None else cursor[0]
         offset = 0
         while len(out) < limit:
-            batch = self.r.zrevrangebyscore(key, top, "-inf", start=offset, num=200, withscores=True)
+            batch = self.r.zrevrangebyscore(
+                key, top, "-inf", start=offset, num=200, withscores=True
+            )
             if not batch:
                 break
             offset += len(batch)
@@ -220,7 +242,10 @@ class RedisJobStore(JobStore):
         return self._many(self.r.smembers(f"{self.p}state:{_enc(JobState.running)}"))
 
     def queued_ids(self):
-        return [i.decode() for i in self.r.smembers(f"{self.p}state:{_enc(JobState.queued)}")]
+        return [
+            i.decode()
+            for i in self.r.smembers(f"{self.p}state:{_enc(JobState.queued)}")
+        ]
 
     def counts(self):
         pipe = self.r.pipeline(transaction=False)
@@ -271,7 +296,9 @@ class SQLiteJobStore(JobStore):
 
     def __init__(self, path: str | Path):
         Path(path).parent.mkdir(parents=True, exist_ok=True)
-        self.db = sqlite3.connect(str(path), check_same_thread=False, isolation_level=None, timeout=30)
+        self.db = sqlite3.connect(
+            str(path), check_same_thread=False, isolation_level=None, timeout=30
+        )
         self.lock = threading.RLock()
         with self.lock:
             self.db.execute("PRAGMA journal_mode=WAL")
@@ -292,12 +319,20 @@ class SQLiteJobStore(JobStore):
         with self.lock:
             self.db.execute(
                 "INSERT INTO jobs VALUES (?,?,?,?,?)",
-                (job.id, job.owner, job.state.value, job.created_at, job.model_dump_json()),
+                (
+                    job.id,
+                    job.owner,
+                    job.state.value,
+                    job.created_at,
+                    job.model_dump_json(),
+                ),
             )
 
     def get(self, job_id):
         with self.lock:
-            row = self.db.execute("SELECT data FROM jobs WHERE id=?", (job_id,)).fetchone()
+            row = self.db.execute(
+                "SELECT data FROM jobs WHERE id=?", (job_id,)
+            ).fetchone()
         return Job.model_validate_json(row[0]) if row else None
 
     def update(self, job_id, *, states=None, token=None, **fields):
@@ -305,17 +340,24 @@ class SQLiteJobStore(JobStore):
         with self.lock:
             self.db.execute("BEGIN IMMEDIATE")
             try:
-                row = self.db.execute("SELECT data FROM jobs WHERE id=?", (job_id,)).fetchone()
+                row = self.db.execute(
+                    "SELECT data FROM jobs WHERE id=?", (job_id,)
+                ).fetchone()
                 if row is None:
                     self.db.execute("ROLLBACK")
                     return False
                 job = Job.model_validate_json(row[0])
-                if (states and job.state not in states) or (token and job.run_token != token):
+                if (states and job.state not in states) or (
+                    token and job.run_token != token
+                ):
                     self.db.execute("ROLLBACK")
                     return False
-                job = job.model_validate({**job.model_dump(), **fields, "version": job.version + 1})
+                job = job.model_validate(
+                    {**job.model_dump(), **fields, "version": job.version + 1}
+                )
                 self.db.execute(
-                    "UPDATE jobs SET state=?, data=? WHERE id=?", (job.state.value, job.model_dump_json(), job_id)
+                    "UPDATE jobs SET state=?, data=? WHERE id=?",
+                    (job.state.value, job.model_dump_json(), job_id),
                 )
                 self.db.execute("COMMIT")
                 return True
@@ -339,26 +381,39 @@ class SQLiteJobStore(JobStore):
 
     def running(self):
         with self.lock:
-            rows = self.db.execute("SELECT data FROM jobs WHERE state='running'").fetchall()
+            rows = self.db.execute(
+                "SELECT data FROM jobs WHERE state='running'"
+            ).fetchall()
         return [Job.model_validate_json(r[0]) for r in rows]
 
     def queued_ids(self):
         with self.lock:
-            rows = self.db.execute("SELECT id FROM jobs WHERE state='queued' ORDER BY created_at").fetchall()
+            rows = self.db.execute(
+                "SELECT id FROM jobs WHERE state='queued' ORDER BY created_at"
+            ).fetchall()
         return [r[0] for r in rows]
 
     def counts(self):
         with self.lock:
-            rows = dict(self.db.execute("SELECT state, COUNT(*) FROM jobs GROUP BY state").fetchall())
+            rows = dict(
+                self.db.execute(
+                    "SELECT state, COUNT(*) FROM jobs GROUP BY state"
+                ).fetchall()
+            )
         return {s.value: int(rows.get(s.value, 0)) for s in JobState}
 
     def claim_idempotency(self, owner, key, body_hash, job_id):
         k = f"{owner}:{key}"
         with self.lock:
-            cur = self.db.execute("INSERT OR IGNORE INTO idem VALUES (?,?,?,?)", (k, job_id, body_hash, time.time()))
+            cur = self.db.execute(
+                "INSERT OR IGNORE INTO idem VALUES (?,?,?,?)",
+                (k, job_id, body_hash, time.time()),
+            )
             if cur.rowcount == 1:
                 return None
-            row = self.db.execute("SELECT job_id, hash FROM idem WHERE k=?", (k,)).fetchone()
+            row = self.db.execute(
+                "SELECT job_id, hash FROM idem WHERE k=?", (k,)
+            ).fetchone()
         return row[0], row[1]
 
     def release_idempotency(self, owner, key):
@@ -371,11 +426,16 @@ class SQLiteJobStore(JobStore):
 
     def put_asset(self, asset):
         with self.lock:
-            self.db.execute("INSERT OR REPLACE INTO assets VALUES (?,?)", (asset.id, asset.model_dump_json()))
+            self.db.execute(
+                "INSERT OR REPLACE INTO assets VALUES (?,?)",
+                (asset.id, asset.model_dump_json()),
+            )
 
     def get_asset(self, asset_id):
         with self.lock:
-            row = self.db.execute("SELECT data FROM assets WHERE id=?", (asset_id,)).fetchone()
+            row = self.db.execute(
+                "SELECT data FROM assets WHERE id=?", (asset_id,)
+            ).fetchone()
         return Asset.model_validate_json(row[0]) if row else None
 
     def record_stage(self, stage, seconds):
@@ -387,7 +447,10 @@ class SQLiteJobStore(JobStore):
 
     def stage_stats(self):
         with self.lock:
-            return {s: (n, secs) for s, n, secs in self.db.execute("SELECT stage, n, secs FROM stages")}
+            return {
+                s: (n, secs)
+                for s, n, secs in self.db.execute("SELECT stage, n, secs FROM stages")
+            }
 
     def ping(self):
         try:

@@ -26,7 +26,11 @@ class _StoreCollector:
         except Exception:
             pass
         yield depth
-        stages = SummaryMetricFamily("gsa_stage_duration_seconds", "Time spent per pipeline stage", labels=["stage"])
+        stages = SummaryMetricFamily(
+            "gsa_stage_duration_seconds",
+            "Time spent per pipeline stage",
+            labels=["stage"],
+        )
         try:
             for stage, (n, secs) in sorted(self.b.store.stage_stats().items()):
                 stages.add_metric([stage], n, secs)
@@ -38,10 +42,33 @@ class _StoreCollector:
 class Metrics:
     def __init__(self, backend):
         self.registry = CollectorRegistry()
-        self.requests = Counter("gsa_http_requests", "HTTP requests", ["method", "route", "status"],
-                                registry=self.registry)
-        self.latency = Histogram("gsa_http_request_duration_seconds", "HTTP request latency", ["method", "route"],
-                                 registry=self.registry,
-                                 buckets=(0.001, 0.0025, 0.005, 0.01, 0.025, 0.05, 0.1, 0.25, 0.5, 1, 2.5, 10))
-        self.jobs_created = Counter("gsa_jobs_created", "Jobs created", ["api"], registry=self.registry)
+        self.requests = Counter(
+            "gsa_http_requests",
+            "HTTP requests",
+            ["method", "route", "status"],
+            registry=self.registry,
+        )
+        self.latency = Histogram(
+            "gsa_http_request_duration_seconds",
+            "HTTP request latency",
+            ["method", "route"],
+            registry=self.registry,
+            buckets=(
+                0.001,
+                0.0025,
+                0.005,
+                0.01,
+                0.025,
+                0.05,
+                0.1,
+                0.25,
+                0.5,
+                1,
+                2.5,
+                10,
+            ),
+        )
+        self.jobs_created = Counter(
+            "gsa_jobs_created", "Jobs created", ["api"], registry=self.registry
+        )
         self.registry.register(_StoreCollector(backend))

@@ -10,7 +10,14 @@ PROBLEM_BASE = "https://gsa.dev/problems/"
 class Problem(Exception):
     """An error a client should see. `kind` becomes the problem `type` URI."""
 
-    def __init__(self, status: int, kind: str, title: str, detail: str | None = None, **extra: Any):
+    def __init__(
+        self,
+        status: int,
+        kind: str,
+        title: str,
+        detail: str | None = None,
+        **extra: Any,
+    ):
         super().__init__(detail or title)
         self.status = status
         self.kind = kind
@@ -20,7 +27,11 @@ class Problem(Exception):
         self.headers: dict[str, str] = {}
 
     def to_dict(self, instance: str | None = None) -> dict[str, Any]:
-        d: dict[str, Any] = {"type": PROBLEM_BASE + self.kind, "title": self.title, "status": self.status}
+        d: dict[str, Any] = {
+            "type": PROBLEM_BASE + self.kind,
+            "title": self.title,
+            "status": self.status,
+        }
         if self.detail:
             d["detail"] = self.detail
         if instance:
@@ -31,7 +42,9 @@ class Problem(Exception):
 
 def not_found(what: str, ident: str) -> Problem:
     # Same answer for "missing" and "owned by someone else": never leak existence.
-    return Problem(404, "not-found", f"{what} not found", f"no {what.lower()} with id {ident!r}")
+    return Problem(
+        404, "not-found", f"{what} not found", f"no {what.lower()} with id {ident!r}"
+    )
 
 
 def invalid_input(detail: str, **extra: Any) -> Problem:

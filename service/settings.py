@@ -6,9 +6,9 @@ server read one definition. Nested/compound values (API keys) are JSON in env.
 
 from __future__ import annotations
 
+import json
 from functools import lru_cache
 from pathlib import Path
-import json
 from typing import Annotated, Literal
 
 from pydantic import Field, field_validator

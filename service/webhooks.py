@@ -41,8 +41,16 @@ def check_url(url: str, allow_private: bool) -> None:
         raise ValueError(f"webhook host {u.hostname!r} does not resolve") from None
     for a in addrs:
         ip = ipaddress.ip_address(a)
-        if ip.is_private or ip.is_loopback or ip.is_link_local or ip.is_reserved or ip.is_multicast:
-            raise ValueError(f"webhook host {u.hostname!r} resolves to a non-public address")
+        if (
+            ip.is_private
+            or ip.is_loopback
+            or ip.is_link_local
+            or ip.is_reserved
+            or ip.is_multicast
+        ):
+            raise ValueError(
+                f"webhook host {u.hostname!r} resolves to a non-public address"
+            )
 
 
 def _post(store, job_id: str, settings) -> None:
@@ -52,16 +60,30 @@ def _post(store, job_id: str, settings) -> None:
     if job is None or not job.webhook:
         return
     body = json.dumps(
-        {"job_id": job.id, "state": job.state.value, "finished_at": job.finished_at, "attempts": job.attempts},
+        {
+            "job_id": job.id,
+            "state": job.state.value,
+            "finished_at": job.finished_at,
+            "attempts": job.attempts,
+        },
         separators=(",", ":"),
     ).encode()
     ts = str(int(time.time()))
-    headers = {"Content-Type": "application/json", "X-GSA-Timestamp": ts, "X-GSA-Job": job.id}
+    headers = {
+        "Content-Type": "application/json",
+        "X-GSA-Timestamp": ts,
+        "X-GSA-Job": job.id,
+    }
     secret = job.webhook.get("secret") or settings.webhook_secret
     if secret:
         headers["X-GSA-Signature"] = sign(secret, ts, body)
     check_url(job.webhook["url"], settings.webhook_allow_private)
-    r = httpx.post(job.webhook["url"], content=body, headers=headers, timeout=settings.webhook_timeout_s)
+    r = httpx.post(
+        job.webhook["url"],
+        content=body,
+        headers=headers,
+        timeout=settings.webhook_timeout_s,
+    )
     r.raise_for_status()
 
 
@@ -81,7 +103,9 @@ def deliver_with_retries(store, job_id: str, settings) -> bool:
             _post(store, job_id, settings)
             return True
         except Exception as exc:
-            log.warning("webhook for %s failed (attempt %d): %s", job_id, attempt + 1, exc)
+            log.warning(
+                "webhook for %s failed (attempt %d): %s", job_id, attempt + 1, exc
+            )
             time.sleep(delay)
             delay = min(delay * 5, 600)
     return False

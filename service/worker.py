@@ -52,11 +52,21 @@ class JobFailed(Exception):
 
     def __init__(self, status: int, kind: str, title: str, detail: str):
         super().__init__(detail)
-        self.problem = {"type": PROBLEM_BASE + kind, "title": title, "status": status, "detail": detail}
+        self.problem = {
+            "type": PROBLEM_BASE + kind,
+            "title": title,
+            "status": status,
+            "detail": detail,
+        }
 
 
 def problem(status: int, kind: str, title: str, detail: str) -> dict:
-    return {"type": PROBLEM_BASE + kind, "title": title, "status": status, "detail": detail}
+    return {
+        "type": PROBLEM_BASE + kind,
+        "title": title,
+        "status": status,
+        "detail": detail,
+    }
 
 
 def worker_name() -> str:
@@ -83,7 +93,14 @@ class _Progress:
     """The progress callback handed to align(): writes stage/progress (throttled),
     records stage durations, and raises to abort on cancel/lease loss/timeout."""
 
-    def __init__(self, backend: Backend, job: Job, token: str, lost: threading.Event, n_parts: int):
+    def __init__(
+        self,
+        backend: Backend,
+        job: Job,
+        token: str,
+        lost: threading.Event,
+        n_parts: int,
+    ):
         self.b, self.job_id, self.token, self.lost = backend, job.id, token, lost
         self.n = n_parts
         self.part = 0
@@ -124,18 +141,33 @@ class _Progress:
             overall = (self.part + max(0.0, min(1.0, float(fraction)))) / self.n
             # Keep 1.0 for "done": progress of a running job stays below it.
             self.b.store.update(
-                self.job_id, states={JobState.running}, token=self.token, stage=stage, progress=min(overall, 0.999)
+                self.job_id,
+                states={JobState.running},
+                token=self.token,
+                stage=stage,
+                progress=min(overall, 0.999),
             )
 
     def finish(self) -> None:
         self.set_stage("__end__")
 
 
-def _heartbeat(backend: Backend, job_id: str, token: str, lost: threading.Event, stop: threading.Event) -> None:
+def _heartbeat(
+    backend: Backend,
+    job_id: str,
+    token: str,
+    lost: threading.Event,
+    stop: threading.Event,
+) -> None:
     lease = backend.settings.lease_s
     while not stop.wait(lease / 3):
         try:
-            ok = backend.store.update(job_id, states={JobState.running}, token=token, lease_until=time.time() + lease)
+            ok = backend.store.update(
+                job_id,
+                states={JobState.running},
+                token=token,
+                lease_until=time.time() + lease,
+            )
         except Exception:  # transient store error: the lease has slack for two misses
             log.exception("lease renewal failed for %s", job_id)
             continue
@@ -144,7 +176,9 @@ def _heartbeat(backend: Backend, job_id: str, token: str, lost: threading.Event,
             return
 
 
-def _load(backend: Backend, ref: InputRef, workdir: Path, name: str, progress: _Progress):
+def _load(
+    backend: Backend, ref: InputRef, workdir: Path, name: str, progress: _Progress
+):
     from gsa.io.ply import read_ply
 
     s = backend.settings
@@ -153,7 +187,7 @@ def _load(backend: Backend, ref: InputRef, workdir: Path, name: str, progress: _
         return read_ply(path, max_gaussians=s.max_gaussians)
     if ref.kind == "images":
         try:
-            import gsa.recon as recon
+            from gsa import recon
         except ImportError:
             raise JobFailed(
                 501,
@@ -169,11 +203,19 @@ def _load(backend: Backend, ref: InputRef, workdir: Path, name: str, progress: _
         fn = getattr(recon, "reconstruct", None)
         if fn is None:
             raise JobFailed(
-                501, "reconstruction-unavailable", "Image-set reconstruction unavailable",
+                501,
+                "reconstruction-unavailable",
+                "Image-set reconstruction unavailable",
                 "this build's gsa.recon has no reconstruct() entry point",
             )
-        return fn(images, device=s.worker_device, progress=lambda st, f: progress(f"recon:{st}", f))
-    raise JobFailed(422, "invalid-input", "Invalid input", f"unknown input kind {ref.kind!r}")
+        return fn(
+            images,
+            device=s.worker_device,
+            progress=lambda st, f: progress(f"recon:{st}", f),
+        )
+    raise JobFailed(
+        422, "invalid-input", "Invalid input", f"unknown input kind {ref.kind!r}"
+    )
 
 
 def _collect(paths: dict, prefix: str) -> list[tuple[str, Path]]:
@@ -181,12 +223,19 @@ def _collect(paths: dict, prefix: str) -> list[tuple[str, Path]]:
     one folder level ("renders/before.png"), served as artifacts/renders/before.png."""
     import re
 
-    clean = lambda n: "/".join(re.sub(r"[^A-Za-z0-9._-]", "_", seg).lstrip("._-") or "x" for seg in n.split("/"))  # noqa: E731
+    clean = lambda n: "/".join(
+        re.sub(r"[^A-Za-z0-9._-]", "_", seg).lstrip("._-") or "x"
+        for seg in n.split("/")
+    )
     out = []
     for name, p in sorted(paths.items()):
         p, name = Path(p), clean(name)
         if p.is_dir():
-            out += [(f"{prefix}{name}/{f.name}", f) for f in sorted(p.iterdir()) if f.is_file()]
+            out += [
+                (f"{prefix}{name}/{f.name}", f)
+                for f in sorted(p.iterdir())
+                if f.is_file()
+            ]
         else:
             out.append((prefix + name, p))
     return out
@@ -209,21 +258,39 @@ def execute(job_id: str, backend: Backend) -> JobState | None:
         return None
     if job.attempts >= job.max_attempts:
         store.update(
-            job_id, states={JobState.queued}, state=JobState.failed, finished_at=time.time(),
-            error=problem(500, "attempts-exhausted", "Job failed", f"gave up after {job.attempts} attempts"),
+            job_id,
+            states={JobState.queued},
+            state=JobState.failed,
+            finished_at=time.time(),
+            error=problem(
+                500,
+                "attempts-exhausted",
+                "Job failed",
+                f"gave up after {job.attempts} attempts",
+            ),
         )
         _notify(backend, job_id)
         return JobState.failed
     token = uuid.uuid4().hex
     now = time.time()
     if not store.update(
-        job_id, states={JobState.queued}, state=JobState.running, attempts=job.attempts + 1, run_token=token,
-        lease_until=now + s.lease_s, worker=worker_name(), started_at=now, stage="loading", progress=0.0,
+        job_id,
+        states={JobState.queued},
+        state=JobState.running,
+        attempts=job.attempts + 1,
+        run_token=token,
+        lease_until=now + s.lease_s,
+        worker=worker_name(),
+        started_at=now,
+        stage="loading",
+        progress=0.0,
         error=None,
     ):
         return None  # another worker claimed it, or it was cancelled meanwhile
     lost, stop = threading.Event(), threading.Event()
-    hb = threading.Thread(target=_heartbeat, args=(backend, job_id, token, lost, stop), daemon=True)
+    hb = threading.Thread(
+        target=_heartbeat, args=(backend, job_id, token, lost, stop), daemon=True
+    )
     hb.start()
     prog = _Progress(backend, job, token, lost, max(len(job.sources), 1))
     art_prefix = f"jobs/{job_id}/{token}"
@@ -231,34 +298,68 @@ def execute(job_id: str, backend: Backend) -> JobState | None:
     try:
         final = _run(backend, job, token, prog, art_prefix)
     except JobCancelled:
-        final = JobState.cancelled if _finish(backend, job_id, token, JobState.cancelled) else None
+        final = (
+            JobState.cancelled
+            if _finish(backend, job_id, token, JobState.cancelled)
+            else None
+        )
     except (LeaseLost, JobTimeout) as exc:
         if isinstance(exc, JobTimeout):
-            err = problem(504, "job-timeout", "Job timed out", f"the job ran longer than {s.job_timeout_s:.0f} s")
-            final = JobState.failed if _finish(backend, job_id, token, JobState.failed, error=err) else None
+            err = problem(
+                504,
+                "job-timeout",
+                "Job timed out",
+                f"the job ran longer than {s.job_timeout_s:.0f} s",
+            )
+            final = (
+                JobState.failed
+                if _finish(backend, job_id, token, JobState.failed, error=err)
+                else None
+            )
     except JobFailed as exc:
-        final = JobState.failed if _finish(backend, job_id, token, JobState.failed, error=exc.problem) else None
+        final = (
+            JobState.failed
+            if _finish(backend, job_id, token, JobState.failed, error=exc.problem)
+            else None
+        )
     except Exception as exc:
         # The library's input errors (unreadable PLY, inconsistent model, a model
         # the aligner cannot use) are the client's to fix: 422, not 500.
-        if isinstance(exc, ValueError) and type(exc).__name__ in ("PlyError", "ModelError", "AlignmentError"):
+        if isinstance(exc, ValueError) and type(exc).__name__ in (
+            "PlyError",
+            "ModelError",
+            "AlignmentError",
+        ):
             err = problem(422, "invalid-input", "Invalid input", str(exc))
         else:
             log.exception("job %s failed", job_id)
-            err = problem(500, "alignment-failed", "Alignment failed", f"{type(exc).__name__}: {exc}")
-        final = JobState.failed if _finish(backend, job_id, token, JobState.failed, error=err) else None
+            err = problem(
+                500,
+                "alignment-failed",
+                "Alignment failed",
+                f"{type(exc).__name__}: {exc}",
+            )
+        final = (
+            JobState.failed
+            if _finish(backend, job_id, token, JobState.failed, error=err)
+            else None
+        )
     finally:
         stop.set()
         prog.finish()
         if final != JobState.succeeded:
-            backend.storage.delete_prefix(art_prefix)  # no partial artifacts from a failed attempt
+            backend.storage.delete_prefix(
+                art_prefix
+            )  # no partial artifacts from a failed attempt
         _release_memory()
     if final is not None:
         _notify(backend, job_id)
     return final
 
 
-def _run(backend: Backend, job: Job, token: str, prog: _Progress, art_prefix: str) -> JobState | None:
+def _run(
+    backend: Backend, job: Job, token: str, prog: _Progress, art_prefix: str
+) -> JobState | None:
     from gsa.align.outputs import write_outputs
     from gsa.align.pipeline import AlignOptions, align
 
@@ -273,7 +374,12 @@ def _run(backend: Backend, job: Job, token: str, prog: _Progress, art_prefix: st
     known = {f.name for f in dataclasses.fields(AlignOptions)}
     unknown = sorted(set(opts_in) - known)
     if unknown:
-        raise JobFailed(422, "invalid-input", "Invalid options", f"unknown alignment options: {', '.join(unknown)}")
+        raise JobFailed(
+            422,
+            "invalid-input",
+            "Invalid options",
+            f"unknown alignment options: {', '.join(unknown)}",
+        )
     if "stages" in opts_in and isinstance(opts_in["stages"], list):
         opts_in["stages"] = tuple(opts_in["stages"])
     try:
@@ -294,8 +400,14 @@ def _run(backend: Backend, job: Job, token: str, prog: _Progress, art_prefix: st
             res = align(source, target, opts, progress=prog)
             prog("writing", 0.99)
             out_dir = work / f"out{i}"
-            extra = {"job_id": job.id, "source_asset_id": ref.asset_id, "target_asset_id": job.target.asset_id}
-            paths = write_outputs(res, source, target, out_dir, outputs=outputs, extra=extra)
+            extra = {
+                "job_id": job.id,
+                "source_asset_id": ref.asset_id,
+                "target_asset_id": job.target.asset_id,
+            }
+            paths = write_outputs(
+                res, source, target, out_dir, outputs=outputs, extra=extra
+            )
             d = res.to_dict()
             d["source_asset_id"] = ref.asset_id
             results.append(d)
@@ -307,19 +419,36 @@ def _run(backend: Backend, job: Job, token: str, prog: _Progress, art_prefix: st
             key = f"{art_prefix}/{name}"
             with open(path, "rb") as fh:
                 size = backend.storage.put(key, fh)
-            artifacts.append(Artifact(name=name, key=key, size=size, content_type=content_type(name)))
+            artifacts.append(
+                Artifact(name=name, key=key, size=size, content_type=content_type(name))
+            )
     result = dict(results[0]) if len(results) == 1 else {}
     result["results"] = results
     if notes:
         result["notes"] = notes
-    ok = _finish(backend, job.id, token, JobState.succeeded, result=result, artifacts=artifacts, progress=1.0,
-                 stage="done")
+    ok = _finish(
+        backend,
+        job.id,
+        token,
+        JobState.succeeded,
+        result=result,
+        artifacts=artifacts,
+        progress=1.0,
+        stage="done",
+    )
     return JobState.succeeded if ok else None
 
 
-def _finish(backend: Backend, job_id: str, token: str, state: JobState, **fields) -> bool:
+def _finish(
+    backend: Backend, job_id: str, token: str, state: JobState, **fields
+) -> bool:
     return backend.store.update(
-        job_id, states={JobState.running}, token=token, state=state, finished_at=time.time(), lease_until=None,
+        job_id,
+        states={JobState.running},
+        token=token,
+        state=state,
+        finished_at=time.time(),
+        lease_until=None,
         **fields,
     )
 
@@ -352,19 +481,43 @@ def reap(backend: Backend, *, force: bool = False) -> list[str]:
     for job in backend.store.running():
         if not force and job.lease_until is not None and job.lease_until > now:
             continue
-        common = dict(states={JobState.running}, token=job.run_token, lease_until=None, worker=None)
+        common = dict(
+            states={JobState.running},
+            token=job.run_token,
+            lease_until=None,
+            worker=None,
+        )
         if job.cancel_requested:
-            ok = backend.store.update(job.id, state=JobState.cancelled, finished_at=now, **common)
+            ok = backend.store.update(
+                job.id, state=JobState.cancelled, finished_at=now, **common
+            )
         elif job.attempts >= job.max_attempts:
-            err = problem(500, "worker-lost", "Job failed",
-                          f"the worker running this job was lost {job.attempts} times; giving up")
-            ok = backend.store.update(job.id, state=JobState.failed, finished_at=now, error=err, **common)
+            err = problem(
+                500,
+                "worker-lost",
+                "Job failed",
+                f"the worker running this job was lost {job.attempts} times; giving up",
+            )
+            ok = backend.store.update(
+                job.id, state=JobState.failed, finished_at=now, error=err, **common
+            )
         else:
-            ok = backend.store.update(job.id, state=JobState.queued, stage="requeued", run_token=None, **common)
+            ok = backend.store.update(
+                job.id,
+                state=JobState.queued,
+                stage="requeued",
+                run_token=None,
+                **common,
+            )
             if ok:
                 backend.queue.enqueue(job.id)
         if ok:
-            log.warning("reaped job %s (attempt %d, worker %s)", job.id, job.attempts, job.worker)
+            log.warning(
+                "reaped job %s (attempt %d, worker %s)",
+                job.id,
+                job.attempts,
+                job.worker,
+            )
             touched.append(job.id)
             if job.cancel_requested or job.attempts >= job.max_attempts:
                 _notify(backend, job.id)
@@ -385,7 +538,9 @@ def start_reaper(backend: Backend, stop: threading.Event) -> threading.Thread:
 
 
 # ---------------------------------------------------------- embedded worker
-def start_embedded_workers(backend: Backend, stop: threading.Event) -> list[threading.Thread]:
+def start_embedded_workers(
+    backend: Backend, stop: threading.Event
+) -> list[threading.Thread]:
     """In-process workers for embedded mode: poll the SQLite queue, run jobs."""
     reap(backend, force=True)  # jobs "running" in a previous process were lost with it
 
@@ -435,16 +590,20 @@ def run_rq_worker(burst: bool = False, name: str | None = None) -> None:
 
     backend = _get_backend()
     if backend.redis is None:
-        raise SystemExit("gsa worker needs GSA_REDIS_URL (embedded mode runs workers inside `gsa serve`)")
+        raise SystemExit(
+            "gsa worker needs GSA_REDIS_URL (embedded mode runs workers inside `gsa serve`)"
+        )
     try:  # preload the library so each forked work horse starts warm
-        import gsa.align.outputs  # noqa: F401
+        import gsa.align.outputs
         import gsa.align.pipeline  # noqa: F401
     except ImportError:
         log.warning("gsa.align is not importable; jobs will fail")
     stop = threading.Event()
     start_reaper(backend, stop)
     queues = [backend.queue.hooks, backend.queue.q]  # webhooks first: they are tiny
-    w = Worker(queues, connection=backend.redis, name=name or f"gsa-{uuid.uuid4().hex[:8]}")
+    w = Worker(
+        queues, connection=backend.redis, name=name or f"gsa-{uuid.uuid4().hex[:8]}"
+    )
     try:
         w.work(burst=burst, with_scheduler=True)
     finally:

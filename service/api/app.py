@@ -24,11 +24,17 @@ from service.settings import Settings, get_settings
 log = logging.getLogger("gsa.api")
 
 
-def create_app(settings: Settings | None = None, backend: Backend | None = None, *,
-               run_workers: bool = True) -> FastAPI:
+def create_app(
+    settings: Settings | None = None,
+    backend: Backend | None = None,
+    *,
+    run_workers: bool = True,
+) -> FastAPI:
     settings = settings or get_settings()
     if not settings.api_keys and not settings.auth_disabled:
-        log.warning("no API keys configured (GSA_API_KEYS) and auth not disabled: every request will get 401")
+        log.warning(
+            "no API keys configured (GSA_API_KEYS) and auth not disabled: every request will get 401"
+        )
 
     @asynccontextmanager
     async def lifespan(app: FastAPI):
@@ -70,7 +76,11 @@ def create_app(settings: Settings | None = None, backend: Backend | None = None,
 
     def cap(path: str) -> int:
         if path == "/v1/assets":
-            return per_file * 2 + (1 << 20) if s.max_images <= 2 else per_file * s.max_images + (1 << 20)
+            return (
+                per_file * 2 + (1 << 20)
+                if s.max_images <= 2
+                else per_file * s.max_images + (1 << 20)
+            )
         if path == "/v1/jobs":
             return per_file * (s.max_sources + 1 + 2 * s.max_images) + (1 << 20)
         return 1 << 20
@@ -82,8 +92,13 @@ def create_app(settings: Settings | None = None, backend: Backend | None = None,
     def openapi():
         if app.openapi_schema:
             return app.openapi_schema
-        schema = get_openapi(title=app.title, version=app.version, summary=app.summary,
-                             description=app.description, routes=app.routes)
+        schema = get_openapi(
+            title=app.title,
+            version=app.version,
+            summary=app.summary,
+            description=app.description,
+            routes=app.routes,
+        )
         comps = schema.setdefault("components", {}).setdefault("schemas", {})
         # Bodies parsed by hand (json or streamed multipart) are declared in
         # openapi_extra; make sure the models they reference are present.

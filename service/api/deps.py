@@ -14,7 +14,9 @@ from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
 from service.backend import Backend
 from service.problems import Problem
 
-bearer = HTTPBearer(auto_error=False, description="API key: `Authorization: Bearer <key>`")
+bearer = HTTPBearer(
+    auto_error=False, description="API key: `Authorization: Bearer <key>`"
+)
 
 
 def get_backend(request: Request) -> Backend:
@@ -43,9 +45,14 @@ async def require_owner(
     backend = get_backend(request)
     owner = owner_for_key(backend, creds.credentials if creds else None)
     if owner is None:
-        p = Problem(401, "unauthorized", "Unauthorized",
-                    "a valid API key is required: Authorization: Bearer <key>" if creds is None
-                    else "the API key is not valid")
+        p = Problem(
+            401,
+            "unauthorized",
+            "Unauthorized",
+            "a valid API key is required: Authorization: Bearer <key>"
+            if creds is None
+            else "the API key is not valid",
+        )
         p.headers["WWW-Authenticate"] = 'Bearer realm="gsa"'
         raise p
     return owner

@@ -10,15 +10,19 @@ from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
 from starlette.exceptions import HTTPException as StarletteHTTPException
 
-from service.problems import PROBLEM_BASE, Problem, too_large
+from service.problems import Problem, too_large
 
 log = logging.getLogger("gsa.api")
 PROBLEM_JSON = "application/problem+json"
 
 
 def problem_response(p: Problem, request: Request | None = None) -> JSONResponse:
-    return JSONResponse(p.to_dict(request.url.path if request else None), status_code=p.status,
-                        media_type=PROBLEM_JSON, headers=p.headers or None)
+    return JSONResponse(
+        p.to_dict(request.url.path if request else None),
+        status_code=p.status,
+        media_type=PROBLEM_JSON,
+        headers=p.headers or None,
+    )
 
 
 def install_error_handlers(app: FastAPI) -> None:
@@ -28,23 +32,42 @@ def install_error_handlers(app: FastAPI) -> None:
 
     @app.exception_handler(RequestValidationError)
     async def _validation(request: Request, exc: RequestValidationError):
-        errors = [{"loc": list(e.get("loc", ())), "msg": e.get("msg"), "type": e.get("type")} for e in exc.errors()]
-        p = Problem(422, "validation-error", "Request validation failed",
-                    "; ".join(f"{'.'.join(map(str, e['loc']))}: {e['msg']}" for e in errors), errors=errors)
+        errors = [
+            {"loc": list(e.get("loc", ())), "msg": e.get("msg"), "type": e.get("type")}
+            for e in exc.errors()
+        ]
+        p = Problem(
+            422,
+            "validation-error",
+            "Request validation failed",
+            "; ".join(f"{'.'.join(map(str, e['loc']))}: {e['msg']}" for e in errors),
+            errors=errors,
+        )
         return problem_response(p, request)
 
     @app.exception_handler(StarletteHTTPException)
     async def _http(request: Request, exc: StarletteHTTPException):
-        kinds = {404: "not-found", 405: "method-not-allowed", 401: "unauthorized", 403: "forbidden"}
-        p = Problem(exc.status_code, kinds.get(exc.status_code, f"http-{exc.status_code}"),
-                    _title(exc.status_code), exc.detail if isinstance(exc.detail, str) else None)
+        kinds = {
+            404: "not-found",
+            405: "method-not-allowed",
+            401: "unauthorized",
+            403: "forbidden",
+        }
+        p = Problem(
+            exc.status_code,
+            kinds.get(exc.status_code, f"http-{exc.status_code}"),
+            _title(exc.status_code),
+            exc.detail if isinstance(exc.detail, str) else None,
+        )
         p.headers = dict(exc.headers or {})
         return problem_response(p, request)
 
     @app.exception_handler(Exception)
     async def _unhandled(request: Request, exc: Exception):
         log.exception("unhandled error on %s %s", request.method, request.url.path)
-        return problem_response(Problem(500, "internal-error", "Internal server error"), request)
+        return problem_response(
+            Problem(500, "internal-error", "Internal server error"), request
+        )
 
 
 def _title(status: int) -> str:
@@ -71,7 +94,9 @@ class BodyLimit:
         headers = dict(scope.get("headers") or [])
         cl = headers.get(b"content-length")
         if cl is not None and cl.isdigit() and int(cl) > cap:
-            return await _send_problem(scope, send, too_large(f"request body exceeds the limit of {cap} bytes"))
+            return await _send_problem(
+                scope, send, too_large(f"request body exceeds the limit of {cap} bytes")
+            )
         seen = 0
         started = False
 
@@ -102,9 +127,17 @@ async def _send_problem(scope, send, p: Problem) -> None:
     import json
 
     body = json.dumps(p.to_dict(scope.get("path"))).encode()
-    await send({"type": "http.response.start", "status": p.status,
-                "headers": [(b"content-type", PROBLEM_JSON.encode()), (b"content-length", str(len(body)).encode()),
-                            (b"connection", b"close")]})
+    await send(
+        {
+            "type": "http.response.start",
+            "status": p.status,
+            "headers": [
+                (b"content-type", PROBLEM_JSON.encode()),
+                (b"content-length", str(len(body)).encode()),
+                (b"connection", b"close"),
+            ],
+        }
+    )
     await send({"type": "http.response.body", "body": body})
 
 
@@ -133,4 +166,6 @@ class RequestMetrics:
             route = scope.get("route")
             path = getattr(route, "path", "unmatched")
             self.metrics.requests.labels(scope["method"], path, str(status[0])).inc()
-            self.metrics.latency.labels(scope["method"], path).observe(time.perf_counter() - t0)
+            self.metrics.latency.labels(scope["method"], path).observe(
+                time.perf_counter() - t0
+            )

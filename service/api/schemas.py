@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from datetime import datetime, timezone
+from datetime import UTC, datetime
 from typing import Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field
@@ -29,20 +29,30 @@ class AlignOptionsIn(BaseModel):
 
     model_config = ConfigDict(extra="allow")
     stages: list[str] | None = Field(None, examples=[["coarse", "fine"]])
-    features: str | None = Field(None, description="feature backend: auto | canonical | spheremap | dinov2")
+    features: str | None = Field(
+        None, description="feature backend: auto | canonical | spheremap | dinov2"
+    )
     tau_f: float | None = Field(None, gt=0, description="feature-match threshold τ_f")
     coarse_iterations: int | None = Field(None, ge=1, le=1000)
     seed: int | None = None
-    renders: bool | None = Field(None, description="produce before/after renders (default true)")
-    outputs: list[OutputName] | None = Field(None, description="artifacts wanted (default: all)")
+    renders: bool | None = Field(
+        None, description="produce before/after renders (default true)"
+    )
+    outputs: list[OutputName] | None = Field(
+        None, description="artifacts wanted (default: all)"
+    )
 
     def to_dict(self) -> dict[str, Any]:
         return self.model_dump(exclude_none=True)
 
 
 class WebhookIn(BaseModel):
-    url: str = Field(description="called with POST {job_id, state, ...} when the job reaches a final state")
-    secret: str | None = Field(None, description="HMAC-SHA256 key for X-GSA-Signature (else the server's)")
+    url: str = Field(
+        description="called with POST {job_id, state, ...} when the job reaches a final state"
+    )
+    secret: str | None = Field(
+        None, description="HMAC-SHA256 key for X-GSA-Signature (else the server's)"
+    )
 
 
 class JobCreate(BaseModel):
@@ -50,7 +60,9 @@ class JobCreate(BaseModel):
 
     model_config = ConfigDict(extra="forbid")
     source: str | None = Field(None, description="source asset id (pair job)")
-    sources: list[str] | None = Field(None, description="N source asset ids aligned to one target (multi-model)")
+    sources: list[str] | None = Field(
+        None, description="N source asset ids aligned to one target (multi-model)"
+    )
     target: str = Field(description="target (reference) asset id")
     options: AlignOptionsIn = Field(default_factory=AlignOptionsIn)
     webhook: WebhookIn | None = None
@@ -89,23 +101,43 @@ class JobOut(BaseModel):
 
     @classmethod
     def from_job(cls, job: Job) -> JobOut:
-        ts = lambda t: None if t is None else datetime.fromtimestamp(t, timezone.utc)  # noqa: E731
+        ts = lambda t: None if t is None else datetime.fromtimestamp(t, UTC)
         base = f"/v1/jobs/{job.id}"
         return cls(
-            id=job.id, state=job.state, stage=job.stage, progress=job.progress, created_at=ts(job.created_at),
-            updated_at=ts(job.updated_at), started_at=ts(job.started_at), finished_at=ts(job.finished_at),
-            attempts=job.attempts, max_attempts=job.max_attempts, cancel_requested=job.cancel_requested,
-            sources=[s.asset_id for s in job.sources], target=job.target.asset_id, options=job.options,
-            error=job.error, result=job.result,
-            artifacts=[ArtifactOut(name=a.name, size=a.size, content_type=a.content_type,
-                                   href=f"{base}/artifacts/{a.name}") for a in job.artifacts],
+            id=job.id,
+            state=job.state,
+            stage=job.stage,
+            progress=job.progress,
+            created_at=ts(job.created_at),
+            updated_at=ts(job.updated_at),
+            started_at=ts(job.started_at),
+            finished_at=ts(job.finished_at),
+            attempts=job.attempts,
+            max_attempts=job.max_attempts,
+            cancel_requested=job.cancel_requested,
+            sources=[s.asset_id for s in job.sources],
+            target=job.target.asset_id,
+            options=job.options,
+            error=job.error,
+            result=job.result,
+            artifacts=[
+                ArtifactOut(
+                    name=a.name,
+                    size=a.size,
+                    content_type=a.content_type,
+                    href=f"{base}/artifacts/{a.name}",
+                )
+                for a in job.artifacts
+            ],
             links={"self": base, "cancel": f"{base}:cancel"},
         )
 
 
 class JobList(BaseModel):
     items: list[JobOut]
-    next_cursor: str | None = Field(None, description="pass as ?cursor= for the next page; null at the end")
+    next_cursor: str | None = Field(
+        None, description="pass as ?cursor= for the next page; null at the end"
+    )
 
 
 class AssetOut(BaseModel):
@@ -121,9 +153,17 @@ class AssetOut(BaseModel):
 
     @classmethod
     def from_asset(cls, a: Asset) -> AssetOut:
-        return cls(id=a.id, kind=a.kind, size=a.size, filename=a.filename, content_type=a.content_type,
-                   sha256=a.sha256, n_gaussians=a.n_gaussians, n_images=a.n_images,
-                   created_at=datetime.fromtimestamp(a.created_at, timezone.utc))
+        return cls(
+            id=a.id,
+            kind=a.kind,
+            size=a.size,
+            filename=a.filename,
+            content_type=a.content_type,
+            sha256=a.sha256,
+            n_gaussians=a.n_gaussians,
+            n_images=a.n_images,
+            created_at=datetime.fromtimestamp(a.created_at, UTC),
+        )
 
 
 class Health(BaseModel):

@@ -51,7 +51,9 @@ def _disposition(value: str) -> tuple[str | None, str | None]:
     return m.get_param("name", header="content-disposition"), m.get_filename()
 
 
-async def parse_multipart(request: Request, max_file_bytes: int, max_files: int) -> Form:
+async def parse_multipart(
+    request: Request, max_file_bytes: int, max_files: int
+) -> Form:
     ctype = request.headers.get("content-type", "")
     m = Message()
     m["content-type"] = ctype
@@ -59,7 +61,14 @@ async def parse_multipart(request: Request, max_file_bytes: int, max_files: int)
     if m.get_content_type() != "multipart/form-data" or not boundary:
         raise invalid_input("expected multipart/form-data with a boundary")
     form = Form()
-    st: dict = {"headers": {}, "hname": b"", "hval": b"", "part": None, "buf": None, "n": 0}
+    st: dict = {
+        "headers": {},
+        "hname": b"",
+        "hval": b"",
+        "part": None,
+        "buf": None,
+        "n": 0,
+    }
 
     def on_part_begin():
         st["headers"], st["part"], st["buf"] = {}, None, None
@@ -74,7 +83,9 @@ async def parse_multipart(request: Request, max_file_bytes: int, max_files: int)
         st["hval"] += data[start:end]
 
     def on_header_end():
-        st["headers"][st["hname"].decode("latin-1").lower()] = st["hval"].decode("latin-1")
+        st["headers"][st["hname"].decode("latin-1").lower()] = st["hval"].decode(
+            "latin-1"
+        )
         st["hname"], st["hval"] = b"", b""
 
     def on_headers_finished():
@@ -84,8 +95,12 @@ async def parse_multipart(request: Request, max_file_bytes: int, max_files: int)
         if filename is not None:
             if sum(len(v) for v in form.files.values()) >= max_files:
                 raise too_large(f"more than {max_files} files in one request")
-            part = FilePart(name, filename, st["headers"].get("content-type"),
-                            tempfile.SpooledTemporaryFile(max_size=1 << 20))
+            part = FilePart(
+                name,
+                filename,
+                st["headers"].get("content-type"),
+                tempfile.SpooledTemporaryFile(max_size=1 << 20),
+            )
             form.files.setdefault(name, []).append(part)
             st["part"] = part
         else:
@@ -99,11 +114,15 @@ async def parse_multipart(request: Request, max_file_bytes: int, max_files: int)
             p = st["part"]
             p.size += n
             if p.size > max_file_bytes:
-                raise too_large(f"file {p.filename!r} exceeds the limit of {max_file_bytes} bytes")
+                raise too_large(
+                    f"file {p.filename!r} exceeds the limit of {max_file_bytes} bytes"
+                )
             p.file.write(data[start:end])
         else:
             if len(st["buf"]) + n > MAX_FIELD_BYTES:
-                raise too_large(f"form field {st['name']!r} exceeds {MAX_FIELD_BYTES} bytes")
+                raise too_large(
+                    f"form field {st['name']!r} exceeds {MAX_FIELD_BYTES} bytes"
+                )
             st["buf"] += data[start:end]
 
     def on_part_end():
@@ -112,11 +131,18 @@ async def parse_multipart(request: Request, max_file_bytes: int, max_files: int)
         elif st["buf"] is not None:
             form.fields[st["name"]].append(st["buf"].decode("utf-8", "replace"))
 
-    parser = MultipartParser(boundary, {
-        "on_part_begin": on_part_begin, "on_header_field": on_header_field, "on_header_value": on_header_value,
-        "on_header_end": on_header_end, "on_headers_finished": on_headers_finished,
-        "on_part_data": on_part_data, "on_part_end": on_part_end,
-    })
+    parser = MultipartParser(
+        boundary,
+        {
+            "on_part_begin": on_part_begin,
+            "on_header_field": on_header_field,
+            "on_header_value": on_header_value,
+            "on_header_end": on_header_end,
+            "on_headers_finished": on_headers_finished,
+            "on_part_data": on_part_data,
+            "on_part_end": on_part_end,
+        },
+    )
     try:
         async for chunk in request.stream():
             parser.write(chunk)

@@ -49,8 +49,14 @@ class Proc:
     def __init__(self, args, env, log: Path):
         self.log = log
         self.fh = open(log, "ab")
-        self.p = subprocess.Popen(args, env=env, cwd=ROOT, stdout=self.fh, stderr=subprocess.STDOUT,
-                                  start_new_session=True)
+        self.p = subprocess.Popen(
+            args,
+            env=env,
+            cwd=ROOT,
+            stdout=self.fh,
+            stderr=subprocess.STDOUT,
+            start_new_session=True,
+        )
 
     def kill(self, sig=signal.SIGKILL):
         if self.p.poll() is None:
@@ -104,24 +110,37 @@ class Proc:
 
 def service_env(tmp: Path, **extra) -> dict:
     env = {k: v for k, v in os.environ.items() if not k.startswith("GSA_")}
-    env.update({
-        "PYTHONPATH": str(ROOT),
-        "GSA_STORAGE_ROOT": str(tmp / "data"),
-        "GSA_API_KEYS": json.dumps(KEYS),
-        "GSA_LEASE_S": "2",
-        "GSA_REAPER_INTERVAL_S": "0.5",
-        "GSA_WEBHOOK_ALLOW_PRIVATE": "true",
-        "GSA_MAX_UPLOAD_BYTES": str(MAX_UPLOAD),
-        "GSA_MAX_ATTEMPTS": "3",
-    })
+    env.update(
+        {
+            "PYTHONPATH": str(ROOT),
+            "GSA_STORAGE_ROOT": str(tmp / "data"),
+            "GSA_API_KEYS": json.dumps(KEYS),
+            "GSA_LEASE_S": "2",
+            "GSA_REAPER_INTERVAL_S": "0.5",
+            "GSA_WEBHOOK_ALLOW_PRIVATE": "true",
+            "GSA_MAX_UPLOAD_BYTES": str(MAX_UPLOAD),
+            "GSA_MAX_ATTEMPTS": "3",
+        }
+    )
     env.update({k: str(v) for k, v in extra.items()})
     return env
 
 
-def start_api(tmp: Path, env: dict, grpc: bool = False, name="api") -> tuple[Proc, str, int | None]:
+def start_api(
+    tmp: Path, env: dict, grpc: bool = False, name="api"
+) -> tuple[Proc, str, int | None]:
     port = free_port()
     gport = free_port() if grpc else None
-    args = [PY, "-m", "service.cli", "serve", "--port", str(port), "--log-level", "warning"]
+    args = [
+        PY,
+        "-m",
+        "service.cli",
+        "serve",
+        "--port",
+        str(port),
+        "--log-level",
+        "warning",
+    ]
     if gport:
         args += ["--grpc-port", str(gport)]
     proc = Proc(args, env, tmp / f"{name}.log")
@@ -140,8 +159,11 @@ def start_api(tmp: Path, env: dict, grpc: bool = False, name="api") -> tuple[Pro
 
 
 def start_worker(tmp: Path, env: dict, name="worker") -> Proc:
-    return Proc([PY, "-m", "service.cli", "worker", "--name", f"{name}-{time.time_ns()}"], env,
-                tmp / f"{name}.log")
+    return Proc(
+        [PY, "-m", "service.cli", "worker", "--name", f"{name}-{time.time_ns()}"],
+        env,
+        tmp / f"{name}.log",
+    )
 
 
 @pytest.fixture(scope="session")
@@ -151,8 +173,23 @@ def redis_url(tmp_path_factory):
         pytest.skip("redis-server not installed (./dev.sh test installs it)")
     d = tmp_path_factory.mktemp("redis")
     port = free_port()
-    p = subprocess.Popen([exe, "--port", str(port), "--bind", "127.0.0.1", "--save", "", "--appendonly", "no",
-                          "--dir", str(d)], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    p = subprocess.Popen(
+        [
+            exe,
+            "--port",
+            str(port),
+            "--bind",
+            "127.0.0.1",
+            "--save",
+            "",
+            "--appendonly",
+            "no",
+            "--dir",
+            str(d),
+        ],
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
+    )
     import redis
 
     r = redis.Redis(port=port)
@@ -180,7 +217,11 @@ def pair(tmp_path_factory):
 
     d = tmp_path_factory.mktemp("pair")
     src = make_object("car", seed=3, n_gaussians=3000)
-    gt = Sim3(1.4, Rotation.from_euler("xyz", [35, 80, -20], degrees=True).as_matrix(), np.array([0.4, -0.2, 0.7]))
+    gt = Sim3(
+        1.4,
+        Rotation.from_euler("xyz", [35, 80, -20], degrees=True).as_matrix(),
+        np.array([0.4, -0.2, 0.7]),
+    )
     write_ply(src, d / "source.ply")
     write_ply(src.transformed(gt), d / "target.ply")
     src2 = make_object("car", seed=4, n_gaussians=2500)
@@ -188,8 +229,15 @@ def pair(tmp_path_factory):
     big = make_object("bus", seed=1, n_gaussians=50_000)
     write_ply(big, d / "big_source.ply")
     write_ply(big.transformed(gt), d / "big_target.ply")
-    return {"dir": d, "source": d / "source.ply", "target": d / "target.ply", "source2": d / "source2.ply",
-            "big_source": d / "big_source.ply", "big_target": d / "big_target.ply", "gt": gt}
+    return {
+        "dir": d,
+        "source": d / "source.ply",
+        "target": d / "target.ply",
+        "source2": d / "source2.ply",
+        "big_source": d / "big_source.ply",
+        "big_target": d / "big_target.ply",
+        "gt": gt,
+    }
 
 
 @pytest.fixture(scope="session")
@@ -199,8 +247,15 @@ def stack(tmp_path_factory, redis_url):
     env = service_env(tmp, GSA_REDIS_URL=redis_url + "/0")
     api, url, gport = start_api(tmp, env, grpc=True)
     worker = start_worker(tmp, env)
-    yield {"url": url, "grpc": f"127.0.0.1:{gport}", "env": env, "tmp": tmp, "api": api, "worker": worker,
-           "redis_url": redis_url + "/0"}
+    yield {
+        "url": url,
+        "grpc": f"127.0.0.1:{gport}",
+        "env": env,
+        "tmp": tmp,
+        "api": api,
+        "worker": worker,
+        "redis_url": redis_url + "/0",
+    }
     worker.stop()
     api.stop()
 
@@ -211,13 +266,24 @@ def http(stack):
         yield c
 
 
-def submit_pair(c: httpx.Client, pair, options=None, headers=None, **data) -> httpx.Response:
+def submit_pair(
+    c: httpx.Client, pair, options=None, headers=None, **data
+) -> httpx.Response:
     with open(pair["source"], "rb") as s, open(pair["target"], "rb") as t:
-        return c.post("/v1/jobs", files=[("source", ("source.ply", s)), ("target", ("target.ply", t))],
-                      data={"options": json.dumps(options or {}), **data}, headers=headers or {})
+        return c.post(
+            "/v1/jobs",
+            files=[("source", ("source.ply", s)), ("target", ("target.ply", t))],
+            data={"options": json.dumps(options or {}), **data},
+            headers=headers or {},
+        )
 
 
-def wait_job(c: httpx.Client, job_id: str, timeout=60.0, states=("succeeded", "failed", "cancelled")) -> dict:
+def wait_job(
+    c: httpx.Client,
+    job_id: str,
+    timeout=60.0,
+    states=("succeeded", "failed", "cancelled"),
+) -> dict:
     def done():
         j = c.get(f"/v1/jobs/{job_id}").json()
         return j if j.get("state") in states else None
@@ -229,14 +295,20 @@ def library_result(pair, options: dict):
     from gsa.align.pipeline import AlignOptions, align
     from gsa.io.ply import read_ply
 
-    return align(read_ply(pair["source"]), read_ply(pair["target"]), AlignOptions(**options))
+    return align(
+        read_ply(pair["source"]), read_ply(pair["target"]), AlignOptions(**options)
+    )
 
 
 def assert_problem(r: httpx.Response, status: int, kind: str | None = None) -> dict:
     assert r.status_code == status, r.text
     assert r.headers["content-type"].startswith("application/problem+json"), r.headers
     body = r.json()
-    assert body["status"] == status and body["title"] and body["type"].startswith("https://")
+    assert (
+        body["status"] == status
+        and body["title"]
+        and body["type"].startswith("https://")
+    )
     if kind:
         assert body["type"].endswith("/" + kind), body
     return body

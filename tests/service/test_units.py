@@ -35,7 +35,13 @@ def test_local_storage_keys_and_limits(tmp_path):
     assert ".." not in key and key.startswith("uploads/")
     assert st.put(key, io.BytesIO(b"x" * 100)) == 100
     assert b"".join(st.open(key, 10, 19)) == b"x" * 10 and st.size(key) == 100
-    for bad in ("../x", "/etc/passwd", "uploads/../../x", "uploads//x", "uploads/a/.hidden"):
+    for bad in (
+        "../x",
+        "/etc/passwd",
+        "uploads/../../x",
+        "uploads//x",
+        "uploads/a/.hidden",
+    ):
         with pytest.raises(ValueError):
             st.put(bad, io.BytesIO(b"x"))
     k2 = new_key("uploads", "big.ply")
@@ -51,7 +57,9 @@ def test_local_storage_keys_and_limits(tmp_path):
 def _job(jid, owner="o", t=None):
     ref = InputRef(asset_id="a", key="uploads/x/y", kind="ply")
     t = t or time.time()
-    return Job(id=jid, owner=owner, created_at=t, updated_at=t, sources=[ref], target=ref)
+    return Job(
+        id=jid, owner=owner, created_at=t, updated_at=t, sources=[ref], target=ref
+    )
 
 
 def test_sqlite_store_cas_persistence_and_pages(tmp_path):
@@ -59,8 +67,12 @@ def test_sqlite_store_cas_persistence_and_pages(tmp_path):
     st = SQLiteJobStore(db)
     for i in range(5):
         st.create(_job(f"j{i}", t=1000.0 + (i // 2)))  # ties in created_at
-    assert st.update("j0", states={JobState.queued}, state=JobState.running, run_token="t1")
-    assert not st.update("j0", states={JobState.queued}, state=JobState.running, run_token="t2")
+    assert st.update(
+        "j0", states={JobState.queued}, state=JobState.running, run_token="t1"
+    )
+    assert not st.update(
+        "j0", states={JobState.queued}, state=JobState.running, run_token="t2"
+    )
     assert not st.update("j0", token="other", progress=0.5)
     assert st.update("j0", token="t1", progress=0.5)
     assert st.claim_idempotency("o", "k", "h1", "j0") is None
@@ -92,7 +104,9 @@ def test_redis_store_matches_sqlite_semantics(redis_url):
     st = RedisJobStore(r)
     for i in range(5):
         st.create(_job(f"j{i}", t=1000.0 + (i // 2)))
-    assert st.update("j0", states={JobState.queued}, state=JobState.running, run_token="t1")
+    assert st.update(
+        "j0", states={JobState.queued}, state=JobState.running, run_token="t1"
+    )
     assert not st.update("j0", states={JobState.queued}, state=JobState.running)
     assert not st.update("j0", token="nope", progress=0.3)
     assert st.counts()["running"] == 1 and st.counts()["queued"] == 4
@@ -105,9 +119,25 @@ def test_redis_store_matches_sqlite_semantics(redis_url):
 
 
 def _ply_header(n, extra=""):
-    props = "".join(f"property float {p}\n" for p in
-                    ["x", "y", "z", "f_dc_0", "f_dc_1", "f_dc_2", "opacity", "scale_0", "scale_1", "scale_2",
-                     "rot_0", "rot_1", "rot_2", "rot_3"])
+    props = "".join(
+        f"property float {p}\n"
+        for p in [
+            "x",
+            "y",
+            "z",
+            "f_dc_0",
+            "f_dc_1",
+            "f_dc_2",
+            "opacity",
+            "scale_0",
+            "scale_1",
+            "scale_2",
+            "rot_0",
+            "rot_1",
+            "rot_2",
+            "rot_3",
+        ]
+    )
     return f"ply\nformat binary_little_endian 1.0\nelement vertex {n}\n{props}{extra}end_header\n".encode()
 
 
@@ -138,7 +168,9 @@ def test_zip_limits(tmp_path):
         return p
 
     s = Settings(max_zip_entries=3, max_images=2, max_image_pixels=100)
-    assert validate_zip(make([("a.png", _png(8, 8)), ("b.png", _png(8, 8))]), s, "z") == 2
+    assert (
+        validate_zip(make([("a.png", _png(8, 8)), ("b.png", _png(8, 8))]), s, "z") == 2
+    )
     for entries, status in (
         ([(f"{i}.png", _png(2, 2)) for i in range(4)], 413),  # entries
         ([(f"{i}.png", _png(2, 2)) for i in range(3)], 413),  # images
@@ -156,24 +188,51 @@ def test_webhook_signature_and_ssrf():
 
     sig = sign("k", "123", b"{}")
     assert verify("k", "123", b"{}", sig) and not verify("k", "124", b"{}", sig)
-    for bad in ("ftp://x/y", "http://127.0.0.1:9/", "http://10.0.0.1/", "http://[::1]/"):
+    for bad in (
+        "ftp://x/y",
+        "http://127.0.0.1:9/",
+        "http://10.0.0.1/",
+        "http://[::1]/",
+    ):
         with pytest.raises(ValueError):
             check_url(bad, allow_private=False)
     check_url("http://127.0.0.1:9/", allow_private=True)
 
 
-@pytest.mark.skipif(shutil.which("docker-compose") is None, reason="docker-compose not installed")
+@pytest.mark.skipif(
+    shutil.which("docker-compose") is None, reason="docker-compose not installed"
+)
 def test_compose_file_valid():
     for args in ([], ["--profile", "gpu"]):
-        r = subprocess.run(["docker-compose", *args, "-f", str(ROOT / "docker-compose.yml"), "config", "-q"],
-                           capture_output=True, text=True, cwd=ROOT)
+        r = subprocess.run(
+            [
+                "docker-compose",
+                *args,
+                "-f",
+                str(ROOT / "docker-compose.yml"),
+                "config",
+                "-q",
+            ],
+            capture_output=True,
+            text=True,
+            cwd=ROOT,
+        )
         assert r.returncode == 0, r.stderr
 
 
 def test_gsa_does_not_import_service():
     import sys
 
-    r = subprocess.run([sys.executable, "-c", "import sys, gsa, gsa.client, gsa.align.pipeline; "
-                        "assert not any(m == 'service' or m.startswith('service.') for m in sys.modules)"],
-                       cwd=ROOT, capture_output=True, text=True, env={"PYTHONPATH": str(ROOT)})
+    r = subprocess.run(
+        [
+            sys.executable,
+            "-c",
+            "import sys, gsa, gsa.client, gsa.align.pipeline; "
+            "assert not any(m == 'service' or m.startswith('service.') for m in sys.modules)",
+        ],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        env={"PYTHONPATH": str(ROOT)},
+    )
     assert r.returncode == 0, r.stderr
