@@ -25,15 +25,35 @@ class RQQueue:
         self.q = rq.Queue(settings.queue_name, connection=redis_conn)
         self.hooks = rq.Queue(settings.queue_name + "-webhooks", connection=redis_conn)
 
-    def enqueue(self, job_id: str) -> None:
+    def enqueue(self, job_id: str) -> str:
+        ref = f"{job_id}-{uuid.uuid4().hex[:8]}"
         self.q.enqueue(
             "service.worker.run_job",
             job_id,
-            job_id=f"{job_id}-{uuid.uuid4().hex[:8]}",
+            job_id=ref,
             # Our own lease/reaper does retries; RQ's timeout is only the backstop.
             job_timeout=int(self.settings.job_timeout_s + 120),
             result_ttl=600,
             failure_ttl=24 * 3600,
+        )
+        return ref
+
+    def lost(self, ref: str) -> bool:
+        """True if RQ no longer holds a live message for this ref (dropped, failed,
+        or "started" by a worker that died before claiming the job)."""
+        from rq.exceptions import NoSuchJobError
+        from rq.job import Job as RQJob
+
+        try:
+            status = RQJob.fetch(ref, connection=self.q.connection).get_status(
+                refresh=False
+            )
+        except NoSuchJobError:
+            return True
+        return str(getattr(status, "value", status)) not in (
+            "queued",
+            "deferred",
+            "scheduled",
         )
 
     def enqueue_webhook(self, job_id: str) -> None:
@@ -61,8 +81,12 @@ class EmbeddedQueue:
         self.store, self.settings = store, settings
         self.wake = threading.Event()
 
-    def enqueue(self, job_id: str) -> None:
+    def enqueue(self, job_id: str) -> str | None:
         self.wake.set()
+        return None
+
+    def lost(self, ref: str) -> bool:
+        return False  # the store is the queue: nothing to lose
 
     def enqueue_webhook(self, job_id: str) -> None:
         from service.webhooks import deliver_with_retries

@@ -268,7 +268,10 @@ def create_job(
         idempotency_key=idempotency_key,
     )
     b.store.create(job)
-    b.queue.enqueue(job.id)
+    # Enqueue after the record exists (a worker may start at once); remember the
+    # queue's handle so a lost message can be detected and re-sent.
+    ref = b.queue.enqueue(job.id)
+    b.store.update(job.id, queue_ref=ref, enqueued_at=time.time())
     return job
 
 

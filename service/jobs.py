@@ -70,6 +70,10 @@ class Job(BaseModel):
     run_token: str | None = None
     lease_until: float | None = None
     worker: str | None = None
+    # The queue's own handle (RQ job id) and when it was last enqueued: lets the
+    # reaper notice a queue message lost before any worker claimed the job.
+    queue_ref: str | None = None
+    enqueued_at: float | None = None
     version: int = 0
 
     @property

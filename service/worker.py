@@ -89,6 +89,15 @@ def align_option_names() -> set[str] | None:
     return {f.name for f in dataclasses.fields(AlignOptions)}
 
 
+# Where each library stage sits in a job's overall 0..1 progress (the library
+# reports a fraction per stage); unknown stages hold the current value, so the
+# published progress never goes backwards.
+STAGE_SPAN = {
+    "loading": (0.0, 0.05), "features": (0.05, 0.2), "hypotheses": (0.2, 0.4), "coarse": (0.4, 0.7),
+    "refine": (0.7, 0.8), "fine": (0.8, 0.97), "writing": (0.97, 0.99), "done": (0.97, 0.99),
+}  # fmt: skip
+
+
 class _Progress:
     """The progress callback handed to align(): writes stage/progress (throttled),
     records stage durations, and raises to abort on cancel/lease loss/timeout."""
@@ -109,6 +118,7 @@ class _Progress:
         self.stage_t0 = time.monotonic()
         self.last_write = 0.0
         self.last_check = 0.0
+        self.overall = 0.0
 
     def check(self, force: bool = False) -> None:
         if self.lost.is_set():
@@ -138,14 +148,21 @@ class _Progress:
         now = time.monotonic()
         if changed or now - self.last_write > 0.2:
             self.last_write = now
-            overall = (self.part + max(0.0, min(1.0, float(fraction)))) / self.n
-            # Keep 1.0 for "done": progress of a running job stays below it.
+            f = max(0.0, min(1.0, float(fraction)))
+            lo, hi = STAGE_SPAN.get(stage, (None, None))
+            within = (
+                (lo + f * (hi - lo))
+                if lo is not None
+                else (self.overall * self.n - self.part)
+            )
+            # 1.0 is kept for "succeeded"; a running job's progress stays below it.
+            self.overall = min(max(self.overall, (self.part + within) / self.n), 0.999)
             self.b.store.update(
                 self.job_id,
                 states={JobState.running},
                 token=self.token,
                 stage=stage,
-                progress=min(overall, 0.999),
+                progress=self.overall,
             )
 
     def finish(self) -> None:
@@ -524,11 +541,37 @@ def reap(backend: Backend, *, force: bool = False) -> list[str]:
     return touched
 
 
+def _requeue(backend: Backend, job_id: str) -> None:
+    ref = backend.queue.enqueue(job_id)
+    backend.store.update(job_id, queue_ref=ref, enqueued_at=time.time())
+
+
+def resend_lost(backend: Backend) -> list[str]:
+    """Queued jobs whose queue message is gone (e.g. the worker died between
+    dequeuing and claiming) are enqueued again. Duplicates are harmless: the
+    claim is a compare-and-set, so only one delivery ever runs the job."""
+    now = time.time()
+    grace = 2 * backend.settings.lease_s
+    out = []
+    for job_id in backend.store.queued_ids():
+        job = backend.store.get(job_id)
+        if job is None or job.state != JobState.queued or not job.queue_ref:
+            continue
+        if job.enqueued_at is not None and now - job.enqueued_at < grace:
+            continue
+        if backend.queue.lost(job.queue_ref):
+            log.warning("re-sending lost queue message for job %s", job_id)
+            _requeue(backend, job_id)
+            out.append(job_id)
+    return out
+
+
 def start_reaper(backend: Backend, stop: threading.Event) -> threading.Thread:
     def loop():
         while not stop.wait(backend.settings.reaper_interval_s):
             try:
                 reap(backend)
+                resend_lost(backend)
             except Exception:
                 log.exception("reaper pass failed")
 

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import time
+
 import httpx
 
 from tests.service.conftest import (
@@ -115,3 +117,46 @@ def test_lost_job_is_failed_when_attempts_are_spent(tmp_path):
     assert b.store.get("j3").state == JobState.running  # lease still valid
     # a stale worker holding the old token can no longer write
     assert not b.store.update("j1", token="t", states={JobState.running}, progress=0.5)
+
+
+def test_lost_queue_message_is_resent(redis_url, tmp_path):
+    """A worker that dies between dequeuing and claiming leaves the job queued in
+    the store with no live queue message; the reaper sends it again."""
+    import redis as redislib
+    from rq.job import Job as RQJob
+
+    from service.backend import make_backend
+    from service.core import create_job
+    from service.jobs import Asset
+    from service.settings import Settings
+    from service.worker import resend_lost
+
+    redislib.Redis.from_url(redis_url + "/3").flushdb()  # private test server, db 3
+    b = make_backend(
+        Settings(
+            redis_url=redis_url + "/3",
+            storage_root=tmp_path,
+            queue_name="losttest",
+            lease_s=1,
+        )
+    )
+    a = Asset(
+        id="ast_1",
+        owner="o",
+        kind="ply",
+        key="uploads/x/a.ply",
+        size=1,
+        content_type="x",
+        sha256="0",
+        created_at=0,
+    )
+    job = create_job(b, "o", "job_lost", [a], a, {}, None, None)
+    ref = b.store.get(job.id).queue_ref
+    assert ref and b.queue.q.job_ids == [ref]
+    assert resend_lost(b) == []  # a live message within the grace period: left alone
+    b.queue.q.remove(ref)  # the message vanishes (dequeued by a worker that then died)
+    RQJob.fetch(ref, connection=b.redis).delete()
+    b.store.update(job.id, enqueued_at=time.time() - 10)
+    assert resend_lost(b) == [job.id]
+    new_ref = b.store.get(job.id).queue_ref
+    assert new_ref != ref and b.queue.q.job_ids == [new_ref]
