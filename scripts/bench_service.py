@@ -28,6 +28,8 @@ import httpx
 import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
+# Same numba threading layer as `gsa worker` uses, so "direct" and "service" run the same kernels.
+os.environ.setdefault("NUMBA_THREADING_LAYER", "workqueue")
 KEY = "bench-key"
 
 
@@ -238,6 +240,11 @@ def main() -> int:
             assert job["state"] == "succeeded", job
             etag = c.get(f"/v1/jobs/{job['id']}").headers["etag"]
         s_times = [r[1] for r in runs]
+        from datetime import datetime
+
+        ts = lambda v: datetime.fromisoformat(v.replace("Z", "+00:00")).timestamp()  # noqa: E731
+        wait_q = [ts(r[2]["started_at"]) - ts(r[2]["created_at"]) for r in runs]
+        run_t = [ts(r[2]["finished_at"]) - ts(r[2]["started_at"]) for r in runs]
         acc = [r[0] for r in runs]
         print(
             f"mode={a.mode} gaussians={a.gaussians} outputs={outputs} runs={a.runs} cores={os.cpu_count()}"
@@ -248,6 +255,10 @@ def main() -> int:
         print(
             f"service submit->result:             median {1e3 * statistics.median(s_times):7.1f} ms "
             f"(p90 {1e3 * pct(s_times, 90):.1f} ms); POST accepted in median {1e3 * statistics.median(acc):.1f} ms"
+        )
+        print(
+            f"  of which created->started (queue, fork) median {1e3 * statistics.median(wait_q):.1f} ms; "
+            f"started->finished (load, align, write, store) median {1e3 * statistics.median(run_t):.1f} ms"
         )
         print(
             f"overhead:                            median {1e3 * (statistics.median(s_times) - statistics.median(d_times)):7.1f} ms"

@@ -627,6 +627,38 @@ def run_job(job_id: str) -> str | None:
     return state.value if state else None
 
 
+def _warm_up() -> None:
+    """Load the library and run one tiny alignment in the worker parent, so each
+    forked work horse inherits imported modules and loaded numba kernels
+    (a cold process pays ~1 s on its first alignment).
+
+    numba's default GNU-OpenMP threading layer aborts a child that forks after
+    the parent ran parallel code, so the worker uses the fork-safe `workqueue`
+    layer (fine here: one job thread per process)."""
+    if "numba" not in sys.modules:
+        os.environ.setdefault("NUMBA_THREADING_LAYER", "workqueue")
+    t = time.perf_counter()
+    try:
+        import numba
+
+        if numba.config.THREADING_LAYER not in ("workqueue", "tbb"):
+            log.warning(
+                "numba threading layer %s is not fork-safe: skipping warm-up",
+                numba.config.THREADING_LAYER,
+            )
+            return
+        from gsa.align.outputs import write_outputs  # noqa: F401
+        from gsa.align.pipeline import AlignOptions, align
+        from gsa.synth import make_object
+
+        m = make_object("car", seed=0, n_gaussians=500)
+        align(m, m, AlignOptions(coarse_iterations=2))
+    except Exception:  # a broken library shows up in the jobs' errors; keep serving
+        log.exception("worker warm-up failed")
+        return
+    log.info("worker warm-up took %.2f s", time.perf_counter() - t)
+
+
 def run_rq_worker(burst: bool = False, name: str | None = None) -> None:
     """A worker process: RQ worker on the job + webhook queues, plus a reaper."""
     from rq import Worker
@@ -636,11 +668,7 @@ def run_rq_worker(burst: bool = False, name: str | None = None) -> None:
         raise SystemExit(
             "gsa worker needs GSA_REDIS_URL (embedded mode runs workers inside `gsa serve`)"
         )
-    try:  # preload the library so each forked work horse starts warm
-        import gsa.align.outputs
-        import gsa.align.pipeline  # noqa: F401
-    except ImportError:
-        log.warning("gsa.align is not importable; jobs will fail")
+    _warm_up()
     stop = threading.Event()
     start_reaper(backend, stop)
     queues = [backend.queue.hooks, backend.queue.q]  # webhooks first: they are tiny
