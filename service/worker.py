@@ -653,6 +653,10 @@ def _warm_up() -> None:
 
         m = make_object("car", seed=0, n_gaussians=500)
         align(m, m, AlignOptions(coarse_iterations=2))
+        if renders_available():
+            # Import only (torch and the render kernels): running torch ops here
+            # would start its OpenMP pool, which does not survive fork().
+            import gsa.render.views  # noqa: F401
     except Exception:  # a broken library shows up in the jobs' errors; keep serving
         log.exception("worker warm-up failed")
         return

@@ -36,6 +36,8 @@ def test_embedded_restart_keeps_jobs_and_cli(tmp_path, pair):
             str(pair["target"]),
             "--stages",
             "coarse",
+            "--options",
+            '{"outputs": ["result", "aligned", "merged"]}',
             "--wait",
         )
         assert r.returncode == 0, r.stderr

@@ -23,20 +23,30 @@ from tests.service.conftest import (
     wait_job,
 )
 
-OPTS = {"stages": ["coarse"], "coarse_iterations": 30, "seed": 0}
+ALIGN = {"stages": ["coarse"], "coarse_iterations": 30, "seed": 0}
+# Renders cost seconds per job on CPU: only the first end-to-end test asks for them.
+OPTS = {**ALIGN, "outputs": ["result", "aligned", "merged"]}
+
+
+def _have_renderer() -> bool:
+    from service.worker import renders_available
+
+    return renders_available()
 
 
 def test_pair_job_end_to_end_matches_library(http, pair, tmp_path):
-    r = submit_pair(http, pair, OPTS)
+    r = submit_pair(
+        http, pair, ALIGN
+    )  # default outputs: result, aligned, merged, renders
     assert r.status_code == 202, r.text
     job = r.json()
     assert r.headers["location"] == f"/v1/jobs/{job['id']}"
     assert job["state"] in ("queued", "running", "succeeded")
-    done = wait_job(http, job["id"])
+    done = wait_job(http, job["id"], timeout=180)
     assert done["state"] == "succeeded", done
     assert done["progress"] == 1.0 and done["attempts"] == 1 and done["finished_at"]
 
-    ref = library_result(pair, OPTS)
+    ref = library_result(pair, ALIGN)
     res = done["result"]
     np.testing.assert_allclose(
         np.array(res["transform"]), ref.transform.matrix(), atol=1e-9
@@ -50,12 +60,21 @@ def test_pair_job_end_to_end_matches_library(http, pair, tmp_path):
 
     names = {a["name"] for a in done["artifacts"]}
     assert {"aligned.ply", "merged.ply", "result.json"} <= names
+    pngs = [a for a in done["artifacts"] if a["name"].startswith("renders/")]
+    if _have_renderer():
+        assert pngs and all(a["content_type"] == "image/png" for a in pngs), done[
+            "artifacts"
+        ]
+    else:
+        assert not pngs and "renders skipped" in " ".join(res.get("notes", []))
     for a in done["artifacts"]:
         d = http.get(a["href"])
         assert d.status_code == 200 and d.headers["content-type"].startswith(
             a["content_type"]
         )
         assert len(d.content) == a["size"]
+        if a["content_type"] == "image/png":
+            assert d.content.startswith(b"\x89PNG")
         (tmp_path / a["name"].replace("/", "_")).write_bytes(d.content)
     from gsa.io.ply import read_ply
 
