@@ -143,6 +143,14 @@ def get_asset(b: Backend, owner: str, asset_id: str) -> Asset:
 def validate_options(options: dict[str, Any]) -> dict[str, Any]:
     from service.worker import SERVICE_OPTIONS, align_option_names
 
+    from service.worker import server_only_option
+
+    fixed = sorted(k for k in options if server_only_option(k))
+    if fixed:
+        # Paths and devices are the server's business: a client path must never reach the filesystem.
+        raise invalid_input(
+            f"option(s) set by the server, not the client: {', '.join(fixed)}"
+        )
     known = align_option_names()
     if known is not None:
         unknown = sorted(set(options) - known - SERVICE_OPTIONS)

@@ -67,7 +67,6 @@ class Settings(BaseSettings):
     public_docs: bool = True
 
     grpc_port: int | None = None
-    result_ttl_days: int | None = None
 
     @field_validator("api_keys", mode="before")
     @classmethod

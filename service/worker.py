@@ -81,6 +81,24 @@ def content_type(name: str) -> str:
     return mimetypes.guess_type(name)[0] or "application/octet-stream"
 
 
+def server_only_option(name: str) -> bool:
+    return name == "device" or name.endswith(("_weights", "_path", "_dir", "_device"))
+
+
+def server_options(settings, known: set[str]) -> dict:
+    """Deployment settings for AlignOptions fields that exist in this library build."""
+    candidates = {
+        "device": settings.worker_device,
+        "spheremap_weights": settings.spheremap_weights,
+        "dinov2_weights": settings.dinov2_weights,
+    }
+    return {
+        k: (str(v) if k.endswith("_weights") else v)
+        for k, v in candidates.items()
+        if k in known and v
+    }
+
+
 def align_option_names() -> set[str] | None:
     try:
         from gsa.align.pipeline import AlignOptions
@@ -399,6 +417,7 @@ def _run(
         )
     if "stages" in opts_in and isinstance(opts_in["stages"], list):
         opts_in["stages"] = tuple(opts_in["stages"])
+    opts_in.update(server_options(backend.settings, known))
     try:
         opts = AlignOptions(**opts_in)
     except (TypeError, ValueError) as exc:

@@ -319,6 +319,10 @@ def test_bad_inputs_get_problems_and_leave_nothing(http, stack, pair):
         submit_pair(http, pair, {"no_such_option": 1}), 422, "invalid-input"
     )
     assert "no_such_option" in b["detail"]
+    b = assert_problem(
+        submit_pair(http, pair, {"dinov2_weights": "/etc/passwd"}), 422, "invalid-input"
+    )
+    assert "set by the server" in b["detail"]
     assert_problem(http.get("/nowhere"), 404)
 
     assert (_blob_count(stack), _asset_count(stack)) == wait_until_quiet
