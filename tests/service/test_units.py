@@ -236,3 +236,17 @@ def test_gsa_does_not_import_service():
         env={"PYTHONPATH": str(ROOT)},
     )
     assert r.returncode == 0, r.stderr
+
+
+def test_readyz_reports_unreachable_redis(tmp_path):
+    from fastapi.testclient import TestClient
+
+    from service.api.app import create_app
+    from tests.service.conftest import free_port
+
+    s = Settings(redis_url=f"redis://127.0.0.1:{free_port()}/0", storage_root=tmp_path, auth_disabled=True)
+    with TestClient(create_app(s)) as c:
+        r = c.get("/readyz")
+        assert r.status_code == 503 and r.headers["content-type"].startswith("application/problem+json")
+        assert r.json()["checks"] == {"store": False, "storage": True}
+        assert c.get("/healthz").status_code == 200
