@@ -679,6 +679,10 @@ def _warm_up() -> None:
     except Exception:  # a broken library shows up in the jobs' errors; keep serving
         log.exception("worker warm-up failed")
         return
+    # Pre-fork hygiene: move everything loaded so far out of the GC's reach so the
+    # horses' collections do not copy-on-write the whole inherited heap.
+    gc.collect()
+    gc.freeze()
     log.info("worker warm-up took %.2f s", time.perf_counter() - t)
 
 
