@@ -244,9 +244,60 @@ def test_readyz_reports_unreachable_redis(tmp_path):
     from service.api.app import create_app
     from tests.service.conftest import free_port
 
-    s = Settings(redis_url=f"redis://127.0.0.1:{free_port()}/0", storage_root=tmp_path, auth_disabled=True)
+    s = Settings(
+        redis_url=f"redis://127.0.0.1:{free_port()}/0",
+        storage_root=tmp_path,
+        auth_disabled=True,
+    )
     with TestClient(create_app(s)) as c:
         r = c.get("/readyz")
-        assert r.status_code == 503 and r.headers["content-type"].startswith("application/problem+json")
+        assert r.status_code == 503 and r.headers["content-type"].startswith(
+            "application/problem+json"
+        )
         assert r.json()["checks"] == {"store": False, "storage": True}
         assert c.get("/healthz").status_code == 200
+
+
+def test_cancel_queued_and_job_timeout_in_process(tmp_path, pair):
+    """Embedded app in-process: a queued job is cancelled at once (no worker
+    running); a job over its time limit fails with a job-timeout problem."""
+    import json as _json
+
+    from fastapi.testclient import TestClient
+
+    from service.api.app import create_app
+    from service.backend import make_backend
+    from service.worker import execute
+
+    s = Settings(storage_root=tmp_path, api_keys={"k": "me"}, job_timeout_s=0.0)
+    H = {"Authorization": "Bearer k"}
+    backend = make_backend(s)
+    with TestClient(create_app(s, backend, run_workers=False)) as c:
+
+        def submit():
+            with open(pair["source"], "rb") as a, open(pair["target"], "rb") as b:
+                r = c.post(
+                    "/v1/jobs",
+                    headers=H,
+                    files=[("source", ("s.ply", a)), ("target", ("t.ply", b))],
+                    data={"options": _json.dumps({"outputs": ["result"]})},
+                )
+            assert r.status_code == 202, r.text
+            return r.json()["id"]
+
+        jid = submit()
+        r = c.post(f"/v1/jobs/{jid}:cancel", headers=H)
+        assert r.status_code == 202 and r.json()["state"] == "cancelled"
+        assert (
+            execute(jid, backend) is None
+        )  # a worker that dequeues it later leaves it alone
+        assert c.get(f"/v1/jobs/{jid}", headers=H).json()["state"] == "cancelled"
+
+        jid = submit()
+        assert execute(jid, backend) == JobState.failed
+        job = c.get(f"/v1/jobs/{jid}", headers=H).json()
+        assert (
+            job["error"]["type"].endswith("/job-timeout")
+            and job["error"]["status"] == 504
+        )
+        assert job["artifacts"] == [] and job["attempts"] == 1
