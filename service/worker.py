@@ -112,7 +112,7 @@ def align_option_names() -> set[str] | None:
 # published progress never goes backwards.
 STAGE_SPAN = {
     "loading": (0.0, 0.05), "features": (0.05, 0.2), "hypotheses": (0.2, 0.4), "coarse": (0.4, 0.7),
-    "refine": (0.7, 0.8), "fine": (0.8, 0.97), "writing": (0.97, 0.99), "done": (0.97, 0.99),
+    "refine": (0.7, 0.8), "fine": (0.8, 0.97), "writing": (0.97, 0.99), "renders": (0.97, 0.99), "done": (0.97, 0.99),
 }  # fmt: skip
 
 
@@ -427,7 +427,7 @@ def _run(
         work = Path(tmp)
         prog("loading", 0.0)
         target = _load(backend, job.target, work, "target", prog)
-        results, files = [], []
+        results, files, transforms = [], [], []
         multi = len(job.sources) > 1
         for i, ref in enumerate(job.sources):
             prog.part = i
@@ -448,7 +448,13 @@ def _run(
             d["source_asset_id"] = ref.asset_id
             results.append(d)
             files += _collect(paths, f"s{i}/" if multi else "")
+            transforms.append(res.transform)
             del source, res
+        if multi and "renders" in outputs:
+            # Paper App. B: every model in the reference frame, seen from the same cameras.
+            prog.part = len(job.sources) - 1
+            prog("renders", 0.0)
+            files += _synchronized(backend, job, target, transforms, work, notes)
         prog.check(force=True)
         artifacts = []
         for name, path in files:
@@ -473,6 +479,29 @@ def _run(
         stage="done",
     )
     return JobState.succeeded if ok else None
+
+
+def _synchronized(
+    backend: Backend, job: Job, target, transforms, work: Path, notes: list
+) -> list:
+    from gsa.io.ply import read_ply
+    from gsa.render.views import write_synchronized_renders
+    from gsa.sim3 import Sim3
+
+    if any(ref.kind != "ply" for ref in job.sources):
+        notes.append(
+            "synchronized renders skipped: they need every source as a 3DGS model file"
+        )
+        return []
+    models = [target] + [
+        read_ply(work / f"source{i}.ply", max_gaussians=backend.settings.max_gaussians)
+        for i in range(len(job.sources))
+    ]
+    feats = all(m.features is not None for m in models)
+    paths = write_synchronized_renders(
+        models, work / "sync", transforms=[Sim3.identity(), *transforms], features=feats
+    )
+    return [(f"synchronized/{Path(p).name}", Path(p)) for _, p in sorted(paths.items())]
 
 
 def _finish(

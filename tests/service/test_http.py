@@ -108,11 +108,11 @@ def test_assets_then_json_job_and_multi_model(http, pair):
         json={
             "sources": [ids["source"], ids["source2"]],
             "target": ids["target"],
-            "options": {**OPTS, "outputs": ["result", "aligned"]},
+            "options": {**OPTS, "outputs": ["result", "aligned", "renders"]},
         },
     )
     assert r.status_code == 202, r.text
-    done = wait_job(http, r.json()["id"])
+    done = wait_job(http, r.json()["id"], timeout=180)
     assert done["state"] == "succeeded", done
     assert len(done["result"]["results"]) == 2
     assert [x["source_asset_id"] for x in done["result"]["results"]] == [
@@ -120,12 +120,25 @@ def test_assets_then_json_job_and_multi_model(http, pair):
         ids["source2"],
     ]
     names = {a["name"] for a in done["artifacts"]}
-    assert names == {
+    renders = {n for n in names if "renders/" in n or n.startswith("synchronized/")}
+    assert names - renders == {
         "s0/aligned.ply",
         "s0/result.json",
         "s1/aligned.ply",
         "s1/result.json",
     }
+    if (
+        _have_renderer()
+    ):  # per-pair before/after views, plus all models from shared cameras
+        assert "synchronized/synchronized.png" in renders
+        assert any(n.startswith("s0/renders/") for n in renders)
+        assert any(n.startswith("s1/renders/") for n in renders)
+        png = http.get(f"/v1/jobs/{done['id']}/artifacts/synchronized/synchronized.png")
+        assert png.headers["content-type"] == "image/png" and png.content.startswith(
+            b"\x89PNG"
+        )
+    else:
+        assert not renders
     assert (
         http.get(f"/v1/jobs/{done['id']}/artifacts/s1/result.json").json()[
             "source_asset_id"
