@@ -242,7 +242,7 @@ def main() -> int:
         s_times = [r[1] for r in runs]
         from datetime import datetime
 
-        ts = lambda v: datetime.fromisoformat(v.replace("Z", "+00:00")).timestamp()  # noqa: E731
+        ts = lambda v: datetime.fromisoformat(v.replace("Z", "+00:00")).timestamp()
         wait_q = [ts(r[2]["started_at"]) - ts(r[2]["created_at"]) for r in runs]
         run_t = [ts(r[2]["finished_at"]) - ts(r[2]["started_at"]) for r in runs]
         acc = [r[0] for r in runs]

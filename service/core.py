@@ -141,9 +141,7 @@ def get_asset(b: Backend, owner: str, asset_id: str) -> Asset:
 
 
 def validate_options(options: dict[str, Any]) -> dict[str, Any]:
-    from service.worker import SERVICE_OPTIONS, align_option_names
-
-    from service.worker import server_only_option
+    from service.worker import SERVICE_OPTIONS, align_option_names, server_only_option
 
     fixed = sorted(k for k in options if server_only_option(k))
     if fixed:

@@ -309,7 +309,7 @@ class AlignmentServicer(pbg.AlignmentServiceServicer):
 
     def GetArtifact(self, request, context):
         owner = self._owner(context)
-        job, art = self._guard(
+        _, art = self._guard(
             lambda: core.get_artifact(self.b, owner, request.job_id, request.name),
             context,
         )

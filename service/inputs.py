@@ -21,7 +21,7 @@ IMAGE_EXTS = {".png", ".jpg", ".jpeg"}
 def sniff(head: bytes) -> str | None:
     if head.startswith(b"ply"):
         return "ply"
-    if head.startswith(b"PK\x03\x04") or head.startswith(b"PK\x05\x06"):
+    if head.startswith((b"PK\x03\x04", b"PK\x05\x06")):
         return "zip"
     if head.startswith(b"\x89PNG\r\n\x1a\n"):
         return "png"

@@ -487,7 +487,7 @@ def get_artifact(
     b: B,
     range_header: Annotated[str | None, Header(alias="Range")] = None,
 ):
-    job, art = core.get_artifact(b, owner, job_id, name)
+    _, art = core.get_artifact(b, owner, job_id, name)
     size = art.size
     headers = {
         "Accept-Ranges": "bytes",
