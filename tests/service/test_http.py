@@ -507,3 +507,28 @@ def test_unsafe_zip_names(bad):
 
     assert unsafe_member_name(bad)
     assert not unsafe_member_name("views/0001.png")
+
+
+def test_python_client_resumes_downloads(stack, pair, tmp_path):
+    from gsa.client import GSAClient, GSAError
+
+    with GSAClient(stack["url"], api_key="key-alice") as c:
+        job = c.submit(pair["source"], pair["target"], OPTS, idempotency_key="client-1")
+        assert (
+            c.submit(pair["source"], pair["target"], OPTS, idempotency_key="client-1")[
+                "id"
+            ]
+            == job["id"]
+        )
+        job = c.wait(job["id"], timeout=60, poll=0.05)
+        full = c.fetch(job["id"], "aligned.ply", tmp_path / "full.ply").read_bytes()
+        # an interrupted earlier download: the client asks only for the rest (Range)
+        (tmp_path / "resumed.ply.part").write_bytes(full[:1000])
+        assert (
+            c.fetch(job["id"], "aligned.ply", tmp_path / "resumed.ply").read_bytes()
+            == full
+        )
+        assert [j["id"] for j in c.list(limit=200)["items"]].count(job["id"]) == 1
+        with pytest.raises(GSAError) as e:
+            c.status("job_missing")
+        assert e.value.status == 404 and e.value.problem["type"].endswith("/not-found")
