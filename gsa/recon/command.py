@@ -13,7 +13,7 @@ def add_reconstruct_parser(subparsers) -> argparse.ArgumentParser:
     p.add_argument("images", help="directory of images or a .zip archive")
     p.add_argument("--out", required=True, help="output directory (model.ply, cameras.json, report.json, ...)")
     p.add_argument("--preset", choices=("cpu", "gpu"), default="cpu",
-                   help="cpu: 128 px, 1000 iterations (minutes on 2 cores); gpu: full resolution, 7000 iterations")
+                   help="cpu: 128 px, 600 iterations (minutes on 2 cores); gpu: full resolution, 7000 iterations")
     p.add_argument("--iterations", type=int, default=None, help="override the preset's iteration count")
     p.add_argument("--masks", choices=("auto", "key", "grabcut", "sam", "none"), default="auto")
     p.add_argument("--matching", choices=("exhaustive", "sequential"), default="exhaustive")
