@@ -39,7 +39,7 @@ class CoarseOptions:
     # Convergence: the update is below these (radians; relative scale), or the matches repeat.
     rotation_tolerance: float = 2e-5
     scale_tolerance: float = 2e-6
-    workers: int = -1  # KD-tree query threads (-1: all cores)
+    workers: int = -1  # KD-tree query threads for large queries (-1: all cores)
 
 
 @dataclass
@@ -83,7 +83,8 @@ def find_candidates(
     tree = target_tree if target_tree is not None else cKDTree(np.asarray(target_features, np.float64))
     k = int(min(max_candidates + 1, len(target_features)))
     dist, idx = tree.query(
-        np.asarray(source_features, np.float64), k=k, distance_upper_bound=tau_f, workers=workers
+        np.asarray(source_features, np.float64), k=k, distance_upper_bound=tau_f,
+        workers=query_workers(len(source_features), workers),
     )
     dist = dist.reshape(len(source_features), k)
     idx = idx.reshape(len(source_features), k)
@@ -249,10 +250,10 @@ def icp_refine(
     history: list[dict] = []
     budget = opts.max_iterations
     while budget > 0:
-        _, table = target_tree.query(transform.apply(p), k=min(neighbours, len(q)), workers=opts.workers)
+        _, table = target_tree.query(transform.apply(p), k=min(neighbours, len(q)), workers=query_workers(len(p), opts.workers))
         table = np.ascontiguousarray(table.reshape(len(p), -1), np.int64)
 
-        def match(x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        def match(x: np.ndarray, table: np.ndarray = table) -> tuple[np.ndarray, np.ndarray]:
             return _nearest_candidate(np.ascontiguousarray(x), q, table)
 
         inner = replace(opts, max_iterations=budget)
@@ -266,6 +267,12 @@ def icp_refine(
     result.history = history
     result.iterations = len(history)
     return result
+
+
+def query_workers(n_queries: int, workers: int = -1) -> int:
+    """scipy starts fresh threads on every parallel query; below ~20k queries
+    that costs more than it saves."""
+    return workers if n_queries >= 20_000 else 1
 
 
 def rotation_angle(r: np.ndarray) -> float:

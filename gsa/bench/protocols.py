@@ -5,6 +5,7 @@ dup       paper App. C: a model duplicated under a random Sim(3) (≤180° per a
 same      paper Table 1 analogue: two independent samplings of one object, authors' perturbation
 category  paper Table 2 analogue: different instances of one category, random Sim(3)
 speed     coarse alignment time and peak memory against Gaussian count
+io        PLY write/read time and memory for a 1M-Gaussian file
 """
 
 from __future__ import annotations
@@ -187,6 +188,13 @@ def _save(out: Path, name: str, rows: list[dict]) -> None:
 
 
 def format_table(name: str, rows: list[dict]) -> str:
+    if name == "io":
+        lines = ["| Gaussians (SH degree 3) | file (MB) | write (s) | read (s) | RSS growth after read (MB) |",
+                 "|---:|---:|---:|---:|---:|"]
+        for r in rows:
+            lines.append(f"| {r['gaussians']:,} | {r['file_mb']:.0f} | {r['write_seconds']:.2f} | "
+                         f"{r['read_seconds']:.2f} | {r['rss_growth_mb']:.0f} |")
+        return "\n".join(lines)
     if name == "speed":
         lines = ["| Gaussians (each model) | align total (s) | coarse (s) | peak RSS (MB) | alignment's own peak (MB) | RRE (°) |",
                  "|---:|---:|---:|---:|---:|---:|"]
@@ -220,3 +228,39 @@ def run_protocols(names: list[str], quick: bool = False, out: str = "out/bench",
         sys.stdout.flush()
     print(f"\nJSON: {out_dir}/")
     return 0
+
+
+def _io_child(n: int) -> dict:
+    import tempfile
+
+    from gsa.io.ply import read_ply, write_ply
+
+    model = make_object("bus", seed=1, n_gaussians=n, sh_degree=3)
+    with tempfile.TemporaryDirectory() as d:
+        path = Path(d) / "big.ply"
+        t0 = time.perf_counter()
+        write_ply(model, path)
+        write_s = time.perf_counter() - t0
+        size_mb = path.stat().st_size / 2**20
+        del model
+        base = _rss_now_mb()
+        t0 = time.perf_counter()
+        loaded = read_ply(path)
+        read_s = time.perf_counter() - t0
+        peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+        return {"gaussians": len(loaded), "file_mb": size_mb, "write_seconds": write_s, "read_seconds": read_s,
+                "rss_growth_mb": _rss_now_mb() - base, "peak_rss_mb": peak}
+
+
+def protocol_io(quick: bool, seed: int, out: Path) -> list[dict]:
+    n = 200_000 if quick else 1_000_000
+    proc = subprocess.run(
+        [sys.executable, "-c", f"import json; from gsa.bench.protocols import _io_child; print(json.dumps(_io_child({n})))"],
+        capture_output=True, text=True, check=True,
+    )
+    rows = [json.loads(proc.stdout.strip().splitlines()[-1]) | {"protocol": "io"}]
+    _save(out, "io", rows)
+    return rows
+
+
+PROTOCOLS["io"] = protocol_io
