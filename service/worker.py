@@ -31,7 +31,7 @@ from service.problems import PROBLEM_BASE
 
 log = logging.getLogger("gsa.worker")
 
-SERVICE_OPTIONS = {"outputs", "renders"}
+SERVICE_OPTIONS = {"outputs", "renders", "recon_iterations"}
 DEFAULT_OUTPUTS = ("result", "aligned", "merged", "renders")
 
 
@@ -212,8 +212,17 @@ def _heartbeat(
 
 
 def _load(
-    backend: Backend, ref: InputRef, workdir: Path, name: str, progress: _Progress
+    backend: Backend,
+    ref: InputRef,
+    workdir: Path,
+    name: str,
+    progress: _Progress,
+    reconstructions: dict | None = None,
+    recon_iterations: int | None = None,
 ):
+    """A job input as a GaussianModel: a PLY as is, an image set through gsa.recon
+    (its summary and model file are recorded in `reconstructions`)."""
+    reconstructions = {} if reconstructions is None else reconstructions
     from gsa.io.ply import read_ply
 
     s = backend.settings
@@ -222,7 +231,7 @@ def _load(
         return read_ply(path, max_gaussians=s.max_gaussians)
     if ref.kind == "images":
         try:
-            from gsa import recon
+            from gsa.recon import ImageSetError, MaskError, SfMError, reconstruct
         except ImportError:
             raise JobFailed(
                 501,
@@ -235,19 +244,27 @@ def _load(
 
         archive = backend.storage.download(ref.key, workdir / f"{name}.zip")
         images = safe_extract(archive, workdir / f"{name}-images", s)
-        fn = getattr(recon, "reconstruct", None)
-        if fn is None:
-            raise JobFailed(
-                501,
-                "reconstruction-unavailable",
-                "Image-set reconstruction unavailable",
-                "this build's gsa.recon has no reconstruct() entry point",
+        preset = "gpu" if s.worker_device.startswith("cuda") else "cpu"
+        try:
+            res = reconstruct(
+                images,
+                workdir / f"{name}-recon",
+                preset=preset,
+                progress=lambda st, f: progress(f"recon:{st}", f),
+                iterations=recon_iterations,
             )
-        return fn(
-            images,
-            device=s.worker_device,
-            progress=lambda st, f: progress(f"recon:{st}", f),
-        )
+        except (ImageSetError, SfMError, MaskError) as exc:
+            raise JobFailed(
+                422,
+                "reconstruction-failed",
+                "Reconstruction failed",
+                f"{name} images: {exc}",
+            ) from None
+        summary = {
+            k: v for k, v in res.summary().items() if k not in ("model", "cameras")
+        }
+        reconstructions[name] = (summary, Path(res.model_path))
+        return res.model
     raise JobFailed(
         422, "invalid-input", "Invalid input", f"unknown input kind {ref.kind!r}"
     )
@@ -400,6 +417,8 @@ def _run(
 
     opts_in = dict(job.options)
     outputs = set(opts_in.pop("outputs", None) or DEFAULT_OUTPUTS)
+    recon_iterations = opts_in.pop("recon_iterations", None)
+    reconstructions: dict = {}
     if opts_in.pop("renders", True) is False:
         outputs.discard("renders")
     notes = []
@@ -426,12 +445,22 @@ def _run(
     with tempfile.TemporaryDirectory(prefix="gsa-job-") as tmp:
         work = Path(tmp)
         prog("loading", 0.0)
-        target = _load(backend, job.target, work, "target", prog)
+        target = _load(
+            backend, job.target, work, "target", prog, reconstructions, recon_iterations
+        )
         results, files, transforms = [], [], []
         multi = len(job.sources) > 1
         for i, ref in enumerate(job.sources):
             prog.part = i
-            source = _load(backend, ref, work, f"source{i}", prog)
+            source = _load(
+                backend,
+                ref,
+                work,
+                f"source{i}",
+                prog,
+                reconstructions,
+                recon_iterations,
+            )
             prog.check(force=True)
             res = align(source, target, opts, progress=prog)
             prog("writing", 0.99)
@@ -455,6 +484,11 @@ def _run(
             prog.part = len(job.sources) - 1
             prog("renders", 0.0)
             files += _synchronized(backend, job, target, transforms, work, notes)
+        # Models reconstructed from image sets are results in their own right.
+        files += [
+            (f"reconstructed/{n}.ply", p)
+            for n, (_, p) in sorted(reconstructions.items())
+        ]
         prog.check(force=True)
         artifacts = []
         for name, path in files:
@@ -466,6 +500,10 @@ def _run(
             )
     result = dict(results[0]) if len(results) == 1 else {}
     result["results"] = results
+    if reconstructions:
+        result["reconstructions"] = {
+            n: summ for n, (summ, _) in reconstructions.items()
+        }
     if notes:
         result["notes"] = notes
     ok = _finish(

@@ -41,6 +41,12 @@ class AlignOptionsIn(BaseModel):
     outputs: list[OutputName] | None = Field(
         None, description="artifacts wanted (default: all)"
     )
+    recon_iterations: int | None = Field(
+        None,
+        ge=10,
+        le=100_000,
+        description="3DGS training iterations for image-set inputs",
+    )
 
     def to_dict(self) -> dict[str, Any]:
         return self.model_dump(exclude_none=True)
