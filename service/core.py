@@ -4,7 +4,6 @@ assets, creating jobs (with idempotency), cancelling, reading artifacts."""
 from __future__ import annotations
 
 import hashlib
-import json
 import tempfile
 import time
 import zipfile
@@ -163,29 +162,6 @@ def validate_options(options: dict[str, Any]) -> dict[str, Any]:
         if bad:
             raise invalid_input(f"unknown output(s): {', '.join(bad)}")
     return options
-
-
-def body_hash(
-    source_ids: list[str],
-    target_id: str,
-    options: dict,
-    webhook: dict | None,
-    digests: dict,
-) -> str:
-    # Uploaded files are identified by content digest, asset ids by id: the same
-    # files uploaded twice with the same Idempotency-Key are "the same body".
-    canon = json.dumps(
-        {
-            "sources": source_ids,
-            "target": target_id,
-            "options": options,
-            "webhook": webhook,
-            "digests": digests,
-        },
-        sort_keys=True,
-        separators=(",", ":"),
-    )
-    return hashlib.sha256(canon.encode()).hexdigest()
 
 
 def claim(

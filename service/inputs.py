@@ -13,7 +13,7 @@ from pathlib import Path, PurePosixPath, PureWindowsPath
 
 import numpy as np
 
-from service.problems import Problem, invalid_input, too_large
+from service.problems import invalid_input, too_large
 
 IMAGE_EXTS = {".png", ".jpg", ".jpeg"}
 
@@ -181,33 +181,28 @@ def validate_zip(path: Path, settings, display_name: str) -> int:
 
 
 def safe_extract(path: Path, dest: Path, settings) -> Path:
-    """Extract a zip that passed validate_zip, re-checking every name (defence in depth)."""
+    """Extract the images of a zip that passed validate_zip (checked again here).
+
+    Files are flattened to numbered names: the reconstruction reads one folder,
+    and no archive path is ever used as a filesystem path."""
     validate_zip(path, settings, path.name)
     dest.mkdir(parents=True, exist_ok=True)
     root = dest.resolve()
+    n = 0
     with zipfile.ZipFile(path) as zf:
         for info in zf.infolist():
-            if (
-                info.is_dir()
-                or PurePosixPath(info.filename).suffix.lower() not in IMAGE_EXTS
-            ):
+            name = PurePosixPath(info.filename)
+            if info.is_dir() or name.suffix.lower() not in IMAGE_EXTS:
                 continue
-            out = (root / info.filename).resolve()
-            if root not in out.parents:
-                raise Problem(
-                    422,
-                    "invalid-input",
-                    "Invalid input",
-                    f"unsafe path {info.filename!r}",
-                )
-            out.parent.mkdir(parents=True, exist_ok=True)
+            if name.name.startswith("."):  # macOS resource forks and other hidden files
+                continue
+            out = root / f"{n:05d}{name.suffix.lower()}"
+            n += 1
             with zf.open(info) as src, open(out, "wb") as dst:
                 remaining = info.file_size + 1
                 while chunk := src.read(1 << 20):
                     remaining -= len(chunk)
                     if remaining < 0:  # the directory lied about the size
-                        raise invalid_input(
-                            f"{info.filename!r} is larger than its declared size"
-                        )
+                        raise invalid_input(f"{info.filename!r} is larger than its declared size")
                     dst.write(chunk)
     return dest
