@@ -203,6 +203,8 @@ def safe_extract(path: Path, dest: Path, settings) -> Path:
                 while chunk := src.read(1 << 20):
                     remaining -= len(chunk)
                     if remaining < 0:  # the directory lied about the size
-                        raise invalid_input(f"{info.filename!r} is larger than its declared size")
+                        raise invalid_input(
+                            f"{info.filename!r} is larger than its declared size"
+                        )
                     dst.write(chunk)
     return dest

@@ -116,6 +116,15 @@ STAGE_SPAN = {
 }  # fmt: skip
 
 
+# Image-set inputs: gsa.recon's stages ("recon:sfm:features" -> "sfm") come first.
+RECON_SPAN = {
+    "images": (0.0, 0.02),
+    "sfm": (0.02, 0.1),
+    "masks": (0.1, 0.12),
+    "train": (0.12, 0.4),
+}
+
+
 class _Progress:
     """The progress callback handed to align(): writes stage/progress (throttled),
     records stage durations, and raises to abort on cancel/lease loss/timeout."""
@@ -167,7 +176,9 @@ class _Progress:
         if changed or now - self.last_write > 0.2:
             self.last_write = now
             f = max(0.0, min(1.0, float(fraction)))
-            lo, hi = STAGE_SPAN.get(stage, (None, None))
+            key = stage.split(":")[1] if stage.startswith("recon:") else stage
+            span = RECON_SPAN if stage.startswith("recon:") else STAGE_SPAN
+            lo, hi = span.get(key, (None, None))
             within = (
                 (lo + f * (hi - lo))
                 if lo is not None
