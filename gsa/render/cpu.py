@@ -1,0 +1,552 @@
+"""Native CPU compositing with numba: tile binning, front-to-back forward and a
+hand-written back-to-front backward (the scheme of the CUDA 3DGS rasterizer).
+
+Work is parallel over (camera, 16x16 tile) with prange. Inside a tile, Gaussians
+are visited in depth order and each one only touches the pixels of its own
+bounding box (3σ ellipse shrunk by the 1/255 opacity cutoff), keeping per-pixel
+transmittance, so the cost is the true overlap rather than pixels x list length.
+The backward pass recovers each pixel's transmittance from the saved final value
+(T / (1 - alpha)) and the saved contributor count. Gradients are written per
+(tile, Gaussian) pair, never shared between threads, then reduced per camera,
+so results are deterministic and race-free.
+
+Projection (means, covariances, SH) happens in torch (gsa.render.projection);
+`composite_cpu` is a torch.autograd.Function over its outputs, so autograd chains
+the kernel gradients to means, quaternions, log-scales, opacities, SH and features.
+Kernels are compiled for float32 (speed) and float64 (gradient checks).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numba
+import numpy as np
+import torch
+from numba import njit, prange
+
+from gsa.render.reference import ALPHA_MAX, ALPHA_MIN, MAHA_CUTOFF, T_MIN
+
+TILE = 16
+
+
+@njit(cache=True, error_model="numpy")
+def _pixel_box(mx, my, ex, ey, x0, y0, x1, y1):
+    """Pixels (inclusive ranges) whose centres lie inside [m - e, m + e], clipped to a tile."""
+    px0 = max(x0, int(math.ceil(mx - ex - 0.5)))
+    px1 = min(x1 - 1, int(math.floor(mx + ex - 0.5)))
+    py0 = max(y0, int(math.ceil(my - ey - 0.5)))
+    py1 = min(y1 - 1, int(math.floor(my + ey - 0.5)))
+    return px0, px1, py0, py1
+
+
+@njit(cache=True, error_model="numpy")
+def _extents(cov_diag, opac, valid):
+    """(C,N,2) half-extents of each Gaussian's footprint; -1 for culled ones.
+
+    A pixel can only contribute where d² <= min(9, 2 ln(255 o)); the ellipse
+    d^T Σ^-1 d <= t has half-widths sqrt(t Σ_xx), sqrt(t Σ_yy). A small margin
+    keeps boundary pixels that the exact per-pixel tests then decide.
+    """
+    c_count, n = opac.shape
+    ext = np.empty((c_count, n, 2), cov_diag.dtype)
+    for c in range(c_count):
+        for i in range(n):
+            o = opac[c, i]
+            if not valid[c, i] or o * 255.0 < 1.0:
+                ext[c, i, 0] = -1.0
+                ext[c, i, 1] = -1.0
+                continue
+            t = min(MAHA_CUTOFF, 2.0 * math.log(255.0 * o)) * 1.0001 + 1e-6
+            ext[c, i, 0] = math.sqrt(t * cov_diag[c, i, 0])
+            ext[c, i, 1] = math.sqrt(t * cov_diag[c, i, 1])
+    return ext
+
+
+@njit(parallel=True, cache=True, error_model="numpy")
+def _bin(means2d, ext, depths, width, height, tile):
+    """Per (camera, tile) lists of Gaussian ids sorted front to back.
+
+    Returns offsets (C*T + 1,) int64 and ids (P,) int32; the list of job j is
+    ids[offsets[j]:offsets[j+1]].
+    """
+    c_count, n = depths.shape
+    tx_n = (width + tile - 1) // tile
+    ty_n = (height + tile - 1) // tile
+    nt = tx_n * ty_n
+    counts = np.zeros(c_count * nt, np.int64)
+    rects = np.full((c_count, n, 4), -1, np.int32)
+    for c in prange(c_count):
+        for i in range(n):
+            if ext[c, i, 0] < 0:
+                continue
+            px0, px1, py0, py1 = _pixel_box(means2d[c, i, 0], means2d[c, i, 1], ext[c, i, 0], ext[c, i, 1],
+                                            0, 0, width, height)
+            if px0 > px1 or py0 > py1:
+                continue
+            rects[c, i, 0] = px0 // tile
+            rects[c, i, 1] = px1 // tile
+            rects[c, i, 2] = py0 // tile
+            rects[c, i, 3] = py1 // tile
+            for ty in range(py0 // tile, py1 // tile + 1):
+                for tx in range(px0 // tile, px1 // tile + 1):
+                    counts[c * nt + ty * tx_n + tx] += 1
+    offsets = np.zeros(c_count * nt + 1, np.int64)
+    for j in range(c_count * nt):
+        offsets[j + 1] = offsets[j] + counts[j]
+    ids = np.empty(offsets[-1], np.int32)
+    for c in prange(c_count):
+        cursor = offsets[c * nt:(c + 1) * nt].copy()
+        order = np.argsort(depths[c])  # exact depth ties (measure zero) may order differently from the reference
+        for i in order:
+            if rects[c, i, 0] < 0:
+                continue
+            for ty in range(rects[c, i, 2], rects[c, i, 3] + 1):
+                for tx in range(rects[c, i, 0], rects[c, i, 1] + 1):
+                    t = ty * tx_n + tx
+                    ids[cursor[t]] = i
+                    cursor[t] += 1
+    return offsets, ids
+
+
+@njit(parallel=True, cache=True, error_model="numpy")
+def _forward(means2d, conics, opac, chans, ext, bg, offsets, ids, width, height, tile):
+    """-> out (C,H,W,F), t_final (C,H,W), n_contrib (C,H,W) int32 (list position past the last contributor)."""
+    c_count, n, f = chans.shape
+    tx_n = (width + tile - 1) // tile
+    ty_n = (height + tile - 1) // tile
+    nt = tx_n * ty_n
+    dt = chans.dtype
+    out = np.empty((c_count, height, width, f), dt)
+    t_final = np.empty((c_count, height, width), dt)
+    n_contrib = np.zeros((c_count, height, width), np.int32)
+    for job in prange(c_count * nt):
+        c = job // nt
+        t = job % nt
+        x0 = (t % tx_n) * tile
+        y0 = (t // tx_n) * tile
+        x1 = min(x0 + tile, width)
+        y1 = min(y0 + tile, height)
+        tw = x1 - x0
+        th = y1 - y0
+        trans = np.ones(th * tw, dt)
+        acc = np.zeros((th * tw, f), dt)
+        done = np.zeros(th * tw, np.bool_)
+        last = np.zeros(th * tw, np.int32)
+        n_done = 0
+        start = offsets[job]
+        for k in range(start, offsets[job + 1]):
+            if n_done == tw * th:
+                break
+            g = ids[k]
+            mx = means2d[c, g, 0]
+            my = means2d[c, g, 1]
+            ca = conics[c, g, 0]
+            cb = conics[c, g, 1]
+            cc = conics[c, g, 2]
+            o = opac[c, g]
+            col = chans[c, g]
+            px0, px1, py0, py1 = _pixel_box(mx, my, ext[c, g, 0], ext[c, g, 1], x0, y0, x1, y1)
+            for py in range(py0, py1 + 1):
+                dy = my - (py + 0.5)
+                row = (py - y0) * tw - x0
+                for px in range(px0, px1 + 1):
+                    lp = row + px
+                    if done[lp]:
+                        continue
+                    dx = mx - (px + 0.5)
+                    m2 = ca * dx * dx + 2.0 * cb * dx * dy + cc * dy * dy
+                    if m2 > MAHA_CUTOFF:
+                        continue
+                    alpha = min(ALPHA_MAX, o * math.exp(-0.5 * m2))
+                    if alpha < ALPHA_MIN:
+                        continue
+                    tr = trans[lp]
+                    t_next = tr * (1.0 - alpha)
+                    if t_next < T_MIN:
+                        done[lp] = True
+                        n_done += 1
+                        continue
+                    w = alpha * tr
+                    for ch in range(f):
+                        acc[lp, ch] += w * col[ch]
+                    trans[lp] = t_next
+                    last[lp] = k - start + 1
+        for ly in range(th):
+            for lx in range(tw):
+                lp = ly * tw + lx
+                for ch in range(f):
+                    out[c, y0 + ly, x0 + lx, ch] = acc[lp, ch] + trans[lp] * bg[ch]
+                t_final[c, y0 + ly, x0 + lx] = trans[lp]
+                n_contrib[c, y0 + ly, x0 + lx] = last[lp]
+    return out, t_final, n_contrib
+
+
+@njit(parallel=True, cache=True, error_model="numpy")
+def _backward(means2d, conics, opac, chans, ext, bg, offsets, ids, t_final, n_contrib, g_out, g_alpha,
+              width, height, tile, want_chans):
+    """Per-pair gradients: g_xy (P,2), g_conic (P,3), g_opac (P,), g_chan (P,F) (zero-size unless want_chans)."""
+    c_count, n, f = chans.shape
+    tx_n = (width + tile - 1) // tile
+    ty_n = (height + tile - 1) // tile
+    nt = tx_n * ty_n
+    p_count = ids.shape[0]
+    dt = chans.dtype
+    g_xy = np.zeros((p_count, 2), dt)
+    g_con = np.zeros((p_count, 3), dt)
+    g_op = np.zeros(p_count, dt)
+    g_ch = np.zeros((p_count if want_chans else 0, f), dt)
+    for job in prange(c_count * nt):
+        c = job // nt
+        t = job % nt
+        x0 = (t % tx_n) * tile
+        y0 = (t // tx_n) * tile
+        x1 = min(x0 + tile, width)
+        y1 = min(y0 + tile, height)
+        tw = x1 - x0
+        th = y1 - y0
+        start = offsets[job]
+        npx = th * tw
+        trans = np.empty(npx, dt)
+        tfin = np.empty(npx, dt)
+        ncon = np.empty(npx, np.int32)
+        accum = np.zeros((npx, f), dt)
+        last_ch = np.zeros((npx, f), dt)
+        gout = np.empty((npx, f), dt)
+        last_alpha = np.zeros(npx, dt)
+        alpha_term = np.empty(npx, dt)
+        max_n = 0
+        for ly in range(th):
+            for lx in range(tw):
+                lp = ly * tw + lx
+                tfin[lp] = t_final[c, y0 + ly, x0 + lx]
+                trans[lp] = tfin[lp]
+                ncon[lp] = n_contrib[c, y0 + ly, x0 + lx]
+                s = 0.0
+                for ch in range(f):
+                    gout[lp, ch] = g_out[c, y0 + ly, x0 + lx, ch]
+                    s += bg[ch] * gout[lp, ch]
+                alpha_term[lp] = g_alpha[c, y0 + ly, x0 + lx] - s
+                max_n = max(max_n, ncon[lp])
+        for kk in range(max_n - 1, -1, -1):
+            k = start + kk
+            g = ids[k]
+            mx = means2d[c, g, 0]
+            my = means2d[c, g, 1]
+            ca = conics[c, g, 0]
+            cb = conics[c, g, 1]
+            cc = conics[c, g, 2]
+            o = opac[c, g]
+            col = chans[c, g]
+            px0, px1, py0, py1 = _pixel_box(mx, my, ext[c, g, 0], ext[c, g, 1], x0, y0, x1, y1)
+            gx = 0.0
+            gy = 0.0
+            ga = 0.0
+            gb = 0.0
+            gc = 0.0
+            go_ = 0.0
+            for py in range(py0, py1 + 1):
+                dy = my - (py + 0.5)
+                row = (py - y0) * tw - x0
+                for px in range(px0, px1 + 1):
+                    lp = row + px
+                    if kk >= ncon[lp]:
+                        continue
+                    dx = mx - (px + 0.5)
+                    m2 = ca * dx * dx + 2.0 * cb * dx * dy + cc * dy * dy
+                    if m2 > MAHA_CUTOFF:
+                        continue
+                    gauss = math.exp(-0.5 * m2)
+                    raw = o * gauss
+                    alpha = min(ALPHA_MAX, raw)
+                    if alpha < ALPHA_MIN:
+                        continue
+                    inv = 1.0 / (1.0 - alpha)
+                    tr = trans[lp] * inv
+                    trans[lp] = tr
+                    d_alpha = 0.0
+                    la = last_alpha[lp]
+                    for ch in range(f):
+                        go = gout[lp, ch]
+                        if want_chans:
+                            g_ch[k, ch] += alpha * tr * go
+                        # colour of everything behind this Gaussian, as seen through it
+                        acc = la * last_ch[lp, ch] + (1.0 - la) * accum[lp, ch]
+                        accum[lp, ch] = acc
+                        last_ch[lp, ch] = col[ch]
+                        d_alpha += (col[ch] - acc) * go
+                    d_alpha = d_alpha * tr + tfin[lp] * inv * alpha_term[lp]
+                    last_alpha[lp] = alpha
+                    if raw <= ALPHA_MAX:  # clamped alpha has no gradient
+                        go_ += gauss * d_alpha
+                        d_m2 = -0.5 * raw * d_alpha
+                        gx += d_m2 * 2.0 * (ca * dx + cb * dy)
+                        gy += d_m2 * 2.0 * (cb * dx + cc * dy)
+                        ga += d_m2 * dx * dx
+                        gb += d_m2 * 2.0 * dx * dy
+                        gc += d_m2 * dy * dy
+            g_xy[k, 0] = gx
+            g_xy[k, 1] = gy
+            g_con[k, 0] = ga
+            g_con[k, 1] = gb
+            g_con[k, 2] = gc
+            g_op[k] = go_
+    return g_xy, g_con, g_op, g_ch
+
+
+@njit(parallel=True, cache=True, error_model="numpy")
+def _reduce(g_xy, g_con, g_op, g_ch, offsets, ids, c_count, n, nt):
+    """Sum per-pair gradients into per-(camera, Gaussian) arrays (r_ch is zero-size if g_ch is)."""
+    f = g_ch.shape[1]
+    want_chans = g_ch.shape[0] > 0
+    dt = g_xy.dtype
+    r_xy = np.zeros((c_count, n, 2), dt)
+    r_con = np.zeros((c_count, n, 3), dt)
+    r_op = np.zeros((c_count, n), dt)
+    r_ch = np.zeros((c_count if want_chans else 0, n, f), dt)
+    for c in prange(c_count):
+        for k in range(offsets[c * nt], offsets[(c + 1) * nt]):
+            g = ids[k]
+            r_xy[c, g, 0] += g_xy[k, 0]
+            r_xy[c, g, 1] += g_xy[k, 1]
+            for j in range(3):
+                r_con[c, g, j] += g_con[k, j]
+            r_op[c, g] += g_op[k]
+            if want_chans:
+                for ch in range(f):
+                    r_ch[c, g, ch] += g_ch[k, ch]
+    return r_xy, r_con, r_op, r_ch
+
+
+def _np(t: torch.Tensor, dtype) -> np.ndarray:
+    return np.ascontiguousarray(t.detach().cpu().numpy().astype(dtype, copy=False))
+
+
+class _CompositeCPU(torch.autograd.Function):
+    @staticmethod
+    def forward(ctx, means2d, conics, opacities, chans, cov_diag, depths, valid, background, width, height, tile):
+        dt = np.float64 if chans.dtype == torch.float64 else np.float32
+        m2d, con, op, ch = _np(means2d, dt), _np(conics, dt), _np(opacities, dt), _np(chans, dt)
+        bg = _np(background, dt)
+        ext = _extents(_np(cov_diag, dt), op, _np(valid, np.bool_))
+        offsets, ids = _bin(m2d, ext, _np(depths, dt), width, height, tile)
+        out, t_final, n_contrib = _forward(m2d, con, op, ch, ext, bg, offsets, ids, width, height, tile)
+        ctx.saved = (m2d, con, op, ch, ext, bg, offsets, ids, t_final, n_contrib, width, height, tile)
+        ctx.torch_dtype = chans.dtype
+        alpha = 1.0 - t_final[..., None]
+        return torch.from_numpy(out), torch.from_numpy(alpha)
+
+    @staticmethod
+    def backward(ctx, g_out, g_alpha):
+        m2d, con, op, ch, ext, bg, offsets, ids, t_final, n_contrib, width, height, tile = ctx.saved
+        dt = ch.dtype
+        c_count, n, _ = ch.shape
+        g_out = _np(g_out, dt) if g_out is not None else np.zeros((c_count, height, width, ch.shape[2]), dt)
+        g_alpha = _np(g_alpha[..., 0], dt) if g_alpha is not None else np.zeros((c_count, height, width), dt)
+        want_chans = bool(ctx.needs_input_grad[3])
+        pairs = _backward(m2d, con, op, ch, ext, bg, offsets, ids, t_final, n_contrib, g_out, g_alpha,
+                          width, height, tile, want_chans)
+        nt = ((width + tile - 1) // tile) * ((height + tile - 1) // tile)
+        r_xy, r_con, r_op, r_ch = _reduce(*pairs, offsets, ids, c_count, n, nt)
+        # background gradient: d out / d bg = T_final
+        g_bg = np.einsum("chw,chwf->f", t_final, g_out)
+        as_t = lambda a: torch.from_numpy(a).to(ctx.torch_dtype)  # noqa: E731
+        return (as_t(r_xy), as_t(r_con), as_t(r_op), as_t(r_ch) if want_chans else None, None, None, None,
+                as_t(g_bg),
+                None, None, None)
+
+
+def composite_cpu(means2d, conics, opacities, chans, cov_diag, depths, valid, background, width: int, height: int,
+                  tile: int = TILE):
+    """Same contract as reference.composite_reference (plus cov_diag (C,N,2) for footprints):
+    -> out (C,H,W,F), alpha (C,H,W,1), differentiable w.r.t. means2d, conics, opacities, chans, background."""
+    chans = chans.contiguous()
+    return _CompositeCPU.apply(means2d.contiguous(), conics.contiguous(), opacities.contiguous(), chans,
+                               cov_diag, depths, valid, background.to(chans.dtype), int(width), int(height),
+                               int(tile))
+
+
+def set_threads(n: int) -> None:
+    """Limit numba's worker threads (e.g. inside a service worker)."""
+    numba.set_num_threads(max(1, min(int(n), numba.config.NUMBA_NUM_THREADS)))
+
+
+# ---------------------------------------------------------------- projection
+# Native twin of gsa.render.projection.project (same formulas, same Jacobian clamp), with a
+# hand-written backward to view matrices, means and 3D covariances. torch autograd on the
+# vectorised version costs ~10x more than compositing at 50k Gaussians, hence this path.
+
+EPS2D = 0.3
+NEAR = 0.01
+_CHUNKS = 64
+
+
+@njit(parallel=True, cache=True, error_model="numpy")
+def _project_fwd(means, cov, view, intr, width, height):
+    n = means.shape[0]
+    c_count = view.shape[0]
+    dt = means.dtype
+    m2d = np.zeros((c_count, n, 2), dt)
+    con = np.zeros((c_count, n, 3), dt)
+    depth = np.zeros((c_count, n), dt)
+    cdiag = np.zeros((c_count, n, 2), dt)
+    valid = np.zeros((c_count, n), np.bool_)
+    for i in prange(n):
+        mx, my, mz = means[i, 0], means[i, 1], means[i, 2]
+        for c in range(c_count):
+            fx, fy, cx, cy = intr[c, 0], intr[c, 1], intr[c, 2], intr[c, 3]
+            x = view[c, 0, 0] * mx + view[c, 0, 1] * my + view[c, 0, 2] * mz + view[c, 0, 3]
+            y = view[c, 1, 0] * mx + view[c, 1, 1] * my + view[c, 1, 2] * mz + view[c, 1, 3]
+            z = view[c, 2, 0] * mx + view[c, 2, 1] * my + view[c, 2, 2] * mz + view[c, 2, 3]
+            depth[c, i] = z
+            if not z > NEAR:
+                continue
+            valid[c, i] = True
+            u = x / z
+            v = y / z
+            tan_x = 0.5 * width / fx
+            tan_y = 0.5 * height / fy
+            tu = max(min(u, (width - cx) / fx + 0.3 * tan_x), -(cx / fx + 0.3 * tan_x))
+            tv = max(min(v, (height - cy) / fy + 0.3 * tan_y), -(cy / fy + 0.3 * tan_y))
+            m0 = np.empty(3, dt)
+            m1 = np.empty(3, dt)
+            for j in range(3):
+                m0[j] = fx / z * (view[c, 0, j] - tu * view[c, 2, j])
+                m1[j] = fy / z * (view[c, 1, j] - tv * view[c, 2, j])
+            caa = EPS2D
+            cab = 0.0
+            cbb = EPS2D
+            for j in range(3):
+                s0 = m0[0] * cov[i, 0, j] + m0[1] * cov[i, 1, j] + m0[2] * cov[i, 2, j]
+                s1 = m1[0] * cov[i, 0, j] + m1[1] * cov[i, 1, j] + m1[2] * cov[i, 2, j]
+                caa += s0 * m0[j]
+                cab += s0 * m1[j]
+                cbb += s1 * m1[j]
+            det = max(caa * cbb - cab * cab, 1e-12)
+            con[c, i, 0] = cbb / det
+            con[c, i, 1] = -cab / det
+            con[c, i, 2] = caa / det
+            m2d[c, i, 0] = fx * u + cx
+            m2d[c, i, 1] = fy * v + cy
+            cdiag[c, i, 0] = caa
+            cdiag[c, i, 1] = cbb
+    return m2d, con, depth, cdiag, valid
+
+
+@njit(parallel=True, cache=True, error_model="numpy")
+def _project_bwd(means, cov, view, intr, width, height, con, valid, g_m2d, g_con, g_depth, want_geom):
+    """-> g_view (C,4,4), g_means (N,3), g_cov (N,3,3) (the last two zero-size unless want_geom)."""
+    n = means.shape[0]
+    c_count = view.shape[0]
+    dt = means.dtype
+    g_means = np.zeros((n if want_geom else 0, 3), dt)
+    g_cov = np.zeros((n if want_geom else 0, 3, 3), dt)
+    chunk = (n + _CHUNKS - 1) // _CHUNKS
+    g_view_part = np.zeros((_CHUNKS, c_count, 4, 4), np.float64)
+    for k in prange(_CHUNKS):
+        m0 = np.empty(3, dt)
+        m1 = np.empty(3, dt)
+        gm0 = np.empty(3, dt)
+        gm1 = np.empty(3, dt)
+        for i in range(k * chunk, min(n, (k + 1) * chunk)):
+            mvec = (means[i, 0], means[i, 1], means[i, 2])
+            for c in range(c_count):
+                if not valid[c, i]:
+                    continue
+                fx, fy, cx, cy = intr[c, 0], intr[c, 1], intr[c, 2], intr[c, 3]
+                x = view[c, 0, 0] * mvec[0] + view[c, 0, 1] * mvec[1] + view[c, 0, 2] * mvec[2] + view[c, 0, 3]
+                y = view[c, 1, 0] * mvec[0] + view[c, 1, 1] * mvec[1] + view[c, 1, 2] * mvec[2] + view[c, 1, 3]
+                z = view[c, 2, 0] * mvec[0] + view[c, 2, 1] * mvec[1] + view[c, 2, 2] * mvec[2] + view[c, 2, 3]
+                u = x / z
+                v = y / z
+                tan_x = 0.5 * width / fx
+                tan_y = 0.5 * height / fy
+                lxp, lxn = (width - cx) / fx + 0.3 * tan_x, cx / fx + 0.3 * tan_x
+                lyp, lyn = (height - cy) / fy + 0.3 * tan_y, cy / fy + 0.3 * tan_y
+                tu = max(min(u, lxp), -lxn)
+                tv = max(min(v, lyp), -lyn)
+                for j in range(3):
+                    m0[j] = fx / z * (view[c, 0, j] - tu * view[c, 2, j])
+                    m1[j] = fy / z * (view[c, 1, j] - tv * view[c, 2, j])
+                # conic = S^-1: dL/dS from dQ = -Q dS Q
+                a, b, cc = con[c, i, 0], con[c, i, 1], con[c, i, 2]
+                ga, gb, gc = g_con[c, i, 0], g_con[c, i, 1], g_con[c, i, 2]
+                g_caa = -(ga * a * a + gb * a * b + gc * b * b)
+                g_cab = -(ga * 2 * a * b + gb * (a * cc + b * b) + gc * 2 * b * cc)
+                g_cbb = -(ga * b * b + gb * b * cc + gc * cc * cc)
+                for j in range(3):
+                    s0 = cov[i, j, 0] * m0[0] + cov[i, j, 1] * m0[1] + cov[i, j, 2] * m0[2]
+                    s1 = cov[i, j, 0] * m1[0] + cov[i, j, 1] * m1[1] + cov[i, j, 2] * m1[2]
+                    gm0[j] = 2 * g_caa * s0 + g_cab * s1
+                    gm1[j] = 2 * g_cbb * s1 + g_cab * s0
+                    if want_geom:
+                        for l in range(3):
+                            g_cov[i, j, l] += g_caa * m0[j] * m0[l] + g_cab * m0[j] * m1[l] + g_cbb * m1[j] * m1[l]
+                # M0 = fx/z (A0 - tu A2), M1 = fy/z (A1 - tv A2)
+                g_tu = 0.0
+                g_tv = 0.0
+                g_z = g_depth[c, i]
+                for j in range(3):
+                    g_view_part[k, c, 0, j] += fx / z * gm0[j]
+                    g_view_part[k, c, 1, j] += fy / z * gm1[j]
+                    g_view_part[k, c, 2, j] -= fx / z * tu * gm0[j] + fy / z * tv * gm1[j]
+                    g_tu -= fx / z * gm0[j] * view[c, 2, j]
+                    g_tv -= fy / z * gm1[j] * view[c, 2, j]
+                    g_z -= (gm0[j] * m0[j] + gm1[j] * m1[j]) / z
+                g_u = fx * g_m2d[c, i, 0] + (g_tu if -lxn < u < lxp else 0.0)
+                g_v = fy * g_m2d[c, i, 1] + (g_tv if -lyn < v < lyp else 0.0)
+                g_x = g_u / z
+                g_y = g_v / z
+                g_z -= (g_u * u + g_v * v) / z
+                for j in range(3):
+                    g_view_part[k, c, 0, j] += g_x * mvec[j]
+                    g_view_part[k, c, 1, j] += g_y * mvec[j]
+                    g_view_part[k, c, 2, j] += g_z * mvec[j]
+                    if want_geom:
+                        g_means[i, j] += g_x * view[c, 0, j] + g_y * view[c, 1, j] + g_z * view[c, 2, j]
+                g_view_part[k, c, 0, 3] += g_x
+                g_view_part[k, c, 1, 3] += g_y
+                g_view_part[k, c, 2, 3] += g_z
+    g_view = np.zeros((c_count, 4, 4), np.float64)
+    for k in range(_CHUNKS):
+        g_view += g_view_part[k]
+    return g_view, g_means, g_cov
+
+
+class _ProjectCPU(torch.autograd.Function):
+    @staticmethod
+    def forward(ctx, means, cov3d, viewmats, intrinsics, width, height):
+        dt = np.float64 if means.dtype == torch.float64 else np.float32
+        args = (_np(means, dt), _np(cov3d, dt), _np(viewmats, dt), _np(intrinsics, dt))
+        m2d, con, depth, cdiag, valid = _project_fwd(*args, width, height)
+        ctx.saved = args + (width, height, con, valid)
+        ctx.dtype = means.dtype
+        as_t = torch.from_numpy
+        out = (as_t(m2d), as_t(con), as_t(depth), as_t(cdiag), as_t(valid))
+        ctx.mark_non_differentiable(out[3], out[4])
+        return out
+
+    @staticmethod
+    def backward(ctx, g_m2d, g_con, g_depth, _g_cdiag, _g_valid):
+        means, cov, view, intr, width, height, con, valid = ctx.saved
+        dt = means.dtype
+        c_count, n = valid.shape
+        z2 = lambda shape: np.zeros(shape, dt)  # noqa: E731
+        g_m2d = z2((c_count, n, 2)) if g_m2d is None else _np(g_m2d, dt)
+        g_con = z2((c_count, n, 3)) if g_con is None else _np(g_con, dt)
+        g_depth = z2((c_count, n)) if g_depth is None else _np(g_depth, dt)
+        want_geom = bool(ctx.needs_input_grad[0] or ctx.needs_input_grad[1])
+        g_view, g_means, g_cov = _project_bwd(means, cov, view, intr, width, height, con, valid, g_m2d, g_con,
+                                              g_depth, want_geom)
+        t = lambda a: torch.from_numpy(a).to(ctx.dtype)  # noqa: E731
+        if not want_geom:
+            return None, None, t(g_view), None, None, None
+        return t(g_means), t(g_cov), t(g_view), None, None, None
+
+
+def project_cpu(means, cov3d, viewmats, intrinsics, width: int, height: int):
+    """Native version of gsa.render.projection.project (same outputs, valid is a bool tensor);
+    differentiable w.r.t. means, cov3d and viewmats (not intrinsics)."""
+    if intrinsics.requires_grad:
+        raise ValueError("the CPU projection does not differentiate intrinsics")
+    return _ProjectCPU.apply(means, cov3d, viewmats, intrinsics, int(width), int(height))
