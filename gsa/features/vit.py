@@ -11,7 +11,8 @@ what is one standard ViT. Both published weight formats load into this one modul
 * Hugging Face folder (`facebook/dinov2-base` as saved by `save_pretrained`):
   `config.json` + `model.safetensors` (or `pytorch_model.bin`); keys
   `embeddings.*, encoder.layer.{i}.attention.attention.{query,key,value}.*, ...,
-  layernorm.*`, mapped onto the hub names below (q, k, v are concatenated into qkv).
+  layernorm.*` (or transformers-5 in-memory names `attention.{q,k,v,o}_proj`), mapped onto
+  the hub names below (q, k, v are concatenated into qkv).
 
 The sphere-mapper head follows the authors' `DINOMapper.sphere_mapper` (Mariotti et al.,
 CVPR 2024, github.com/VICO-UoE/SphericalMaps) exactly, as an `nn.Sequential` so that their
@@ -30,6 +31,7 @@ from __future__ import annotations
 
 import json
 import math
+import re
 import struct
 from dataclasses import dataclass
 from pathlib import Path
@@ -40,7 +42,7 @@ import torch.nn.functional as F
 from torch import nn
 
 
-class WeightsError(FileNotFoundError):
+class WeightsError(ValueError):
     """A weight file or folder named by a setting is missing or unreadable."""
 
 
@@ -263,10 +265,14 @@ def hf_to_hub(sd: dict) -> dict:
         s, t = f"encoder.layer.{i}.", f"blocks.{i}."
         if s + "mlp.fc1.weight" not in sd:
             raise WeightsError("SwiGLU DINOv2 variants (giant) are not supported")
-        att = s + "attention.attention."
+        # Published checkpoints name q,k,v `attention.attention.{query,key,value}` and the output
+        # `attention.output.dense`; transformers >= 5 modules name them `attention.{q,k,v,o}_proj`.
+        legacy = s + "attention.attention.query.weight" in sd
+        qkv = [s + (f"attention.attention.{n}" if legacy else f"attention.{n[0]}_proj") for n in ("query", "key", "value")]
+        o = s + ("attention.output.dense" if legacy else "attention.o_proj")
         for part in ("weight", "bias"):
-            out[t + f"attn.qkv.{part}"] = torch.cat([sd[att + f"{n}.{part}"] for n in ("query", "key", "value")])
-            out[t + f"attn.proj.{part}"] = sd[s + f"attention.output.dense.{part}"]
+            out[t + f"attn.qkv.{part}"] = torch.cat([sd[f"{n}.{part}"] for n in qkv])
+            out[t + f"attn.proj.{part}"] = sd[f"{o}.{part}"]
             for a, b in (("norm1", "norm1"), ("norm2", "norm2"), ("mlp.fc1", "mlp.fc1"), ("mlp.fc2", "mlp.fc2")):
                 out[t + f"{b}.{part}"] = sd[s + f"{a}.{part}"]
         if s + "layer_scale1.lambda1" in sd:
@@ -275,11 +281,18 @@ def hf_to_hub(sd: dict) -> dict:
     return out
 
 
+def _unchunk(sd: dict) -> dict:
+    """Hub models built with block_chunks > 0 name blocks `blocks.{chunk}.{i}.`: flatten them."""
+    if not any(re.match(r"blocks\.\d+\.\d+\.", k) for k in sd):
+        return sd
+    return {re.sub(r"^blocks\.\d+\.(\d+)\.", r"blocks.\1.", k): v for k, v in sd.items()}
+
+
 def load_backbone(path, setting: str = "backbone") -> DinoV2:
     """A frozen DinoV2 from a HF folder (config.json + model.safetensors | pytorch_model.bin)
     or a torch.hub-format state dict file (.pth/.pt)."""
     p = _require(path, setting)
-    eps = 1e-6
+    eps, heads = 1e-6, None
     if p.is_dir():
         files = [p / "model.safetensors", p / "pytorch_model.bin"]
         found = next((f for f in files if f.exists()), None)
@@ -288,17 +301,19 @@ def load_backbone(path, setting: str = "backbone") -> DinoV2:
                                "nor pytorch_model.bin (expected a Hugging Face Dinov2 folder)")
         sd = read_safetensors(found) if found.suffix == ".safetensors" else _torch_load(found, setting)
         if (p / "config.json").exists():
-            eps = float(json.loads((p / "config.json").read_text()).get("layer_norm_eps", eps))
+            conf = json.loads((p / "config.json").read_text())
+            eps = float(conf.get("layer_norm_eps", eps))
+            heads = conf.get("num_attention_heads")
         try:
             sd = hf_to_hub(sd)
         except KeyError as exc:
             raise WeightsError(f"{setting}: {found} is not a Dinov2Model state dict (missing {exc})") from exc
     else:
-        sd = _torch_load(p, setting)
+        sd = _unchunk(_torch_load(p, setting))
     if "cls_token" not in sd or "patch_embed.proj.weight" not in sd:
         raise WeightsError(f"{setting}: {p} is not a DINOv2 state dict (no cls_token / patch_embed)")
     cfg = _config_from_hub(sd)
-    cfg = VitConfig(**{**cfg.__dict__, "layer_norm_eps": eps})
+    cfg = VitConfig(**{**cfg.__dict__, "layer_norm_eps": eps, "num_heads": int(heads or cfg.num_heads)})
     model = DinoV2(cfg)
     sd = dict(sd)
     sd.setdefault("mask_token", torch.zeros(1, cfg.embed_dim))
