@@ -253,7 +253,7 @@ def icp_refine(
         _, table = target_tree.query(transform.apply(p), k=min(neighbours, len(q)), workers=query_workers(len(p), opts.workers))
         table = np.ascontiguousarray(table.reshape(len(p), -1), np.int64)
 
-        def match(x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        def match(x: np.ndarray, table: np.ndarray = table) -> tuple[np.ndarray, np.ndarray]:
             return _nearest_candidate(np.ascontiguousarray(x), q, table)
 
         inner = replace(opts, max_iterations=budget)

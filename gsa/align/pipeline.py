@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable
-from dataclasses import asdict, dataclass, field
+from dataclasses import dataclass, field
 
 import numpy as np
 from scipy.spatial import cKDTree
@@ -152,80 +152,171 @@ def align(
     opts = options or AlignOptions()
     timings: dict[str, float] = {}
     t_start = time.perf_counter()
-    try:
-        source.validate("source")
-        target.validate("target")
-    except ModelError as exc:
-        raise AlignmentError(str(exc)) from None
-    for name, m in (("source", source), ("target", target)):
-        if len(m) < 3:
-            raise AlignmentError(f"{name} has {len(m)} Gaussians; at least 3 are needed")
-
-    mode = opts.features
-    if mode == "auto":
-        both = source.feature_dim > 0 and source.feature_dim == target.feature_dim
-        mode = "file" if both else "canonical"
-    if mode == "file" and (source.feature_dim == 0 or source.feature_dim != target.feature_dim):
-        raise AlignmentError(
-            f"features='file' needs both models to carry features of one dimension "
-            f"(source {source.feature_dim}, target {target.feature_dim})"
-        )
 
     _report(progress, "features", 0.0)
     t = time.perf_counter()
-    src_frame = model_frame(source)
-    dst_frame = model_frame(target)
-    src_pts = source.means.astype(np.float64)
-    dst_pts = target.means.astype(np.float64)
-    src_tree = cKDTree(src_pts)
-    dst_tree = cKDTree(dst_pts)
-    weights = source.opacities if opts.weight_by_opacity else None
-    threshold = opts.inlier_threshold * dst_frame.radius
-    rng = np.random.default_rng(opts.seed)
-
-    def source_features(frame: CanonicalFrame, rows: np.ndarray | slice = slice(None)) -> np.ndarray:
-        if mode == "file":
-            return source.features[rows]
-        return canonical_features(src_pts[rows], frame)
-
-    def rows_of(weights_or_none, rows):
-        return None if weights_or_none is None else weights_or_none[rows]
-
-    # Each hypothesis: a source frame (re-labelled axes) and the initial transform it implies.
-    hypotheses: list[_Hypothesis] = []
-    if mode == "file":
-        dst_feat = target.features
-        hypotheses.append(_Hypothesis("centroid", src_frame, _centroid_init(src_frame, dst_frame)))
-    else:
-        dst_feat = canonical_features(dst_pts, dst_frame)
-    for g in frame_hypotheses(src_frame, dst_frame):
-        frame = src_frame.rotated(g)
-        hypotheses.append(_Hypothesis(_label(g), frame, _initial_transform(frame, dst_frame)))
-    dst_feat_tree = cKDTree(np.asarray(dst_feat, np.float64))
-    refine = opts.refine == "on" or (opts.refine == "auto" and mode == "canonical")
+    pair = _Pair.build(source, target, opts)
+    hypotheses = pair.hypotheses()
     timings["features"] = time.perf_counter() - t
     _report(progress, "features", 1.0)
 
     t = time.perf_counter()
-    scored: list[dict] = []
-    best = hypotheses[0]
-    if len(hypotheses) > 1:
-        sub = _subsample(rng, len(source), opts.hypothesis_points)
-        rev_sub = _subsample(rng, len(target), opts.hypothesis_points)
+    best, scored = pair.select(hypotheses, progress)
+    timings["hypotheses"] = time.perf_counter() - t
+
+    t = time.perf_counter()
+    coarse = pair.coarse(best, progress)
+    timings["coarse"] = time.perf_counter() - t
+
+    transform = coarse.transform
+    fine_result = None
+    if "fine" in opts.stages:
+        t = time.perf_counter()
+        fine_result = pair.fine(best, transform, progress)
+        transform = fine_result.transform
+        timings["fine"] = time.perf_counter() - t
+
+    t = time.perf_counter()
+    metrics = pair.quality(transform, best)
+    metrics["hypothesis"] = best.label
+    timings["metrics"] = time.perf_counter() - t
+    timings["total"] = time.perf_counter() - t_start
+    _report(progress, "done", 1.0)
+    return AlignmentResult(
+        transform=transform,
+        coarse=coarse,
+        features=pair.mode,
+        metrics=metrics,
+        timings=timings,
+        hypotheses=scored,
+        fine=fine_result,
+        source_frame=best.frame,
+        target_frame=pair.dst_frame,
+    )
+
+
+def _feature_mode(source: GaussianModel, target: GaussianModel, requested: str) -> str:
+    both = source.feature_dim > 0 and source.feature_dim == target.feature_dim
+    if requested == "auto":
+        return "file" if both else "canonical"
+    if requested == "file" and not both:
+        raise AlignmentError(
+            f"features='file' needs both models to carry features of one dimension "
+            f"(source {source.feature_dim}, target {target.feature_dim})"
+        )
+    return requested
+
+
+@dataclass
+class _Hypothesis:
+    label: str
+    frame: CanonicalFrame  # the source's frame, axes re-labelled
+    init: Sim3  # where the coarse stage starts
+
+
+@dataclass
+class _Pair:
+    """Everything the stages share about one source/target pair: points, trees
+    (built once), target features, frames and the sampling generator."""
+
+    source: GaussianModel
+    target: GaussianModel
+    opts: AlignOptions
+    mode: str
+    src_frame: CanonicalFrame
+    dst_frame: CanonicalFrame
+    src_pts: np.ndarray
+    dst_pts: np.ndarray
+    src_tree: cKDTree
+    dst_tree: cKDTree
+    dst_feat: np.ndarray
+    dst_feat_tree: cKDTree
+    weights: np.ndarray | None
+    threshold: float  # GT-free inlier distance in target units
+    rng: np.random.Generator
+
+    @classmethod
+    def build(cls, source: GaussianModel, target: GaussianModel, opts: AlignOptions) -> _Pair:
+        try:
+            source.validate("source")
+            target.validate("target")
+        except ModelError as exc:
+            raise AlignmentError(str(exc)) from None
+        for name, m in (("source", source), ("target", target)):
+            if len(m) < 3:
+                raise AlignmentError(f"{name} has {len(m)} Gaussians; at least 3 are needed")
+        mode = _feature_mode(source, target, opts.features)
+        src_frame, dst_frame = model_frame(source), model_frame(target)
+        src_pts = source.means.astype(np.float64)
+        dst_pts = target.means.astype(np.float64)
+        dst_feat = target.features if mode == "file" else canonical_features(dst_pts, dst_frame)
+        return cls(
+            source=source,
+            target=target,
+            opts=opts,
+            mode=mode,
+            src_frame=src_frame,
+            dst_frame=dst_frame,
+            src_pts=src_pts,
+            dst_pts=dst_pts,
+            src_tree=cKDTree(src_pts),
+            dst_tree=cKDTree(dst_pts),
+            dst_feat=dst_feat,
+            dst_feat_tree=cKDTree(np.asarray(dst_feat, np.float64)),
+            weights=source.opacities if opts.weight_by_opacity else None,
+            threshold=opts.inlier_threshold * dst_frame.radius,
+            rng=np.random.default_rng(opts.seed),
+        )
+
+    @property
+    def refine(self) -> bool:
+        return self.opts.refine == "on" or (self.opts.refine == "auto" and self.mode == "canonical")
+
+    def source_features(self, frame: CanonicalFrame, rows: np.ndarray | slice = slice(None)) -> np.ndarray:
+        if self.mode == "file":
+            return self.source.features[rows]
+        return canonical_features(self.src_pts[rows], frame)
+
+    def weights_at(self, rows: np.ndarray | slice) -> np.ndarray | None:
+        return None if self.weights is None else self.weights[rows]
+
+    def hypotheses(self) -> list[_Hypothesis]:
+        """Initialisations: the authors' centroid start when the files carry
+        features, and one per plausible relabelling of the canonical frame."""
+        out = []
+        if self.mode == "file":
+            out.append(_Hypothesis("centroid", self.src_frame, _centroid_init(self.src_frame, self.dst_frame)))
+        for g in frame_hypotheses(self.src_frame, self.dst_frame):
+            frame = self.src_frame.rotated(g)
+            out.append(_Hypothesis(_label(g), frame, _initial_transform(frame, self.dst_frame)))
+        return out
+
+    def select(self, hypotheses: list[_Hypothesis], progress: Progress | None) -> tuple[_Hypothesis, list[dict]]:
+        """Run each hypothesis briefly on a source subsample and keep the one
+        with the best symmetric inlier fraction (no ground truth needed)."""
+        if len(hypotheses) == 1:
+            return hypotheses[0], []
+        opts = self.opts
+        sub = _subsample(self.rng, len(self.source), opts.hypothesis_points)
+        rev_sub = _subsample(self.rng, len(self.target), opts.hypothesis_points)
         short = opts.coarse_options(opts.hypothesis_iterations)
-        best_score = -1.0
+        scored: list[dict] = []
+        best, best_score = hypotheses[0], -1.0
         for h, hyp in enumerate(hypotheses):
             entry = {"hypothesis": hyp.label, "score": 0.0}
             try:
-                cand = find_candidates(
-                    source_features(hyp.frame, sub), dst_feat, opts.tau_f, opts.max_candidates, dst_feat_tree
+                feats = self.source_features(hyp.frame, sub)
+                cand = find_candidates(feats, self.dst_feat, opts.tau_f, opts.max_candidates, self.dst_feat_tree)
+                res = coarse_align(self.src_pts[sub], self.dst_pts, cand, hyp.init, short, self.weights_at(sub))
+                if self.refine:
+                    res = icp_refine(
+                        self.src_pts[sub], self.dst_pts, self.dst_tree, res.transform, short, self.weights_at(sub)
+                    )
+                fwd_d, _ = self.dst_tree.query(
+                    res.transform.apply(self.src_pts[sub]), k=1, workers=query_workers(len(sub))
                 )
-                res = coarse_align(src_pts[sub], dst_pts, cand, hyp.init, short, rows_of(weights, sub))
-                if refine:
-                    res = icp_refine(src_pts[sub], dst_pts, dst_tree, res.transform, short, rows_of(weights, sub))
-                fwd_d, _ = dst_tree.query(res.transform.apply(src_pts[sub]), k=1, workers=query_workers(len(sub)))
-                fwd = float(np.mean(fwd_d <= threshold))
-                rev = _reverse_inliers(res.transform, dst_pts[rev_sub], src_tree, threshold)
+                fwd = float(np.mean(fwd_d <= self.threshold))
+                rev = _reverse_inliers(res.transform, self.dst_pts[rev_sub], self.src_tree, self.threshold)
                 entry.update(score=0.5 * (fwd + rev), inliers_forward=fwd, inliers_reverse=rev)
                 hyp.init = res.transform
             except AlignmentError as exc:
@@ -233,56 +324,54 @@ def align(
             scored.append(entry)
             if entry["score"] > best_score:
                 best, best_score = hyp, entry["score"]
-                for e in scored:
-                    e.pop("chosen", None)
-                entry["chosen"] = True
             _report(progress, "hypotheses", (h + 1) / len(hypotheses))
-    timings["hypotheses"] = time.perf_counter() - t
+        scored[hypotheses.index(best)]["chosen"] = True
+        return best, scored
 
-    t = time.perf_counter()
-    stage_rows = _subsample(rng, len(source), opts.max_points)
-    src_feat = source_features(best.frame, stage_rows)
-    cand = find_candidates(src_feat, dst_feat, opts.tau_f, opts.max_candidates, dst_feat_tree)
-    feature_stage = opts.coarse_options()
-    if refine:
-        # With canonical features the feature stage is the global initialiser: its
-        # fixed point carries the two frames' estimation error, so converging it
-        # tightly is wasted work; the refinement below removes what is left.
-        feature_stage.rotation_tolerance = max(feature_stage.rotation_tolerance, 1e-3)
-        feature_stage.scale_tolerance = max(feature_stage.scale_tolerance, 1e-4)
-    coarse = coarse_align(
-        src_pts[stage_rows], dst_pts, cand, best.init, feature_stage, rows_of(weights, stage_rows), progress
-    )
-    if refine:
-        # A dense target with a sampled source is as accurate as all-to-all
-        # nearest neighbours and several times cheaper.
-        rows = _subsample(rng, len(source), opts.refine_points)
-        refined = icp_refine(
-            src_pts[rows], dst_pts, dst_tree, coarse.transform, opts.coarse_options(opts.refine_iterations),
-            rows_of(weights, rows), progress,
+    def coarse(self, best: _Hypothesis, progress: Progress | None) -> CoarseResult:
+        """Alg. 3 on (a sample of) the source, then — with canonical features —
+        nearest-neighbour refinement."""
+        opts = self.opts
+        rows = _subsample(self.rng, len(self.source), opts.max_points)
+        feats = self.source_features(best.frame, rows)
+        cand = find_candidates(feats, self.dst_feat, opts.tau_f, opts.max_candidates, self.dst_feat_tree)
+        feature_stage = opts.coarse_options()
+        if self.refine:
+            # With canonical features the feature stage is the global initialiser: its
+            # fixed point carries the two frames' estimation error, so converging it
+            # tightly is wasted work; the refinement below removes what is left.
+            feature_stage.rotation_tolerance = max(feature_stage.rotation_tolerance, 1e-3)
+            feature_stage.scale_tolerance = max(feature_stage.scale_tolerance, 1e-4)
+        coarse = coarse_align(
+            self.src_pts[rows], self.dst_pts, cand, best.init, feature_stage, self.weights_at(rows), progress
         )
-        coarse.transform = refined.transform
-        coarse.history += refined.history
-        coarse.iterations += refined.iterations
-        coarse.converged = refined.converged
-        coarse.seconds += refined.seconds
-    timings["coarse"] = time.perf_counter() - t
-    label = best.label
+        if self.refine:
+            # A dense target with a sampled source is as accurate as all-to-all
+            # nearest neighbours and several times cheaper.
+            rows = _subsample(self.rng, len(self.source), opts.refine_points)
+            refined = icp_refine(
+                self.src_pts[rows], self.dst_pts, self.dst_tree, coarse.transform,
+                opts.coarse_options(opts.refine_iterations), self.weights_at(rows), progress,
+            )
+            coarse.transform = refined.transform
+            coarse.history += refined.history
+            coarse.iterations += refined.iterations
+            coarse.converged = refined.converged
+            coarse.seconds += refined.seconds
+        return coarse
 
-    transform = coarse.transform
-    fine_result = None
-    if "fine" in opts.stages:
-        t = time.perf_counter()
+    def fine(self, best: _Hypothesis, init: Sim3, progress: Progress | None):
         from gsa.align.fine import FineOptions, fine_align
 
-        src_model, dst_model = source, target
-        if mode == "canonical":
-            src_model = source.with_features(src_feat)
-            dst_model = target.with_features(dst_feat)
-        fine_result = fine_align(
+        src_model, dst_model = self.source, self.target
+        if self.mode == "canonical":
+            src_model = self.source.with_features(self.source_features(best.frame))
+            dst_model = self.target.with_features(self.dst_feat)
+        opts = self.opts
+        return fine_align(
             src_model,
             dst_model,
-            transform,
+            init,
             FineOptions(
                 iterations=opts.fine_iterations,
                 lr=opts.fine_lr,
@@ -294,37 +383,15 @@ def align(
             ),
             progress=progress,
         )
-        transform = fine_result.transform
-        timings["fine"] = time.perf_counter() - t
 
-    t = time.perf_counter()
-    metrics = quality_metrics(
-        transform, src_pts[stage_rows], dst_pts, src_feat, dst_feat, threshold, src_tree, dst_tree,
-        _subsample(rng, len(target), opts.max_points),
-    )
-    metrics["inlier_threshold"] = threshold
-    metrics["hypothesis"] = label
-    timings["metrics"] = time.perf_counter() - t
-    timings["total"] = time.perf_counter() - t_start
-    _report(progress, "done", 1.0)
-    return AlignmentResult(
-        transform=transform,
-        coarse=coarse,
-        features=mode,
-        metrics=metrics,
-        timings=timings,
-        hypotheses=scored,
-        fine=fine_result,
-        source_frame=best.frame,
-        target_frame=dst_frame,
-    )
-
-
-@dataclass
-class _Hypothesis:
-    label: str
-    frame: CanonicalFrame
-    init: Sim3
+    def quality(self, transform: Sim3, best: _Hypothesis) -> dict:
+        rows = _subsample(self.rng, len(self.source), self.opts.max_points)
+        metrics = quality_metrics(
+            transform, self.src_pts[rows], self.dst_pts, self.source_features(best.frame, rows), self.dst_feat,
+            self.threshold, self.src_tree, self.dst_tree, _subsample(self.rng, len(self.target), self.opts.max_points),
+        )
+        metrics["inlier_threshold"] = self.threshold
+        return metrics
 
 
 def _subsample(rng: np.random.Generator, n: int, k: int) -> np.ndarray:

@@ -167,7 +167,13 @@ def rasterize(means, quats, log_scales, opacity_logits, colors_or_sh, features=N
     means = _as_tensor(means)
     dtype = means.dtype
     quats, log_scales, opacity_logits = (_as_tensor(a, dtype) for a in (quats, log_scales, opacity_logits))
-    cov3d = covariance_3d(quats, log_scales)
+    backend = _resolve_backend(backend)
+    if backend == "cpu":
+        from gsa.render.cpu import covariance_cpu
+
+        cov3d = covariance_cpu(quats, log_scales)
+    else:
+        cov3d = covariance_3d(quats, log_scales)
     vm, intr = camera_tensors(cameras, dtype)
     if viewmats is not None:
         vm = _as_tensor(viewmats, dtype)
@@ -192,6 +198,8 @@ def render_model(model, cameras: Cameras, *, features: bool = True, background=(
     if sim3 is not None:
         cameras = cameras.for_transformed_model(sim3)
     with torch.no_grad():
-        return rasterize(model.means, model.quats, model.log_scales, model.opacity_logits, model.sh,
-                         model.features if features else None, cameras, background=background,
-                         feature_background=feature_background, depth=depth, backend=backend)
+        out = rasterize(model.means, model.quats, model.log_scales, model.opacity_logits, model.sh,
+                        model.features if features else None, cameras, background=background,
+                        feature_background=feature_background, depth=depth, backend=backend)
+    cpu = lambda t: None if t is None else t.cpu()  # noqa: E731  (gsplat renders live on the GPU)
+    return RenderOutput(cpu(out.colors), cpu(out.features), cpu(out.alpha), cpu(out.depth))
