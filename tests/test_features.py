@@ -9,6 +9,7 @@ through the real loading code.
 from __future__ import annotations
 
 import argparse
+import json
 
 import numpy as np
 import pytest
@@ -255,3 +256,21 @@ def test_prepare_for_alignment_modes(small_model, weights):
     assert np.linalg.norm(out.features, axis=1).min() >= s2.prune_threshold
     with pytest.raises(ValueError, match="features must be one of"):
         prepare_for_alignment(small_model, "sift", s)
+
+
+def test_lift_command_writes_semantic_ply(tmp_path, capsys):
+    model = make_object("boat", seed=4, n_gaussians=800)
+    write_ply(model, tmp_path / "m.ply")
+    parser = argparse.ArgumentParser()
+    add_lift_parser(parser.add_subparsers())
+    args = parser.parse_args(["lift", str(tmp_path / "m.ply"), "--out", str(tmp_path / "lifted.ply"),
+                              "--features", "canonical", "--views", "4", "--size", "48", "--iterations", "5",
+                              "--report", str(tmp_path / "r.json"), "--quiet"])
+    assert args.func(args) == 0
+    header = (tmp_path / "lifted.ply").read_bytes()[:4000]
+    assert b"semantic_0" in header and b"semantic_2" in header and b"semantic_3" not in header
+    lifted = read_ply(tmp_path / "lifted.ply")
+    assert lifted.feature_dim == 3 and len(lifted) <= len(model)
+    summary = json.loads(capsys.readouterr().out)
+    assert summary["kept"] == len(lifted) and summary["kept"] + summary["pruned"] == len(model)
+    assert json.loads((tmp_path / "r.json").read_text())["iterations"] == 5

@@ -44,8 +44,13 @@ def cmd_lift(args) -> int:
     model = read_ply(args.model)
     model.validate(args.model)
 
+    last = [None]
+
     def progress(stage: str, frac: float) -> None:
-        if not args.quiet and (frac in (0.0, 1.0) or int(frac * 100) % 25 == 0):
+        # One line per stage change and per 25%, so logs stay short.
+        key = (stage, int(frac * 100) // 25)
+        if not args.quiet and key != last[0]:
+            last[0] = key
             print(f"[gsa] {stage} {int(frac * 100)}%", file=sys.stderr, flush=True)
 
     lifted, report = lift_features(model, extractor, views=s.lift_views, image_size=s.lift_image_size,
