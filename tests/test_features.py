@@ -274,3 +274,20 @@ def test_lift_command_writes_semantic_ply(tmp_path, capsys):
     summary = json.loads(capsys.readouterr().out)
     assert summary["kept"] == len(lifted) and summary["kept"] + summary["pruned"] == len(model)
     assert json.loads((tmp_path / "r.json").read_text())["iterations"] == 5
+
+
+def test_prepare_pair_resolves_modes_for_the_pipeline(small_model, weights):
+    from gsa.features import prepare_pair
+
+    other = make_object("car", seed=6, n_gaussians=700)
+    s = FeatureSettings()
+    src, dst, mode, reports = prepare_pair(small_model, other, "auto", s)
+    assert mode == "canonical" and src is small_model and dst is other and reports == []
+    with_f = other.with_features(np.full((len(other), 3), 0.5, np.float32))
+    assert prepare_pair(small_model, with_f, "auto", s)[2] == "canonical"  # only one side has features
+    assert prepare_pair(with_f, with_f, "auto", s)[2] == "file"
+    with pytest.raises(ModelError, match="source has no semantic"):
+        prepare_pair(small_model, with_f, "file", s)
+    s2 = FeatureSettings(backbone=weights["backbone"], lift_views=3, lift_image_size=48, lift_iterations=2)
+    src, dst, mode, reports = prepare_pair(small_model, other, "dinov2", s2)
+    assert mode == "file" and src.feature_dim == dst.feature_dim == 3 and len(reports) == 2

@@ -25,7 +25,7 @@ from gsa.model import GaussianModel, ModelError
 
 __all__ = ["ALIGN_FEATURE_MODES", "EXTRACTORS", "CanonicalExtractor", "Dinov2PCAExtractor", "FeatureExtractor",
            "FeatureSettings", "LiftReport", "SphereMapExtractor", "WeightsError", "lift_features",
-           "lift_features_full", "make_extractor", "prepare_for_alignment", "prune_background"]
+           "lift_features_full", "make_extractor", "prepare_for_alignment", "prepare_pair", "prune_background"]
 
 ALIGN_FEATURE_MODES = ("auto", "file", "canonical", "spheremap", "dinov2")
 
@@ -45,16 +45,8 @@ def prepare_for_alignment(model: GaussianModel, mode: str = "auto", settings: Fe
     `extractor` reuses an already-built extractor (weights loaded once; for dinov2 the same
     PCA basis for both models of a pair). A LiftReport is appended to `reports` when lifting ran.
     """
-    if mode not in ALIGN_FEATURE_MODES:
-        raise ValueError(f"features must be one of {', '.join(ALIGN_FEATURE_MODES)}, got {mode!r}")
     settings = settings or FeatureSettings.from_env()
-    if mode == "auto":
-        if model.features is not None and model.feature_dim > 0:
-            mode = "file"
-        elif settings.extractor in ("spheremap", "dinov2") and weights_configured(settings.extractor, settings):
-            mode = settings.extractor
-        else:
-            mode = "canonical"
+    mode = resolve_mode(mode, settings, model)
     if mode == "file":
         if model.features is None:
             raise ModelError("--features file: the model has no semantic_* features "
@@ -76,3 +68,47 @@ def prepare_for_alignment(model: GaussianModel, mode: str = "auto", settings: Fe
     if settings.prune_threshold > 0:
         lifted, _ = prune_background(lifted, settings.prune_threshold)
     return lifted
+
+
+def resolve_mode(mode: str, settings: FeatureSettings, *models: GaussianModel) -> str:
+    """The concrete feature source `mode` means for these models: auto -> file when every
+    model carries features of one dimension, else settings.extractor when its weights are
+    configured, else canonical. Other modes are returned unchanged."""
+    if mode not in ALIGN_FEATURE_MODES:
+        raise ValueError(f"features must be one of {', '.join(ALIGN_FEATURE_MODES)}, got {mode!r}")
+    if mode != "auto":
+        return mode
+    dims = {m.feature_dim for m in models}
+    if len(dims) == 1 and 0 not in dims:
+        return "file"
+    if settings.extractor in ("spheremap", "dinov2") and weights_configured(settings.extractor, settings):
+        return settings.extractor
+    return "canonical"
+
+
+def prepare_pair(source: GaussianModel, target: GaussianModel, mode: str = "auto",
+                 settings: FeatureSettings | None = None, progress=None
+                 ) -> tuple[GaussianModel, GaussianModel, str, list[LiftReport]]:
+    """What `gsa align --features MODE` should run before `gsa.align.align`.
+
+    Returns (source, target, pipeline_mode, lift_reports): pipeline_mode is the
+    AlignOptions.features value to use ("file" or "canonical"). canonical is left to the
+    pipeline, which computes it natively with its frame hypotheses and ICP refinement; for
+    spheremap/dinov2 both models are lifted with ONE extractor (weights loaded once; for dinov2
+    one PCA basis, fitted on the source) and background-pruned, then aligned as "file".
+    """
+    settings = settings or FeatureSettings.from_env()
+    mode = resolve_mode(mode, settings, source, target)
+    if mode in ("file", "canonical"):
+        if mode == "file":
+            for name, m in (("source", source), ("target", target)):
+                if m.features is None:
+                    raise ModelError(f"--features file: the {name} has no semantic_* features")
+        return source, target, mode, []
+    extractor = make_extractor(mode, settings)
+    reports: list[LiftReport] = []
+    src = prepare_for_alignment(source, mode, settings, extractor=extractor, reports=reports,
+                                progress=None if progress is None else (lambda st, f: progress(f"lift source {st}", f)))
+    dst = prepare_for_alignment(target, mode, settings, extractor=extractor, reports=reports,
+                                progress=None if progress is None else (lambda st, f: progress(f"lift target {st}", f)))
+    return src, dst, "file", reports
