@@ -63,14 +63,39 @@ def _extents(cov_diag, opac, valid):
     return ext
 
 
+@njit(cache=True, error_model="numpy")
+def _radix_argsort(keys, sel, passes):
+    """`sel` reordered by ascending unsigned `keys[sel]`, stable; 16 bits a pass (2 for uint32, 4 for uint64)."""
+    m = sel.shape[0]
+    cur = sel.copy()
+    nxt = np.empty_like(cur)
+    count = np.empty(65537, np.int64)
+    for p in range(passes):
+        shift = np.uint64(16 * p)  # unsigned throughout: numba turns uint64-int64 mixes into floats
+        mask = np.uint64(0xFFFF)
+        count[:] = 0
+        for j in range(m):
+            count[np.int64((np.uint64(keys[cur[j]]) >> shift) & mask) + 1] += 1
+        if count[1:].max() == m:  # all keys share this digit: nothing to do
+            continue
+        for d in range(65536):
+            count[d + 1] += count[d]
+        for j in range(m):
+            d = np.int64((np.uint64(keys[cur[j]]) >> shift) & mask)
+            nxt[count[d]] = cur[j]
+            count[d] += 1
+        cur, nxt = nxt, cur
+    return cur
+
+
 @njit(parallel=True, cache=True, error_model="numpy")
-def _bin(means2d, ext, depths, width, height, tile):
+def _bin(means2d, ext, depth_bits, width, height, tile):
     """Per (camera, tile) lists of Gaussian ids sorted front to back.
 
     Returns offsets (C*T + 1,) int64 and ids (P,) int32; the list of job j is
     ids[offsets[j]:offsets[j+1]].
     """
-    c_count, n = depths.shape
+    c_count, n = depth_bits.shape
     tx_n = (width + tile - 1) // tile
     ty_n = (height + tile - 1) // tile
     nt = tx_n * ty_n
@@ -97,10 +122,20 @@ def _bin(means2d, ext, depths, width, height, tile):
     ids = np.empty(offsets[-1], np.int32)
     for c in prange(c_count):
         cursor = offsets[c * nt:(c + 1) * nt].copy()
-        order = np.argsort(depths[c])  # exact depth ties (measure zero) may order differently from the reference
+        # only binned Gaussians need ordering; they all have depth > 0, so the IEEE bit
+        # patterns order like the values and an exact, stable LSD radix sort applies
+        m = 0
+        for i in range(n):
+            if rects[c, i, 0] >= 0:
+                m += 1
+        sel = np.empty(m, np.int32)
+        m = 0
+        for i in range(n):
+            if rects[c, i, 0] >= 0:
+                sel[m] = i
+                m += 1
+        order = _radix_argsort(depth_bits[c], sel, depth_bits.itemsize // 2)
         for i in order:
-            if rects[c, i, 0] < 0:
-                continue
             for ty in range(rects[c, i, 2], rects[c, i, 3] + 1):
                 for tx in range(rects[c, i, 0], rects[c, i, 1] + 1):
                     t = ty * tx_n + tx
@@ -329,7 +364,8 @@ class _CompositeCPU(torch.autograd.Function):
         m2d, con, op, ch = _np(means2d, dt), _np(conics, dt), _np(opacities, dt), _np(chans, dt)
         bg = _np(background, dt)
         ext = _extents(_np(cov_diag, dt), op, _np(valid, np.bool_))
-        offsets, ids = _bin(m2d, ext, _np(depths, dt), width, height, tile)
+        depth_bits = _np(depths, dt).view(np.uint64 if dt == np.float64 else np.uint32)
+        offsets, ids = _bin(m2d, ext, depth_bits, width, height, tile)
         out, t_final, n_contrib = _forward(m2d, con, op, ch, ext, bg, offsets, ids, width, height, tile)
         ctx.saved = (m2d, con, op, ch, ext, bg, offsets, ids, t_final, n_contrib, width, height, tile)
         ctx.torch_dtype = chans.dtype
