@@ -291,3 +291,9 @@ def test_prepare_pair_resolves_modes_for_the_pipeline(small_model, weights):
     s2 = FeatureSettings(backbone=weights["backbone"], lift_views=3, lift_image_size=48, lift_iterations=2)
     src, dst, mode, reports = prepare_pair(small_model, other, "dinov2", s2)
     assert mode == "file" and src.feature_dim == dst.feature_dim == 3 and len(reports) == 2
+
+
+def test_settings_from_environment():
+    s = FeatureSettings.from_env({"GSA_FEATURES_EXTRACTOR": "dinov2", "GSA_FEATURES_BACKBONE": "/w/dinov2",
+                                  "GSA_LIFT_VIEWS": "7", "GSA_PRUNE_THRESHOLD": "0.2"}, lift_views=9)
+    assert (s.extractor, s.backbone, s.head, s.lift_views, s.prune_threshold) == ("dinov2", "/w/dinov2", None, 9, 0.2)

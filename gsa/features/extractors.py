@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import os
 from dataclasses import dataclass, fields
+from typing import ClassVar
 
 import numpy as np
 import torch
@@ -47,7 +48,7 @@ class FeatureSettings:
     prune_threshold: float = 0.1  # the authors' background-Gaussian threshold
     backend: str = "auto"  # rasterizer backend
 
-    ENV = {"extractor": "GSA_FEATURES_EXTRACTOR", "backbone": "GSA_FEATURES_BACKBONE",
+    ENV: ClassVar[dict[str, str]] = {"extractor": "GSA_FEATURES_EXTRACTOR", "backbone": "GSA_FEATURES_BACKBONE",
            "head": "GSA_FEATURES_HEAD", "lift_views": "GSA_LIFT_VIEWS",
            "lift_image_size": "GSA_LIFT_IMAGE_SIZE", "lift_iterations": "GSA_LIFT_ITERATIONS",
            "prune_threshold": "GSA_PRUNE_THRESHOLD"}
@@ -99,7 +100,7 @@ def _patch_masks(masks: np.ndarray, h: int, w: int) -> torch.Tensor:
 
 def _upsample(maps: torch.Tensor, masks: np.ndarray) -> np.ndarray:
     """(C,3,h,w) -> (C,H,W,3) bilinear, zeroed outside the full-resolution masks."""
-    c, hh, ww = masks.shape
+    _, hh, ww = masks.shape
     up = F.interpolate(maps, size=(hh, ww), mode="bilinear", align_corners=False)
     up = up.permute(0, 2, 3, 1) * torch.as_tensor(masks, dtype=up.dtype)[..., None]
     return up.numpy().astype(np.float32)

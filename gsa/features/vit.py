@@ -236,7 +236,7 @@ def _config_from_hub(sd: dict) -> VitConfig:
     d = sd["cls_token"].shape[-1]
     depth = 1 + max(int(k.split(".")[1]) for k in sd if k.startswith("blocks."))
     patch = sd["patch_embed.proj.weight"].shape[-1]
-    grid = int(round(math.sqrt(sd["pos_embed"].shape[1] - 1)))
+    grid = round(math.sqrt(sd["pos_embed"].shape[1] - 1))
     regs = sd["register_tokens"].shape[1] if "register_tokens" in sd else 0
     hidden = sd["blocks.0.mlp.fc1.weight"].shape[0]
     # All published DINOv2 models use 64-d heads.
@@ -247,7 +247,7 @@ def _config_from_hub(sd: dict) -> VitConfig:
 
 def hf_to_hub(sd: dict) -> dict:
     """Rename a HF `Dinov2Model` state dict to torch.hub names (q,k,v -> qkv)."""
-    sd = {k[len("dinov2."):] if k.startswith("dinov2.") else k: v for k, v in sd.items()}
+    sd = {k.removeprefix("dinov2."): v for k, v in sd.items()}
     out = {
         "cls_token": sd["embeddings.cls_token"],
         "pos_embed": sd["embeddings.position_embeddings"],
