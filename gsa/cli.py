@@ -69,6 +69,7 @@ def _align_options(args: argparse.Namespace):
     fields = {
         "stages": tuple(s.strip() for s in args.stages.split(",") if s.strip()),
         "features": args.features,
+        "feature_settings": _feature_settings(args),
         "tau_f": args.tau_f,
         "coarse_iterations": args.iterations,
         "max_candidates": args.max_candidates,
@@ -83,13 +84,26 @@ def _align_options(args: argparse.Namespace):
     return AlignOptions(**fields)
 
 
+def _feature_settings(args: argparse.Namespace):
+    """FeatureSettings only when an extractor may run (importing it loads torch)."""
+    if args.features in ("file", "canonical") or not (args.backbone or args.head or args.features != "auto"):
+        return None
+    from gsa.features import FeatureSettings
+
+    return FeatureSettings.from_env(backbone=args.backbone, head=args.head)
+
+
 def add_align_arguments(p: argparse.ArgumentParser) -> None:
-    from gsa.align.pipeline import AlignOptions
+    from gsa.align.pipeline import FEATURE_MODES, AlignOptions
 
     d = AlignOptions()
     p.add_argument("--stages", default=",".join(d.stages), help="coarse or coarse,fine (default: %(default)s)")
-    p.add_argument("--features", default=d.features, choices=["auto", "file", "canonical"],
-                   help="auto: the files' own features when both have them, else canonical")
+    p.add_argument("--features", default=d.features, choices=list(FEATURE_MODES),
+                   help="auto: the files' own features when both have them, else the configured extractor "
+                        "(GSA_FEATURES_EXTRACTOR + weights), else canonical; spheremap/dinov2 lift 2D features first")
+    p.add_argument("--backbone", "--weights", dest="backbone", default=None,
+                   help="DINOv2 weights: Hugging Face folder or torch.hub .pth (env GSA_FEATURES_BACKBONE)")
+    p.add_argument("--head", default=None, help="sphere_mapper head checkpoint (env GSA_FEATURES_HEAD)")
     p.add_argument("--tau-f", type=float, default=d.tau_f, help="feature distance threshold τ_f")
     p.add_argument("--iterations", type=int, default=d.coarse_iterations, help="coarse iteration limit")
     p.add_argument("--max-candidates", type=int, default=d.max_candidates,
@@ -269,6 +283,12 @@ def _add_optional_commands(sub) -> None:
         pass
     else:
         add_render_parser(sub)
+    try:
+        from gsa.features.command import add_lift_parser
+    except ImportError:
+        pass
+    else:
+        add_lift_parser(sub)
     try:
         from gsa.recon.command import add_reconstruct_parser
     except ImportError:

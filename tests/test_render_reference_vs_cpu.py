@@ -8,7 +8,6 @@ from scipy.spatial.transform import Rotation
 from gsa.model import GaussianModel
 from gsa.render import Cameras, orbit_cameras, rasterize, render_gaussians, render_model
 from gsa.render.projection import covariance_3d
-from gsa.sim3 import Sim3
 
 
 def _scene(n, sh_degree, seed, dim=3):

@@ -142,7 +142,7 @@ def run_sfm(images: ImageSet, work_dir: str | Path, *, matching: str = "exhausti
 
 def _from_reconstruction(rec, images: ImageSet, timings: dict) -> SfMResult:
     by_name = {}
-    for image_id, img in rec.images.items():
+    for img in rec.images.values():
         if not img.has_pose:
             continue
         cam = rec.cameras[img.camera_id]

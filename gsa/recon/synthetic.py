@@ -17,7 +17,7 @@ import numpy as np
 
 from gsa.model import SH_C0, GaussianModel
 from gsa.recon.images import write_rgb
-from gsa.render import Cameras, orbit_cameras, render_model
+from gsa.render import Cameras, render_model
 from gsa.sim3 import Sim3
 
 

@@ -26,7 +26,7 @@ from __future__ import annotations
 import math
 import time
 from collections.abc import Callable
-from dataclasses import asdict, dataclass, field, replace
+from dataclasses import asdict, dataclass, field
 
 import numpy as np
 import torch
@@ -168,7 +168,7 @@ class _Adam:
 
     def remap(self, new_params: dict[str, torch.Tensor], keep: torch.Tensor, n_new: int) -> None:
         """Rows `keep` of every tensor survive (in order), then n_new rows with zero moments."""
-        for k, p in new_params.items():
+        for k in new_params:
             for st in (self.m, self.v):
                 old = st[k][keep]
                 st[k] = torch.cat([old, torch.zeros((n_new,) + old.shape[1:], dtype=old.dtype)])

@@ -330,8 +330,12 @@ def _backward(means2d, conics, opac, chans, ext, bg, offsets, ids, t_final, n_co
 
 
 @njit(parallel=True, cache=True, error_model="numpy")
-def _reduce(g_xy, g_con, g_op, g_ch, offsets, ids, c_count, n, nt):
-    """Sum per-pair gradients into per-(camera, Gaussian) arrays (r_ch is zero-size if g_ch is)."""
+def _reduce(g_xy, g_con, g_op, g_ch, offsets, ids, c_count, n, nt, parts):
+    """Sum per-pair gradients into per-(camera, Gaussian) arrays (r_ch is zero-size if g_ch is).
+
+    Work item (camera, part) scans that camera's pairs and keeps the Gaussians of its own
+    id range, so no two items write the same element and all threads have work even for C = 1.
+    """
     f = g_ch.shape[1]
     want_chans = g_ch.shape[0] > 0
     dt = g_xy.dtype
@@ -339,9 +343,15 @@ def _reduce(g_xy, g_con, g_op, g_ch, offsets, ids, c_count, n, nt):
     r_con = np.zeros((c_count, n, 3), dt)
     r_op = np.zeros((c_count, n), dt)
     r_ch = np.zeros((c_count if want_chans else 0, n, f), dt)
-    for c in prange(c_count):
+    span = (n + parts - 1) // parts
+    for job in prange(c_count * parts):
+        c = job // parts
+        lo = (job % parts) * span
+        hi = lo + span
         for k in range(offsets[c * nt], offsets[(c + 1) * nt]):
             g = ids[k]
+            if g < lo or g >= hi:
+                continue
             r_xy[c, g, 0] += g_xy[k, 0]
             r_xy[c, g, 1] += g_xy[k, 1]
             for j in range(3):
@@ -383,7 +393,7 @@ class _CompositeCPU(torch.autograd.Function):
         pairs = _backward(m2d, con, op, ch, ext, bg, offsets, ids, t_final, n_contrib, g_out, g_alpha,
                           width, height, tile, want_chans)
         nt = ((width + tile - 1) // tile) * ((height + tile - 1) // tile)
-        r_xy, r_con, r_op, r_ch = _reduce(*pairs, offsets, ids, c_count, n, nt)
+        r_xy, r_con, r_op, r_ch = _reduce(*pairs, offsets, ids, c_count, n, nt, max(1, numba.get_num_threads()))
         # background gradient: d out / d bg = T_final
         g_bg = np.einsum("chw,chwf->f", t_final, g_out)
         as_t = lambda a: torch.from_numpy(a).to(ctx.torch_dtype)  # noqa: E731
