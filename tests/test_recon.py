@@ -9,7 +9,6 @@ import cv2
 import numpy as np
 import pytest
 
-pytest.importorskip("pycolmap")
 
 from gsa.io.ply import read_ply  # noqa: E402
 from gsa.recon.images import ImageSetError, load_image_set  # noqa: E402

@@ -170,7 +170,7 @@ def start_worker(tmp: Path, env: dict, name="worker") -> Proc:
 def redis_url(tmp_path_factory):
     exe = shutil.which("redis-server")
     if exe is None:
-        pytest.skip("redis-server not installed (./dev.sh test installs it)")
+        pytest.fail("redis-server not installed (./dev.sh test installs it)")
     d = tmp_path_factory.mktemp("redis")
     port = free_port()
     p = subprocess.Popen(

@@ -1,23 +1,14 @@
 """Image sets through the service with the real reconstruction (pycolmap SfM +
-3DGS training). About 1-2 minutes on 2 CPU cores, so opt-in: GSA_SLOW_TESTS=1."""
+3DGS training). About 1-2 minutes on 2 CPU cores."""
 
 from __future__ import annotations
 
 import json
-import os
 import time
 import zipfile
 
-import pytest
-
-pytestmark = pytest.mark.skipif(
-    os.environ.get("GSA_SLOW_TESTS") != "1", reason="slow: set GSA_SLOW_TESTS=1"
-)
-
 
 def test_image_set_pair_job(tmp_path):
-    pytest.importorskip("gsa.recon")
-    pytest.importorskip("pycolmap")
     from fastapi.testclient import TestClient
 
     from gsa.recon.synthetic import render_image_set
