@@ -14,7 +14,7 @@ setup_python() {
     # Reinstall only when the dependency list changed.
     local stamp="$VENV/.installed-$(sha1sum pyproject.toml | cut -c1-16)"
     if [ ! -f "$stamp" ]; then
-        "$VENV/bin/python" -m pip install -q --disable-pip-version-check -e ".[service,dev]"
+        "$VENV/bin/python" -m pip install -q --disable-pip-version-check -e ".[service,recon,dev]"
         rm -f "$VENV"/.installed-*
         touch "$stamp"
     fi

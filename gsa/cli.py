@@ -46,12 +46,20 @@ class ProgressPrinter:
             self.last = (stage, bucket)
 
 
-def _load_model(path: str):
+def _load_model(path: str, role: str = "model", args: argparse.Namespace | None = None):
+    """A PLY file, or an image set (folder or .zip) reconstructed first."""
     from gsa.io.ply import read_ply
 
     p = Path(path)
-    if p.is_dir():
-        raise CliError(f"{path}: is a directory; image-set reconstruction is not available in this build")
+    if p.is_dir() or p.suffix.lower() == ".zip":
+        try:
+            from gsa.recon.pipeline import reconstruct
+        except ImportError as exc:
+            raise CliError(f"{path}: image sets need the recon extra (pip install 'gsa[recon]'): {exc}") from None
+        out = Path(args.out).parent / f"recon_{role}" if args is not None else Path(f"recon_{role}")
+        preset = getattr(args, "preset", "cpu")
+        print(f"[gsa] reconstructing {role} from {path} into {out} (preset {preset})", file=sys.stderr)
+        return reconstruct(p, out, preset=preset, progress=ProgressPrinter(not getattr(args, "quiet", False))).model
     return read_ply(p)
 
 
@@ -104,8 +112,8 @@ def cmd_align(args: argparse.Namespace) -> int:
     from gsa.model import merge_models
 
     options = _align_options(args)
-    source = _load_model(args.source)
-    target = _load_model(args.target)
+    source = _load_model(args.source, "source", args)
+    target = _load_model(args.target, "target", args)
     result = align(source, target, options, progress=ProgressPrinter(not args.quiet))
     data = result.to_dict()
     if args.aligned_out or args.merged_out:
@@ -209,9 +217,10 @@ def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="gsa", description="Gaussian Splatting Alignment (GSA)")
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
 
-    p = sub.add_parser("align", help="align SOURCE onto TARGET (3DGS PLY files)")
-    p.add_argument("source")
-    p.add_argument("target")
+    p = sub.add_parser("align", help="align SOURCE onto TARGET (3DGS PLY files or image sets)")
+    p.add_argument("source", help="3DGS PLY, or a folder / .zip of images (reconstructed first)")
+    p.add_argument("target", help="3DGS PLY, or a folder / .zip of images (reconstructed first)")
+    p.add_argument("--preset", default="cpu", choices=["cpu", "gpu"], help="reconstruction preset for image sets")
     p.add_argument("--out", default="result.json", help="result JSON path (default: %(default)s)")
     p.add_argument("--aligned-out", help="write the source mapped into the target frame (PLY)")
     p.add_argument("--merged-out", help="write aligned source + target as one model (PLY)")
@@ -261,6 +270,12 @@ def _add_optional_commands(sub) -> None:
     else:
         add_render_parser(sub)
     try:
+        from gsa.recon.command import add_reconstruct_parser
+    except ImportError:
+        pass
+    else:
+        add_reconstruct_parser(sub)
+    try:
         # service/ depends on gsa/, never the reverse: imported only here, lazily.
         from service.cli import add_service_parsers
     except ImportError:
@@ -274,11 +289,16 @@ def main(argv: list[str] | None = None) -> int:
     from gsa.io.ply import PlyError
     from gsa.model import ModelError
 
+    try:
+        from gsa.recon import MaskError, SfMError
+    except ImportError:  # the recon extra is optional
+        MaskError = SfMError = CliError  # noqa: N806
+
     parser = build_parser()
     args = parser.parse_args(argv)
     try:
         return int(args.func(args) or 0)
-    except (CliError, PlyError, AlignmentError, ModelError, ValueError) as exc:
+    except (CliError, PlyError, AlignmentError, ModelError, SfMError, MaskError, ValueError) as exc:
         print(f"gsa: error: {exc}", file=sys.stderr)
         return EXIT_FAILED
     except OSError as exc:
