@@ -19,6 +19,8 @@ Kernels are compiled for float32 (speed) and float64 (gradient checks).
 from __future__ import annotations
 
 import math
+import os
+import threading
 
 import numba
 import numpy as np
@@ -28,6 +30,14 @@ from numba import njit, prange
 from gsa.render.reference import ALPHA_MAX, ALPHA_MIN, MAHA_CUTOFF, T_MIN
 
 TILE = 16
+
+# numba's OpenMP layer shares libgomp with torch; on a busy machine spinning torch threads and
+# descheduled numba threads made barriers cost up to 100x (measured: 4 ms -> 800 ms per kernel).
+# The built-in workqueue layer degrades gracefully. It must not be entered from two Python
+# threads at once, hence _KERNEL_LOCK around every kernel call (the kernels use all cores anyway).
+if "NUMBA_THREADING_LAYER" not in os.environ:
+    numba.config.THREADING_LAYER = "workqueue"
+_KERNEL_LOCK = threading.RLock()
 
 
 @njit(cache=True, error_model="numpy")
@@ -369,7 +379,17 @@ def _np(t: torch.Tensor, dtype) -> np.ndarray:
 
 class _CompositeCPU(torch.autograd.Function):
     @staticmethod
-    def forward(ctx, means2d, conics, opacities, chans, cov_diag, depths, valid, background, width, height, tile):
+    def forward(ctx, *args):
+        with _KERNEL_LOCK:
+            return _CompositeCPU._forward(ctx, *args)
+
+    @staticmethod
+    def backward(ctx, *grads):
+        with _KERNEL_LOCK:
+            return _CompositeCPU._backward(ctx, *grads)
+
+    @staticmethod
+    def _forward(ctx, means2d, conics, opacities, chans, cov_diag, depths, valid, background, width, height, tile):
         dt = np.float64 if chans.dtype == torch.float64 else np.float32
         m2d, con, op, ch = _np(means2d, dt), _np(conics, dt), _np(opacities, dt), _np(chans, dt)
         bg = _np(background, dt)
@@ -383,7 +403,7 @@ class _CompositeCPU(torch.autograd.Function):
         return torch.from_numpy(out), torch.from_numpy(alpha)
 
     @staticmethod
-    def backward(ctx, g_out, g_alpha):
+    def _backward(ctx, g_out, g_alpha):
         m2d, con, op, ch, ext, bg, offsets, ids, t_final, n_contrib, width, height, tile = ctx.saved
         dt = ch.dtype
         c_count, n, _ = ch.shape
@@ -563,7 +583,17 @@ def _project_bwd(means, cov, view, intr, width, height, con, valid, g_m2d, g_con
 
 class _ProjectCPU(torch.autograd.Function):
     @staticmethod
-    def forward(ctx, means, cov3d, viewmats, intrinsics, width, height):
+    def forward(ctx, *args):
+        with _KERNEL_LOCK:
+            return _ProjectCPU._forward(ctx, *args)
+
+    @staticmethod
+    def backward(ctx, *grads):
+        with _KERNEL_LOCK:
+            return _ProjectCPU._backward(ctx, *grads)
+
+    @staticmethod
+    def _forward(ctx, means, cov3d, viewmats, intrinsics, width, height):
         dt = np.float64 if means.dtype == torch.float64 else np.float32
         args = (_np(means, dt), _np(cov3d, dt), _np(viewmats, dt), _np(intrinsics, dt))
         m2d, con, depth, cdiag, valid = _project_fwd(*args, width, height)
@@ -575,7 +605,7 @@ class _ProjectCPU(torch.autograd.Function):
         return out
 
     @staticmethod
-    def backward(ctx, g_m2d, g_con, g_depth, _g_cdiag, _g_valid):
+    def _backward(ctx, g_m2d, g_con, g_depth, _g_cdiag, _g_valid):
         means, cov, view, intr, width, height, con, valid = ctx.saved
         dt = means.dtype
         c_count, n = valid.shape
@@ -673,7 +703,17 @@ def _cov_bwd(quats, log_scales, g_cov):
 
 class _CovarianceCPU(torch.autograd.Function):
     @staticmethod
-    def forward(ctx, quats, log_scales):
+    def forward(ctx, *args):
+        with _KERNEL_LOCK:
+            return _CovarianceCPU._forward(ctx, *args)
+
+    @staticmethod
+    def backward(ctx, *grads):
+        with _KERNEL_LOCK:
+            return _CovarianceCPU._backward(ctx, *grads)
+
+    @staticmethod
+    def _forward(ctx, quats, log_scales):
         dt = np.float64 if quats.dtype == torch.float64 else np.float32
         q, ls = _np(quats, dt), _np(log_scales, dt)
         ctx.saved = (q, ls)
@@ -681,7 +721,7 @@ class _CovarianceCPU(torch.autograd.Function):
         return torch.from_numpy(_cov_fwd(q, ls))
 
     @staticmethod
-    def backward(ctx, g_cov):
+    def _backward(ctx, g_cov):
         q, ls = ctx.saved
         g_q, g_ls = _cov_bwd(q, ls, _np(g_cov, q.dtype))
         return torch.from_numpy(g_q).to(ctx.dtype), torch.from_numpy(g_ls).to(ctx.dtype)
