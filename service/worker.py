@@ -82,21 +82,23 @@ def content_type(name: str) -> str:
 
 
 def server_only_option(name: str) -> bool:
-    return name == "device" or name.endswith(("_weights", "_path", "_dir", "_device"))
+    return name in ("device", "feature_settings") or name.endswith(("_weights", "_path", "_dir", "_device"))
 
 
 def server_options(settings, known: set[str]) -> dict:
-    """Deployment settings for AlignOptions fields that exist in this library build."""
-    candidates = {
-        "device": settings.worker_device,
-        "spheremap_weights": settings.spheremap_weights,
-        "dinov2_weights": settings.dinov2_weights,
-    }
-    return {
-        k: (str(v) if k.endswith("_weights") else v)
-        for k, v in candidates.items()
-        if k in known and v
-    }
+    """Deployment settings for AlignOptions fields that exist in this library build:
+    extractor weights (DINOv2 backbone, sphere-mapper head) live on the worker."""
+    out = {}
+    if "device" in known and settings.worker_device:
+        out["device"] = settings.worker_device
+    if "feature_settings" in known and (settings.dinov2_weights or settings.spheremap_weights):
+        from gsa.features import FeatureSettings
+
+        out["feature_settings"] = FeatureSettings.from_env(
+            backbone=str(settings.dinov2_weights) if settings.dinov2_weights else None,
+            head=str(settings.spheremap_weights) if settings.spheremap_weights else None,
+        )
+    return out
 
 
 def align_option_names() -> set[str] | None:
