@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # The project's two entry points on a fresh machine:
 #   ./dev.sh demo   set up .venv, then align generated example data end to end
-#   ./dev.sh test   set up .venv (and redis-server if missing), then run the test suite
+#   ./dev.sh test   set up .venv (and redis-server, docker-compose if missing), then run the test suite
 # Extra arguments go to `gsa demo` or pytest.
 set -euo pipefail
 cd "$(dirname "$0")"
@@ -14,18 +14,22 @@ setup_python() {
     # Reinstall only when the dependency list changed.
     local stamp="$VENV/.installed-$(sha1sum pyproject.toml | cut -c1-16)"
     if [ ! -f "$stamp" ]; then
-        "$VENV/bin/python" -m pip install -q --disable-pip-version-check -e ".[service,dev]"
+        "$VENV/bin/python" -m pip install -q --disable-pip-version-check -e ".[service,recon,dev]"
         rm -f "$VENV"/.installed-*
         touch "$stamp"
     fi
 }
 
-setup_redis() {
-    # Tests start their own redis-server on a free port; they only need the binary.
-    if ! command -v redis-server >/dev/null 2>&1; then
+setup_system_tools() {
+    # Tests start their own redis-server on a free port (they only need the binary)
+    # and validate docker-compose.yml with Debian's docker-compose (no engine needed).
+    local missing=()
+    command -v redis-server >/dev/null 2>&1 || missing+=(redis-server)
+    command -v docker-compose >/dev/null 2>&1 || missing+=(docker-compose)
+    if [ ${#missing[@]} -gt 0 ]; then
         local sudo=""
         [ "$(id -u)" -ne 0 ] && sudo="sudo"
-        $sudo apt-get update -qq && $sudo apt-get install -y -qq redis-server >/dev/null
+        $sudo apt-get update -qq && $sudo apt-get install -y -qq "${missing[@]}" >/dev/null
     fi
 }
 
@@ -38,7 +42,7 @@ case "$cmd" in
         ;;
     test)
         setup_python
-        setup_redis
+        setup_system_tools
         exec "$VENV/bin/python" -m pytest -q "$@"
         ;;
     *)

@@ -46,12 +46,20 @@ class ProgressPrinter:
             self.last = (stage, bucket)
 
 
-def _load_model(path: str):
+def _load_model(path: str, role: str = "model", args: argparse.Namespace | None = None):
+    """A PLY file, or an image set (folder or .zip) reconstructed first."""
     from gsa.io.ply import read_ply
 
     p = Path(path)
-    if p.is_dir():
-        raise CliError(f"{path}: is a directory; image-set reconstruction is not available in this build")
+    if p.is_dir() or p.suffix.lower() == ".zip":
+        try:
+            from gsa.recon.pipeline import reconstruct
+        except ImportError as exc:
+            raise CliError(f"{path}: image sets need the recon extra (pip install 'gsa[recon]'): {exc}") from None
+        out = Path(args.out).parent / f"recon_{role}" if args is not None else Path(f"recon_{role}")
+        preset = getattr(args, "preset", "cpu")
+        print(f"[gsa] reconstructing {role} from {path} into {out} (preset {preset})", file=sys.stderr)
+        return reconstruct(p, out, preset=preset, progress=ProgressPrinter(not getattr(args, "quiet", False))).model
     return read_ply(p)
 
 
@@ -61,6 +69,7 @@ def _align_options(args: argparse.Namespace):
     fields = {
         "stages": tuple(s.strip() for s in args.stages.split(",") if s.strip()),
         "features": args.features,
+        "feature_settings": _feature_settings(args),
         "tau_f": args.tau_f,
         "coarse_iterations": args.iterations,
         "max_candidates": args.max_candidates,
@@ -75,13 +84,26 @@ def _align_options(args: argparse.Namespace):
     return AlignOptions(**fields)
 
 
+def _feature_settings(args: argparse.Namespace):
+    """FeatureSettings only when an extractor may run (importing it loads torch)."""
+    if args.features in ("file", "canonical") or not (args.backbone or args.head or args.features != "auto"):
+        return None
+    from gsa.features import FeatureSettings
+
+    return FeatureSettings.from_env(backbone=args.backbone, head=args.head)
+
+
 def add_align_arguments(p: argparse.ArgumentParser) -> None:
-    from gsa.align.pipeline import AlignOptions
+    from gsa.align.pipeline import FEATURE_MODES, AlignOptions
 
     d = AlignOptions()
     p.add_argument("--stages", default=",".join(d.stages), help="coarse or coarse,fine (default: %(default)s)")
-    p.add_argument("--features", default=d.features, choices=["auto", "file", "canonical"],
-                   help="auto: the files' own features when both have them, else canonical")
+    p.add_argument("--features", default=d.features, choices=list(FEATURE_MODES),
+                   help="auto: the files' own features when both have them, else the configured extractor "
+                        "(GSA_FEATURES_EXTRACTOR + weights), else canonical; spheremap/dinov2 lift 2D features first")
+    p.add_argument("--backbone", "--weights", dest="backbone", default=None,
+                   help="DINOv2 weights: Hugging Face folder or torch.hub .pth (env GSA_FEATURES_BACKBONE)")
+    p.add_argument("--head", default=None, help="sphere_mapper head checkpoint (env GSA_FEATURES_HEAD)")
     p.add_argument("--tau-f", type=float, default=d.tau_f, help="feature distance threshold τ_f")
     p.add_argument("--iterations", type=int, default=d.coarse_iterations, help="coarse iteration limit")
     p.add_argument("--max-candidates", type=int, default=d.max_candidates,
@@ -104,8 +126,8 @@ def cmd_align(args: argparse.Namespace) -> int:
     from gsa.model import merge_models
 
     options = _align_options(args)
-    source = _load_model(args.source)
-    target = _load_model(args.target)
+    source = _load_model(args.source, "source", args)
+    target = _load_model(args.target, "target", args)
     result = align(source, target, options, progress=ProgressPrinter(not args.quiet))
     data = result.to_dict()
     if args.aligned_out or args.merged_out:
@@ -213,9 +235,10 @@ def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="gsa", description="Gaussian Splatting Alignment (GSA)")
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
 
-    p = sub.add_parser("align", help="align SOURCE onto TARGET (3DGS PLY files)")
-    p.add_argument("source")
-    p.add_argument("target")
+    p = sub.add_parser("align", help="align SOURCE onto TARGET (3DGS PLY files or image sets)")
+    p.add_argument("source", help="3DGS PLY, or a folder / .zip of images (reconstructed first)")
+    p.add_argument("target", help="3DGS PLY, or a folder / .zip of images (reconstructed first)")
+    p.add_argument("--preset", default="cpu", choices=["cpu", "gpu"], help="reconstruction preset for image sets")
     p.add_argument("--out", default="result.json", help="result JSON path (default: %(default)s)")
     p.add_argument("--aligned-out", help="write the source mapped into the target frame (PLY)")
     p.add_argument("--merged-out", help="write aligned source + target as one model (PLY)")
@@ -266,6 +289,18 @@ def _add_optional_commands(sub) -> None:
     else:
         add_render_parser(sub)
     try:
+        from gsa.features.command import add_lift_parser
+    except ImportError:
+        pass
+    else:
+        add_lift_parser(sub)
+    try:
+        from gsa.recon.command import add_reconstruct_parser
+    except ImportError:
+        pass
+    else:
+        add_reconstruct_parser(sub)
+    try:
         # service/ depends on gsa/, never the reverse: imported only here, lazily.
         from service.cli import add_service_parsers
     except ImportError:
@@ -279,11 +314,16 @@ def main(argv: list[str] | None = None) -> int:
     from gsa.io.ply import PlyError
     from gsa.model import ModelError
 
+    try:
+        from gsa.recon import MaskError, SfMError
+    except ImportError:  # the recon extra is optional
+        MaskError = SfMError = CliError  # noqa: N806
+
     parser = build_parser()
     args = parser.parse_args(argv)
     try:
         return int(args.func(args) or 0)
-    except (CliError, PlyError, AlignmentError, ModelError, ValueError) as exc:
+    except (CliError, PlyError, AlignmentError, ModelError, SfMError, MaskError, ValueError) as exc:
         print(f"gsa: error: {exc}", file=sys.stderr)
         return EXIT_FAILED
     except OSError as exc:

@@ -8,7 +8,6 @@ from scipy.spatial.transform import Rotation
 from gsa.model import GaussianModel
 from gsa.render import Cameras, orbit_cameras, rasterize, render_gaussians, render_model
 from gsa.render.projection import covariance_3d
-from gsa.sim3 import Sim3
 
 
 def _scene(n, sh_degree, seed, dim=3):
@@ -194,3 +193,23 @@ def test_bad_input_raises_value_error():
                   None, cams, backend="nope")
     with pytest.raises(ValueError):
         Cameras(np.eye(4)[None], -1.0, 1.0, 0, 0, 8, 8)
+
+
+def test_concurrent_renders_from_threads_agree():
+    """Service workers may render from several threads; kernels are serialised, results identical."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    scene = _scene(200, 0, seed=4)
+    cams = _cams(2, 48, 48)
+
+    def job(_):
+        ts = [torch.tensor(scene[k], requires_grad=(k == "means")) for k in KEYS]
+        out = rasterize(*ts, cams, backend="cpu")
+        out.features.sum().backward()
+        return out.colors.detach().numpy(), ts[0].grad.numpy()
+
+    with ThreadPoolExecutor(4) as pool:
+        results = list(pool.map(job, range(8)))
+    for colors, grad in results[1:]:
+        np.testing.assert_array_equal(colors, results[0][0])
+        np.testing.assert_array_equal(grad, results[0][1])

@@ -137,19 +137,42 @@ def fine_align(source: GaussianModel, target: GaussianModel, init: Sim3, options
         raise ValueError(f"feature dimensions differ: source {feat_s.shape[1]}, target {feat_t.shape[1]}")
     cams = select_cameras(target, options, cameras)
     render = dict(backend=options.backend)
+    # The native kernels use every core; torch only does small elementwise work here, and its
+    # idle OpenMP threads spinning between ops slowed the loop on a 2-core machine. Restored below.
+    torch_threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        return _fine_align(source, target, init, options, cams, render, feat_s, sh_s, feat_t, sh_t, progress,
+                           t_start)
+    finally:
+        torch.set_num_threads(torch_threads)
+
+
+def _covariance(model: GaussianModel, backend: str) -> torch.Tensor:
+    q, ls = torch.as_tensor(model.quats), torch.as_tensor(model.log_scales)
+    if backend in ("auto", "cpu"):
+        try:
+            from gsa.render.cpu import covariance_cpu
+
+            return covariance_cpu(q, ls)
+        except ImportError:  # pragma: no cover - numba missing
+            pass
+    return covariance_3d(q, ls)
+
+
+def _fine_align(source, target, init, options, cams, render, feat_s, sh_s, feat_t, sh_t, progress, t_start):
     # fixed target renders
     with torch.no_grad():
         vm_t = torch.as_tensor(cams.viewmats, dtype=torch.float32)
         intr = torch.as_tensor(cams.intrinsics, dtype=torch.float32)
-        tgt = render_gaussians(torch.as_tensor(target.means), covariance_3d(torch.as_tensor(target.quats),
-                                                                           torch.as_tensor(target.log_scales)),
+        tgt = render_gaussians(torch.as_tensor(target.means), _covariance(target, options.backend),
                                torch.sigmoid(torch.as_tensor(target.opacity_logits)), vm_t, intr, cams.width,
                                cams.height, sh=None if sh_t is None else torch.as_tensor(sh_t),
                                features=None if feat_t is None else torch.as_tensor(feat_t), **render)
         img_t = tgt.features if feat_t is not None else tgt.colors
         fg_t = tgt.alpha[..., 0] > options.alpha_threshold
         means_s = torch.as_tensor(source.means)
-        cov_s = covariance_3d(torch.as_tensor(source.quats), torch.as_tensor(source.log_scales))
+        cov_s = _covariance(source, options.backend)
         op_s = torch.sigmoid(torch.as_tensor(source.opacity_logits))
         sig_s = dict(sh=None if sh_s is None else torch.as_tensor(sh_s),
                      features=None if feat_s is None else torch.as_tensor(feat_s))

@@ -5,9 +5,10 @@ The CLI, the service worker, the benchmarks and the tests all call this.
 
 from __future__ import annotations
 
+import os
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 from scipy.spatial import cKDTree
@@ -26,14 +27,18 @@ from gsa.model import GaussianModel, ModelError
 from gsa.sim3 import Sim3
 
 Progress = Callable[[str, float], None]
-FEATURE_MODES = ("auto", "file", "canonical")
+FEATURE_MODES = ("auto", "file", "canonical", "spheremap", "dinov2")
+EXTRACTOR_MODES = ("spheremap", "dinov2")
 STAGES = ("coarse", "fine")
 
 
 @dataclass
 class AlignOptions:
     stages: tuple[str, ...] = ("coarse",)
-    features: str = "auto"  # auto: the files' own features when both have them, else canonical
+    # auto: the files' own features when both have them, else the configured extractor
+    # (gsa.features.FeatureSettings / GSA_FEATURES_*) when its weights are set, else canonical.
+    features: str = "auto"
+    feature_settings: object | None = None  # gsa.features.FeatureSettings for spheremap/dinov2
     tau_f: float = 0.01
     coarse_iterations: int = 30
     max_candidates: int = 32
@@ -92,6 +97,7 @@ class AlignmentResult:
     timings: dict = field(default_factory=dict)
     hypotheses: list[dict] = field(default_factory=list)
     fine: object | None = None  # gsa.align.fine.FineResult when the fine stage ran
+    lifting: list[dict] = field(default_factory=list)  # gsa.features LiftReports when features were lifted
     source_frame: CanonicalFrame | None = None
     target_frame: CanonicalFrame | None = None
 
@@ -122,6 +128,8 @@ class AlignmentResult:
             hypotheses=self.hypotheses,
             stages=stages,
         )
+        if self.lifting:
+            out["lifting"] = self.lifting
         return out
 
 
@@ -152,6 +160,18 @@ def align(
     opts = options or AlignOptions()
     timings: dict[str, float] = {}
     t_start = time.perf_counter()
+
+    lifting: list[dict] = []
+    if _needs_extractor(opts, source, target):
+        # Lift 2D extractor features onto both models (gsa.features); background
+        # Gaussians are pruned, which changes the counts but not the transform.
+        from gsa.features import prepare_pair
+
+        t = time.perf_counter()
+        source, target, mode, reports = prepare_pair(source, target, opts.features, opts.feature_settings, progress)
+        opts = replace(opts, features=mode)
+        lifting = [r.to_dict() for r in reports]
+        timings["lift"] = time.perf_counter() - t
 
     _report(progress, "features", 0.0)
     t = time.perf_counter()
@@ -192,11 +212,25 @@ def align(
         fine=fine_result,
         source_frame=best.frame,
         target_frame=pair.dst_frame,
+        lifting=lifting,
     )
+
+
+def _needs_extractor(opts: AlignOptions, source: GaussianModel, target: GaussianModel) -> bool:
+    """Whether gsa.features must run (it imports torch, so only when it will)."""
+    if opts.features in EXTRACTOR_MODES:
+        return True
+    if opts.features != "auto" or (source.feature_dim and source.feature_dim == target.feature_dim):
+        return False
+    if opts.feature_settings is not None:
+        return getattr(opts.feature_settings, "extractor", "canonical") in EXTRACTOR_MODES
+    return os.environ.get("GSA_FEATURES_EXTRACTOR", "canonical") in EXTRACTOR_MODES
 
 
 def _feature_mode(source: GaussianModel, target: GaussianModel, requested: str) -> str:
     both = source.feature_dim > 0 and source.feature_dim == target.feature_dim
+    if requested in EXTRACTOR_MODES:
+        raise AlignmentError(f"features={requested!r} must be lifted first (gsa.features.prepare_pair)")
     if requested == "auto":
         return "file" if both else "canonical"
     if requested == "file" and not both:

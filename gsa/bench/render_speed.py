@@ -65,10 +65,13 @@ def main(argv=None) -> int:
     t = time.perf_counter()
     _fwd_bwd(model, cams, "cpu")  # warm-up: loads (or compiles) the numba kernels
     print(f"cpu backend warm-up (kernel load/compile): {time.perf_counter() - t:.2f} s")
+    cpu0 = time.process_time()
     cpu = sorted(_fwd_bwd(model, cams, "cpu") for _ in range(args.repeats))
+    cpu_time = (time.process_time() - cpu0) / args.repeats
     cpu_med = cpu[len(cpu) // 2]
     print(f"cpu backend forward+backward: median {cpu_med * 1000:.1f} ms, min {cpu[0] * 1000:.1f} ms "
-          f"over {args.repeats} runs")
+          f"over {args.repeats} runs; process CPU time {cpu_time * 1000:.1f} ms per run; "
+          f"1-min load average {open('/proc/loadavg').read().split()[0]}")
 
     rng = np.random.default_rng(0)
     ref = []

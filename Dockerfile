@@ -1,0 +1,45 @@
+# GSA alignment service image.
+#   CPU (default):  docker build -t gsa:cpu .
+#   CUDA + gsplat:  docker build -t gsa:cuda --build-arg VARIANT=cuda \
+#                     --build-arg BASE=nvidia/cuda:12.8.1-cudnn-runtime-ubuntu24.04 .
+# One image runs every role: `serve` (API, +gRPC), `worker` (RQ), or the CLI.
+ARG BASE=python:3.11-slim
+FROM ${BASE}
+
+ARG VARIANT=cpu
+ARG TORCH_VERSION=2.13.0
+ENV PYTHONDONTWRITEBYTECODE=1 PYTHONUNBUFFERED=1 PIP_NO_CACHE_DIR=1 PIP_DISABLE_PIP_VERSION_CHECK=1
+
+RUN set -eux; \
+    if ! command -v python3 >/dev/null; then \
+      apt-get update; apt-get install -y --no-install-recommends python3 python3-venv python3-pip; \
+      rm -rf /var/lib/apt/lists/*; \
+    fi; \
+    python3 -m venv /opt/venv
+ENV PATH=/opt/venv/bin:$PATH
+
+# torch first, from the matching index: an unpinned/PyPI torch would pull the
+# multi-GB CUDA build into the CPU image. The CUDA variant adds gsplat.
+RUN set -eux; \
+    if [ "$VARIANT" = "cuda" ]; then \
+      pip install "torch==${TORCH_VERSION}" gsplat; \
+    else \
+      pip install --index-url https://download.pytorch.org/whl/cpu "torch==${TORCH_VERSION}"; \
+    fi
+
+WORKDIR /app
+COPY pyproject.toml README.md* ./
+COPY gsa ./gsa
+COPY service ./service
+COPY proto ./proto
+RUN pip install ".[service]" && python -c "import service.grpc_gen.alignment_pb2_grpc, gsa.align.pipeline"
+
+RUN useradd --create-home --uid 10001 gsa && mkdir -p /data && chown gsa /data
+USER gsa
+ENV GSA_STORAGE_ROOT=/data GSA_WORKER_DEVICE=${VARIANT}
+VOLUME ["/data"]
+EXPOSE 8000 50051
+HEALTHCHECK --interval=15s --timeout=3s --start-period=20s \
+  CMD python -c "import urllib.request,sys; sys.exit(urllib.request.urlopen('http://127.0.0.1:8000/healthz').status != 200)" || exit 1
+ENTRYPOINT ["python", "-m", "service.cli"]
+CMD ["serve", "--host", "0.0.0.0", "--port", "8000", "--grpc-port", "50051"]

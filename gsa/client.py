@@ -1,0 +1,228 @@
+"""A small Python client for the GSA alignment service (HTTP, httpx).
+
+    from gsa.client import GSAClient
+    with GSAClient("http://localhost:8000", api_key="...") as c:
+        job = c.submit("source.ply", "target.ply", options={"stages": ["coarse"]})
+        job = c.wait(job["id"])
+        c.fetch_all(job["id"], "out/")
+
+Part of the library package so the CLI can use it without the server extras;
+it never imports `service`.
+"""
+
+from __future__ import annotations
+
+import os
+import time
+from collections.abc import Callable, Sequence
+from contextlib import ExitStack
+from pathlib import Path
+from typing import Any
+
+import httpx
+
+TERMINAL = ("succeeded", "failed", "cancelled")
+
+
+class GSAError(Exception):
+    """An error answer from the service; `.problem` holds the RFC 9457 body."""
+
+    def __init__(self, status: int, problem: dict):
+        self.status = status
+        self.problem = problem
+        super().__init__(
+            f"{status} {problem.get('title', '')}: {problem.get('detail', '')}".strip()
+        )
+
+
+class JobFailed(GSAError):
+    def __init__(self, job: dict):
+        self.job = job
+        err = job.get("error") or {"title": f"job {job.get('state')}"}
+        super().__init__(int(err.get("status", 0) or 0), err)
+
+
+class GSAClient:
+    def __init__(
+        self,
+        base_url: str | None = None,
+        api_key: str | None = None,
+        timeout: float = 60.0,
+        transport: httpx.BaseTransport | None = None,
+    ):
+        base_url = base_url or os.environ.get("GSA_SERVER", "http://127.0.0.1:8000")
+        api_key = api_key if api_key is not None else os.environ.get("GSA_API_KEY")
+        headers = {"Authorization": f"Bearer {api_key}"} if api_key else {}
+        self.http = httpx.Client(
+            base_url=base_url, headers=headers, timeout=timeout, transport=transport
+        )
+        self._etags: dict[str, tuple[str, dict]] = {}
+
+    def close(self) -> None:
+        self.http.close()
+
+    def __enter__(self) -> GSAClient:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    @staticmethod
+    def _check(r: httpx.Response) -> httpx.Response:
+        if r.status_code >= 400:
+            try:
+                body = r.json()
+            except ValueError:
+                body = {"title": r.reason_phrase, "detail": r.text[:500]}
+            raise GSAError(r.status_code, body)
+        return r
+
+    # ---------------------------------------------------------------- assets
+    def upload(self, path: str | os.PathLike) -> dict:
+        p = Path(path)
+        with open(p, "rb") as fh:
+            return self._check(
+                self.http.post("/v1/assets", files={"file": (p.name, fh)})
+            ).json()
+
+    # ------------------------------------------------------------------ jobs
+    def submit(
+        self,
+        source: str | os.PathLike | Sequence[str | os.PathLike],
+        target: str | os.PathLike,
+        options: dict[str, Any] | None = None,
+        *,
+        webhook_url: str | None = None,
+        webhook_secret: str | None = None,
+        idempotency_key: str | None = None,
+    ) -> dict:
+        """Upload model files (.ply or image .zip) and create a job; several sources = multi-model job."""
+        import json
+
+        sources = [source] if isinstance(source, (str, os.PathLike)) else list(source)
+        data = {"options": json.dumps(options or {})}
+        if webhook_url:
+            data["webhook_url"] = webhook_url
+            if webhook_secret:
+                data["webhook_secret"] = webhook_secret
+        headers = {"Idempotency-Key": idempotency_key} if idempotency_key else {}
+        with ExitStack() as stack:
+            files = [
+                ("source", (Path(s).name, stack.enter_context(open(s, "rb"))))
+                for s in sources
+            ]
+            files.append(
+                ("target", (Path(target).name, stack.enter_context(open(target, "rb"))))
+            )
+            r = self.http.post("/v1/jobs", files=files, data=data, headers=headers)
+        return self._check(r).json()
+
+    def submit_assets(
+        self,
+        source_ids: Sequence[str],
+        target_id: str,
+        options: dict | None = None,
+        *,
+        webhook: dict | None = None,
+        idempotency_key: str | None = None,
+    ) -> dict:
+        body = {
+            "sources": list(source_ids),
+            "target": target_id,
+            "options": options or {},
+        }
+        if webhook:
+            body["webhook"] = webhook
+        headers = {"Idempotency-Key": idempotency_key} if idempotency_key else {}
+        return self._check(
+            self.http.post("/v1/jobs", json=body, headers=headers)
+        ).json()
+
+    def status(self, job_id: str) -> dict:
+        """The job; polls reuse the ETag so an unchanged job costs a 304."""
+        headers = {}
+        cached = self._etags.get(job_id)
+        if cached:
+            headers["If-None-Match"] = cached[0]
+        r = self.http.get(f"/v1/jobs/{job_id}", headers=headers)
+        if r.status_code == 304 and cached:
+            return cached[1]
+        job = self._check(r).json()
+        if "etag" in r.headers:
+            self._etags[job_id] = (r.headers["etag"], job)
+        return job
+
+    def list(
+        self, state: str | None = None, limit: int = 50, cursor: str | None = None
+    ) -> dict:
+        params = {
+            k: v
+            for k, v in {"state": state, "limit": limit, "cursor": cursor}.items()
+            if v is not None
+        }
+        return self._check(self.http.get("/v1/jobs", params=params)).json()
+
+    def cancel(self, job_id: str) -> dict:
+        return self._check(self.http.post(f"/v1/jobs/{job_id}:cancel")).json()
+
+    def wait(
+        self,
+        job_id: str,
+        timeout: float | None = None,
+        poll: float = 0.5,
+        on_progress: Callable[[dict], None] | None = None,
+        raise_on_failure: bool = True,
+    ) -> dict:
+        deadline = None if timeout is None else time.monotonic() + timeout
+        last = None
+        while True:
+            job = self.status(job_id)
+            if (
+                on_progress
+                and (job["state"], job.get("stage"), job.get("progress")) != last
+            ):
+                last = (job["state"], job.get("stage"), job.get("progress"))
+                on_progress(job)
+            if job["state"] in TERMINAL:
+                if raise_on_failure and job["state"] != "succeeded":
+                    raise JobFailed(job)
+                return job
+            if deadline is not None and time.monotonic() > deadline:
+                raise TimeoutError(
+                    f"job {job_id} still {job['state']} after {timeout} s"
+                )
+            time.sleep(poll)
+
+    def fetch(self, job_id: str, name: str, dest: str | os.PathLike) -> Path:
+        """Download one artifact, resuming a partial file with a Range request."""
+        dest = Path(dest)
+        dest.parent.mkdir(parents=True, exist_ok=True)
+        part = dest.with_name(dest.name + ".part")
+        have = part.stat().st_size if part.exists() else 0
+        headers = {"Range": f"bytes={have}-"} if have else {}
+        with self.http.stream(
+            "GET", f"/v1/jobs/{job_id}/artifacts/{name}", headers=headers
+        ) as r:
+            if r.status_code == 416:
+                have = 0
+            elif r.status_code >= 400:
+                r.read()
+                self._check(r)
+            mode = "ab" if r.status_code == 206 else "wb"
+            if r.status_code != 416:
+                with open(part, mode) as fh:
+                    fh.writelines(r.iter_bytes(1 << 20))
+        if not part.exists():
+            return self.fetch(job_id, name, dest)
+        os.replace(part, dest)
+        return dest
+
+    def fetch_all(
+        self,
+        job_id: str,
+        out_dir: str | os.PathLike,
+        names: Sequence[str] | None = None,
+    ) -> list[Path]:
+        job = self.status(job_id)
+        arts = [a["name"] for a in job.get("artifacts", [])]
+        return [self.fetch(job_id, n, Path(out_dir) / n) for n in (names or arts)]

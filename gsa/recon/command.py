@@ -1,0 +1,55 @@
+"""`gsa reconstruct IMAGES_DIR_OR_ZIP --out DIR [--preset cpu|gpu]` (wired by gsa/cli.py)."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+
+
+def add_reconstruct_parser(subparsers) -> argparse.ArgumentParser:
+    p = subparsers.add_parser("reconstruct", help="build a feature-augmented 3DGS model from an image set",
+                              description="SfM (pycolmap) -> masks -> feature-augmented 3DGS training.")
+    p.add_argument("images", help="directory of images or a .zip archive")
+    p.add_argument("--out", required=True, help="output directory (model.ply, cameras.json, report.json, ...)")
+    p.add_argument("--preset", choices=("cpu", "gpu"), default="cpu",
+                   help="cpu: 128 px, 600 iterations (minutes on 2 cores); gpu: full resolution, 7000 iterations")
+    p.add_argument("--iterations", type=int, default=None, help="override the preset's iteration count")
+    p.add_argument("--masks", choices=("auto", "key", "grabcut", "sam", "none"), default="auto")
+    p.add_argument("--matching", choices=("exhaustive", "sequential"), default="exhaustive")
+    p.add_argument("--features", choices=("canonical", "none"), default="canonical")
+    p.add_argument("--sam-encoder", default=None, help="local SAM encoder .onnx (masks=sam)")
+    p.add_argument("--sam-decoder", default=None, help="local SAM decoder .onnx (masks=sam)")
+    p.set_defaults(func=run_reconstruct)
+    return p
+
+
+def run_reconstruct(args) -> int:
+    from gsa.recon import ImageSetError, MaskError, SfMError
+    from gsa.recon.pipeline import reconstruct
+
+    def progress(stage, frac):
+        print(f"\r{stage:14s} {100 * frac:5.1f}%", end="", file=sys.stderr, flush=True)
+
+    try:
+        res = reconstruct(args.images, args.out, preset=args.preset, features=args.features, progress=progress,
+                          masks=args.masks, matching=args.matching, iterations=args.iterations,
+                          sam_encoder=args.sam_encoder, sam_decoder=args.sam_decoder)
+    except (ImageSetError, SfMError, MaskError) as exc:
+        print(f"\nerror: {exc}", file=sys.stderr)
+        return 2
+    print(file=sys.stderr)
+    print(json.dumps(res.summary(), indent=1))
+    return 0
+
+
+def main(argv=None) -> int:  # `python -m gsa.recon.command ...` without the main CLI
+    parser = argparse.ArgumentParser(prog="gsa")
+    sub = parser.add_subparsers(dest="command", required=True)
+    add_reconstruct_parser(sub)
+    args = parser.parse_args(argv)
+    return args.func(args)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

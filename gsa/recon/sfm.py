@@ -1,0 +1,202 @@
+"""Structure from motion with pycolmap on CPU: SIFT -> matching -> incremental mapping.
+
+One shared PINHOLE camera is estimated (object captures come from one camera;
+the rasterizer is a pinhole renderer, so no distortion model is fitted).
+Poses are returned as OpenCV world-to-camera matrices, the convention of
+gsa.render.cameras (COLMAP's cam_from_world is already x right, y down, z forward).
+"""
+
+from __future__ import annotations
+
+import json
+import shutil
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from gsa.recon.images import ImageSet
+from gsa.render.cameras import Cameras
+
+Progress = Callable[[str, float], None]
+
+
+class SfMError(RuntimeError):
+    """SfM could not register enough images."""
+
+
+@dataclass
+class SfMResult:
+    """cameras: registered views (C); names: their file names (C); points (P,3), colors (P,3) in [0,1];
+    errors (P,) mean reprojection error (px); n_images: images given; timings: seconds per step."""
+
+    cameras: Cameras
+    names: list[str]
+    points: np.ndarray
+    colors: np.ndarray
+    errors: np.ndarray
+    n_images: int
+    unregistered: list[str] = field(default_factory=list)
+    timings: dict = field(default_factory=dict)
+    sparse_dir: Path | None = None
+
+    @property
+    def n_registered(self) -> int:
+        return len(self.names)
+
+
+def _pycolmap():
+    try:
+        import pycolmap
+    except ImportError as exc:  # the recon extra is optional
+        raise SfMError("reconstruction needs pycolmap: pip install 'gsa[recon]'") from exc
+    return pycolmap
+
+
+def run_sfm(images: ImageSet, work_dir: str | Path, *, matching: str = "exhaustive",
+            min_registered: int | float = 0.5, max_features: int = 8192, peak_threshold: float = 0.002, progress: Progress | None = None,
+            seed: int = 0, verbose: bool = False) -> SfMResult:
+    """Run SIFT + matching + incremental mapping; keep the largest model.
+
+    matching: "exhaustive" (best for <~100 unordered images) or "sequential" (video order).
+    min_registered: an int count or a fraction of the images that must register,
+    else SfMError says how many did.
+    """
+    pycolmap = _pycolmap()
+    if not verbose:
+        pycolmap.logging.minloglevel = 2  # glog INFO/WARNING per image drown real messages
+    if matching not in ("exhaustive", "sequential"):
+        raise ValueError(f"matching must be exhaustive or sequential, got {matching!r}")
+    work_dir = Path(work_dir)
+    work_dir.mkdir(parents=True, exist_ok=True)
+    db = work_dir / "database.db"
+    if db.exists():
+        db.unlink()
+    report = progress or (lambda stage, frac: None)
+    timings = {}
+
+    t = time.perf_counter()
+    report("sfm:features", 0.0)
+    reader = pycolmap.ImageReaderOptions()
+    reader.camera_model = "PINHOLE"
+    ext = pycolmap.FeatureExtractionOptions()
+    ext.sift.max_num_features = max_features
+    ext.use_gpu = False
+    # Object captures are small in frame: a lower contrast threshold and upsampled
+    # first octave find enough keypoints on a few-hundred-pixel object.
+    ext.sift.peak_threshold = peak_threshold
+    ext.sift.first_octave = -1
+    pycolmap.extract_features(db, images.directory, image_names=list(images.names),
+                              camera_mode=pycolmap.CameraMode.SINGLE, reader_options=reader,
+                              extraction_options=ext, device=pycolmap.Device.cpu)
+    timings["features"] = time.perf_counter() - t
+
+    t = time.perf_counter()
+    report("sfm:matching", 0.3)
+    mopts = pycolmap.FeatureMatchingOptions()
+    mopts.use_gpu = False
+    if matching == "exhaustive":
+        pycolmap.match_exhaustive(db, matching_options=mopts, device=pycolmap.Device.cpu)
+    else:
+        pycolmap.match_sequential(db, matching_options=mopts, device=pycolmap.Device.cpu)
+    timings["matching"] = time.perf_counter() - t
+
+    t = time.perf_counter()
+    report("sfm:mapping", 0.6)
+    opts = pycolmap.IncrementalPipelineOptions()
+    opts.random_seed = seed
+    opts.mapper.random_seed = seed
+    opts.triangulation.random_seed = seed
+    opts.min_model_size = 3
+    # Small object sets have fewer matches than scene captures.
+    opts.mapper.init_min_num_inliers = 50
+    opts.mapper.abs_pose_min_num_inliers = 15
+    opts.mapper.abs_pose_min_inlier_ratio = 0.2
+    opts.min_num_matches = 15
+    opts.mapper.filter_max_reproj_error = 2.0  # renders/photos of objects: tighter than 4 px
+    sparse = work_dir / "sparse"
+    if sparse.exists():
+        shutil.rmtree(sparse)
+    sparse.mkdir()
+    recs = pycolmap.incremental_mapping(db, images.directory, sparse, options=opts)
+    timings["mapping"] = time.perf_counter() - t
+    need = int(np.ceil(min_registered * len(images))) if isinstance(min_registered, float) else int(min_registered)
+    need = max(need, 2)
+    if not recs:
+        raise SfMError(f"0 of {len(images)} images registered (no initial pair with enough matches); "
+                       f"the set needs more overlap or texture")
+    rec = max(recs.values(), key=lambda r: r.num_reg_images())
+    result = _from_reconstruction(rec, images, timings)
+    if result.n_registered < need:
+        raise SfMError(f"only {result.n_registered} of {len(images)} images registered (need {need}); "
+                       f"unregistered: {', '.join(result.unregistered[:10])}")
+    out = sparse / "model"
+    out.mkdir(exist_ok=True)
+    rec.write_text(str(out))  # COLMAP text model: cameras.txt, images.txt, points3D.txt
+    result.sparse_dir = out
+    report("sfm:done", 1.0)
+    return result
+
+
+def _from_reconstruction(rec, images: ImageSet, timings: dict) -> SfMResult:
+    by_name = {}
+    for img in rec.images.values():
+        if not img.has_pose:
+            continue
+        cam = rec.cameras[img.camera_id]
+        fx, fy, cx, cy = (float(v) for v in cam.params[:4])
+        m = np.eye(4)
+        m[:3, :] = np.asarray(img.cam_from_world().matrix())
+        by_name[img.name] = (m, fx, fy, cx, cy)
+    names = [n for n in images.names if n in by_name]
+    unregistered = [n for n in images.names if n not in by_name]
+    if len(names) == 0:
+        raise SfMError(f"0 of {len(images)} images registered")
+    vm = np.stack([by_name[n][0] for n in names])
+    intr = np.array([by_name[n][1:] for n in names])
+    cams = Cameras(vm, intr[:, 0], intr[:, 1], intr[:, 2], intr[:, 3], images.width, images.height)
+    pts, cols, errs = [], [], []
+    for p in rec.points3D.values():
+        pts.append(p.xyz)
+        cols.append(p.color)
+        errs.append(p.error)
+    pts = np.asarray(pts, np.float64).reshape(-1, 3)
+    cols = np.asarray(cols, np.float64).reshape(-1, 3) / 255.0
+    return SfMResult(cams, names, pts, cols, np.asarray(errs, np.float64), len(images), unregistered, timings)
+
+
+def cameras_json(cameras: Cameras, names: list[str]) -> dict:
+    """COLMAP-compatible camera description: PINHOLE params and per-image qvec (w,x,y,z
+    cam_from_world) / tvec, plus the 4x4 world-to-camera matrix for convenience."""
+    from gsa.model import rotation_to_quat
+
+    out = {"camera_model": "PINHOLE", "convention": "OpenCV world-to-camera (COLMAP cam_from_world)",
+           "width": cameras.width, "height": cameras.height, "images": []}
+    for i, n in enumerate(names):
+        m = cameras.viewmats[i]
+        out["images"].append({
+            "image_id": i + 1, "name": n, "camera_id": 1,
+            "params": [float(cameras.fx[i]), float(cameras.fy[i]), float(cameras.cx[i]), float(cameras.cy[i])],
+            "qvec": [float(v) for v in rotation_to_quat(m[:3, :3])], "tvec": [float(v) for v in m[:3, 3]],
+            "world_to_camera": m.tolist(),
+        })
+    return out
+
+
+def write_cameras_json(path: str | Path, cameras: Cameras, names: list[str]) -> Path:
+    path = Path(path)
+    path.write_text(json.dumps(cameras_json(cameras, names), indent=1))
+    return path
+
+
+def centre_error(est: Cameras, true: Cameras) -> tuple[float, "object"]:
+    """Fit a Sim(3) taking estimated camera centres onto true ones; returns (RMS residual in
+    true units, the Sim3). est and true must list the same images in the same order."""
+    from gsa.sim3 import solve_sim3
+
+    a, b = est.centers(), true.centers()
+    t = solve_sim3(a, b)
+    res = np.linalg.norm(t.apply(a) - b, axis=1)
+    return float(np.sqrt(np.mean(res**2))), t

@@ -1,0 +1,464 @@
+"""Feature-augmented 3DGS training (paper Sec. 3.2, App. E) on the project rasterizer.
+
+L = L_rgb + λ_f·L_f with L_rgb = 0.8·L1 + 0.2·(1 − SSIM) and L_f = L1 on feature maps.
+Each iteration first steps colour + geometry on L_rgb, then renders features with the
+geometry detached and steps only the features on λ_f·L_f: low-resolution feature maps
+must not pull the geometry (Sec. 3.2). Adaptive density control as in 3DGS (clone
+small / split large Gaussians with large view-space gradients, prune transparent or
+huge ones) plus the GSA fix: prune Gaussians whose feature norm is below 0.1 (App. E),
+i.e. Gaussians that only ever explained masked-out background.
+
+Features. `feature_maps` (C, h, w, D) from a 2D extractor are fitted from iteration 0.
+With features="canonical" (the weight-free default) there is no 2D extractor: after a
+colour-only phase (the first `feature_start` fraction of the iterations) the model's
+canonical features (gsa.align.canonical) are rendered into every training view, masked
+(background 0), and from then on lifted back exactly like extractor maps. The lift is
+not circular in effect: the maps are masked, so Gaussians outside the object mask are
+driven to zero features and pruned, and each Gaussian's feature becomes the multi-view
+consensus of what it covers.
+
+Optimiser: Adam with per-parameter state kept as plain tensors, so densification can
+index/extend the moments (as 3DGS does) instead of resetting them.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Callable
+from dataclasses import asdict, dataclass, field
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+from scipy.spatial import cKDTree
+
+from gsa.model import SH_C0, GaussianModel, sh_coeff_count
+from gsa.render import rasterize
+from gsa.render.cameras import Cameras
+
+Progress = Callable[[str, float], None]
+
+
+@dataclass
+class TrainConfig:
+    iterations: int = 1000
+    resolution: int = 128  # longest image side used for training (images are downsampled)
+    sh_degree: int = 0
+    lambda_f: float = 1.0
+    ssim_weight: float = 0.2
+    # learning rates (3DGS defaults; position lr is relative to the scene extent and decays)
+    lr_means: float = 1.6e-4
+    lr_means_final: float = 1.6e-6
+    lr_sh_dc: float = 2.5e-3
+    lr_opacity: float = 0.05
+    lr_scales: float = 5e-3
+    lr_quats: float = 1e-3
+    lr_features: float = 1e-3
+    # density control
+    init_points: int = 4000  # SfM points are jittered up to this many initial Gaussians
+    densify_from: int = 100
+    densify_until: int = 700
+    densify_every: int = 100
+    grad_threshold: float = 2e-4  # mean view-space positional gradient (per pixel) to densify
+    percent_dense: float = 0.01
+    max_gaussians: int = 40_000
+    prune_opacity: float = 0.005
+    feature_prune: float = 0.1  # App. E: near-zero-feature Gaussians are background
+    opacity_reset_every: int = 0  # 0: never (short runs); 3DGS: 3000
+    feature_start: float = 0.5  # canonical mode: fraction of iterations before features are lifted
+    holdout_every: int = 8  # every k-th registered view is held out for PSNR (3DGS convention)
+    background: tuple = (1.0, 1.0, 1.0)
+    backend: str = "auto"
+    seed: int = 0
+
+
+PRESETS = {
+    # Minutes on 2 CPU cores: 128 px, 600 iterations, faster position/colour learning.
+    "cpu": TrainConfig(iterations=600, resolution=128, lr_means=1.6e-3, lr_means_final=1.6e-5, lr_sh_dc=1e-2,
+                       lr_features=1e-2, densify_from=100, densify_until=450, densify_every=100,
+                       max_gaussians=30_000),
+    # The authors' build: 7000 iterations, full resolution, SH degree 3, feature lr 1e-3.
+    "gpu": TrainConfig(iterations=7000, resolution=100_000, sh_degree=3, densify_from=500, densify_until=5000,
+                       densify_every=100, max_gaussians=1_000_000, opacity_reset_every=3000, init_points=0,
+                       feature_start=0.3),
+}
+
+
+@dataclass
+class TrainResult:
+    model: GaussianModel
+    curve: list[dict]  # per logged iteration: iteration, loss, rgb, feat, n
+    heldout: list[str]  # names of held-out views
+    psnr_heldout: float | None  # mean PSNR (dB) over held-out views, whole image
+    psnr_heldout_masked: float | None  # PSNR inside the object masks only
+    seconds: float
+    config: dict = field(default_factory=dict)
+
+
+# ----------------------------------------------------------------------------- losses
+def _gauss_window(size: int = 11, sigma: float = 1.5) -> torch.Tensor:
+    x = torch.arange(size, dtype=torch.float32) - size // 2
+    g = torch.exp(-x**2 / (2 * sigma**2))
+    g = g / g.sum()
+    return g[:, None] * g[None, :]
+
+
+_WINDOW = _gauss_window()
+
+
+def ssim(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+    """Mean SSIM of (H, W, C) images in [0, 1] (11x11 Gaussian window, as 3DGS)."""
+    c = a.shape[-1]
+    x = a.permute(2, 0, 1)[None]
+    y = b.permute(2, 0, 1)[None]
+    w = _WINDOW.to(a.dtype)[None, None].expand(c, 1, -1, -1)
+    pad = _WINDOW.shape[0] // 2
+    conv = lambda t: F.conv2d(t, w, padding=pad, groups=c)  # noqa: E731
+    mx, my = conv(x), conv(y)
+    sxx = conv(x * x) - mx**2
+    syy = conv(y * y) - my**2
+    sxy = conv(x * y) - mx * my
+    c1, c2 = 0.01**2, 0.03**2
+    s = ((2 * mx * my + c1) * (2 * sxy + c2)) / ((mx**2 + my**2 + c1) * (sxx + syy + c2))
+    return s.mean()
+
+
+def rgb_loss(pred: torch.Tensor, target: torch.Tensor, ssim_weight: float = 0.2) -> torch.Tensor:
+    """0.8·L1 + 0.2·(1 − SSIM)."""
+    return (1 - ssim_weight) * (pred - target).abs().mean() + ssim_weight * (1 - ssim(pred, target))
+
+
+def psnr(a: np.ndarray, b: np.ndarray, mask: np.ndarray | None = None) -> float:
+    d = (np.asarray(a, np.float64) - np.asarray(b, np.float64)) ** 2
+    mse = d.mean() if mask is None else d[mask].mean()
+    return float(10 * np.log10(1.0 / max(mse, 1e-12)))
+
+
+# ----------------------------------------------------------------------------- Adam
+class _Adam:
+    """Adam over a dict of leaf tensors; moments are plain tensors so rows can be
+    selected or appended when Gaussians are pruned or densified."""
+
+    def __init__(self, params: dict[str, torch.Tensor], lrs: dict[str, float], betas=(0.9, 0.999), eps=1e-15):
+        self.params, self.lrs, self.betas, self.eps = params, dict(lrs), betas, eps
+        self.m = {k: torch.zeros_like(v) for k, v in params.items()}
+        self.v = {k: torch.zeros_like(v) for k, v in params.items()}
+        self.t = {k: 0 for k in params}
+
+    @torch.no_grad()
+    def step(self, names) -> None:
+        b1, b2 = self.betas
+        for k in names:
+            p = self.params[k]
+            if p.grad is None:
+                continue
+            g = p.grad
+            self.t[k] += 1
+            self.m[k].mul_(b1).add_(g, alpha=1 - b1)
+            self.v[k].mul_(b2).addcmul_(g, g, value=1 - b2)
+            mh = self.m[k] / (1 - b1 ** self.t[k])
+            vh = self.v[k] / (1 - b2 ** self.t[k])
+            p.sub_(self.lrs[k] * mh / (vh.sqrt() + self.eps))
+            p.grad = None
+
+    def zero_grad(self) -> None:
+        for p in self.params.values():
+            p.grad = None
+
+    def remap(self, new_params: dict[str, torch.Tensor], keep: torch.Tensor, n_new: int) -> None:
+        """Rows `keep` of every tensor survive (in order), then n_new rows with zero moments."""
+        for k in new_params:
+            for st in (self.m, self.v):
+                old = st[k][keep]
+                st[k] = torch.cat([old, torch.zeros((n_new,) + old.shape[1:], dtype=old.dtype)])
+        self.params = new_params
+
+
+# ----------------------------------------------------------------------------- init
+def _rgb_to_sh0(rgb: np.ndarray) -> np.ndarray:
+    return (np.asarray(rgb, np.float64) - 0.5) / SH_C0
+
+
+def init_from_points(points: np.ndarray, colors: np.ndarray, n_target: int, seed: int = 0) -> dict[str, np.ndarray]:
+    """Gaussians at the SfM points (plus jittered copies up to n_target), isotropic with
+    the 3-nearest-neighbour distance as scale, opacity 0.1 (3DGS init)."""
+    rng = np.random.default_rng(seed)
+    pts = np.asarray(points, np.float64)
+    cols = np.asarray(colors, np.float64)
+    if len(pts) < 4:
+        raise ValueError(f"need at least 4 SfM points to initialise, got {len(pts)}")
+    d, _ = cKDTree(pts).query(pts, k=4)
+    nn = np.maximum(d[:, 1:].mean(1), 1e-7)
+    if n_target > len(pts):
+        k = n_target - len(pts)
+        src = rng.integers(0, len(pts), k)
+        pts = np.concatenate([pts, pts[src] + rng.normal(0, 1, (k, 3)) * nn[src, None]])
+        cols = np.concatenate([cols, cols[src]])
+        d, _ = cKDTree(pts).query(pts, k=4)
+        nn = np.maximum(d[:, 1:].mean(1), 1e-7)
+    n = len(pts)
+    return {"means": pts, "quats": np.tile([1.0, 0, 0, 0], (n, 1)), "log_scales": np.log(nn)[:, None].repeat(3, 1),
+            "opacity": np.full(n, math.log(0.1 / 0.9)), "colors": cols}
+
+
+def filter_points_by_masks(points: np.ndarray, cameras: Cameras, masks: np.ndarray, min_ratio: float = 0.6) -> np.ndarray:
+    """Bool (P,): points that project inside the object mask in at least min_ratio of the
+    views that see them (drops background/table points before initialisation)."""
+    h, w = masks.shape[1:]
+    inside = np.zeros(len(points))
+    seen = np.zeros(len(points))
+    for i in range(len(cameras)):
+        vm = cameras.viewmats[i]
+        pc = points @ vm[:3, :3].T + vm[:3, 3]
+        z = np.maximum(pc[:, 2], 1e-9)
+        u = np.floor(cameras.fx[i] * pc[:, 0] / z + cameras.cx[i]).astype(np.int64)
+        v = np.floor(cameras.fy[i] * pc[:, 1] / z + cameras.cy[i]).astype(np.int64)
+        ok = (pc[:, 2] > 0) & (u >= 0) & (u < w) & (v >= 0) & (v < h)
+        seen += ok
+        inside[ok] += masks[i][v[ok], u[ok]]
+    return (seen > 0) & (inside >= min_ratio * np.maximum(seen, 1))
+
+
+def resize_images(images: np.ndarray, width: int, height: int, interp=None) -> np.ndarray:
+    import cv2
+
+    if images.shape[2] == width and images.shape[1] == height:
+        return images
+    interp = cv2.INTER_AREA if interp is None else interp
+    return np.stack([cv2.resize(im, (width, height), interpolation=interp) for im in images])
+
+
+# ----------------------------------------------------------------------------- training
+def train_gaussians(images: np.ndarray, masks: np.ndarray, cameras: Cameras, points: np.ndarray,
+                    point_colors: np.ndarray, config: TrainConfig | str = "cpu", *, names: list[str] | None = None,
+                    features: str | np.ndarray = "canonical", progress: Progress | None = None,
+                    log_every: int = 10) -> TrainResult:
+    """Train a feature-augmented 3DGS model.
+
+    images: (C, H, W, 3) float in [0, 1] (unmasked; masks are applied here, Alg. 1);
+    masks: (C, H, W) bool; cameras: C registered cameras at (W, H); points (P, 3) and
+    point_colors (P, 3) in [0, 1]: the SfM cloud. features: "canonical", "none", or an
+    array (C, h, w, D) of 2D feature maps from an extractor (masked here, upsampled to the
+    training resolution).
+    """
+    cfg = PRESETS[config] if isinstance(config, str) else config
+    t_start = time.perf_counter()
+    report = progress or (lambda stage, frac: None)
+    torch.manual_seed(cfg.seed)
+    rng = np.random.default_rng(cfg.seed)
+    c_all, h0, w0 = images.shape[:3]
+    names = names or [f"view_{i}" for i in range(c_all)]
+    s = min(1.0, cfg.resolution / max(h0, w0))
+    w, h = max(8, int(round(w0 * s))), max(8, int(round(h0 * s)))
+    cams = cameras.resized(w, h)
+    import cv2
+
+    imgs = resize_images(images.astype(np.float32), w, h)
+    msk = resize_images(masks.astype(np.float32), w, h, cv2.INTER_LINEAR) > 0.5
+    bg = np.asarray(cfg.background, np.float32)
+    imgs = np.where(msk[..., None], imgs, bg)  # masked images (Alg. 1)
+    held = [i for i in range(c_all) if cfg.holdout_every and c_all >= 2 * cfg.holdout_every and i % cfg.holdout_every == 0]
+    train_ids = [i for i in range(c_all) if i not in held]
+    target = torch.from_numpy(imgs)
+
+    keep = filter_points_by_masks(points, cameras, masks)
+    if keep.sum() < 4:
+        keep[:] = True  # masks disagree with the SfM points: do not throw the scene away
+    init = init_from_points(points[keep], point_colors[keep], cfg.init_points, cfg.seed)
+    centres = cams.centers()
+    extent = 1.1 * float(np.linalg.norm(centres - centres.mean(0), axis=1).max())
+    k_sh = sh_coeff_count(cfg.sh_degree)
+    sh0 = np.zeros((len(init["means"]), k_sh, 3))
+    sh0[:, 0] = _rgb_to_sh0(init["colors"])
+    tt = lambda a: torch.tensor(np.asarray(a), dtype=torch.float32, requires_grad=True)  # noqa: E731
+    P = {"means": tt(init["means"]), "quats": tt(init["quats"]), "log_scales": tt(init["log_scales"]),
+         "opacity": tt(init["opacity"]), "sh_dc": tt(sh0[:, :1]), "sh_rest": tt(sh0[:, 1:]),
+         "features": None}
+    feat_dim = 0
+    feat_maps = None
+    if isinstance(features, np.ndarray):
+        feat_maps = _prepare_feature_maps(features, msk, w, h)
+        feat_dim = feat_maps.shape[-1]
+    elif features not in ("canonical", "none"):
+        raise ValueError(f"features must be 'canonical', 'none' or an array of maps, got {features!r}")
+    feature_from = 0 if feat_maps is not None else (int(cfg.feature_start * cfg.iterations)
+                                                    if features == "canonical" else None)
+    if feat_dim:
+        P["features"] = tt(np.full((len(init["means"]), feat_dim), 0.5))
+    lrs = {"means": cfg.lr_means * extent, "quats": cfg.lr_quats, "log_scales": cfg.lr_scales,
+           "opacity": cfg.lr_opacity, "sh_dc": cfg.lr_sh_dc, "sh_rest": cfg.lr_sh_dc / 20, "features": cfg.lr_features}
+    params = {k: v for k, v in P.items() if v is not None}
+    opt = _Adam(params, {k: lrs[k] for k in params})
+    geo_names = ["means", "quats", "log_scales", "opacity", "sh_dc", "sh_rest"]
+    grad_acc = torch.zeros(len(P["means"]))
+    grad_cnt = torch.zeros(len(P["means"]))
+    curve = []
+    bg_t = tuple(float(x) for x in bg)
+
+    def sh_tensor():
+        return torch.cat([opt.params["sh_dc"], opt.params["sh_rest"]], 1)
+
+    for it in range(cfg.iterations):
+        frac = it / max(cfg.iterations - 1, 1)
+        opt.lrs["means"] = lrs["means"] * (cfg.lr_means_final / cfg.lr_means) ** frac
+        if feature_from is not None and it == feature_from and feat_maps is None:
+            feat_maps = _canonical_feature_maps(opt.params, sh_tensor, cams, msk, cfg.backend)
+            feat_dim = feat_maps.shape[-1]
+            opt.params["features"] = tt(np.full((len(opt.params["means"]), feat_dim), 0.5))
+            opt.m["features"] = torch.zeros_like(opt.params["features"])
+            opt.v["features"] = torch.zeros_like(opt.params["features"])
+            opt.t["features"] = 0
+            opt.lrs["features"] = lrs["features"]
+        i = int(train_ids[rng.integers(len(train_ids))])
+        p = opt.params
+        # 1) colour + geometry on L_rgb
+        out = rasterize(p["means"], p["quats"], p["log_scales"], p["opacity"], sh_tensor(), None, cams[i],
+                        background=bg_t, depth=False, backend=cfg.backend)
+        l_rgb = rgb_loss(out.colors[0], target[i], cfg.ssim_weight)
+        l_rgb.backward()
+        with torch.no_grad():
+            # View-space positional gradient ≈ |dL/dx_world| · z / f (per pixel), the 3DGS densify signal.
+            g = p["means"].grad
+            if g is not None:
+                vm = torch.as_tensor(cams.viewmats[i], dtype=torch.float32)
+                z = (p["means"] @ vm[:3, :3].T + vm[:3, 3])[:, 2].clamp_min(1e-6)
+                gn = g.norm(dim=1) * z / float(cams.fx[i])
+                vis = gn > 0
+                grad_acc += gn * vis
+                grad_cnt += vis
+        opt.step(geo_names)
+        # 2) features with geometry fixed, on λ_f·L_f
+        l_f = torch.zeros(())
+        if feat_maps is not None and "features" in opt.params:
+            out_f = rasterize(p["means"].detach(), p["quats"].detach(), p["log_scales"].detach(),
+                              p["opacity"].detach(), None, opt.params["features"], cams[i], depth=False,
+                              backend=cfg.backend)
+            l_f = (out_f.features[0] - feat_maps[i]).abs().mean()
+            (cfg.lambda_f * l_f).backward()
+            opt.step(["features"])
+        if it % log_every == 0 or it == cfg.iterations - 1:
+            curve.append({"iteration": it, "loss": l_rgb.item() + cfg.lambda_f * l_f.item(), "rgb": l_rgb.item(),
+                          "feat": l_f.item(), "n": int(len(opt.params["means"]))})
+            report("train", it / cfg.iterations)
+        # density control
+        if cfg.densify_from <= it < cfg.densify_until and it > 0 and it % cfg.densify_every == 0:
+            avg = grad_acc / grad_cnt.clamp_min(1)
+            _densify_and_prune(opt, avg, cfg, extent, rng, densify=True)
+            grad_acc = torch.zeros(len(opt.params["means"]))
+            grad_cnt = torch.zeros(len(opt.params["means"]))
+        if cfg.opacity_reset_every and it > 0 and it % cfg.opacity_reset_every == 0 and it < cfg.densify_until:
+            with torch.no_grad():
+                opt.params["opacity"].clamp_(max=math.log(0.01 / 0.99))
+    # final clean-up: transparent and near-zero-feature Gaussians
+    _densify_and_prune(opt, None, cfg, extent, rng, densify=False)
+    model = _to_model(opt.params, sh_tensor())
+    # held-out evaluation at the training resolution
+    ps, psm = [], []
+    from gsa.render import render_model
+
+    for i in held:
+        r = render_model(model, cams[i], features=False, background=bg_t, depth=False, backend=cfg.backend)
+        pred = r.colors[0].numpy()
+        ps.append(psnr(pred, imgs[i]))
+        psm.append(psnr(pred, imgs[i], msk[i]))
+    return TrainResult(model, curve, [names[i] for i in held], float(np.mean(ps)) if ps else None,
+                       float(np.mean(psm)) if psm else None, time.perf_counter() - t_start, asdict(cfg))
+
+
+def _prepare_feature_maps(maps: np.ndarray, masks: np.ndarray, w: int, h: int) -> torch.Tensor:
+    """(C,h',w',D) extractor maps -> (C,H,W,D) tensor, bilinearly upsampled, background 0 (Alg. 1)."""
+    import cv2
+
+    maps = np.asarray(maps, np.float32)
+    if maps.shape[0] != masks.shape[0]:
+        raise ValueError(f"{maps.shape[0]} feature maps for {masks.shape[0]} images")
+    up = np.stack([cv2.resize(m, (w, h), interpolation=cv2.INTER_LINEAR).reshape(h, w, -1) for m in maps])
+    return torch.from_numpy(np.where(masks[..., None], up, 0.0).astype(np.float32))
+
+
+@torch.no_grad()
+def _canonical_feature_maps(params, sh_tensor, cams: Cameras, masks: np.ndarray, backend: str) -> torch.Tensor:
+    """Render the current geometry's canonical features into every view, masked (background 0)."""
+    from gsa.align.canonical import canonical_features
+
+    model = _to_model(params, sh_tensor())
+    f = canonical_features(model)
+    maps = []
+    for i in range(len(cams)):
+        out = rasterize(model.means, model.quats, model.log_scales, model.opacity_logits, None, f, cams[i],
+                        depth=False, backend=backend)
+        maps.append(out.features[0].numpy())
+    maps = np.stack(maps)
+    return torch.from_numpy(np.where(masks[..., None], maps, 0.0).astype(np.float32))
+
+
+def _to_model(p, sh) -> GaussianModel:
+    q = p["quats"].detach().numpy()
+    q = q / np.maximum(np.linalg.norm(q, axis=1, keepdims=True), 1e-12)
+    feats = p.get("features")
+    return GaussianModel(p["means"].detach().numpy(), q, p["log_scales"].detach().numpy(),
+                         p["opacity"].detach().numpy(), sh.detach().numpy(),
+                         None if feats is None else feats.detach().numpy())
+
+
+@torch.no_grad()
+def _densify_and_prune(opt: _Adam, avg_grad, cfg: TrainConfig, extent: float, rng, densify: bool) -> None:
+    p = opt.params
+    n = len(p["means"])
+    scales = p["log_scales"].exp()
+    smax = scales.max(1).values
+    new_rows: dict[str, list[torch.Tensor]] = {k: [] for k in p}
+    remove = torch.zeros(n, dtype=torch.bool)
+    if densify and avg_grad is not None and n < cfg.max_gaussians:
+        big = avg_grad >= cfg.grad_threshold
+        # Keep the growth within the cap: the largest gradients first.
+        budget = max(0, cfg.max_gaussians - n)
+        idx = torch.nonzero(big).flatten()
+        if len(idx) > budget:
+            idx = idx[torch.argsort(avg_grad[idx], descending=True)[:budget]]
+        sel = torch.zeros(n, dtype=torch.bool)
+        sel[idx] = True
+        clone = sel & (smax <= cfg.percent_dense * extent)
+        split = sel & ~clone
+        for k in p:  # clone: an identical copy (the gradient steps then separate them)
+            new_rows[k].append(p[k][clone])
+        if split.any():
+            m = p["means"][split]
+            s = scales[split]
+            q = p["quats"][split]
+            q = q / q.norm(dim=1, keepdim=True)
+            r = _quat_to_rot(q)
+            for _ in range(2):  # two children sampled from the parent, scales / 1.6
+                off = (r @ (torch.randn_like(s) * s)[..., None])[..., 0]
+                for k in p:
+                    if k == "means":
+                        new_rows[k].append(m + off)
+                    elif k == "log_scales":
+                        new_rows[k].append(p[k][split] - math.log(1.6))
+                    else:
+                        new_rows[k].append(p[k][split])
+            remove |= split
+    op = torch.sigmoid(p["opacity"])
+    remove |= op < cfg.prune_opacity
+    remove |= smax > 0.2 * extent
+    if "features" in p:
+        remove |= p["features"].norm(dim=1) < cfg.feature_prune
+    keep = ~remove
+    if keep.sum() < 4:  # never prune the model away
+        return
+    new_params = {}
+    n_new = 0
+    for k in p:
+        add = torch.cat(new_rows[k]) if new_rows[k] else p[k][:0]
+        n_new = len(add)
+        new_params[k] = torch.cat([p[k].detach()[keep], add.detach()]).requires_grad_(True)
+    opt.remap(new_params, keep, n_new)
+
+
+def _quat_to_rot(q: torch.Tensor) -> torch.Tensor:
+    w, x, y, z = q.unbind(-1)
+    return torch.stack([
+        1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
+        2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
+        2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], -1).reshape(q.shape[:-1] + (3, 3))

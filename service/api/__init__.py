@@ -1,0 +1,1 @@
+"""FastAPI front end: app factory in app.py, routes, schemas, dependencies."""

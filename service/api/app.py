@@ -1,0 +1,114 @@
+"""The FastAPI application factory.
+
+Lifespan starts the backend's background threads: the reaper (both modes),
+the in-process workers (embedded mode) and, if configured, the gRPC server
+sharing this process's job store and queue.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+from contextlib import asynccontextmanager
+
+from fastapi import FastAPI
+from fastapi.openapi.utils import get_openapi
+
+from service.api.middleware import BodyLimit, RequestMetrics, install_error_handlers
+from service.api.routes import router
+from service.api.schemas import JobCreate, Problem
+from service.backend import Backend, make_backend
+from service.metrics import Metrics
+from service.settings import Settings, get_settings
+
+log = logging.getLogger("gsa.api")
+
+
+def create_app(
+    settings: Settings | None = None,
+    backend: Backend | None = None,
+    *,
+    run_workers: bool = True,
+) -> FastAPI:
+    settings = settings or get_settings()
+    if not settings.api_keys and not settings.auth_disabled:
+        log.warning(
+            "no API keys configured (GSA_API_KEYS) and auth not disabled: every request will get 401"
+        )
+
+    @asynccontextmanager
+    async def lifespan(app: FastAPI):
+        from service.worker import start_embedded_workers, start_reaper
+
+        b = app.state.backend
+        stop = threading.Event()
+        start_reaper(b, stop)
+        if b.settings.embedded and run_workers:
+            start_embedded_workers(b, stop)
+        grpc_server = None
+        if b.settings.grpc_port:
+            from service.grpc_server import serve_grpc
+
+            grpc_server = serve_grpc(b, b.settings.grpc_port, metrics=app.state.metrics)
+        try:
+            yield
+        finally:
+            stop.set()
+            if grpc_server is not None:
+                grpc_server.stop(grace=2)
+
+    app = FastAPI(
+        title="GSA alignment service",
+        version="1.0.0",
+        summary="Align 3D Gaussian Splatting models with a similarity transform Sim(3).",
+        description="Jobs are asynchronous: POST /v1/jobs answers 202 with a Location to poll. "
+        "Errors are RFC 9457 application/problem+json. Authenticate with `Authorization: Bearer <api key>`.",
+        lifespan=lifespan,
+        docs_url="/docs" if settings.public_docs else None,
+        redoc_url=None,
+        openapi_url="/openapi.json" if settings.public_docs else None,
+    )
+    app.state.backend = backend or make_backend(settings)
+    app.state.metrics = Metrics(app.state.backend)
+    install_error_handlers(app)
+    s = app.state.backend.settings
+    per_file = s.max_upload_bytes
+
+    def cap(path: str) -> int:
+        if path == "/v1/assets":
+            return (
+                per_file * 2 + (1 << 20)
+                if s.max_images <= 2
+                else per_file * s.max_images + (1 << 20)
+            )
+        if path == "/v1/jobs":
+            return per_file * (s.max_sources + 1 + 2 * s.max_images) + (1 << 20)
+        return 1 << 20
+
+    app.add_middleware(BodyLimit, max_bytes_for=cap)
+    app.add_middleware(RequestMetrics, metrics=app.state.metrics)
+    app.include_router(router)
+
+    def openapi():
+        if app.openapi_schema:
+            return app.openapi_schema
+        schema = get_openapi(
+            title=app.title,
+            version=app.version,
+            summary=app.summary,
+            description=app.description,
+            routes=app.routes,
+        )
+        comps = schema.setdefault("components", {}).setdefault("schemas", {})
+        # Bodies parsed by hand (json or streamed multipart) are declared in
+        # openapi_extra; make sure the models they reference are present.
+        for model in (JobCreate, Problem):
+            js = model.model_json_schema(ref_template="#/components/schemas/{model}")
+            for name, d in js.pop("$defs", {}).items():
+                comps.setdefault(name, d)
+            comps.setdefault(model.__name__, js)
+        app.openapi_schema = schema
+        return schema
+
+    app.openapi = openapi
+    return app

@@ -1,0 +1,177 @@
+"""Request/response models: the public HTTP contract (and its OpenAPI)."""
+
+from __future__ import annotations
+
+from datetime import UTC, datetime
+from typing import Any, Literal
+
+from pydantic import BaseModel, ConfigDict, Field
+
+from service.jobs import Asset, Job, JobState
+
+OutputName = Literal["result", "aligned", "merged", "renders"]
+
+
+class Problem(BaseModel):
+    """RFC 9457 problem details (media type application/problem+json)."""
+
+    model_config = ConfigDict(extra="allow")
+    type: str = Field(examples=["https://gsa.dev/problems/not-found"])
+    title: str
+    status: int
+    detail: str | None = None
+    instance: str | None = None
+
+
+class AlignOptionsIn(BaseModel):
+    """Alignment options; fields not listed (e.g. fine_*) pass through to the
+    library's AlignOptions and are rejected with 422 if it does not know them."""
+
+    model_config = ConfigDict(extra="allow")
+    stages: list[str] | None = Field(None, examples=[["coarse", "fine"]])
+    features: str | None = Field(
+        None, description="feature backend: auto | canonical | spheremap | dinov2"
+    )
+    tau_f: float | None = Field(None, gt=0, description="feature-match threshold τ_f")
+    coarse_iterations: int | None = Field(None, ge=1, le=1000)
+    seed: int | None = None
+    renders: bool | None = Field(
+        None, description="produce before/after renders (default true)"
+    )
+    outputs: list[OutputName] | None = Field(
+        None, description="artifacts wanted (default: all)"
+    )
+    recon_iterations: int | None = Field(
+        None,
+        ge=10,
+        le=100_000,
+        description="3DGS training iterations for image-set inputs",
+    )
+
+    def to_dict(self) -> dict[str, Any]:
+        return self.model_dump(exclude_none=True)
+
+
+class WebhookIn(BaseModel):
+    url: str = Field(
+        description="called with POST {job_id, state, ...} when the job reaches a final state"
+    )
+    secret: str | None = Field(
+        None, description="HMAC-SHA256 key for X-GSA-Signature (else the server's)"
+    )
+
+
+class JobCreate(BaseModel):
+    """JSON form of POST /v1/jobs: previously uploaded asset ids."""
+
+    model_config = ConfigDict(extra="forbid")
+    source: str | None = Field(None, description="source asset id (pair job)")
+    sources: list[str] | None = Field(
+        None, description="N source asset ids aligned to one target (multi-model)"
+    )
+    target: str = Field(description="target (reference) asset id")
+    options: AlignOptionsIn = Field(default_factory=AlignOptionsIn)
+    webhook: WebhookIn | None = None
+
+
+class ArtifactOut(BaseModel):
+    name: str
+    size: int
+    content_type: str
+    href: str
+
+
+class JobOut(BaseModel):
+    id: str
+    state: JobState
+    stage: str | None
+    progress: float = Field(description="0..1")
+    created_at: datetime
+    updated_at: datetime
+    started_at: datetime | None
+    finished_at: datetime | None
+    attempts: int
+    max_attempts: int
+    cancel_requested: bool
+    sources: list[str] = Field(description="source asset ids")
+    target: str = Field(description="target asset id")
+    options: dict[str, Any]
+    error: Problem | None = None
+    result: dict[str, Any] | None = Field(
+        None,
+        description="when succeeded: transform (4x4 row-major, x_t = s R x_s + t), scale, rotation (3x3), "
+        "quaternion (wxyz), translation, metrics, timings; `results` lists one entry per source",
+    )
+    artifacts: list[ArtifactOut] = Field(default_factory=list)
+    links: dict[str, str]
+
+    @classmethod
+    def from_job(cls, job: Job) -> JobOut:
+        ts = lambda t: None if t is None else datetime.fromtimestamp(t, UTC)
+        base = f"/v1/jobs/{job.id}"
+        return cls(
+            id=job.id,
+            state=job.state,
+            stage=job.stage,
+            progress=job.progress,
+            created_at=ts(job.created_at),
+            updated_at=ts(job.updated_at),
+            started_at=ts(job.started_at),
+            finished_at=ts(job.finished_at),
+            attempts=job.attempts,
+            max_attempts=job.max_attempts,
+            cancel_requested=job.cancel_requested,
+            sources=[s.asset_id for s in job.sources],
+            target=job.target.asset_id,
+            options=job.options,
+            error=job.error,
+            result=job.result,
+            artifacts=[
+                ArtifactOut(
+                    name=a.name,
+                    size=a.size,
+                    content_type=a.content_type,
+                    href=f"{base}/artifacts/{a.name}",
+                )
+                for a in job.artifacts
+            ],
+            links={"self": base, "cancel": f"{base}:cancel"},
+        )
+
+
+class JobList(BaseModel):
+    items: list[JobOut]
+    next_cursor: str | None = Field(
+        None, description="pass as ?cursor= for the next page; null at the end"
+    )
+
+
+class AssetOut(BaseModel):
+    id: str
+    kind: Literal["ply", "images"]
+    size: int
+    filename: str | None
+    content_type: str
+    sha256: str
+    n_gaussians: int | None = None
+    n_images: int | None = None
+    created_at: datetime
+
+    @classmethod
+    def from_asset(cls, a: Asset) -> AssetOut:
+        return cls(
+            id=a.id,
+            kind=a.kind,
+            size=a.size,
+            filename=a.filename,
+            content_type=a.content_type,
+            sha256=a.sha256,
+            n_gaussians=a.n_gaussians,
+            n_images=a.n_images,
+            created_at=datetime.fromtimestamp(a.created_at, UTC),
+        )
+
+
+class Health(BaseModel):
+    status: str
+    checks: dict[str, bool] = Field(default_factory=dict)

@@ -1,0 +1,127 @@
+"""Wires settings into a store, a storage and a queue: the one place that
+decides between distributed mode (Redis + RQ) and embedded mode (SQLite +
+in-process worker thread)."""
+
+from __future__ import annotations
+
+import threading
+import uuid
+from dataclasses import dataclass, field
+
+from service.jobs import JobStore, RedisJobStore, SQLiteJobStore
+from service.settings import Settings, get_settings
+from service.storage import Storage, make_storage
+
+
+class RQQueue:
+    """RQ on Redis. Chosen over Celery/Dramatiq: Redis-only (no broker zoo),
+    small, mature, plain functions as tasks, fork-per-job work horses (a job's
+    GPU/CPU memory is returned to the OS when it ends)."""
+
+    def __init__(self, redis_conn, settings: Settings):
+        import rq
+
+        self.settings = settings
+        self.q = rq.Queue(settings.queue_name, connection=redis_conn)
+        self.hooks = rq.Queue(settings.queue_name + "-webhooks", connection=redis_conn)
+
+    def enqueue(self, job_id: str) -> str:
+        ref = f"{job_id}-{uuid.uuid4().hex[:8]}"
+        self.q.enqueue(
+            "service.worker.run_job",
+            job_id,
+            job_id=ref,
+            # Our own lease/reaper does retries; RQ's timeout is only the backstop.
+            job_timeout=int(self.settings.job_timeout_s + 120),
+            result_ttl=600,
+            failure_ttl=24 * 3600,
+        )
+        return ref
+
+    def lost(self, ref: str) -> bool:
+        """True if RQ no longer holds a live message for this ref (dropped, failed,
+        or "started" by a worker that died before claiming the job)."""
+        from rq.exceptions import NoSuchJobError
+        from rq.job import Job as RQJob
+
+        try:
+            status = RQJob.fetch(ref, connection=self.q.connection).get_status(
+                refresh=False
+            )
+        except NoSuchJobError:
+            return True
+        return str(getattr(status, "value", status)) not in (
+            "queued",
+            "deferred",
+            "scheduled",
+        )
+
+    def enqueue_webhook(self, job_id: str) -> None:
+        from rq import Retry
+
+        n = max(self.settings.webhook_max_attempts - 1, 0)
+        self.hooks.enqueue(
+            "service.webhooks.deliver_job",
+            job_id,
+            retry=Retry(max=n, interval=[1, 5, 30, 120, 600][: max(n, 1)])
+            if n
+            else None,
+            job_timeout=60,
+            result_ttl=600,
+        )
+
+    def depth(self) -> int:
+        return len(self.q)
+
+
+class EmbeddedQueue:
+    """The SQLite store is the queue; this only wakes the worker thread."""
+
+    def __init__(self, store: JobStore, settings: Settings):
+        self.store, self.settings = store, settings
+        self.wake = threading.Event()
+
+    def enqueue(self, job_id: str) -> str | None:
+        self.wake.set()
+        return None
+
+    def lost(self, ref: str) -> bool:
+        return False  # the store is the queue: nothing to lose
+
+    def enqueue_webhook(self, job_id: str) -> None:
+        from service.webhooks import deliver_with_retries
+
+        threading.Thread(
+            target=deliver_with_retries,
+            args=(self.store, job_id, self.settings),
+            daemon=True,
+        ).start()
+
+    def depth(self) -> int:
+        return len(self.store.queued_ids())
+
+
+@dataclass
+class Backend:
+    settings: Settings
+    store: JobStore
+    storage: Storage
+    queue: RQQueue | EmbeddedQueue
+    redis: object | None = None
+    threads: list = field(default_factory=list)
+
+    def ready(self) -> dict[str, bool]:
+        return {"store": self.store.ping(), "storage": self.storage.ping()}
+
+
+def make_backend(settings: Settings | None = None) -> Backend:
+    settings = settings or get_settings()
+    storage = make_storage(settings)
+    if settings.redis_url:
+        import redis
+
+        r = redis.Redis.from_url(settings.redis_url, health_check_interval=30)
+        store = RedisJobStore(r)
+        return Backend(settings, store, storage, RQQueue(r, settings), redis=r)
+    store = SQLiteJobStore(settings.sqlite_file)
+    return Backend(settings, store, storage, EmbeddedQueue(store, settings))

@@ -1,0 +1,243 @@
+"""CLI verbs for the service: serve, worker, submit, status, wait, fetch.
+
+gsa/cli.py wires them lazily:
+
+    from service.cli import add_service_parsers
+    add_service_parsers(subparsers)    # each sets func=handler; handler(args) -> exit code
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+
+
+def add_service_parsers(subparsers) -> None:
+    p = subparsers.add_parser(
+        "serve", help="run the HTTP (and optionally gRPC) API; no Redis = embedded mode"
+    )
+    p.add_argument("--host", default="127.0.0.1")
+    p.add_argument("--port", type=int, default=8000)
+    p.add_argument("--grpc-port", type=int, help="also serve gRPC on this port")
+    p.add_argument(
+        "--redis-url",
+        help="Redis URL (default $GSA_REDIS_URL); none = embedded worker + SQLite",
+    )
+    p.add_argument(
+        "--storage-root",
+        help="local storage folder (default $GSA_STORAGE_ROOT or ./gsa-data)",
+    )
+    p.add_argument("--workers", type=int, help="embedded-mode worker threads")
+    p.add_argument(
+        "--no-auth",
+        action="store_true",
+        help="DEV ONLY: accept requests without an API key",
+    )
+    p.add_argument("--log-level", default="info")
+    p.set_defaults(func=cmd_serve)
+
+    p = subparsers.add_parser("worker", help="run a queue worker (needs Redis)")
+    p.add_argument("--redis-url", help="Redis URL (default $GSA_REDIS_URL)")
+    p.add_argument("--storage-root")
+    p.add_argument("--burst", action="store_true", help="exit when the queue is empty")
+    p.add_argument("--name")
+    p.set_defaults(func=cmd_worker)
+
+    def client_args(p):
+        p.add_argument(
+            "--server", default=os.environ.get("GSA_SERVER", "http://127.0.0.1:8000")
+        )
+        p.add_argument(
+            "--api-key",
+            default=os.environ.get("GSA_API_KEY"),
+            help="default $GSA_API_KEY",
+        )
+
+    p = subparsers.add_parser(
+        "submit", help="upload models to a server and create an alignment job"
+    )
+    p.add_argument(
+        "source",
+        nargs="+",
+        help="source model(s): .ply or .zip of images; several = multi-model",
+    )
+    p.add_argument("--target", required=True, help="target (reference) model")
+    p.add_argument("--options", default="{}", help="JSON object of alignment options")
+    p.add_argument("--stages", help="e.g. coarse or coarse,fine")
+    p.add_argument("--idempotency-key")
+    p.add_argument("--webhook-url")
+    p.add_argument("--wait", action="store_true", help="wait for the result")
+    client_args(p)
+    p.set_defaults(func=cmd_submit)
+
+    for name, helptext in (
+        ("status", "show a job"),
+        ("wait", "wait until a job finishes"),
+    ):
+        p = subparsers.add_parser(name, help=helptext)
+        p.add_argument("job_id")
+        if name == "wait":
+            p.add_argument("--timeout", type=float)
+        client_args(p)
+        p.set_defaults(func=cmd_status if name == "status" else cmd_wait)
+
+    p = subparsers.add_parser("fetch", help="download a job's artifacts")
+    p.add_argument("job_id")
+    p.add_argument("names", nargs="*", help="artifact names (default: all)")
+    p.add_argument("--out", default=".", help="output folder")
+    client_args(p)
+    p.set_defaults(func=cmd_fetch)
+
+
+def _settings_env(args) -> None:
+    # Settings are read from the environment (also by forked RQ work horses).
+    if getattr(args, "redis_url", None):
+        os.environ["GSA_REDIS_URL"] = args.redis_url
+    if getattr(args, "storage_root", None):
+        os.environ["GSA_STORAGE_ROOT"] = args.storage_root
+    if getattr(args, "grpc_port", None):
+        os.environ["GSA_GRPC_PORT"] = str(args.grpc_port)
+    if getattr(args, "workers", None):
+        os.environ["GSA_EMBEDDED_WORKERS"] = str(args.workers)
+    if getattr(args, "no_auth", False):
+        os.environ["GSA_AUTH_DISABLED"] = "true"
+
+
+def cmd_serve(args) -> int:
+    import logging
+
+    import uvicorn
+
+    from service.api.app import create_app
+    from service.settings import Settings
+
+    _settings_env(args)
+    logging.basicConfig(
+        level=args.log_level.upper(),
+        format="%(asctime)s %(levelname)s %(name)s: %(message)s",
+    )
+    settings = Settings()
+    mode = (
+        "embedded (SQLite + in-process worker)"
+        if settings.embedded
+        else f"distributed (Redis {settings.redis_url})"
+    )
+    print(
+        f"gsa serve: {mode}; http://{args.host}:{args.port}",
+        file=sys.stderr,
+        flush=True,
+    )
+    uvicorn.run(
+        create_app(settings),
+        host=args.host,
+        port=args.port,
+        log_level=args.log_level,
+        timeout_graceful_shutdown=5,
+    )
+    return 0
+
+
+def cmd_worker(args) -> int:
+    import logging
+
+    from service.worker import run_rq_worker
+
+    _settings_env(args)
+    logging.basicConfig(
+        level="INFO", format="%(asctime)s %(levelname)s %(name)s: %(message)s"
+    )
+    run_rq_worker(burst=args.burst, name=args.name)
+    return 0
+
+
+def _client(args):
+    from gsa.client import GSAClient
+
+    return GSAClient(args.server, args.api_key)
+
+
+def _print(obj) -> None:
+    print(json.dumps(obj, indent=2))
+
+
+def _progress(job) -> None:
+    print(
+        f"{job['state']:>9} {job.get('stage') or '':<12} {100 * job.get('progress', 0):5.1f}%",
+        file=sys.stderr,
+        flush=True,
+    )
+
+
+def _errors(fn):
+    def wrapped(args) -> int:
+        from gsa.client import GSAError
+
+        try:
+            return fn(args)
+        except GSAError as exc:
+            print(f"error: {exc}", file=sys.stderr)
+            _print(exc.problem)
+            return 1
+
+    return wrapped
+
+
+@_errors
+def cmd_submit(args) -> int:
+    options = json.loads(args.options)
+    if args.stages:
+        options["stages"] = args.stages.split(",")
+    with _client(args) as c:
+        job = c.submit(
+            args.source,
+            args.target,
+            options,
+            webhook_url=args.webhook_url,
+            idempotency_key=args.idempotency_key,
+        )
+        if args.wait:
+            job = c.wait(job["id"], on_progress=_progress, raise_on_failure=False)
+    _print(job)
+    return 0 if job["state"] in ("queued", "running", "succeeded") else 1
+
+
+@_errors
+def cmd_status(args) -> int:
+    with _client(args) as c:
+        _print(c.status(args.job_id))
+    return 0
+
+
+@_errors
+def cmd_wait(args) -> int:
+    with _client(args) as c:
+        job = c.wait(
+            args.job_id,
+            timeout=args.timeout,
+            on_progress=_progress,
+            raise_on_failure=False,
+        )
+    _print(job)
+    return 0 if job["state"] == "succeeded" else 1
+
+
+@_errors
+def cmd_fetch(args) -> int:
+    with _client(args) as c:
+        for p in c.fetch_all(args.job_id, args.out, args.names or None):
+            print(p)
+    return 0
+
+
+def main(argv=None) -> int:
+    """Stand-alone entry (python -m service.cli ...) until gsa/cli.py wires these verbs."""
+    parser = argparse.ArgumentParser(prog="gsa")
+    add_service_parsers(parser.add_subparsers(dest="cmd", required=True))
+    args = parser.parse_args(argv)
+    return args.func(args)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

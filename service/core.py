@@ -1,0 +1,309 @@
+"""Operations shared by the HTTP and gRPC front ends: ingesting uploads as
+assets, creating jobs (with idempotency), cancelling, reading artifacts."""
+
+from __future__ import annotations
+
+import hashlib
+import tempfile
+import time
+import zipfile
+from collections.abc import Iterable
+from pathlib import Path
+from typing import Any, BinaryIO
+
+from service.backend import Backend
+from service.inputs import check_image, sniff, validate_ply, validate_zip
+from service.jobs import TERMINAL, Asset, InputRef, Job, JobState, new_id
+from service.problems import Problem, invalid_input, not_found, too_large
+from service.storage import CHUNK, new_key
+
+
+class _Hashing:
+    """Wraps a stream: sha256 + the first bytes (for type sniffing) as it flows."""
+
+    def __init__(self, data: BinaryIO | Iterable[bytes]):
+        self.data = data
+        self.sha = hashlib.sha256()
+        self.head = b""
+
+    def __iter__(self):
+        it = (
+            iter(lambda: self.data.read(CHUNK), b"")
+            if hasattr(self.data, "read")
+            else iter(self.data)
+        )
+        for chunk in it:
+            if len(self.head) < 65536:
+                self.head += chunk[: 65536 - len(self.head)]
+            self.sha.update(chunk)
+            yield chunk
+
+
+def _local(b: Backend, key: str, tmpdir: Path) -> Path:
+    if hasattr(b.storage, "local_path"):
+        return b.storage.local_path(key)
+    return b.storage.download(key, tmpdir / "blob")
+
+
+def ingest(
+    b: Backend, owner: str, data, filename: str | None, *, expect: str | None = None
+) -> Asset:
+    """Stream one upload to storage, validate it, record it. Nothing remains on failure."""
+    s = b.settings
+    key = new_key("uploads", filename or "upload")
+    h = _Hashing(data)
+    size = b.storage.put(key, h, max_bytes=s.max_upload_bytes)
+    name = filename or "upload"
+    try:
+        kind = sniff(h.head)
+        if size == 0:
+            raise invalid_input(f"{name}: the upload is empty")
+        if expect == "ply" and kind != "ply":
+            raise invalid_input(
+                f"{name}: not a PLY file (it does not start with 'ply')"
+            )
+        with tempfile.TemporaryDirectory() as tmp:
+            path = _local(b, key, Path(tmp))
+            if kind == "ply":
+                n = validate_ply(path, s.max_gaussians, name)
+                asset = Asset(
+                    id=new_id("ast"),
+                    owner=owner,
+                    kind="ply",
+                    key=key,
+                    size=size,
+                    filename=filename,
+                    content_type="application/x-ply",
+                    n_gaussians=n,
+                    sha256=h.sha.hexdigest(),
+                    created_at=time.time(),
+                )
+            elif kind == "zip":
+                n = validate_zip(path, s, name)
+                asset = Asset(
+                    id=new_id("ast"),
+                    owner=owner,
+                    kind="images",
+                    key=key,
+                    size=size,
+                    filename=filename,
+                    content_type="application/zip",
+                    n_images=n,
+                    sha256=h.sha.hexdigest(),
+                    created_at=time.time(),
+                )
+            else:
+                raise invalid_input(
+                    f"{name}: not a 3DGS .ply or a .zip of images (unrecognised file type)"
+                )
+        b.store.put_asset(asset)
+        return asset
+    except BaseException:
+        b.storage.delete(key)
+        raise
+
+
+def ingest_images(
+    b: Backend, owner: str, files: list[tuple[str | None, BinaryIO]], label: str
+) -> Asset:
+    """Several image uploads -> one image-set asset (stored as a zip)."""
+    s = b.settings
+    if len(files) > s.max_images:
+        raise too_large(
+            f"{label}: {len(files)} images exceeds the limit of {s.max_images}"
+        )
+    with tempfile.TemporaryFile() as tmp:
+        with zipfile.ZipFile(tmp, "w", zipfile.ZIP_STORED) as zf:
+            for i, (fname, fh) in enumerate(files):
+                head = fh.read(65536)
+                check_image(head, f"{label}[{i}] {fname or ''}".strip(), s)
+                ext = ".png" if sniff(head) == "png" else ".jpg"
+                total = len(head)
+                with zf.open(f"{i:05d}{ext}", "w", force_zip64=True) as out:
+                    out.write(head)
+                    while chunk := fh.read(CHUNK):
+                        total += len(chunk)
+                        if total > s.max_upload_bytes:
+                            raise too_large(
+                                f"{label}[{i}]: exceeds the limit of {s.max_upload_bytes} bytes"
+                            )
+                        out.write(chunk)
+        tmp.seek(0)
+        return ingest(b, owner, tmp, f"{label}.zip")
+
+
+def get_asset(b: Backend, owner: str, asset_id: str) -> Asset:
+    a = b.store.get_asset(asset_id)
+    if a is None or a.owner != owner:
+        raise not_found("Asset", asset_id)
+    return a
+
+
+def validate_options(options: dict[str, Any]) -> dict[str, Any]:
+    from service.worker import SERVICE_OPTIONS, align_option_names, server_only_option
+
+    fixed = sorted(k for k in options if server_only_option(k))
+    if fixed:
+        # Paths and devices are the server's business: a client path must never reach the filesystem.
+        raise invalid_input(
+            f"option(s) set by the server, not the client: {', '.join(fixed)}"
+        )
+    known = align_option_names()
+    if known is not None:
+        unknown = sorted(set(options) - known - SERVICE_OPTIONS)
+        if unknown:
+            raise invalid_input(
+                f"unknown option(s): {', '.join(unknown)}",
+                allowed=sorted(known | SERVICE_OPTIONS),
+            )
+    outs = options.get("outputs")
+    if outs is not None:
+        bad = sorted(set(outs) - {"result", "aligned", "merged", "renders"})
+        if bad:
+            raise invalid_input(f"unknown output(s): {', '.join(bad)}")
+    return options
+
+
+def claim(
+    b: Backend, owner: str, idempotency_key: str | None, fingerprint: str
+) -> tuple[str, Job | None]:
+    """Reserve a job id. With an Idempotency-Key already used: the earlier job
+    (same body) or 422 (different body). Returns (job_id, existing_job)."""
+    job_id = new_id("job")
+    if not idempotency_key:
+        return job_id, None
+    if len(idempotency_key) > 255:
+        raise invalid_input("Idempotency-Key is longer than 255 characters")
+    prev = b.store.claim_idempotency(owner, idempotency_key, fingerprint, job_id)
+    if prev is None:
+        return job_id, None
+    prev_id, prev_hash = prev
+    if prev_hash != fingerprint:
+        raise Problem(
+            422,
+            "idempotency-key-reused",
+            "Idempotency-Key reused",
+            "this Idempotency-Key was already used with a different request body",
+        )
+    job = b.store.get(prev_id)
+    if job is None:  # the first request is still uploading
+        raise Problem(
+            409,
+            "idempotency-in-progress",
+            "Request in progress",
+            "a request with this Idempotency-Key is still being processed; retry shortly",
+        )
+    return prev_id, job
+
+
+def release(b: Backend, owner: str, idempotency_key: str | None) -> None:
+    """Forget a claimed key whose request failed, so the client can retry it."""
+    if idempotency_key:
+        b.store.release_idempotency(owner, idempotency_key)
+
+
+def discard_asset(b: Backend, asset: Asset) -> None:
+    b.storage.delete(asset.key)
+    b.store.delete_asset(asset.id)
+
+
+def check_request(
+    b: Backend, n_sources: int, options: dict[str, Any], webhook: dict | None
+) -> None:
+    s = b.settings
+    if n_sources < 1:
+        raise invalid_input("at least one source model is required")
+    if n_sources > s.max_sources:
+        raise too_large(f"{n_sources} sources exceeds the limit of {s.max_sources}")
+    validate_options(options)
+    if webhook:
+        from service.webhooks import check_url
+
+        try:
+            check_url(webhook["url"], s.webhook_allow_private)
+        except ValueError as exc:
+            raise invalid_input(str(exc)) from None
+
+
+def create_job(
+    b: Backend,
+    owner: str,
+    job_id: str,
+    sources: list[Asset],
+    target: Asset,
+    options: dict[str, Any],
+    webhook: dict | None,
+    idempotency_key: str | None,
+) -> Job:
+    now = time.time()
+    ref = lambda a: InputRef(asset_id=a.id, key=a.key, kind=a.kind, filename=a.filename)
+    job = Job(
+        id=job_id,
+        owner=owner,
+        created_at=now,
+        updated_at=now,
+        max_attempts=b.settings.max_attempts,
+        sources=[ref(a) for a in sources],
+        target=ref(target),
+        options=options,
+        webhook=webhook,
+        idempotency_key=idempotency_key,
+    )
+    b.store.create(job)
+    # Enqueue after the record exists (a worker may start at once); remember the
+    # queue's handle so a lost message can be detected and re-sent.
+    ref = b.queue.enqueue(job.id)
+    b.store.update(job.id, queue_ref=ref, enqueued_at=time.time())
+    return job
+
+
+def get_job(b: Backend, owner: str, job_id: str) -> Job:
+    job = b.store.get(job_id)
+    if job is None or job.owner != owner:
+        raise not_found("Job", job_id)
+    return job
+
+
+def cancel_job(b: Backend, owner: str, job_id: str) -> Job:
+    job = get_job(b, owner, job_id)
+    if job.state in TERMINAL:
+        if job.state == JobState.cancelled:
+            return job
+        raise Problem(
+            409,
+            "job-finished",
+            "Job already finished",
+            f"job {job_id} is {job.state.value}",
+        )
+    now = time.time()
+    # A queued job is cancelled at once; a running one is flagged and its worker
+    # stops at its next progress callback (then marks it cancelled).
+    if b.store.update(
+        job_id,
+        states={JobState.queued},
+        state=JobState.cancelled,
+        cancel_requested=True,
+        finished_at=now,
+        stage="cancelled",
+    ):
+        from service.worker import _notify
+
+        _notify(b, job_id)
+    else:
+        b.store.update(job_id, states={JobState.running}, cancel_requested=True)
+    return get_job(b, owner, job_id)
+
+
+def get_artifact(b: Backend, owner: str, job_id: str, name: str):
+    job = get_job(b, owner, job_id)
+    if job.state != JobState.succeeded:
+        raise Problem(
+            409,
+            "job-not-finished",
+            "Artifacts not available",
+            f"job {job_id} is {job.state.value}; artifacts exist once it has succeeded",
+        )
+    for a in job.artifacts:
+        if a.name == name:
+            return job, a
+    raise not_found("Artifact", name)

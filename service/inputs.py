@@ -1,0 +1,210 @@
+"""Validation of uploaded inputs: 3DGS PLY headers, image-set zips, images.
+
+All checks read headers / central directories only: nothing is decoded or
+extracted before it has passed the limits, so a hostile upload (zip bomb,
+`../` entry, a PLY claiming a billion Gaussians) costs almost nothing.
+"""
+
+from __future__ import annotations
+
+import struct
+import zipfile
+from pathlib import Path, PurePosixPath, PureWindowsPath
+
+import numpy as np
+
+from service.problems import invalid_input, too_large
+
+IMAGE_EXTS = {".png", ".jpg", ".jpeg"}
+
+
+def sniff(head: bytes) -> str | None:
+    if head.startswith(b"ply"):
+        return "ply"
+    if head.startswith((b"PK\x03\x04", b"PK\x05\x06")):
+        return "zip"
+    if head.startswith(b"\x89PNG\r\n\x1a\n"):
+        return "png"
+    if head.startswith(b"\xff\xd8"):
+        return "jpeg"
+    return None
+
+
+def validate_ply(path: Path, max_gaussians: int, display_name: str) -> int:
+    """Header-level check of a 3DGS PLY; returns the Gaussian count.
+
+    Uses the library's own header parser so the service accepts exactly what
+    the workers can read, without loading the body (which may be gigabytes).
+    """
+    from gsa.io import ply as plymod
+
+    try:
+        with open(path, "rb") as fh:
+            fmt, header_len, elements = plymod._parse_header(path, fh)
+        if not elements or elements[0][0] != "vertex":
+            raise plymod.PlyError(
+                path, "the first element must be 'vertex' (the Gaussians)"
+            )
+        _, count, props = elements[0]
+        if any(t == "list" for _, t in props):
+            raise plymod.PlyError(
+                path, "the vertex element has list properties; 3DGS vertices are scalar"
+            )
+        plymod._sh_and_feature_layout(path, [n for n, _ in props])
+        if count == 0:
+            raise plymod.PlyError(path, "the file holds zero Gaussians")
+        if count > max_gaussians:
+            raise too_large(
+                f"{display_name}: {count} Gaussians exceeds the limit of {max_gaussians}"
+            )
+        if plymod.FORMATS[fmt] is None:
+            plymod.read_ply(
+                path, max_gaussians=max_gaussians
+            )  # ASCII: only a full parse can tell
+        else:
+            itemsize = sum(np.dtype(t).itemsize for _, t in props)
+            need = count * itemsize
+            body = path.stat().st_size - header_len
+            if body < need:
+                raise plymod.PlyError(
+                    path,
+                    f"truncated: the header declares {count} Gaussians ({need} bytes) but only {body} bytes follow",
+                )
+        return int(count)
+    except plymod.PlyError as exc:
+        raise invalid_input(f"{display_name}: {exc.problem}") from None
+
+
+def image_size(head: bytes) -> tuple[int, int] | None:
+    """(width, height) from a PNG IHDR or JPEG SOF marker, without decoding."""
+    if head.startswith(b"\x89PNG\r\n\x1a\n") and len(head) >= 24:
+        w, h = struct.unpack(">II", head[16:24])
+        return w, h
+    if head.startswith(b"\xff\xd8"):
+        i = 2
+        while i + 9 < len(head):
+            if head[i] != 0xFF:
+                i += 1
+                continue
+            marker = head[i + 1]
+            if marker in (0xD8, 0x01) or 0xD0 <= marker <= 0xD7:
+                i += 2
+                continue
+            seg = struct.unpack(">H", head[i + 2 : i + 4])[0]
+            if marker in (
+                0xC0,
+                0xC1,
+                0xC2,
+                0xC3,
+                0xC5,
+                0xC6,
+                0xC7,
+                0xC9,
+                0xCA,
+                0xCB,
+                0xCD,
+                0xCE,
+                0xCF,
+            ):
+                h, w = struct.unpack(">HH", head[i + 5 : i + 9])
+                return w, h
+            i += 2 + seg
+    return None
+
+
+def check_image(head: bytes, name: str, settings) -> None:
+    if sniff(head) not in ("png", "jpeg"):
+        raise invalid_input(f"{name}: not a PNG or JPEG image")
+    wh = image_size(head)
+    if wh is None:
+        raise invalid_input(f"{name}: cannot read the image dimensions")
+    if wh[0] * wh[1] > settings.max_image_pixels:
+        raise too_large(
+            f"{name}: {wh[0]}x{wh[1]} exceeds the limit of {settings.max_image_pixels} pixels"
+        )
+
+
+def unsafe_member_name(name: str) -> bool:
+    if not name or "\x00" in name or "\\" in name:
+        return True
+    p = PurePosixPath(name)
+    return p.is_absolute() or PureWindowsPath(name).drive != "" or ".." in p.parts
+
+
+def validate_zip(path: Path, settings, display_name: str) -> int:
+    """Check an image-set zip's central directory; returns the image count."""
+    try:
+        zf = zipfile.ZipFile(path)
+    except (zipfile.BadZipFile, OSError) as exc:
+        raise invalid_input(
+            f"{display_name}: not a readable zip archive ({exc})"
+        ) from None
+    with zf:
+        infos = zf.infolist()
+        if len(infos) > settings.max_zip_entries:
+            raise too_large(
+                f"{display_name}: {len(infos)} entries exceeds the limit of {settings.max_zip_entries}"
+            )
+        total = 0
+        images = 0
+        for info in infos:
+            if unsafe_member_name(info.filename):
+                raise invalid_input(
+                    f"{display_name}: unsafe path in archive: {info.filename!r}"
+                )
+            if info.is_dir():
+                continue
+            total += info.file_size
+            if total > settings.max_zip_uncompressed_bytes:
+                raise too_large(
+                    f"{display_name}: uncompressed size exceeds the limit of {settings.max_zip_uncompressed_bytes} bytes"
+                )
+            if info.file_size > 1024 and info.file_size > settings.max_zip_ratio * max(
+                info.compress_size, 1
+            ):
+                raise invalid_input(
+                    f"{display_name}: {info.filename!r} has a suspicious compression ratio"
+                )
+            if PurePosixPath(info.filename).suffix.lower() in IMAGE_EXTS:
+                images += 1
+                with zf.open(info) as fh:  # only the first 64 KiB, for dimensions
+                    check_image(
+                        fh.read(65536), f"{display_name}:{info.filename}", settings
+                    )
+        if images == 0:
+            raise invalid_input(f"{display_name}: the archive holds no PNG/JPEG images")
+        if images > settings.max_images:
+            raise too_large(
+                f"{display_name}: {images} images exceeds the limit of {settings.max_images}"
+            )
+        return images
+
+
+def safe_extract(path: Path, dest: Path, settings) -> Path:
+    """Extract the images of a zip that passed validate_zip (checked again here).
+
+    Files are flattened to numbered names: the reconstruction reads one folder,
+    and no archive path is ever used as a filesystem path."""
+    validate_zip(path, settings, path.name)
+    dest.mkdir(parents=True, exist_ok=True)
+    root = dest.resolve()
+    n = 0
+    with zipfile.ZipFile(path) as zf:
+        for info in zf.infolist():
+            name = PurePosixPath(info.filename)
+            if info.is_dir() or name.suffix.lower() not in IMAGE_EXTS:
+                continue
+            if name.name.startswith("."):  # macOS resource forks and other hidden files
+                continue
+            out = root / f"{n:05d}{name.suffix.lower()}"
+            n += 1
+            with zf.open(info) as src, open(out, "wb") as dst:
+                remaining = info.file_size + 1
+                while chunk := src.read(1 << 20):
+                    remaining -= len(chunk)
+                    if remaining < 0:  # the directory lied about the size
+                        raise invalid_input(
+                            f"{info.filename!r} is larger than its declared size"
+                        )
+                    dst.write(chunk)
+    return dest

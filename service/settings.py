@@ -1,0 +1,97 @@
+"""Service settings from the environment (prefix GSA_), via pydantic-settings.
+
+Every knob a deployment needs lives here so the API, the workers and the gRPC
+server read one definition. Nested/compound values (API keys) are JSON in env.
+"""
+
+from __future__ import annotations
+
+import json
+from functools import lru_cache
+from pathlib import Path
+from typing import Annotated, Literal
+
+from pydantic import Field, field_validator
+from pydantic_settings import BaseSettings, NoDecode, SettingsConfigDict
+
+
+class Settings(BaseSettings):
+    model_config = SettingsConfigDict(env_prefix="GSA_", extra="ignore")
+
+    # None => embedded mode: SQLite job store + in-process worker thread.
+    redis_url: str | None = None
+    queue_name: str = "gsa"
+    # Embedded-mode job database; defaults to <storage_root>/jobs.sqlite3.
+    sqlite_path: Path | None = None
+
+    storage_backend: Literal["local", "s3"] = "local"
+    storage_root: Path = Path("./gsa-data")
+    s3_bucket: str | None = None
+    s3_prefix: str = "gsa/"
+    s3_endpoint_url: str | None = None
+
+    # JSON object {"<key>": "<owner>"}; a key only sees its owner's jobs/assets.
+    api_keys: Annotated[dict[str, str], NoDecode] = Field(default_factory=dict)
+    # Dev only: every request is owner "anonymous". Must be set explicitly.
+    auth_disabled: bool = False
+
+    max_upload_bytes: int = 512 * 1024 * 1024  # per file
+    max_gaussians: int = 5_000_000
+    max_sources: int = 16  # N in "N models to one reference"
+    max_images: int = 500
+    max_image_pixels: int = 40_000_000
+    max_zip_entries: int = 2_000
+    max_zip_uncompressed_bytes: int = 4 * 1024 * 1024 * 1024
+    max_zip_ratio: float = 200.0
+
+    worker_device: str = "cpu"
+    spheremap_weights: Path | None = None
+    dinov2_weights: Path | None = None
+
+    max_attempts: int = 3
+    job_timeout_s: float = 3600.0
+    # A running job's lease; the worker renews it every lease_s/3. A job whose
+    # lease expired lost its worker and is requeued by the reaper.
+    lease_s: float = 30.0
+    reaper_interval_s: float = 5.0
+    embedded_workers: int = 1
+
+    webhook_secret: str | None = None
+    webhook_max_attempts: int = 5
+    webhook_timeout_s: float = 5.0
+    # Webhook targets are server-side requests: refuse private/loopback hosts
+    # unless explicitly allowed (SSRF).
+    webhook_allow_private: bool = False
+
+    # /docs and /openapi.json hold no data; serve them without a key unless turned off.
+    public_docs: bool = True
+
+    grpc_port: int | None = None
+
+    @field_validator("api_keys", mode="before")
+    @classmethod
+    def _parse_keys(cls, v):
+        # JSON object, or "key1:owner1,key2:owner2" for shell convenience.
+        if isinstance(v, str) and v.lstrip().startswith("{"):
+            return json.loads(v)
+        if isinstance(v, str):
+            out = {}
+            for part in v.split(","):
+                key, _, owner = part.strip().partition(":")
+                if key:
+                    out[key] = owner or key[:8]
+            return out
+        return v
+
+    @property
+    def embedded(self) -> bool:
+        return not self.redis_url
+
+    @property
+    def sqlite_file(self) -> Path:
+        return self.sqlite_path or (self.storage_root / "jobs.sqlite3")
+
+
+@lru_cache
+def get_settings() -> Settings:
+    return Settings()

@@ -1,0 +1,162 @@
+"""At-least-once: a worker killed with SIGKILL mid-job; the job finishes on another."""
+
+from __future__ import annotations
+
+import time
+
+import httpx
+
+from tests.service.conftest import (
+    ALICE,
+    service_env,
+    start_api,
+    start_worker,
+    wait_job,
+)
+
+
+def test_sigkilled_worker_job_finishes_elsewhere(tmp_path, redis_url, pair):
+    env = service_env(
+        tmp_path, GSA_REDIS_URL=redis_url + "/1", GSA_QUEUE_NAME="killtest"
+    )
+    api, url, _ = start_api(tmp_path, env, name="api-kill")
+    victim = start_worker(tmp_path, env, name="victim")
+    rescuer = None
+    try:
+        with httpx.Client(base_url=url, headers=ALICE, timeout=60) as http:
+            ids = []
+            for k in ("big_source", "big_target"):
+                with open(pair[k], "rb") as fh:
+                    ids.append(
+                        http.post(
+                            "/v1/assets", files={"file": (k + ".ply", fh)}
+                        ).json()["id"]
+                    )
+            job = http.post(
+                "/v1/jobs",
+                json={
+                    "sources": [ids[0]] * 4,
+                    "target": ids[1],
+                    "options": {"coarse_iterations": 100, "outputs": ["result"]},
+                },
+            ).json()
+            running = wait_job(http, job["id"], states=("running",), timeout=60)
+            assert running["attempts"] == 1
+            horses = victim.kill_tree()  # SIGKILL the worker and its forked work horse
+            assert victim.p.returncode == -9 and horses, (
+                "the job should be running in a work horse"
+            )
+            # nobody is running it now; the job must not stay "running" forever
+            rescuer = start_worker(tmp_path, env, name="rescuer")
+            done = wait_job(http, job["id"], timeout=120)
+            assert done["state"] == "succeeded", (done, rescuer.tail())
+            assert done["attempts"] == 2
+            assert len(done["result"]["results"]) == 4
+            assert {a["name"] for a in done["artifacts"]} == {
+                f"s{i}/result.json" for i in range(4)
+            }
+            # only the successful attempt's artifacts exist in storage
+            attempts_dirs = list(
+                (tmp_path / "data" / "blobs" / "jobs" / job["id"]).iterdir()
+            )
+            assert len(attempts_dirs) == 1
+    finally:
+        for p in (victim, rescuer, api):
+            if p is not None:
+                p.stop()
+
+
+def test_lost_job_is_failed_when_attempts_are_spent(tmp_path):
+    import time
+
+    from service.backend import make_backend
+    from service.jobs import InputRef, Job, JobState
+    from service.settings import Settings
+    from service.worker import reap
+
+    b = make_backend(Settings(storage_root=tmp_path, max_attempts=2))
+    ref = InputRef(asset_id="a", key="uploads/x/y", kind="ply")
+    now = time.time()
+    for jid, attempts in (("j1", 1), ("j2", 2)):
+        b.store.create(
+            Job(
+                id=jid,
+                owner="o",
+                created_at=now,
+                updated_at=now,
+                max_attempts=2,
+                sources=[ref],
+                target=ref,
+                state=JobState.running,
+                attempts=attempts,
+                run_token="t",
+                lease_until=now - 1,
+            )
+        )
+    b.store.create(
+        Job(
+            id="j3",
+            owner="o",
+            created_at=now,
+            updated_at=now,
+            sources=[ref],
+            target=ref,
+            state=JobState.running,
+            attempts=1,
+            run_token="t",
+            lease_until=now + 60,
+        )
+    )
+    assert sorted(reap(b)) == ["j1", "j2"]
+    assert (
+        b.store.get("j1").state == JobState.queued
+        and b.store.get("j1").run_token is None
+    )
+    j2 = b.store.get("j2")
+    assert j2.state == JobState.failed and j2.error["type"].endswith("/worker-lost")
+    assert b.store.get("j3").state == JobState.running  # lease still valid
+    # a stale worker holding the old token can no longer write
+    assert not b.store.update("j1", token="t", states={JobState.running}, progress=0.5)
+
+
+def test_lost_queue_message_is_resent(redis_url, tmp_path):
+    """A worker that dies between dequeuing and claiming leaves the job queued in
+    the store with no live queue message; the reaper sends it again."""
+    import redis as redislib
+    from rq.job import Job as RQJob
+
+    from service.backend import make_backend
+    from service.core import create_job
+    from service.jobs import Asset
+    from service.settings import Settings
+    from service.worker import resend_lost
+
+    redislib.Redis.from_url(redis_url + "/3").flushdb()  # private test server, db 3
+    b = make_backend(
+        Settings(
+            redis_url=redis_url + "/3",
+            storage_root=tmp_path,
+            queue_name="losttest",
+            lease_s=1,
+        )
+    )
+    a = Asset(
+        id="ast_1",
+        owner="o",
+        kind="ply",
+        key="uploads/x/a.ply",
+        size=1,
+        content_type="x",
+        sha256="0",
+        created_at=0,
+    )
+    job = create_job(b, "o", "job_lost", [a], a, {}, None, None)
+    ref = b.store.get(job.id).queue_ref
+    assert ref and b.queue.q.job_ids == [ref]
+    assert resend_lost(b) == []  # a live message within the grace period: left alone
+    b.queue.q.remove(ref)  # the message vanishes (dequeued by a worker that then died)
+    RQJob.fetch(ref, connection=b.redis).delete()
+    b.store.update(job.id, enqueued_at=time.time() - 10)
+    assert resend_lost(b) == [job.id]
+    new_ref = b.store.get(job.id).queue_ref
+    assert new_ref != ref and b.queue.q.job_ids == [new_ref]
