@@ -15,7 +15,8 @@ printed note by the protocols, never a crash.
             composed with the rigid result.
   splatreg  splatreg.register(target, source, transform="sim3") with its
             defaults (FPFH + batched-RANSAC seed, then LM over ICP + Gaussian-SDF
-            residuals). Note its argument order: target first.
+            residuals). Note its argument order: target first. Opt-in and
+            run on a 300-Gaussian subsample: minutes per pair on CPU (see SplatReg).
 """
 
 from __future__ import annotations
