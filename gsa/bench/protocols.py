@@ -137,7 +137,7 @@ def summarise(protocol: str, method: str, records: list[dict]) -> dict:
     def mean(key):
         return float(np.mean([r[key] for r in ok])) if ok else float("nan")
 
-    return {
+    row = {
         "protocol": protocol,
         "method": method,
         "pairs": len(records),
@@ -151,6 +151,9 @@ def summarise(protocol: str, method: str, records: list[dict]) -> dict:
         "seconds_per_pair": float(np.mean([r["seconds"] for r in records])),
         "records": records,
     }
+    if any("category" in r for r in records):
+        row["per_category_mean_rre_deg"] = _per_category(records)
+    return row
 
 
 def add_time_ratio(rows: list[dict], reference: str = GSA_COARSE) -> None:
