@@ -278,6 +278,25 @@ def submit_pair(
         )
 
 
+def submit_slow_job(http: httpx.Client, pair: dict, copies: int) -> tuple[dict, list[str]]:
+    """Upload the big pair as assets and submit one multi-model job aligning
+    `copies` copies of the source: long enough to kill or restart things mid-run.
+    Returns (job, [source asset id, target asset id])."""
+    ids = []
+    for k in ("big_source", "big_target"):
+        with open(pair[k], "rb") as fh:
+            ids.append(http.post("/v1/assets", files={"file": (k + ".ply", fh)}).json()["id"])
+    job = http.post(
+        "/v1/jobs",
+        json={
+            "sources": [ids[0]] * copies,
+            "target": ids[1],
+            "options": {"coarse_iterations": 100, "outputs": ["result"]},
+        },
+    ).json()
+    return job, ids
+
+
 def wait_job(
     c: httpx.Client,
     job_id: str,

@@ -8,7 +8,7 @@ import subprocess
 
 import httpx
 
-from tests.service.conftest import ALICE, PY, ROOT, service_env, start_api, wait_job
+from tests.service.conftest import ALICE, PY, ROOT, service_env, start_api, submit_slow_job, wait_job
 
 
 def _cli(env, url, *args):
@@ -56,22 +56,7 @@ def test_embedded_restart_keeps_jobs_and_cli(tmp_path, pair):
         assert r.returncode == 1 and "404" in r.stderr
 
         with httpx.Client(base_url=url, headers=ALICE, timeout=60) as http:
-            ids = []
-            for k in ("big_source", "big_target"):
-                with open(pair[k], "rb") as fh:
-                    ids.append(
-                        http.post(
-                            "/v1/assets", files={"file": (k + ".ply", fh)}
-                        ).json()["id"]
-                    )
-            slow = http.post(
-                "/v1/jobs",
-                json={
-                    "sources": [ids[0]] * 3,
-                    "target": ids[1],
-                    "options": {"coarse_iterations": 100, "outputs": ["result"]},
-                },
-            ).json()
+            slow, ids = submit_slow_job(http, pair, copies=3)
             wait_job(http, slow["id"], states=("running",), timeout=60)
             queued = http.post(
                 "/v1/jobs",

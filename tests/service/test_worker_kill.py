@@ -11,6 +11,7 @@ from tests.service.conftest import (
     service_env,
     start_api,
     start_worker,
+    submit_slow_job,
     wait_job,
 )
 
@@ -24,22 +25,7 @@ def test_sigkilled_worker_job_finishes_elsewhere(tmp_path, redis_url, pair):
     rescuer = None
     try:
         with httpx.Client(base_url=url, headers=ALICE, timeout=60) as http:
-            ids = []
-            for k in ("big_source", "big_target"):
-                with open(pair[k], "rb") as fh:
-                    ids.append(
-                        http.post(
-                            "/v1/assets", files={"file": (k + ".ply", fh)}
-                        ).json()["id"]
-                    )
-            job = http.post(
-                "/v1/jobs",
-                json={
-                    "sources": [ids[0]] * 4,
-                    "target": ids[1],
-                    "options": {"coarse_iterations": 100, "outputs": ["result"]},
-                },
-            ).json()
+            job, _ = submit_slow_job(http, pair, copies=4)
             running = wait_job(http, job["id"], states=("running",), timeout=60)
             assert running["attempts"] == 1
             horses = victim.kill_tree()  # SIGKILL the worker and its forked work horse
