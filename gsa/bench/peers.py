@@ -25,6 +25,7 @@ import functools
 import importlib.util
 import subprocess
 import sys
+from abc import ABC, abstractmethod
 from dataclasses import dataclass
 
 import numpy as np
@@ -34,7 +35,7 @@ from gsa.model import GaussianModel
 from gsa.sim3 import Sim3
 
 
-class Peer:
+class Peer(ABC):
     name: str = ""
     label: str = ""  # what the tables print
 
@@ -42,8 +43,9 @@ class Peer:
         """None when the peer can run, else a one-line reason."""
         return None
 
+    @abstractmethod
     def register(self, source: GaussianModel, target: GaussianModel, seed: int = 0) -> Sim3:
-        raise NotImplementedError
+        """Implemented by each subclass."""
 
 
 def _normalisation(points: np.ndarray) -> tuple[np.ndarray, float]:

@@ -8,6 +8,7 @@ and the coarse stage's feature threshold treat them alike.
 from __future__ import annotations
 
 import os
+from abc import ABC, abstractmethod
 from dataclasses import dataclass, fields
 from typing import ClassVar
 
@@ -67,7 +68,7 @@ class FeatureSettings:
         return cls(**kw)
 
 
-class FeatureExtractor:
+class FeatureExtractor(ABC):
     """Base class. `extract` handles one image; `extract_views` a rendered view set
     (images (C,H,W,3), masks (C,H,W)) and may use the model and cameras it came from."""
 
@@ -78,8 +79,9 @@ class FeatureExtractor:
         """image (H,W,3) float in [0,1], mask (H,W) bool -> (H,W,3) float32, 0 outside mask."""
         return self.extract_views(np.asarray(image)[None], np.asarray(mask)[None])[0]
 
+    @abstractmethod
     def extract_views(self, images: np.ndarray, masks: np.ndarray, *, model=None, cameras=None) -> np.ndarray:
-        raise NotImplementedError
+        """Implemented by each subclass."""
 
 
 def _check_views(images: np.ndarray, masks: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
