@@ -134,3 +134,16 @@ def test_progress_callback_can_cancel():
     with pytest.raises(Cancelled):
         align(m, m.transformed(random_sim3(np.random.default_rng(1))), progress=progress)
     assert "features" in seen and seen[-1] == "coarse"
+
+
+def test_pipeline_runs_the_fine_stage_after_coarse():
+    source = make_object("boat", seed=6, n_gaussians=3000, sample_seed=1)
+    truth = random_sim3(np.random.default_rng(12))
+    target = make_object("boat", seed=6, n_gaussians=3000, sample_seed=2).transformed(truth)
+    opts = AlignOptions(stages=("coarse", "fine"), fine_iterations=10, fine_image_size=64, fine_views=3)
+    result = align(source, target, opts)
+    d = result.to_dict()
+    assert len(d["stages"]["fine"]["loss_history"]) == 11  # the start, then one per iteration
+    assert d["stages"]["fine"]["best_loss"] <= d["stages"]["fine"]["loss_history"][0]
+    assert rre_deg(result.transform.rotation, truth.rotation) < 1.0
+    assert "fine" in result.timings

@@ -399,7 +399,11 @@ class _Pair:
 
         src_model, dst_model = self.source, self.target
         if self.mode == "canonical":
-            src_model = self.source.with_features(self.source_features(best.frame))
+            # Each model's own canonical frame carries its estimation error, and the
+            # fine loss would pull the pose back toward that error. Give the source
+            # the target's canonical features at the coarse pose instead, so the two
+            # agree wherever the geometry does.
+            src_model = self.source.with_features(canonical_features(init.apply(self.src_pts), self.dst_frame))
             dst_model = self.target.with_features(self.dst_feat)
         opts = self.opts
         return fine_align(
