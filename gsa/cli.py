@@ -276,30 +276,19 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--peers", default="default", help="comma list of icp,open3d,splatreg, or default (icp,open3d), all, none")
     p.set_defaults(func=cmd_bench)
 
-    _add_optional_commands(sub)
+    _add_module_commands(sub)
     return parser
 
 
-def _add_optional_commands(sub) -> None:
-    """Commands from modules that may be absent (render backend, service extra)."""
-    try:
-        from gsa.render.command import add_render_parser
-    except ImportError:
-        pass
-    else:
-        add_render_parser(sub)
-    try:
-        from gsa.features.command import add_lift_parser
-    except ImportError:
-        pass
-    else:
-        add_lift_parser(sub)
-    try:
-        from gsa.recon.command import add_reconstruct_parser
-    except ImportError:
-        pass
-    else:
-        add_reconstruct_parser(sub)
+def _add_module_commands(sub) -> None:
+    """Commands defined beside their modules; the service verbs only with the service extra."""
+    from gsa.features.command import add_lift_parser
+    from gsa.recon.command import add_reconstruct_parser
+    from gsa.render.command import add_render_parser
+
+    add_render_parser(sub)
+    add_lift_parser(sub)
+    add_reconstruct_parser(sub)
     try:
         # service/ depends on gsa/, never the reverse: imported only here, lazily.
         from service.cli import add_service_parsers

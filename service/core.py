@@ -62,36 +62,18 @@ def ingest(
             raise invalid_input(
                 f"{name}: not a PLY file (it does not start with 'ply')"
             )
+        fields = dict(
+            id=new_id("ast"), owner=owner, key=key, size=size, filename=filename,
+            sha256=h.sha.hexdigest(), created_at=time.time(),
+        )
         with tempfile.TemporaryDirectory() as tmp:
             path = _local(b, key, Path(tmp))
             if kind == "ply":
                 n = validate_ply(path, s.max_gaussians, name)
-                asset = Asset(
-                    id=new_id("ast"),
-                    owner=owner,
-                    kind="ply",
-                    key=key,
-                    size=size,
-                    filename=filename,
-                    content_type="application/x-ply",
-                    n_gaussians=n,
-                    sha256=h.sha.hexdigest(),
-                    created_at=time.time(),
-                )
+                asset = Asset(**fields, kind="ply", content_type="application/x-ply", n_gaussians=n)
             elif kind == "zip":
                 n = validate_zip(path, s, name)
-                asset = Asset(
-                    id=new_id("ast"),
-                    owner=owner,
-                    kind="images",
-                    key=key,
-                    size=size,
-                    filename=filename,
-                    content_type="application/zip",
-                    n_images=n,
-                    sha256=h.sha.hexdigest(),
-                    created_at=time.time(),
-                )
+                asset = Asset(**fields, kind="images", content_type="application/zip", n_images=n)
             else:
                 raise invalid_input(
                     f"{name}: not a 3DGS .ply or a .zip of images (unrecognised file type)"

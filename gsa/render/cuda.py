@@ -21,7 +21,7 @@ def render_gsplat(means, cov3d, opacities, viewmats, intrinsics, width: int, hei
     """Same contract as gsa.render.render_gaussians; tensors are moved to CUDA (differentiably)."""
     import gsplat
 
-    from gsa.render import RenderOutput
+    from gsa.render.rasterizer import split_channels
 
     dev = torch.device("cuda")
     dtype = torch.float32  # gsplat kernels are float32
@@ -56,13 +56,4 @@ def render_gsplat(means, cov3d, opacities, viewmats, intrinsics, width: int, hei
         near_plane=0.01, eps2d=0.3, sh_degree=None, packed=False, backgrounds=bg, render_mode="RGB",
         covars=cov3d,
     )
-    i = 0
-    col = feat = dep = None
-    if colors is not None:
-        col, i = out[..., 0:3], 3
-    if features is not None:
-        feat, i = out[..., i:i + features.shape[1]], i + features.shape[1]
-    if depth:
-        acc = out[..., i:i + 1]
-        dep = torch.where(alpha > 1e-6, acc / alpha.clamp_min(1e-6), torch.zeros_like(acc))
-    return RenderOutput(col, feat, alpha, dep)
+    return split_channels(out, alpha, colors is not None, None if features is None else features.shape[1], depth)

@@ -133,12 +133,19 @@ def render_gaussians(means, cov3d, opacities, viewmats, intrinsics, width: int, 
         from gsa.render.reference import composite_reference
 
         out, alpha = composite_reference(means2d, conics, op, chan, z, valid, bg, width, height)
+    return split_channels(out, alpha, colors is not None, None if features is None else features.shape[1], depth)
+
+
+def split_channels(out: torch.Tensor, alpha: torch.Tensor, has_colors: bool, feature_dim: int | None,
+                   depth: bool) -> RenderOutput:
+    """Unstack composited channels [colour(3) | features(D) | depth·alpha(1)] (C,H,W,·):
+    every backend composites them as one stack."""
     i = 0
     col = feat = dep = None
-    if colors is not None:
+    if has_colors:
         col, i = out[..., 0:3], 3
-    if features is not None:
-        feat, i = out[..., i:i + features.shape[1]], i + features.shape[1]
+    if feature_dim is not None:
+        feat, i = out[..., i:i + feature_dim], i + feature_dim
     if depth:
         acc = out[..., i:i + 1]
         dep = torch.where(alpha > 1e-6, acc / alpha.clamp_min(1e-6), torch.zeros_like(acc))
