@@ -1,5 +1,5 @@
 """`gsa lift MODEL.ply --out lifted.ply --features canonical|spheremap|dinov2 [...]`
-(wired into gsa.cli by the lead: `add_lift_parser(sub)` in `_add_optional_commands`)."""
+(registered by gsa.cli)."""
 
 from __future__ import annotations
 

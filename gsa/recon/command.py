@@ -1,4 +1,4 @@
-"""`gsa reconstruct IMAGES_DIR_OR_ZIP --out DIR [--preset cpu|gpu]` (wired by gsa/cli.py)."""
+"""`gsa reconstruct IMAGES_DIR_OR_ZIP --out DIR [--preset cpu|gpu]`."""
 
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""`gsa render MODEL.ply --out DIR [--views N] [--features]` (wired into gsa.cli by the lead)."""
+"""`gsa render MODEL.ply --out DIR [--views N] [--features]`."""
 
 from __future__ import annotations
 
