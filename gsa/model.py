@@ -30,6 +30,11 @@ def sh_degree_from_count(count: int) -> int:
     return degree
 
 
+# Feature provenances (metadata["features"], PLY comment "gsa_features") whose values are
+# coordinates in the model's own canonical frame rather than properties of the surface.
+FRAME_RELATIVE_FEATURES = ("canonical", "lifted:canonical")
+
+
 @dataclass
 class GaussianModel:
     """N Gaussians.
@@ -47,6 +52,14 @@ class GaussianModel:
     sh: np.ndarray
     features: np.ndarray | None = None
     metadata: dict = field(default_factory=dict)
+
+    @property
+    def features_frame_relative(self) -> bool:
+        """True when the features are canonical coordinates in this model's own frame
+        (metadata "features" = "canonical" or "lifted:canonical", as written by
+        `gsa.features` and `gsa reconstruct`): two such models' features are not comparable
+        point for point, because each frame carries its own axis labelling and error."""
+        return self.metadata.get("features") in FRAME_RELATIVE_FEATURES
 
     def __post_init__(self) -> None:
         self.means = np.ascontiguousarray(self.means, dtype=np.float32)
@@ -160,7 +173,9 @@ class GaussianModel:
         )
 
     def with_features(self, features: np.ndarray | None) -> GaussianModel:
-        return replace(self, features=features, metadata=dict(self.metadata))
+        # The old features' provenance does not describe the new ones; the caller sets it.
+        meta = {k: v for k, v in self.metadata.items() if k != "features"}
+        return replace(self, features=features, metadata=meta)
 
     def with_sh_degree(self, degree: int) -> GaussianModel:
         """Truncate or zero-pad the SH coefficients to `degree`."""

@@ -49,6 +49,29 @@ def test_file_features_guide_the_alignment():
     assert result.transform.scale == pytest.approx(4.0, rel=1e-4)
 
 
+def test_saved_canonical_features_are_recomputed_not_matched(tmp_path):
+    """A reconstruction stores canonical features in its own frame; two such files can label
+    the axes differently, so auto recomputes them (matched as they are, they pull the pose
+    to the wrong frame, as the two-rig reconstruction benchmark once showed: 179.9° RRE)."""
+    from gsa.io.ply import read_ply, write_ply
+
+    base = make_object("car", seed=4, n_gaussians=4000)
+    truth = Sim3.from_quaternion(2.0, [0.2, 0.9, 0.1, 0.3], [1.0, 0.5, -2.0])
+    feats = canonical_features(base)
+    mirrored = feats.copy()
+    mirrored[:, :2] = 1.0 - mirrored[:, :2]  # the same frame with two axes labelled the other way
+    source = base.with_features(feats)
+    target = base.transformed(truth).with_features(mirrored)
+    for m in (source, target):
+        m.metadata["features"] = "lifted:canonical"
+    source = read_ply(write_ply(source, tmp_path / "a.ply"))
+    target = read_ply(write_ply(target, tmp_path / "b.ply"))
+    assert source.features_frame_relative and target.features_frame_relative
+    result = align(source, target, AlignOptions(features="auto"))
+    assert result.features == "canonical"
+    assert rre_deg(result.transform.rotation, truth.rotation) < 0.01
+
+
 def test_features_that_disagree_are_a_clear_error():
     source = make_object("car", seed=1, n_gaussians=2000)
     target = make_object("car", seed=1, n_gaussians=2000)

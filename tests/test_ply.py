@@ -22,6 +22,17 @@ def test_round_trip_any_degree_with_features(tmp_path, car_model, degree):
     _assert_same(m, read_ply(write_ply(m, tmp_path / "m.ply")))
 
 
+def test_feature_provenance_round_trips_as_a_header_comment(tmp_path, car_model):
+    m = car_model.with_features(np.zeros((len(car_model), 3)))
+    m.metadata["features"] = "lifted:spheremap"
+    back = read_ply(write_ply(m, tmp_path / "m.ply"))
+    assert back.metadata["features"] == "lifted:spheremap"
+    assert not back.features_frame_relative
+    assert "features" not in back.with_features(np.ones((len(m), 3))).metadata  # stale provenance dropped
+    plain = read_ply(write_ply(car_model, tmp_path / "plain.ply"))
+    assert "features" not in plain.metadata
+
+
 def test_header_uses_inria_names_and_order(tmp_path, car_model):
     path = write_ply(car_model, tmp_path / "m.ply")
     header = path.read_bytes().split(b"end_header\n")[0].decode()

@@ -232,7 +232,10 @@ def _feature_mode(source: GaussianModel, target: GaussianModel, requested: str) 
     if requested in EXTRACTOR_MODES:
         raise AlignmentError(f"features={requested!r} must be lifted first (gsa.features.prepare_pair)")
     if requested == "auto":
-        return "file" if both else "canonical"
+        # Canonical features saved in a file are coordinates in that model's own frame:
+        # recompute them in frames the pipeline can relabel rather than match them as they are.
+        relative = source.features_frame_relative or target.features_frame_relative
+        return "file" if both and not relative else "canonical"
     if requested == "file" and not both:
         raise AlignmentError(
             f"features='file' needs both models to carry features of one dimension "

@@ -40,7 +40,8 @@ def prepare_for_alignment(model: GaussianModel, mode: str = "auto", settings: Fe
                (exact; no rendering or lifting needed);
     spheremap | dinov2: 2D features from that extractor lifted onto the model, then
                background Gaussians (|f| < settings.prune_threshold) pruned;
-    auto:      file features when present, else settings.extractor when its weights are
+    auto:      file features when present (and not frame-relative canonical ones, see
+               GaussianModel.features_frame_relative), else settings.extractor when its weights are
                configured (spheremap/dinov2), else canonical.
     `extractor` reuses an already-built extractor (weights loaded once; for dinov2 the same
     PCA basis for both models of a pair). A LiftReport is appended to `reports` when lifting ran.
@@ -79,7 +80,7 @@ def resolve_mode(mode: str, settings: FeatureSettings, *models: GaussianModel) -
     if mode != "auto":
         return mode
     dims = {m.feature_dim for m in models}
-    if len(dims) == 1 and 0 not in dims:
+    if len(dims) == 1 and 0 not in dims and not any(m.features_frame_relative for m in models):
         return "file"
     if settings.extractor in ("spheremap", "dinov2") and weights_configured(settings.extractor, settings):
         return settings.extractor

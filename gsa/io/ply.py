@@ -24,6 +24,8 @@ PLY_TYPES = {
 }  # fmt: skip
 FORMATS = {"binary_little_endian": "<", "binary_big_endian": ">", "ascii": None}
 MAX_HEADER_BYTES = 1 << 16
+# Header comment recording where the semantic_* features came from (GaussianModel.metadata["features"]).
+FEATURES_COMMENT = "gsa_features"
 DEFAULT_MAX_GAUSSIANS = 50_000_000
 REQUIRED = ["x", "y", "z", "f_dc_0", "f_dc_1", "f_dc_2", "opacity",
             "scale_0", "scale_1", "scale_2", "rot_0", "rot_1", "rot_2", "rot_3"]  # fmt: skip
@@ -38,7 +40,8 @@ class PlyError(ValueError):
         super().__init__(f"{self.path}: {problem}")
 
 
-def _parse_header(path: Path, fh) -> tuple[str, int, list[tuple[str, int, list[tuple[str, str]]]]]:
+def _parse_header(path: Path, fh, comments: list[str] | None = None
+                  ) -> tuple[str, int, list[tuple[str, int, list[tuple[str, str]]]]]:
     head = fh.read(MAX_HEADER_BYTES)
     if not head.startswith(b"ply"):
         raise PlyError(path, "not a PLY file (it does not start with 'ply')")
@@ -55,6 +58,8 @@ def _parse_header(path: Path, fh) -> tuple[str, int, list[tuple[str, int, list[t
     for lineno, line in enumerate(lines[1:-1], start=2):
         tok = line.split()
         if not tok or tok[0] in ("comment", "obj_info"):
+            if comments is not None and tok and tok[0] == "comment":
+                comments.append(line[len("comment"):].strip())
             continue
         if tok[0] == "format":
             if len(tok) != 3 or tok[1] not in FORMATS:
@@ -110,8 +115,9 @@ def read_ply(path: str | os.PathLike, *, max_gaussians: int = DEFAULT_MAX_GAUSSI
         fh = open(path, "rb")
     except OSError as exc:
         raise PlyError(path, f"cannot open: {exc.strerror or exc}") from None
+    comments: list[str] = []
     with fh:
-        fmt, header_len, elements = _parse_header(path, fh)
+        fmt, header_len, elements = _parse_header(path, fh, comments)
     if not elements or elements[0][0] != "vertex":
         raise PlyError(path, "the first element must be 'vertex' (the Gaussians)")
     _, count, props = elements[0]
@@ -186,6 +192,9 @@ def read_ply(path: str | os.PathLike, *, max_gaussians: int = DEFAULT_MAX_GAUSSI
     # Stored quaternions are unnormalised by convention; normalise once here.
     model.quats /= np.linalg.norm(model.quats, axis=1, keepdims=True)
     model.metadata["source_path"] = str(path)
+    provenance = next((c.split()[1] for c in comments if c.startswith(FEATURES_COMMENT + " ")), None)
+    if provenance and feat_dim:
+        model.metadata["features"] = provenance
     return model
 
 
@@ -234,6 +243,9 @@ def write_ply(model: GaussianModel, path: str | os.PathLike) -> Path:
     if model.feature_dim:
         table[:, col + 8 :] = model.features
     header = "ply\nformat binary_little_endian 1.0\n"
+    provenance = model.metadata.get("features")
+    if model.feature_dim and isinstance(provenance, str) and re.fullmatch(r"[\w:.\-]+", provenance):
+        header += f"comment {FEATURES_COMMENT} {provenance}\n"
     header += f"element vertex {n}\n"
     header += "".join(f"property float {name}\n" for name in names)
     header += "end_header\n"
