@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import shutil
 import zipfile
 
 import cv2
@@ -127,6 +128,20 @@ def test_too_few_register(tmp_path):
         run_sfm(s, tmp_path / "w")
 
 
+def test_mapping_retries_until_every_view_registers(rendered, tmp_path):
+    from gsa.recon.sfm import run_sfm
+
+    d = tmp_path / "set"
+    d.mkdir()
+    for n in rendered.names:
+        shutil.copy(rendered.directory / n, d / n)
+    noise = _noise_images(tmp_path / "noise", 1, size=(256, 256))
+    shutil.copy(next(p for p in noise.iterdir()), d / "zz_noise.png")
+    sfm = run_sfm(load_image_set(d), tmp_path / "w", min_registered=0.5, mapping_attempts=2)
+    assert sfm.mapping_attempts == 2  # a view that cannot register is retried, not silently dropped
+    assert "zz_noise.png" in sfm.unregistered and sfm.n_registered >= len(rendered.names) // 2
+
+
 def test_masks_separate_object(rendered):
     cams = rendered.cameras[:3]
     imgs = np.stack([cv2.cvtColor(cv2.imread(str(rendered.directory / n)), cv2.COLOR_BGR2RGB) / 255.0
@@ -152,6 +167,8 @@ def test_training_lowers_loss_and_writes_features(recon):
     assert len(feat) >= 2 and feat[-1] < feat[0]
     m = read_ply(recon.model_path)
     assert m.feature_dim == 3 and len(m) > 100
+    assert m.metadata["features"] == "lifted:canonical"  # so `gsa align` recomputes them
+    assert max(c["n"] for c in curve) > curve[0]["n"], "densification never added a Gaussian"
     assert np.linalg.norm(m.features, axis=1).min() >= 0.1  # App. E pruning
     assert recon.train.psnr_heldout is not None and recon.train.psnr_heldout > 15
     rep = json.loads((recon.out_dir / "report.json").read_text())

@@ -48,7 +48,8 @@ class ReconstructionResult:
     def summary(self) -> dict:
         return {
             "images": self.sfm.n_images, "registered": self.sfm.n_registered,
-            "unregistered": self.sfm.unregistered, "sfm_points": int(len(self.sfm.points)),
+            "unregistered": self.sfm.unregistered, "mapping_attempts": self.sfm.mapping_attempts,
+            "sfm_points": int(len(self.sfm.points)),
             "gaussians": len(self.model), "feature_dim": self.model.feature_dim,
             "psnr_heldout_db": self.train.psnr_heldout, "psnr_heldout_masked_db": self.train.psnr_heldout_masked,
             "heldout_views": self.train.heldout, "masks": sorted(set(self.mask_methods)),

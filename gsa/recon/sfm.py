@@ -41,6 +41,7 @@ class SfMResult:
     unregistered: list[str] = field(default_factory=list)
     timings: dict = field(default_factory=dict)
     sparse_dir: Path | None = None
+    mapping_attempts: int = 1
 
     @property
     def n_registered(self) -> int:
@@ -55,14 +56,30 @@ def _pycolmap():
     return pycolmap
 
 
+def _mapping_options(pycolmap, seed: int):
+    opts = pycolmap.IncrementalPipelineOptions()
+    opts.random_seed = seed
+    opts.mapper.random_seed = seed
+    opts.triangulation.random_seed = seed
+    opts.min_model_size = 3
+    # Small object sets have fewer matches than scene captures.
+    opts.mapper.init_min_num_inliers = 50
+    opts.mapper.abs_pose_min_num_inliers = 15
+    opts.mapper.abs_pose_min_inlier_ratio = 0.2
+    opts.min_num_matches = 15
+    opts.mapper.filter_max_reproj_error = 2.0  # renders/photos of objects: tighter than 4 px
+    return opts
+
+
 def run_sfm(images: ImageSet, work_dir: str | Path, *, matching: str = "exhaustive",
             min_registered: int | float = 0.5, max_features: int = 8192, peak_threshold: float = 0.002, progress: Progress | None = None,
-            seed: int = 0, verbose: bool = False) -> SfMResult:
+            seed: int = 0, verbose: bool = False, mapping_attempts: int = 3) -> SfMResult:
     """Run SIFT + matching + incremental mapping; keep the largest model.
 
     matching: "exhaustive" (best for <~100 unordered images) or "sequential" (video order).
     min_registered: an int count or a fraction of the images that must register,
-    else SfMError says how many did.
+    else SfMError says how many did. mapping_attempts: mapping runs (seeds seed, seed+1, ...)
+    until every image registers; the most complete model is kept.
     """
     pycolmap = _pycolmap()
     if not verbose:
@@ -105,30 +122,33 @@ def run_sfm(images: ImageSet, work_dir: str | Path, *, matching: str = "exhausti
 
     t = time.perf_counter()
     report("sfm:mapping", 0.6)
-    opts = pycolmap.IncrementalPipelineOptions()
-    opts.random_seed = seed
-    opts.mapper.random_seed = seed
-    opts.triangulation.random_seed = seed
-    opts.min_model_size = 3
-    # Small object sets have fewer matches than scene captures.
-    opts.mapper.init_min_num_inliers = 50
-    opts.mapper.abs_pose_min_num_inliers = 15
-    opts.mapper.abs_pose_min_inlier_ratio = 0.2
-    opts.min_num_matches = 15
-    opts.mapper.filter_max_reproj_error = 2.0  # renders/photos of objects: tighter than 4 px
     sparse = work_dir / "sparse"
     if sparse.exists():
         shutil.rmtree(sparse)
     sparse.mkdir()
-    recs = pycolmap.incremental_mapping(db, images.directory, sparse, options=opts)
+    # Multi-threaded bundle adjustment makes mapping non-deterministic: now and then a view
+    # or two fails to register on a set that registers fully on the next try. Mapping is
+    # seconds; retry with other seeds and keep the most complete model.
+    rec = None
+    for attempt in range(mapping_attempts):
+        attempt_dir = sparse / f"attempt{attempt}"
+        attempt_dir.mkdir()
+        recs = pycolmap.incremental_mapping(db, images.directory, attempt_dir,
+                                            options=_mapping_options(pycolmap, seed + attempt))
+        if recs:
+            best = max(recs.values(), key=lambda r: r.num_reg_images())
+            if rec is None or best.num_reg_images() > rec.num_reg_images():
+                rec = best
+        if rec is not None and rec.num_reg_images() == len(images):
+            break
     timings["mapping"] = time.perf_counter() - t
     need = int(np.ceil(min_registered * len(images))) if isinstance(min_registered, float) else int(min_registered)
     need = max(need, 2)
-    if not recs:
+    if rec is None:
         raise SfMError(f"0 of {len(images)} images registered (no initial pair with enough matches); "
                        f"the set needs more overlap or texture")
-    rec = max(recs.values(), key=lambda r: r.num_reg_images())
     result = _from_reconstruction(rec, images, timings)
+    result.mapping_attempts = attempt + 1
     if result.n_registered < need:
         raise SfMError(f"only {result.n_registered} of {len(images)} images registered (need {need}); "
                        f"unregistered: {', '.join(result.unregistered[:10])}")
