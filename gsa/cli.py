@@ -97,7 +97,12 @@ def add_align_arguments(p: argparse.ArgumentParser) -> None:
     from gsa.align.pipeline import FEATURE_MODES, AlignOptions
 
     d = AlignOptions()
-    p.add_argument("--stages", default=",".join(d.stages), help="coarse or coarse,fine (default: %(default)s)")
+    p.add_argument("--stages", default=",".join(d.stages),
+                   help="auto, coarse or coarse,fine (default: %(default)s = coarse,fine unless the "
+                        "nearest-neighbour refinement ran, see README)")
+    p.add_argument("--target-cameras", default=None, metavar="CAMERAS_JSON",
+                   help="the target's training cameras (a reconstruction's cameras.json): the fine stage "
+                        "renders from them instead of orbit cameras")
     p.add_argument("--features", default=d.features, choices=list(FEATURE_MODES),
                    help="auto: the files' own features when both have them, else the configured extractor "
                         "(GSA_FEATURES_EXTRACTOR + weights), else canonical; spheremap/dinov2 lift 2D features first")
@@ -128,7 +133,15 @@ def cmd_align(args: argparse.Namespace) -> int:
     options = _align_options(args)
     source = _load_model(args.source, "source", args)
     target = _load_model(args.target, "target", args)
-    result = align(source, target, options, progress=ProgressPrinter(not args.quiet))
+    cameras = None
+    if args.target_cameras:
+        from gsa.render.cameras import read_cameras_json
+
+        try:
+            cameras, _ = read_cameras_json(args.target_cameras)
+        except ValueError as exc:
+            raise CliError(str(exc)) from None
+    result = align(source, target, options, progress=ProgressPrinter(not args.quiet), target_cameras=cameras)
     data = result.to_dict()
     if args.aligned_out or args.merged_out:
         aligned = source.transformed(result.transform)

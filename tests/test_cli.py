@@ -74,6 +74,13 @@ def test_bad_option_is_rejected(pair, tmp_path):
     assert r.returncode != 0 and "stages" in r.stderr and "Traceback" not in r.stderr
 
 
+def test_unreadable_target_cameras_are_one_line(pair, tmp_path):
+    (tmp_path / "cams.json").write_text("not json")
+    r = gsa("align", pair[0], pair[1], "--target-cameras", tmp_path / "cams.json", "--out", tmp_path / "r.json")
+    assert r.returncode != 0 and "Traceback" not in r.stderr
+    assert "cams.json" in r.stderr and "cameras.json" in r.stderr
+
+
 def test_demo_prints_error_against_truth(tmp_path):
     r = gsa("demo", "--out", tmp_path / "demo", "--gaussians", "4000", "--quiet")
     assert r.returncode == 0, r.stderr

@@ -170,3 +170,40 @@ def test_pipeline_runs_the_fine_stage_after_coarse():
     assert d["stages"]["fine"]["best_loss"] <= d["stages"]["fine"]["loss_history"][0]
     assert rre_deg(result.transform.rotation, truth.rotation) < 1.0
     assert "fine" in result.timings
+
+
+def test_auto_stages_add_fine_only_after_the_feature_stage():
+    """auto = coarse+fine where the coarse stage is the paper's feature-guided ICP (here:
+    refine off), coarse alone after the NN refinement (see AlignOptions.stages)."""
+    source = make_object("car", seed=6, n_gaussians=2000, sample_seed=1)
+    target = make_object("car", seed=6, n_gaussians=2000, sample_seed=2).transformed(
+        random_sim3(np.random.default_rng(3)))
+    quick = dict(fine_iterations=3, fine_image_size=32, fine_views=2)
+    refined = align(source, target, AlignOptions(**quick))
+    assert refined.stages == ("coarse",) and refined.fine is None
+    paper = align(source, target, AlignOptions(refine="off", **quick))
+    assert paper.stages == ("coarse", "fine") and paper.fine is not None
+    assert paper.to_dict()["stages_run"] == ["coarse", "fine"]
+    forced = align(source, target, AlignOptions(stages=("coarse", "fine"), **quick))
+    assert forced.stages == ("coarse", "fine")
+    with pytest.raises(ValueError, match="auto, coarse or coarse,fine"):
+        AlignOptions(stages=("fine",))
+
+
+def test_fine_stage_renders_from_the_targets_training_cameras(tmp_path):
+    from gsa.render.cameras import cameras_around, read_cameras_json, write_cameras_json
+
+    source = make_object("bus", seed=2, n_gaussians=2000)
+    truth = random_sim3(np.random.default_rng(8))
+    target = source.transformed(truth)
+    train = cameras_around(target.means, 7, 48, seed=5)
+    path = write_cameras_json(tmp_path / "cameras.json", train, [f"v{i}.png" for i in range(7)])
+    cams, names = read_cameras_json(path)
+    assert names[6] == "v6.png" and np.allclose(cams.viewmats, train.viewmats)
+    opts = AlignOptions(stages=("coarse", "fine"), fine_iterations=2, fine_image_size=32, fine_views=3)
+    target.metadata["training_cameras"] = cams  # as gsa.recon.reconstruct leaves it
+    used = align(source, target, opts).fine.cameras
+    assert np.allclose(used.viewmats, train.viewmats[[0, 3, 6]])  # evenly spaced, not orbit cameras
+    (tmp_path / "bad.json").write_text('{"images": [{"name": 1}]}')
+    with pytest.raises(ValueError, match="bad.json"):
+        read_cameras_json(tmp_path / "bad.json")

@@ -9,6 +9,7 @@ import os
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field, replace
+from typing import TYPE_CHECKING
 
 import numpy as np
 from scipy.spatial import cKDTree
@@ -26,15 +27,23 @@ from gsa.align.coarse import (
 from gsa.model import GaussianModel, ModelError
 from gsa.sim3 import Sim3
 
+if TYPE_CHECKING:
+    from gsa.render.cameras import Cameras
+
 Progress = Callable[[str, float], None]
 FEATURE_MODES = ("auto", "file", "canonical", "spheremap", "dinov2")
 EXTRACTOR_MODES = ("spheremap", "dinov2")
 STAGES = ("coarse", "fine")
+STAGE_CHOICES = (("auto",), ("coarse",), ("coarse", "fine"))
 
 
 @dataclass
 class AlignOptions:
-    stages: tuple[str, ...] = ("coarse",)
+    # auto: coarse+fine when the coarse stage ends at the feature-guided ICP (the paper's
+    # pipeline: files' features, or refine off), where the fine stage measured 4-6x lower
+    # RRE; coarse alone after the nearest-neighbour refinement, which already sits below the
+    # fine loss's own floor (~0.05° at 5 views x 128 px; docs/benchmarks.md "fine stage").
+    stages: tuple[str, ...] = ("auto",)
     # auto: the files' own features when both have them, else the configured extractor
     # (gsa.features.FeatureSettings / GSA_FEATURES_*) when its weights are set, else canonical.
     features: str = "auto"
@@ -66,9 +75,8 @@ class AlignOptions:
 
     def __post_init__(self) -> None:
         self.stages = tuple(self.stages)
-        unknown = [s for s in self.stages if s not in STAGES]
-        if not self.stages or unknown or self.stages[0] != "coarse":
-            raise ValueError(f"stages must be 'coarse' or 'coarse,fine', got {','.join(self.stages)}")
+        if self.stages not in STAGE_CHOICES:
+            raise ValueError(f"stages must be auto, coarse or coarse,fine, got {','.join(self.stages) or 'nothing'}")
         if self.features not in FEATURE_MODES:
             raise ValueError(f"features must be one of {', '.join(FEATURE_MODES)}, got {self.features!r}")
         if not self.tau_f > 0:
@@ -93,6 +101,7 @@ class AlignmentResult:
     transform: Sim3  # maps source coordinates into the target frame
     coarse: CoarseResult
     features: str  # which features guided the alignment
+    stages: tuple[str, ...] = ("coarse",)  # the stages that ran (AlignOptions.stages resolved)
     metrics: dict = field(default_factory=dict)
     timings: dict = field(default_factory=dict)
     hypotheses: list[dict] = field(default_factory=list)
@@ -125,6 +134,7 @@ class AlignmentResult:
             metrics=self.metrics,
             timings=self.timings,
             features=self.features,
+            stages_run=list(self.stages),
             hypotheses=self.hypotheses,
             stages=stages,
         )
@@ -154,10 +164,16 @@ def align(
     target: GaussianModel,
     options: AlignOptions | None = None,
     progress: Progress | None = None,
+    target_cameras: Cameras | None = None,
 ) -> AlignmentResult:
     """Find the Sim(3) T with target ≈ T(source). `progress(stage, fraction)` is
-    called as work advances; an exception raised in it aborts the alignment."""
+    called as work advances; an exception raised in it aborts the alignment.
+    target_cameras: the target's training cameras (default: target.metadata["training_cameras"],
+    which gsa.recon.reconstruct sets); the fine stage renders from evenly spaced ones of them,
+    else from orbit cameras around the target."""
     opts = options or AlignOptions()
+    if target_cameras is None:
+        target_cameras = target.metadata.get("training_cameras")  # set by gsa.recon.reconstruct
     timings: dict[str, float] = {}
     t_start = time.perf_counter()
 
@@ -190,9 +206,10 @@ def align(
 
     transform = coarse.transform
     fine_result = None
-    if "fine" in opts.stages:
+    stages = pair.stages()
+    if "fine" in stages:
         t = time.perf_counter()
-        fine_result = pair.fine(best, transform, progress)
+        fine_result = pair.fine(best, transform, progress, target_cameras)
         transform = fine_result.transform
         timings["fine"] = time.perf_counter() - t
 
@@ -206,6 +223,7 @@ def align(
         transform=transform,
         coarse=coarse,
         features=pair.mode,
+        stages=stages,
         metrics=metrics,
         timings=timings,
         hypotheses=scored,
@@ -309,6 +327,11 @@ class _Pair:
     def refine(self) -> bool:
         return self.opts.refine == "on" or (self.opts.refine == "auto" and self.mode == "canonical")
 
+    def stages(self) -> tuple[str, ...]:
+        if self.opts.stages != ("auto",):
+            return self.opts.stages
+        return ("coarse",) if self.refine else ("coarse", "fine")
+
     def source_features(self, frame: CanonicalFrame, rows: np.ndarray | slice = slice(None)) -> np.ndarray:
         if self.mode == "file":
             return self.source.features[rows]
@@ -397,7 +420,7 @@ class _Pair:
             coarse.seconds += refined.seconds
         return coarse
 
-    def fine(self, best: _Hypothesis, init: Sim3, progress: Progress | None):
+    def fine(self, best: _Hypothesis, init: Sim3, progress: Progress | None, cameras: Cameras | None = None):
         from gsa.align.fine import FineOptions, fine_align
 
         src_model, dst_model = self.source, self.target
@@ -422,6 +445,7 @@ class _Pair:
                 on=opts.fine_on,
                 seed=opts.seed,
             ),
+            cameras=cameras,
             progress=progress,
         )
 

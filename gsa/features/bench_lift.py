@@ -107,7 +107,7 @@ def feature_choice_rows(categories=None, per_category: int = 1, n: int = 5000, s
                     kw = dict(views=lift_views, image_size=lift_size, iterations=lift_iterations, backend=backend)
                     ls, _ = lift_features(src, CanonicalExtractor(backend), **kw)
                     ld, _ = lift_features(dst, CanonicalExtractor(backend), **kw)
-                    est = align(ls, ld, AlignOptions(features="file")).transform
+                    est = align(ls, ld, AlignOptions(features="file", stages=("coarse",))).transform
                 acc = accuracy(est, truth, src.means, dst.means)
                 records[name].append({"pair": label, "seconds": time.perf_counter() - t0, **acc})
                 log(f"{label:14s} {name:17s} RRE {acc['rre_deg']:8.2f} deg  {time.perf_counter() - t0:6.1f} s")

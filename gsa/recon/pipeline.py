@@ -20,7 +20,8 @@ from gsa.io.ply import write_ply
 from gsa.model import GaussianModel
 from gsa.recon.images import load_image_set
 from gsa.recon.masks import compute_masks
-from gsa.recon.sfm import SfMResult, run_sfm, write_cameras_json
+from gsa.recon.sfm import SfMResult, run_sfm
+from gsa.render.cameras import write_cameras_json
 from gsa.recon.train import PRESETS, TrainConfig, TrainResult, train_gaussians
 
 Progress = Callable[[str, float], None]
@@ -115,6 +116,7 @@ def reconstruct(images_path: str | Path, out_dir: str | Path, preset: str | Trai
     timings["train"] = time.perf_counter() - t
 
     model_path = write_ply(tr.model, out / "model.ply")
+    tr.model.metadata["training_cameras"] = sfm.cameras  # align()'s fine stage renders from these
     cameras_path = write_cameras_json(out / "cameras.json", sfm.cameras, sfm.names)
     (out / "training_curve.json").write_text(json.dumps(tr.curve))
     timings["total"] = time.perf_counter() - t0

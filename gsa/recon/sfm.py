@@ -8,7 +8,6 @@ gsa.render.cameras (COLMAP's cam_from_world is already x right, y down, z forwar
 
 from __future__ import annotations
 
-import json
 import shutil
 import time
 from collections.abc import Callable
@@ -185,30 +184,6 @@ def _from_reconstruction(rec, images: ImageSet, timings: dict) -> SfMResult:
     pts = np.asarray(pts, np.float64).reshape(-1, 3)
     cols = np.asarray(cols, np.float64).reshape(-1, 3) / 255.0
     return SfMResult(cams, names, pts, cols, np.asarray(errs, np.float64), len(images), unregistered, timings)
-
-
-def cameras_json(cameras: Cameras, names: list[str]) -> dict:
-    """COLMAP-compatible camera description: PINHOLE params and per-image qvec (w,x,y,z
-    cam_from_world) / tvec, plus the 4x4 world-to-camera matrix for convenience."""
-    from gsa.model import rotation_to_quat
-
-    out = {"camera_model": "PINHOLE", "convention": "OpenCV world-to-camera (COLMAP cam_from_world)",
-           "width": cameras.width, "height": cameras.height, "images": []}
-    for i, n in enumerate(names):
-        m = cameras.viewmats[i]
-        out["images"].append({
-            "image_id": i + 1, "name": n, "camera_id": 1,
-            "params": [float(cameras.fx[i]), float(cameras.fy[i]), float(cameras.cx[i]), float(cameras.cy[i])],
-            "qvec": [float(v) for v in rotation_to_quat(m[:3, :3])], "tvec": [float(v) for v in m[:3, 3]],
-            "world_to_camera": m.tolist(),
-        })
-    return out
-
-
-def write_cameras_json(path: str | Path, cameras: Cameras, names: list[str]) -> Path:
-    path = Path(path)
-    path.write_text(json.dumps(cameras_json(cameras, names), indent=1))
-    return path
 
 
 def centre_error(est: Cameras, true: Cameras) -> tuple[float, "object"]:

@@ -9,10 +9,13 @@ is how the fine stage differentiates through a Sim(3) without touching the model
 
 from __future__ import annotations
 
+import json
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 
+from gsa.model import rotation_to_quat
 from gsa.sim3 import Sim3
 
 
@@ -176,3 +179,42 @@ def cameras_around(means: np.ndarray, n: int, width: int = 128, height: int | No
     extent = float(np.percentile(np.linalg.norm(means - center, axis=1), 99)) or 1.0
     dist = margin * extent / np.sin(np.radians(fov) / 2)
     return orbit_cameras(center, dist, n, width, height, fov, seed)
+
+
+# ----------------------------------------------------------------------------- cameras.json
+def cameras_json(cameras: Cameras, names: list[str]) -> dict:
+    """COLMAP-compatible camera description: PINHOLE params and per-image qvec (w,x,y,z
+    cam_from_world) / tvec, plus the 4x4 world-to-camera matrix for convenience."""
+    out = {"camera_model": "PINHOLE", "convention": "OpenCV world-to-camera (COLMAP cam_from_world)",
+           "width": cameras.width, "height": cameras.height, "images": []}
+    for i, n in enumerate(names):
+        m = cameras.viewmats[i]
+        out["images"].append({
+            "image_id": i + 1, "name": n, "camera_id": 1,
+            "params": [float(cameras.fx[i]), float(cameras.fy[i]), float(cameras.cx[i]), float(cameras.cy[i])],
+            "qvec": [float(v) for v in rotation_to_quat(m[:3, :3])], "tvec": [float(v) for v in m[:3, 3]],
+            "world_to_camera": m.tolist(),
+        })
+    return out
+
+
+def write_cameras_json(path: str | Path, cameras: Cameras, names: list[str]) -> Path:
+    path = Path(path)
+    path.write_text(json.dumps(cameras_json(cameras, names), indent=1))
+    return path
+
+
+def read_cameras_json(path: str | Path) -> tuple[Cameras, list[str]]:
+    """Cameras and image names from a file written by write_cameras_json (e.g. a
+    reconstruction's cameras.json); ValueError naming the file when it is not one."""
+    path = Path(path)
+    try:
+        data = json.loads(path.read_text())
+        images = data["images"]
+        cams = Cameras(np.array([im["world_to_camera"] for im in images], np.float64),
+                       [im["params"][0] for im in images], [im["params"][1] for im in images],
+                       [im["params"][2] for im in images], [im["params"][3] for im in images],
+                       data["width"], data["height"])
+        return cams, [str(im["name"]) for im in images]
+    except (OSError, ValueError, KeyError, IndexError, TypeError) as exc:
+        raise ValueError(f"{path}: not a cameras.json written by gsa reconstruct ({exc})") from None
