@@ -264,7 +264,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", default="out/demo")
     p.add_argument("--category", default="car", choices=CATEGORIES)
     p.add_argument("--gaussians", type=int, default=50_000)
-    p.add_argument("--stages", default="coarse")
+    p.add_argument("--stages", default="auto", help="auto, coarse or coarse,fine (as gsa align)")
     p.add_argument("--seed", type=int, default=7)
     p.add_argument("--quiet", action="store_true")
     p.set_defaults(func=cmd_demo)

@@ -65,7 +65,7 @@ def add_service_parsers(subparsers) -> None:
     )
     p.add_argument("--target", required=True, help="target (reference) model")
     p.add_argument("--options", default="{}", help="JSON object of alignment options")
-    p.add_argument("--stages", help="e.g. coarse or coarse,fine")
+    p.add_argument("--stages", help="auto (default), coarse or coarse,fine")
     p.add_argument("--idempotency-key")
     p.add_argument("--webhook-url")
     p.add_argument("--wait", action="store_true", help="wait for the result")
