@@ -13,10 +13,11 @@ printed note by the protocols, never a crash.
             the scale is unknown, so each cloud is first normalised by its own
             centroid and RMS radius; the Sim(3) is the two normalisations
             composed with the rigid result.
-  splatreg  splatreg.register(target, source, transform="sim3") with its
-            defaults (FPFH + batched-RANSAC seed, then LM over ICP + Gaussian-SDF
-            residuals). Note its argument order: target first. Opt-in and
-            run on a 300-Gaussian subsample: minutes per pair on CPU (see SplatReg).
+  splatreg  splatreg.register(target, source, transform="sim3", init="global"):
+            its SO(3)-sweep global initialiser, then LM over its default ICP +
+            Gaussian-SDF residuals (with its default init, identity, it only refines).
+            Note its argument order: target first. Opt-in and run on a 300-Gaussian
+            subsample: minutes per pair on CPU (see SplatReg).
 """
 
 from __future__ import annotations
