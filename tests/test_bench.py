@@ -8,7 +8,6 @@ lists), not the --quick sizes.
 from __future__ import annotations
 
 import json
-import os
 
 import numpy as np
 import pytest
@@ -71,15 +70,12 @@ def test_open3d_recovers_easy_pair():
     _assert_recovers(peer)
 
 
-@pytest.mark.skipif(not os.environ.get("GSA_TEST_SLOW_PEERS"),
-                    reason="splatreg needs minutes per pair on 2 CPU cores; set GSA_TEST_SLOW_PEERS=1")
 def test_splatreg_recovers_easy_pair():
     """splatreg is an optional extra (gsa[peers]) not installed in CI: importorskip.
-    Even on a 120-Gaussian subsample its autodiffed SDF term took over 4 minutes
-    on the shared 2-core machine, past this file's time budget, so it also needs
-    GSA_TEST_SLOW_PEERS=1."""
+    With its global initialiser on the benchmark's 300-Gaussian subsample it takes
+    ≈ 16 s here (1.6°, 1.1 %); from its identity default it did not recover (12°, 75 %)."""
     pytest.importorskip("splatreg")
-    _assert_recovers(peers_mod.SplatReg(max_points=120), rre_deg=5.0, scale_pct=5.0)
+    _assert_recovers(peers_mod.SplatReg(), rre_deg=5.0, scale_pct=5.0)
 
 
 def test_splatreg_matrix_convention():
