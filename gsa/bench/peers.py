@@ -17,7 +17,7 @@ printed note by the protocols, never a crash.
             its SO(3)-sweep global initialiser, then LM over its default ICP +
             Gaussian-SDF residuals (with its default init, identity, it only refines).
             Note its argument order: target first. Opt-in and run on a 300-Gaussian
-            subsample: minutes per pair on CPU (see SplatReg).
+            subsample: about 20 s per pair on 2 CPU cores (see SplatReg).
 """
 
 from __future__ import annotations
