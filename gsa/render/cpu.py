@@ -30,6 +30,7 @@ from numba import njit, prange
 from gsa.render.reference import ALPHA_MAX, ALPHA_MIN, MAHA_CUTOFF, T_MIN
 
 TILE = 16
+_CHUNKS = 64  # work items per camera for loops over Gaussians (load balance across threads)
 
 # numba's OpenMP layer shares libgomp with torch; on a busy machine spinning torch threads and
 # descheduled numba threads made barriers cost up to 100x (measured: 4 ms -> 800 ms per kernel).
@@ -48,29 +49,6 @@ def _pixel_box(mx, my, ex, ey, x0, y0, x1, y1):
     py0 = max(y0, int(math.ceil(my - ey - 0.5)))
     py1 = min(y1 - 1, int(math.floor(my + ey - 0.5)))
     return px0, px1, py0, py1
-
-
-@njit(cache=True, error_model="numpy")
-def _extents(cov_diag, opac, valid):
-    """(C,N,2) half-extents of each Gaussian's footprint; -1 for culled ones.
-
-    A pixel can only contribute where d² <= min(9, 2 ln(255 o)); the ellipse
-    d^T Σ^-1 d <= t has half-widths sqrt(t Σ_xx), sqrt(t Σ_yy). A small margin
-    keeps boundary pixels that the exact per-pixel tests then decide.
-    """
-    c_count, n = opac.shape
-    ext = np.empty((c_count, n, 2), cov_diag.dtype)
-    for c in range(c_count):
-        for i in range(n):
-            o = opac[c, i]
-            if not valid[c, i] or o * 255.0 < 1.0:
-                ext[c, i, 0] = -1.0
-                ext[c, i, 1] = -1.0
-                continue
-            t = min(MAHA_CUTOFF, 2.0 * math.log(255.0 * o)) * 1.0001 + 1e-6
-            ext[c, i, 0] = math.sqrt(t * cov_diag[c, i, 0])
-            ext[c, i, 1] = math.sqrt(t * cov_diag[c, i, 1])
-    return ext
 
 
 @njit(cache=True, error_model="numpy")
@@ -98,42 +76,59 @@ def _radix_argsort(keys, sel, passes):
     return cur
 
 
-@njit(parallel=True, cache=True, error_model="numpy")
-def _bin(means2d, ext, depth_bits, width, height, tile):
-    """Per (camera, tile) lists of Gaussian ids sorted front to back.
+# Packed per-pair record: the Gaussian's screen-space parameters, copied next to each other in
+# tile order, so compositing reads memory sequentially instead of gathering from (C,N) arrays
+# in depth order (those gathers were the compositing kernels' main cost).
+_R_X, _R_Y, _R_A, _R_B, _R_C, _R_O, _R_EX, _R_EY = range(8)
+_R_CH = 8  # channels follow
 
-    Returns offsets (C*T + 1,) int64 and ids (P,) int32; the list of job j is
-    ids[offsets[j]:offsets[j+1]].
+
+@njit(parallel=True, cache=True, error_model="numpy")
+def _footprints(means2d, cov_diag, opac, valid, width, height, tile):
+    """Per (camera, Gaussian): half-extents (C,N,2) and tile rectangle (C,N,4) [tx0, tx1, ty0, ty1], -1 if culled.
+
+    A pixel can only contribute where d² <= min(9, 2 ln(255 o)); the ellipse d^T Σ^-1 d <= t
+    has half-widths sqrt(t Σ_xx), sqrt(t Σ_yy). A small margin keeps boundary pixels that the
+    exact per-pixel tests then decide.
     """
-    c_count, n = depth_bits.shape
-    tx_n = (width + tile - 1) // tile
-    ty_n = (height + tile - 1) // tile
-    nt = tx_n * ty_n
-    counts = np.zeros(c_count * nt, np.int64)
-    rects = np.full((c_count, n, 4), -1, np.int32)
-    for c in prange(c_count):
-        for i in range(n):
-            if ext[c, i, 0] < 0:
+    c_count, n = opac.shape
+    ext = np.empty((c_count, n, 2), cov_diag.dtype)
+    rects = np.empty((c_count, n, 4), np.int32)
+    chunk = (n + _CHUNKS - 1) // _CHUNKS
+    for job in prange(c_count * _CHUNKS):
+        c = job // _CHUNKS
+        for i in range((job % _CHUNKS) * chunk, min(n, (job % _CHUNKS + 1) * chunk)):
+            o = opac[c, i]
+            rects[c, i, 0] = -1
+            ext[c, i, 0] = -1.0
+            ext[c, i, 1] = -1.0
+            if not valid[c, i] or o * 255.0 < 1.0:
                 continue
-            px0, px1, py0, py1 = _pixel_box(means2d[c, i, 0], means2d[c, i, 1], ext[c, i, 0], ext[c, i, 1],
-                                            0, 0, width, height)
+            t = min(MAHA_CUTOFF, 2.0 * math.log(255.0 * o)) * 1.0001 + 1e-6
+            ex = math.sqrt(t * cov_diag[c, i, 0])
+            ey = math.sqrt(t * cov_diag[c, i, 1])
+            ext[c, i, 0] = ex
+            ext[c, i, 1] = ey
+            px0, px1, py0, py1 = _pixel_box(means2d[c, i, 0], means2d[c, i, 1], ex, ey, 0, 0, width, height)
             if px0 > px1 or py0 > py1:
                 continue
             rects[c, i, 0] = px0 // tile
             rects[c, i, 1] = px1 // tile
             rects[c, i, 2] = py0 // tile
             rects[c, i, 3] = py1 // tile
-            for ty in range(py0 // tile, py1 // tile + 1):
-                for tx in range(px0 // tile, px1 // tile + 1):
-                    counts[c * nt + ty * tx_n + tx] += 1
-    offsets = np.zeros(c_count * nt + 1, np.int64)
-    for j in range(c_count * nt):
-        offsets[j + 1] = offsets[j] + counts[j]
-    ids = np.empty(offsets[-1], np.int32)
+    return ext, rects
+
+
+_BIN_PARTS = 16  # slices of each camera's depth order, binned in parallel
+
+
+@njit(parallel=True, cache=True, error_model="numpy")
+def _depth_order(rects, depth_bits):
+    """(C,N) int32: per camera, the binned Gaussians front to back (first m_c entries), and m (C,)."""
+    c_count, n = depth_bits.shape
+    order = np.empty((c_count, n), np.int32)
+    m_count = np.zeros(c_count, np.int64)
     for c in prange(c_count):
-        cursor = offsets[c * nt:(c + 1) * nt].copy()
-        # only binned Gaussians need ordering; they all have depth > 0, so the IEEE bit
-        # patterns order like the values and an exact, stable LSD radix sort applies
         m = 0
         for i in range(n):
             if rects[c, i, 0] >= 0:
@@ -144,24 +139,92 @@ def _bin(means2d, ext, depth_bits, width, height, tile):
             if rects[c, i, 0] >= 0:
                 sel[m] = i
                 m += 1
-        order = _radix_argsort(depth_bits[c], sel, depth_bits.itemsize // 2)
-        for i in order:
+        # binned Gaussians all have depth > 0, so the IEEE bit patterns order like the
+        # values and an exact, stable LSD radix sort applies
+        order[c, :m] = _radix_argsort(depth_bits[c], sel, depth_bits.itemsize // 2)
+        m_count[c] = m
+    return order, m_count
+
+
+@njit(parallel=True, cache=True, error_model="numpy")
+def _bin(rects, order, m_count, width, height, tile):
+    """Per (camera, tile) lists of Gaussian ids sorted front to back.
+
+    Returns offsets (C*T + 1,) int64 and ids (P,) int32; the list of job j is
+    ids[offsets[j]:offsets[j+1]]. Each camera's depth order is cut into _BIN_PARTS slices that
+    are counted and scattered in parallel; slice s of a tile's list precedes slice s + 1, so
+    every list stays in depth order.
+    """
+    c_count = rects.shape[0]
+    tx_n = (width + tile - 1) // tile
+    ty_n = (height + tile - 1) // tile
+    nt = tx_n * ty_n
+    parts = _BIN_PARTS
+    counts = np.zeros((c_count, parts, nt), np.int64)
+    for job in prange(c_count * parts):
+        c = job // parts
+        s = job % parts
+        span = (m_count[c] + parts - 1) // parts
+        for j in range(s * span, min(m_count[c], (s + 1) * span)):
+            i = order[c, j]
+            for ty in range(rects[c, i, 2], rects[c, i, 3] + 1):
+                for tx in range(rects[c, i, 0], rects[c, i, 1] + 1):
+                    counts[c, s, ty * tx_n + tx] += 1
+    offsets = np.zeros(c_count * nt + 1, np.int64)
+    cursor = np.empty((c_count, parts, nt), np.int64)
+    pos = 0
+    for c in range(c_count):
+        for t in range(nt):
+            offsets[c * nt + t] = pos
+            for s in range(parts):
+                cursor[c, s, t] = pos
+                pos += counts[c, s, t]
+    offsets[c_count * nt] = pos
+    ids = np.empty(pos, np.int32)
+    for job in prange(c_count * parts):
+        c = job // parts
+        s = job % parts
+        span = (m_count[c] + parts - 1) // parts
+        for j in range(s * span, min(m_count[c], (s + 1) * span)):
+            i = order[c, j]
             for ty in range(rects[c, i, 2], rects[c, i, 3] + 1):
                 for tx in range(rects[c, i, 0], rects[c, i, 1] + 1):
                     t = ty * tx_n + tx
-                    ids[cursor[t]] = i
-                    cursor[t] += 1
+                    ids[cursor[c, s, t]] = i
+                    cursor[c, s, t] += 1
     return offsets, ids
 
 
 @njit(parallel=True, cache=True, error_model="numpy")
-def _forward(means2d, conics, opac, chans, ext, bg, offsets, ids, width, height, tile):
-    """-> out (C,H,W,F), t_final (C,H,W), n_contrib (C,H,W) int32 (list position past the last contributor)."""
+def _pack(means2d, conics, opac, chans, ext, offsets, ids, nt):
+    """recs (P, 8 + F): each pair's Gaussian record, in list order."""
     c_count, n, f = chans.shape
+    recs = np.empty((ids.shape[0], _R_CH + f), chans.dtype)
+    for job in prange(c_count * nt):
+        c = job // nt
+        for k in range(offsets[job], offsets[job + 1]):
+            i = ids[k]
+            recs[k, _R_X] = means2d[c, i, 0]
+            recs[k, _R_Y] = means2d[c, i, 1]
+            recs[k, _R_A] = conics[c, i, 0]
+            recs[k, _R_B] = conics[c, i, 1]
+            recs[k, _R_C] = conics[c, i, 2]
+            recs[k, _R_O] = opac[c, i]
+            recs[k, _R_EX] = ext[c, i, 0]
+            recs[k, _R_EY] = ext[c, i, 1]
+            for ch in range(f):
+                recs[k, _R_CH + ch] = chans[c, i, ch]
+    return recs
+
+
+@njit(parallel=True, cache=True, error_model="numpy")
+def _forward(recs, bg, offsets, c_count, width, height, tile):
+    """-> out (C,H,W,F), t_final (C,H,W), n_contrib (C,H,W) int32 (list position past the last contributor)."""
+    f = recs.shape[1] - _R_CH
     tx_n = (width + tile - 1) // tile
     ty_n = (height + tile - 1) // tile
     nt = tx_n * ty_n
-    dt = chans.dtype
+    dt = recs.dtype
     out = np.empty((c_count, height, width, f), dt)
     t_final = np.empty((c_count, height, width), dt)
     n_contrib = np.zeros((c_count, height, width), np.int32)
@@ -183,15 +246,14 @@ def _forward(means2d, conics, opac, chans, ext, bg, offsets, ids, width, height,
         for k in range(start, offsets[job + 1]):
             if n_done == tw * th:
                 break
-            g = ids[k]
-            mx = means2d[c, g, 0]
-            my = means2d[c, g, 1]
-            ca = conics[c, g, 0]
-            cb = conics[c, g, 1]
-            cc = conics[c, g, 2]
-            o = opac[c, g]
-            col = chans[c, g]
-            px0, px1, py0, py1 = _pixel_box(mx, my, ext[c, g, 0], ext[c, g, 1], x0, y0, x1, y1)
+            r = recs[k]
+            mx = r[_R_X]
+            my = r[_R_Y]
+            ca = r[_R_A]
+            cb = r[_R_B]
+            cc = r[_R_C]
+            o = r[_R_O]
+            px0, px1, py0, py1 = _pixel_box(mx, my, r[_R_EX], r[_R_EY], x0, y0, x1, y1)
             for py in range(py0, py1 + 1):
                 dy = my - (py + 0.5)
                 row = (py - y0) * tw - x0
@@ -214,7 +276,7 @@ def _forward(means2d, conics, opac, chans, ext, bg, offsets, ids, width, height,
                         continue
                     w = alpha * tr
                     for ch in range(f):
-                        acc[lp, ch] += w * col[ch]
+                        acc[lp, ch] += w * r[_R_CH + ch]
                     trans[lp] = t_next
                     last[lp] = k - start + 1
         for ly in range(th):
@@ -228,18 +290,16 @@ def _forward(means2d, conics, opac, chans, ext, bg, offsets, ids, width, height,
 
 
 @njit(parallel=True, cache=True, error_model="numpy")
-def _backward(means2d, conics, opac, chans, ext, bg, offsets, ids, t_final, n_contrib, g_out, g_alpha,
-              width, height, tile, want_chans):
-    """Per-pair gradients: g_xy (P,2), g_conic (P,3), g_opac (P,), g_chan (P,F) (zero-size unless want_chans)."""
-    c_count, n, f = chans.shape
+def _backward(recs, bg, offsets, t_final, n_contrib, g_out, g_alpha, width, height, tile, want_chans):
+    """Per-pair gradients: g_pair (P,6) [x, y, conic a, b, c, opacity], g_chan (P,F) (zero-size unless want_chans)."""
+    c_count = t_final.shape[0]
+    f = recs.shape[1] - _R_CH
     tx_n = (width + tile - 1) // tile
     ty_n = (height + tile - 1) // tile
     nt = tx_n * ty_n
-    p_count = ids.shape[0]
-    dt = chans.dtype
-    g_xy = np.zeros((p_count, 2), dt)
-    g_con = np.zeros((p_count, 3), dt)
-    g_op = np.zeros(p_count, dt)
+    p_count = recs.shape[0]
+    dt = recs.dtype
+    g_pair = np.zeros((p_count, 6), dt)
     g_ch = np.zeros((p_count if want_chans else 0, f), dt)
     for job in prange(c_count * nt):
         c = job // nt
@@ -275,15 +335,14 @@ def _backward(means2d, conics, opac, chans, ext, bg, offsets, ids, t_final, n_co
                 max_n = max(max_n, ncon[lp])
         for kk in range(max_n - 1, -1, -1):
             k = start + kk
-            g = ids[k]
-            mx = means2d[c, g, 0]
-            my = means2d[c, g, 1]
-            ca = conics[c, g, 0]
-            cb = conics[c, g, 1]
-            cc = conics[c, g, 2]
-            o = opac[c, g]
-            col = chans[c, g]
-            px0, px1, py0, py1 = _pixel_box(mx, my, ext[c, g, 0], ext[c, g, 1], x0, y0, x1, y1)
+            r = recs[k]
+            mx = r[_R_X]
+            my = r[_R_Y]
+            ca = r[_R_A]
+            cb = r[_R_B]
+            cc = r[_R_C]
+            o = r[_R_O]
+            px0, px1, py0, py1 = _pixel_box(mx, my, r[_R_EX], r[_R_EY], x0, y0, x1, y1)
             gx = 0.0
             gy = 0.0
             ga = 0.0
@@ -313,13 +372,14 @@ def _backward(means2d, conics, opac, chans, ext, bg, offsets, ids, t_final, n_co
                     la = last_alpha[lp]
                     for ch in range(f):
                         go = gout[lp, ch]
+                        col = r[_R_CH + ch]
                         if want_chans:
                             g_ch[k, ch] += alpha * tr * go
                         # colour of everything behind this Gaussian, as seen through it
                         acc = la * last_ch[lp, ch] + (1.0 - la) * accum[lp, ch]
                         accum[lp, ch] = acc
-                        last_ch[lp, ch] = col[ch]
-                        d_alpha += (col[ch] - acc) * go
+                        last_ch[lp, ch] = col
+                        d_alpha += (col - acc) * go
                     d_alpha = d_alpha * tr + tfin[lp] * inv * alpha_term[lp]
                     last_alpha[lp] = alpha
                     if raw <= ALPHA_MAX:  # clamped alpha has no gradient
@@ -330,17 +390,17 @@ def _backward(means2d, conics, opac, chans, ext, bg, offsets, ids, t_final, n_co
                         ga += d_m2 * dx * dx
                         gb += d_m2 * 2.0 * dx * dy
                         gc += d_m2 * dy * dy
-            g_xy[k, 0] = gx
-            g_xy[k, 1] = gy
-            g_con[k, 0] = ga
-            g_con[k, 1] = gb
-            g_con[k, 2] = gc
-            g_op[k] = go_
-    return g_xy, g_con, g_op, g_ch
+            g_pair[k, 0] = gx
+            g_pair[k, 1] = gy
+            g_pair[k, 2] = ga
+            g_pair[k, 3] = gb
+            g_pair[k, 4] = gc
+            g_pair[k, 5] = go_
+    return g_pair, g_ch
 
 
 @njit(parallel=True, cache=True, error_model="numpy")
-def _reduce(g_xy, g_con, g_op, g_ch, offsets, ids, c_count, n, nt, parts):
+def _reduce(g_pair, g_ch, offsets, ids, c_count, n, nt, parts):
     """Sum per-pair gradients into per-(camera, Gaussian) arrays (r_ch is zero-size if g_ch is).
 
     Work item (camera, part) scans that camera's pairs and keeps the Gaussians of its own
@@ -348,7 +408,7 @@ def _reduce(g_xy, g_con, g_op, g_ch, offsets, ids, c_count, n, nt, parts):
     """
     f = g_ch.shape[1]
     want_chans = g_ch.shape[0] > 0
-    dt = g_xy.dtype
+    dt = g_pair.dtype
     r_xy = np.zeros((c_count, n, 2), dt)
     r_con = np.zeros((c_count, n, 3), dt)
     r_op = np.zeros((c_count, n), dt)
@@ -362,11 +422,12 @@ def _reduce(g_xy, g_con, g_op, g_ch, offsets, ids, c_count, n, nt, parts):
             g = ids[k]
             if g < lo or g >= hi:
                 continue
-            r_xy[c, g, 0] += g_xy[k, 0]
-            r_xy[c, g, 1] += g_xy[k, 1]
-            for j in range(3):
-                r_con[c, g, j] += g_con[k, j]
-            r_op[c, g] += g_op[k]
+            r_xy[c, g, 0] += g_pair[k, 0]
+            r_xy[c, g, 1] += g_pair[k, 1]
+            r_con[c, g, 0] += g_pair[k, 2]
+            r_con[c, g, 1] += g_pair[k, 3]
+            r_con[c, g, 2] += g_pair[k, 4]
+            r_op[c, g] += g_pair[k, 5]
             if want_chans:
                 for ch in range(f):
                     r_ch[c, g, ch] += g_ch[k, ch]
@@ -393,27 +454,32 @@ class _CompositeCPU(torch.autograd.Function):
         dt = np.float64 if chans.dtype == torch.float64 else np.float32
         m2d, con, op, ch = _np(means2d, dt), _np(conics, dt), _np(opacities, dt), _np(chans, dt)
         bg = _np(background, dt)
-        ext = _extents(_np(cov_diag, dt), op, _np(valid, np.bool_))
+        ext, rects = _footprints(m2d, _np(cov_diag, dt), op, _np(valid, np.bool_), width, height, tile)
         depth_bits = _np(depths, dt).view(np.uint64 if dt == np.float64 else np.uint32)
-        offsets, ids = _bin(m2d, ext, depth_bits, width, height, tile)
-        out, t_final, n_contrib = _forward(m2d, con, op, ch, ext, bg, offsets, ids, width, height, tile)
-        ctx.saved = (m2d, con, op, ch, ext, bg, offsets, ids, t_final, n_contrib, width, height, tile)
+        order, m_count = _depth_order(rects, depth_bits)
+        offsets, ids = _bin(rects, order, m_count, width, height, tile)
+        c_count, n, _ = ch.shape
+        nt = ((width + tile - 1) // tile) * ((height + tile - 1) // tile)
+        recs = _pack(m2d, con, op, ch, ext, offsets, ids, nt)
+        out, t_final, n_contrib = _forward(recs, bg, offsets, c_count, width, height, tile)
+        ctx.saved = (recs, bg, offsets, ids, t_final, n_contrib, n, width, height, tile)
         ctx.torch_dtype = chans.dtype
         alpha = 1.0 - t_final[..., None]
         return torch.from_numpy(out), torch.from_numpy(alpha)
 
     @staticmethod
     def _backward(ctx, g_out, g_alpha):
-        m2d, con, op, ch, ext, bg, offsets, ids, t_final, n_contrib, width, height, tile = ctx.saved
-        dt = ch.dtype
-        c_count, n, _ = ch.shape
-        g_out = _np(g_out, dt) if g_out is not None else np.zeros((c_count, height, width, ch.shape[2]), dt)
+        recs, bg, offsets, ids, t_final, n_contrib, n, width, height, tile = ctx.saved
+        dt = recs.dtype
+        c_count = t_final.shape[0]
+        f = recs.shape[1] - _R_CH
+        g_out = _np(g_out, dt) if g_out is not None else np.zeros((c_count, height, width, f), dt)
         g_alpha = _np(g_alpha[..., 0], dt) if g_alpha is not None else np.zeros((c_count, height, width), dt)
         want_chans = bool(ctx.needs_input_grad[3])
-        pairs = _backward(m2d, con, op, ch, ext, bg, offsets, ids, t_final, n_contrib, g_out, g_alpha,
-                          width, height, tile, want_chans)
+        g_pair, g_ch = _backward(recs, bg, offsets, t_final, n_contrib, g_out, g_alpha, width, height, tile,
+                                 want_chans)
         nt = ((width + tile - 1) // tile) * ((height + tile - 1) // tile)
-        r_xy, r_con, r_op, r_ch = _reduce(*pairs, offsets, ids, c_count, n, nt, max(1, numba.get_num_threads()))
+        r_xy, r_con, r_op, r_ch = _reduce(g_pair, g_ch, offsets, ids, c_count, n, nt, max(1, numba.get_num_threads()))
         # background gradient: d out / d bg = T_final
         g_bg = np.einsum("chw,chwf->f", t_final, g_out)
         as_t = lambda a: torch.from_numpy(a).to(ctx.torch_dtype)  # noqa: E731
@@ -444,7 +510,6 @@ def set_threads(n: int) -> None:
 
 EPS2D = 0.3
 NEAR = 0.01
-_CHUNKS = 64
 
 
 @njit(parallel=True, cache=True, error_model="numpy")
@@ -457,30 +522,39 @@ def _project_fwd(means, cov, view, intr, width, height):
     depth = np.zeros((c_count, n), dt)
     cdiag = np.zeros((c_count, n, 2), dt)
     valid = np.zeros((c_count, n), np.bool_)
-    for i in prange(n):
-        mx, my, mz = means[i, 0], means[i, 1], means[i, 2]
-        for c in range(c_count):
-            fx, fy, cx, cy = intr[c, 0], intr[c, 1], intr[c, 2], intr[c, 3]
-            x = view[c, 0, 0] * mx + view[c, 0, 1] * my + view[c, 0, 2] * mz + view[c, 0, 3]
-            y = view[c, 1, 0] * mx + view[c, 1, 1] * my + view[c, 1, 2] * mz + view[c, 1, 3]
-            z = view[c, 2, 0] * mx + view[c, 2, 1] * my + view[c, 2, 2] * mz + view[c, 2, 3]
+    chunk = (n + _CHUNKS - 1) // _CHUNKS
+    # (camera, chunk) jobs: per-camera constants stay in registers and writes are contiguous
+    for job in prange(c_count * _CHUNKS):
+        c = job // _CHUNKS
+        k = job % _CHUNKS
+        fx, fy, cx, cy = intr[c, 0], intr[c, 1], intr[c, 2], intr[c, 3]
+        v00, v01, v02, v03 = view[c, 0, 0], view[c, 0, 1], view[c, 0, 2], view[c, 0, 3]
+        v10, v11, v12, v13 = view[c, 1, 0], view[c, 1, 1], view[c, 1, 2], view[c, 1, 3]
+        v20, v21, v22, v23 = view[c, 2, 0], view[c, 2, 1], view[c, 2, 2], view[c, 2, 3]
+        lxp = (width - cx) / fx + 0.15 * width / fx
+        lxn = cx / fx + 0.15 * width / fx
+        lyp = (height - cy) / fy + 0.15 * height / fy
+        lyn = cy / fy + 0.15 * height / fy
+        for i in range(k * chunk, min(n, (k + 1) * chunk)):
+            mx, my, mz = means[i, 0], means[i, 1], means[i, 2]
+            x = v00 * mx + v01 * my + v02 * mz + v03
+            y = v10 * mx + v11 * my + v12 * mz + v13
+            z = v20 * mx + v21 * my + v22 * mz + v23
             depth[c, i] = z
             if not z > NEAR:
                 continue
             valid[c, i] = True
             u = x / z
             v = y / z
-            tan_x = 0.5 * width / fx
-            tan_y = 0.5 * height / fy
-            tu = max(min(u, (width - cx) / fx + 0.3 * tan_x), -(cx / fx + 0.3 * tan_x))
-            tv = max(min(v, (height - cy) / fy + 0.3 * tan_y), -(cy / fy + 0.3 * tan_y))
+            tu = max(min(u, lxp), -lxn)
+            tv = max(min(v, lyp), -lyn)
             # rows of J A (J: perspective Jacobian at the clamped point)
-            m00 = fx / z * (view[c, 0, 0] - tu * view[c, 2, 0])
-            m01 = fx / z * (view[c, 0, 1] - tu * view[c, 2, 1])
-            m02 = fx / z * (view[c, 0, 2] - tu * view[c, 2, 2])
-            m10 = fy / z * (view[c, 1, 0] - tv * view[c, 2, 0])
-            m11 = fy / z * (view[c, 1, 1] - tv * view[c, 2, 1])
-            m12 = fy / z * (view[c, 1, 2] - tv * view[c, 2, 2])
+            m00 = fx / z * (v00 - tu * v20)
+            m01 = fx / z * (v01 - tu * v21)
+            m02 = fx / z * (v02 - tu * v22)
+            m10 = fy / z * (v10 - tv * v20)
+            m11 = fy / z * (v11 - tv * v21)
+            m12 = fy / z * (v12 - tv * v22)
             s00 = m00 * cov[i, 0, 0] + m01 * cov[i, 1, 0] + m02 * cov[i, 2, 0]
             s01 = m00 * cov[i, 0, 1] + m01 * cov[i, 1, 1] + m02 * cov[i, 2, 1]
             s02 = m00 * cov[i, 0, 2] + m01 * cov[i, 1, 2] + m02 * cov[i, 2, 2]
@@ -510,32 +584,41 @@ def _project_bwd(means, cov, view, intr, width, height, con, valid, g_m2d, g_con
     g_means = np.zeros((n if want_geom else 0, 3), dt)
     g_cov = np.zeros((n if want_geom else 0, 3, 3), dt)
     chunk = (n + _CHUNKS - 1) // _CHUNKS
-    g_view_part = np.zeros((_CHUNKS, c_count, 4, 4), np.float64)
+    g_view_part = np.zeros((_CHUNKS, c_count, 3, 4), np.float64)
     for k in prange(_CHUNKS):
-        m0 = np.empty(3, dt)
-        m1 = np.empty(3, dt)
-        gm0 = np.empty(3, dt)
-        gm1 = np.empty(3, dt)
-        for i in range(k * chunk, min(n, (k + 1) * chunk)):
-            mvec = (means[i, 0], means[i, 1], means[i, 2])
-            for c in range(c_count):
+        m0 = np.empty(3, np.float64)
+        m1 = np.empty(3, np.float64)
+        gm0 = np.empty(3, np.float64)
+        gm1 = np.empty(3, np.float64)
+        mvec = np.empty(3, np.float64)
+        # one camera at a time so its view-gradient sums stay in local variables
+        gv = np.zeros((3, 4), np.float64)
+        for c in range(c_count):
+            fx, fy, cx, cy = intr[c, 0], intr[c, 1], intr[c, 2], intr[c, 3]
+            lxp = (width - cx) / fx + 0.15 * width / fx
+            lxn = cx / fx + 0.15 * width / fx
+            lyp = (height - cy) / fy + 0.15 * height / fy
+            lyn = cy / fy + 0.15 * height / fy
+            a0 = view[c, 0, :3]
+            a1 = view[c, 1, :3]
+            a2 = view[c, 2, :3]
+            gv[:] = 0.0
+            for i in range(k * chunk, min(n, (k + 1) * chunk)):
                 if not valid[c, i]:
                     continue
-                fx, fy, cx, cy = intr[c, 0], intr[c, 1], intr[c, 2], intr[c, 3]
-                x = view[c, 0, 0] * mvec[0] + view[c, 0, 1] * mvec[1] + view[c, 0, 2] * mvec[2] + view[c, 0, 3]
-                y = view[c, 1, 0] * mvec[0] + view[c, 1, 1] * mvec[1] + view[c, 1, 2] * mvec[2] + view[c, 1, 3]
-                z = view[c, 2, 0] * mvec[0] + view[c, 2, 1] * mvec[1] + view[c, 2, 2] * mvec[2] + view[c, 2, 3]
+                mvec[0], mvec[1], mvec[2] = means[i, 0], means[i, 1], means[i, 2]
+                x = a0[0] * mvec[0] + a0[1] * mvec[1] + a0[2] * mvec[2] + view[c, 0, 3]
+                y = a1[0] * mvec[0] + a1[1] * mvec[1] + a1[2] * mvec[2] + view[c, 1, 3]
+                z = a2[0] * mvec[0] + a2[1] * mvec[1] + a2[2] * mvec[2] + view[c, 2, 3]
                 u = x / z
                 v = y / z
-                tan_x = 0.5 * width / fx
-                tan_y = 0.5 * height / fy
-                lxp, lxn = (width - cx) / fx + 0.3 * tan_x, cx / fx + 0.3 * tan_x
-                lyp, lyn = (height - cy) / fy + 0.3 * tan_y, cy / fy + 0.3 * tan_y
                 tu = max(min(u, lxp), -lxn)
                 tv = max(min(v, lyp), -lyn)
+                fxz = fx / z
+                fyz = fy / z
                 for j in range(3):
-                    m0[j] = fx / z * (view[c, 0, j] - tu * view[c, 2, j])
-                    m1[j] = fy / z * (view[c, 1, j] - tv * view[c, 2, j])
+                    m0[j] = fxz * (a0[j] - tu * a2[j])
+                    m1[j] = fyz * (a1[j] - tv * a2[j])
                 # conic = S^-1: dL/dS from dQ = -Q dS Q
                 a, b, cc = con[c, i, 0], con[c, i, 1], con[c, i, 2]
                 ga, gb, gc = g_con[c, i, 0], g_con[c, i, 1], g_con[c, i, 2]
@@ -555,11 +638,11 @@ def _project_bwd(means, cov, view, intr, width, height, con, valid, g_m2d, g_con
                 g_tv = 0.0
                 g_z = g_depth[c, i]
                 for j in range(3):
-                    g_view_part[k, c, 0, j] += fx / z * gm0[j]
-                    g_view_part[k, c, 1, j] += fy / z * gm1[j]
-                    g_view_part[k, c, 2, j] -= fx / z * tu * gm0[j] + fy / z * tv * gm1[j]
-                    g_tu -= fx / z * gm0[j] * view[c, 2, j]
-                    g_tv -= fy / z * gm1[j] * view[c, 2, j]
+                    gv[0, j] += fxz * gm0[j]
+                    gv[1, j] += fyz * gm1[j]
+                    gv[2, j] -= fxz * tu * gm0[j] + fyz * tv * gm1[j]
+                    g_tu -= fxz * gm0[j] * a2[j]
+                    g_tv -= fyz * gm1[j] * a2[j]
                     g_z -= (gm0[j] * m0[j] + gm1[j] * m1[j]) / z
                 g_u = fx * g_m2d[c, i, 0] + (g_tu if -lxn < u < lxp else 0.0)
                 g_v = fy * g_m2d[c, i, 1] + (g_tv if -lyn < v < lyp else 0.0)
@@ -567,17 +650,18 @@ def _project_bwd(means, cov, view, intr, width, height, con, valid, g_m2d, g_con
                 g_y = g_v / z
                 g_z -= (g_u * u + g_v * v) / z
                 for j in range(3):
-                    g_view_part[k, c, 0, j] += g_x * mvec[j]
-                    g_view_part[k, c, 1, j] += g_y * mvec[j]
-                    g_view_part[k, c, 2, j] += g_z * mvec[j]
+                    gv[0, j] += g_x * mvec[j]
+                    gv[1, j] += g_y * mvec[j]
+                    gv[2, j] += g_z * mvec[j]
                     if want_geom:
-                        g_means[i, j] += g_x * view[c, 0, j] + g_y * view[c, 1, j] + g_z * view[c, 2, j]
-                g_view_part[k, c, 0, 3] += g_x
-                g_view_part[k, c, 1, 3] += g_y
-                g_view_part[k, c, 2, 3] += g_z
+                        g_means[i, j] += g_x * a0[j] + g_y * a1[j] + g_z * a2[j]
+                gv[0, 3] += g_x
+                gv[1, 3] += g_y
+                gv[2, 3] += g_z
+            g_view_part[k, c] = gv
     g_view = np.zeros((c_count, 4, 4), np.float64)
     for k in range(_CHUNKS):
-        g_view += g_view_part[k]
+        g_view[:, :3, :] += g_view_part[k]
     return g_view, g_means, g_cov
 
 
