@@ -213,3 +213,20 @@ def test_concurrent_renders_from_threads_agree():
     for colors, grad in results[1:]:
         np.testing.assert_array_equal(colors, results[0][0])
         np.testing.assert_array_equal(grad, results[0][1])
+
+
+def test_locality_order_groups_neighbours_and_leaves_renders_unchanged():
+    from gsa.render.cpu import locality_order
+    from gsa.render.testing import blob_object
+
+    model = blob_object(4000, seed=3)
+    shuffled = model.subset(np.random.default_rng(0).permutation(len(model)))
+    order = locality_order(shuffled.means)
+    assert np.array_equal(np.sort(order), np.arange(len(model)))
+    step = lambda p: np.linalg.norm(np.diff(p, axis=0), axis=1).mean()  # noqa: E731
+    assert step(shuffled.means[order]) < 0.2 * step(shuffled.means)
+    cams = orbit_cameras(np.zeros(3), 3.0, 3, width=48, height=40, fov=50, seed=2)
+    a = render_model(shuffled, cams, backend="cpu")
+    b = render_model(shuffled.subset(order), cams, backend="cpu")
+    for name in ("colors", "features", "alpha", "depth"):
+        np.testing.assert_allclose(getattr(b, name).numpy(), getattr(a, name).numpy(), atol=1e-5, err_msg=name)

@@ -131,6 +131,14 @@ def fine_align(source: GaussianModel, target: GaussianModel, init: Sim3, options
     source.validate("source")
     target.validate("target")
     t_start = time.perf_counter()
+    if options.backend in ("auto", "cpu"):
+        try:
+            from gsa.render.cpu import locality_order
+
+            # the source is rendered every iteration: store neighbours together for the CPU kernels
+            source = source.subset(locality_order(source.means))
+        except ImportError:  # pragma: no cover - numba missing
+            pass
     feat_s, sh_s = _signal(source, options.on, "source")
     feat_t, sh_t = _signal(target, options.on, "target")
     if feat_s is not None and feat_s.shape[1] != feat_t.shape[1]:

@@ -84,15 +84,15 @@ _R_CH = 8  # channels follow
 
 
 @njit(parallel=True, cache=True, error_model="numpy")
-def _footprints(means2d, cov_diag, opac, valid, width, height, tile):
-    """Per (camera, Gaussian): half-extents (C,N,2) and tile rectangle (C,N,4) [tx0, tx1, ty0, ty1], -1 if culled.
+def _footprints(means2d, conics, cov_diag, opac, chans, valid, width, height, tile):
+    """Per (camera, Gaussian): its record (C,N,8+F) and tile rectangle (C,N,4) [tx0, tx1, ty0, ty1], -1 if culled.
 
     A pixel can only contribute where d² <= min(9, 2 ln(255 o)); the ellipse d^T Σ^-1 d <= t
     has half-widths sqrt(t Σ_xx), sqrt(t Σ_yy). A small margin keeps boundary pixels that the
     exact per-pixel tests then decide.
     """
-    c_count, n = opac.shape
-    ext = np.empty((c_count, n, 2), cov_diag.dtype)
+    c_count, n, f = chans.shape
+    grec = np.empty((c_count, n, _R_CH + f), chans.dtype)
     rects = np.empty((c_count, n, 4), np.int32)
     chunk = (n + _CHUNKS - 1) // _CHUNKS
     for job in prange(c_count * _CHUNKS):
@@ -100,15 +100,24 @@ def _footprints(means2d, cov_diag, opac, valid, width, height, tile):
         for i in range((job % _CHUNKS) * chunk, min(n, (job % _CHUNKS + 1) * chunk)):
             o = opac[c, i]
             rects[c, i, 0] = -1
-            ext[c, i, 0] = -1.0
-            ext[c, i, 1] = -1.0
             if not valid[c, i] or o * 255.0 < 1.0:
                 continue
-            t = min(MAHA_CUTOFF, 2.0 * math.log(255.0 * o)) * 1.0001 + 1e-6
+            # 2 ln(255 o) >= 9 from o >= e^4.5 / 255: skip the log for most Gaussians
+            t = MAHA_CUTOFF if o >= 0.353 else min(MAHA_CUTOFF, 2.0 * math.log(255.0 * o))
+            t = t * 1.0001 + 1e-6
             ex = math.sqrt(t * cov_diag[c, i, 0])
             ey = math.sqrt(t * cov_diag[c, i, 1])
-            ext[c, i, 0] = ex
-            ext[c, i, 1] = ey
+            r = grec[c, i]
+            r[_R_X] = means2d[c, i, 0]
+            r[_R_Y] = means2d[c, i, 1]
+            r[_R_A] = conics[c, i, 0]
+            r[_R_B] = conics[c, i, 1]
+            r[_R_C] = conics[c, i, 2]
+            r[_R_O] = o
+            r[_R_EX] = ex
+            r[_R_EY] = ey
+            for ch in range(f):
+                r[_R_CH + ch] = chans[c, i, ch]
             px0, px1, py0, py1 = _pixel_box(means2d[c, i, 0], means2d[c, i, 1], ex, ey, 0, 0, width, height)
             if px0 > px1 or py0 > py1:
                 continue
@@ -116,7 +125,7 @@ def _footprints(means2d, cov_diag, opac, valid, width, height, tile):
             rects[c, i, 1] = px1 // tile
             rects[c, i, 2] = py0 // tile
             rects[c, i, 3] = py1 // tile
-    return ext, rects
+    return grec, rects
 
 
 _BIN_PARTS = 16  # slices of each camera's depth order, binned in parallel
@@ -196,24 +205,17 @@ def _bin(rects, order, m_count, width, height, tile):
 
 
 @njit(parallel=True, cache=True, error_model="numpy")
-def _pack(means2d, conics, opac, chans, ext, offsets, ids, nt):
+def _pack(grec, offsets, ids, nt):
     """recs (P, 8 + F): each pair's Gaussian record, in list order."""
-    c_count, n, f = chans.shape
-    recs = np.empty((ids.shape[0], _R_CH + f), chans.dtype)
+    c_count = grec.shape[0]
+    width = grec.shape[2]
+    recs = np.empty((ids.shape[0], width), grec.dtype)
     for job in prange(c_count * nt):
         c = job // nt
         for k in range(offsets[job], offsets[job + 1]):
             i = ids[k]
-            recs[k, _R_X] = means2d[c, i, 0]
-            recs[k, _R_Y] = means2d[c, i, 1]
-            recs[k, _R_A] = conics[c, i, 0]
-            recs[k, _R_B] = conics[c, i, 1]
-            recs[k, _R_C] = conics[c, i, 2]
-            recs[k, _R_O] = opac[c, i]
-            recs[k, _R_EX] = ext[c, i, 0]
-            recs[k, _R_EY] = ext[c, i, 1]
-            for ch in range(f):
-                recs[k, _R_CH + ch] = chans[c, i, ch]
+            for j in range(width):
+                recs[k, j] = grec[c, i, j]
     return recs
 
 
@@ -454,13 +456,13 @@ class _CompositeCPU(torch.autograd.Function):
         dt = np.float64 if chans.dtype == torch.float64 else np.float32
         m2d, con, op, ch = _np(means2d, dt), _np(conics, dt), _np(opacities, dt), _np(chans, dt)
         bg = _np(background, dt)
-        ext, rects = _footprints(m2d, _np(cov_diag, dt), op, _np(valid, np.bool_), width, height, tile)
+        grec, rects = _footprints(m2d, con, _np(cov_diag, dt), op, ch, _np(valid, np.bool_), width, height, tile)
         depth_bits = _np(depths, dt).view(np.uint64 if dt == np.float64 else np.uint32)
         order, m_count = _depth_order(rects, depth_bits)
         offsets, ids = _bin(rects, order, m_count, width, height, tile)
         c_count, n, _ = ch.shape
         nt = ((width + tile - 1) // tile) * ((height + tile - 1) // tile)
-        recs = _pack(m2d, con, op, ch, ext, offsets, ids, nt)
+        recs = _pack(grec, offsets, ids, nt)
         out, t_final, n_contrib = _forward(recs, bg, offsets, c_count, width, height, tile)
         ctx.saved = (recs, bg, offsets, ids, t_final, n_contrib, n, width, height, tile)
         ctx.torch_dtype = chans.dtype
@@ -496,6 +498,25 @@ def composite_cpu(means2d, conics, opacities, chans, cov_diag, depths, valid, ba
     return _CompositeCPU.apply(means2d.contiguous(), conics.contiguous(), opacities.contiguous(), chans,
                                cov_diag, depths, valid, background.to(chans.dtype), int(width), int(height),
                                int(tile))
+
+
+def locality_order(points: np.ndarray, bits: int = 10) -> np.ndarray:
+    """Permutation sorting points along a 3D Morton (Z-order) curve.
+
+    Rendering does not depend on the Gaussians' order, but the kernels gather them in depth
+    order per tile; with neighbours stored nearby those gathers hit the cache (measured: packing
+    50k Gaussians' records for 5 views 4.9 -> 2.2 ms). Worth it for a model rendered many times.
+    """
+    p = np.asarray(points, np.float64)
+    if len(p) == 0:
+        return np.zeros(0, np.int64)
+    lo, hi = p.min(0), p.max(0)
+    q = ((p - lo) / np.maximum(hi - lo, 1e-12) * ((1 << bits) - 1)).astype(np.uint64)
+    code = np.zeros(len(p), np.uint64)
+    for b in range(bits):
+        for axis in range(3):
+            code |= ((q[:, axis] >> np.uint64(b)) & np.uint64(1)) << np.uint64(3 * b + axis)
+    return np.argsort(code, kind="stable")
 
 
 def set_threads(n: int) -> None:
