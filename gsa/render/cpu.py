@@ -78,21 +78,22 @@ def _radix_argsort(keys, sel, passes):
 
 # Packed per-pair record: the Gaussian's screen-space parameters, copied next to each other in
 # tile order, so compositing reads memory sequentially instead of gathering from (C,N) arrays
-# in depth order (those gathers were the compositing kernels' main cost).
+# in depth order (those gathers were the compositing kernels' main cost). 8 values = 32 bytes
+# in float32; channels stay in their (C,N,F) array (read only where a pixel is reached).
 _R_X, _R_Y, _R_A, _R_B, _R_C, _R_O, _R_EX, _R_EY = range(8)
-_R_CH = 8  # channels follow
+_R_LEN = 8
 
 
 @njit(parallel=True, cache=True, error_model="numpy")
-def _footprints(means2d, conics, cov_diag, opac, chans, valid, width, height, tile):
-    """Per (camera, Gaussian): its record (C,N,8+F) and tile rectangle (C,N,4) [tx0, tx1, ty0, ty1], -1 if culled.
+def _footprints(means2d, conics, cov_diag, opac, valid, width, height, tile):
+    """Per (camera, Gaussian): its record (C,N,8) and tile rectangle (C,N,4) [tx0, tx1, ty0, ty1], -1 if culled.
 
     A pixel can only contribute where d² <= min(9, 2 ln(255 o)); the ellipse d^T Σ^-1 d <= t
     has half-widths sqrt(t Σ_xx), sqrt(t Σ_yy). A small margin keeps boundary pixels that the
     exact per-pixel tests then decide.
     """
-    c_count, n, f = chans.shape
-    grec = np.empty((c_count, n, _R_CH + f), chans.dtype)
+    c_count, n = opac.shape
+    grec = np.empty((c_count, n, _R_LEN), conics.dtype)
     rects = np.empty((c_count, n, 4), np.int32)
     chunk = (n + _CHUNKS - 1) // _CHUNKS
     for job in prange(c_count * _CHUNKS):
@@ -116,8 +117,6 @@ def _footprints(means2d, conics, cov_diag, opac, chans, valid, width, height, ti
             r[_R_O] = o
             r[_R_EX] = ex
             r[_R_EY] = ey
-            for ch in range(f):
-                r[_R_CH + ch] = chans[c, i, ch]
             px0, px1, py0, py1 = _pixel_box(means2d[c, i, 0], means2d[c, i, 1], ex, ey, 0, 0, width, height)
             if px0 > px1 or py0 > py1:
                 continue
@@ -206,7 +205,7 @@ def _bin(rects, order, m_count, width, height, tile):
 
 @njit(parallel=True, cache=True, error_model="numpy")
 def _pack(grec, offsets, ids, nt):
-    """recs (P, 8 + F): each pair's Gaussian record, in list order."""
+    """recs (P, 8): each pair's Gaussian record, in list order."""
     c_count = grec.shape[0]
     width = grec.shape[2]
     recs = np.empty((ids.shape[0], width), grec.dtype)
@@ -220,9 +219,9 @@ def _pack(grec, offsets, ids, nt):
 
 
 @njit(parallel=True, cache=True, error_model="numpy")
-def _forward(recs, bg, offsets, c_count, width, height, tile):
+def _forward(recs, ids, chans, bg, offsets, width, height, tile):
     """-> out (C,H,W,F), t_final (C,H,W), n_contrib (C,H,W) int32 (list position past the last contributor)."""
-    f = recs.shape[1] - _R_CH
+    c_count, n, f = chans.shape
     tx_n = (width + tile - 1) // tile
     ty_n = (height + tile - 1) // tile
     nt = tx_n * ty_n
@@ -255,6 +254,7 @@ def _forward(recs, bg, offsets, c_count, width, height, tile):
             cb = r[_R_B]
             cc = r[_R_C]
             o = r[_R_O]
+            col = chans[c, ids[k]]
             px0, px1, py0, py1 = _pixel_box(mx, my, r[_R_EX], r[_R_EY], x0, y0, x1, y1)
             for py in range(py0, py1 + 1):
                 dy = my - (py + 0.5)
@@ -278,7 +278,7 @@ def _forward(recs, bg, offsets, c_count, width, height, tile):
                         continue
                     w = alpha * tr
                     for ch in range(f):
-                        acc[lp, ch] += w * r[_R_CH + ch]
+                        acc[lp, ch] += w * col[ch]
                     trans[lp] = t_next
                     last[lp] = k - start + 1
         for ly in range(th):
@@ -292,10 +292,9 @@ def _forward(recs, bg, offsets, c_count, width, height, tile):
 
 
 @njit(parallel=True, cache=True, error_model="numpy")
-def _backward(recs, bg, offsets, t_final, n_contrib, g_out, g_alpha, width, height, tile, want_chans):
+def _backward(recs, ids, chans, bg, offsets, t_final, n_contrib, g_out, g_alpha, width, height, tile, want_chans):
     """Per-pair gradients: g_pair (P,6) [x, y, conic a, b, c, opacity], g_chan (P,F) (zero-size unless want_chans)."""
-    c_count = t_final.shape[0]
-    f = recs.shape[1] - _R_CH
+    c_count, n, f = chans.shape
     tx_n = (width + tile - 1) // tile
     ty_n = (height + tile - 1) // tile
     nt = tx_n * ty_n
@@ -344,6 +343,7 @@ def _backward(recs, bg, offsets, t_final, n_contrib, g_out, g_alpha, width, heig
             cb = r[_R_B]
             cc = r[_R_C]
             o = r[_R_O]
+            colv = chans[c, ids[k]]
             px0, px1, py0, py1 = _pixel_box(mx, my, r[_R_EX], r[_R_EY], x0, y0, x1, y1)
             gx = 0.0
             gy = 0.0
@@ -374,7 +374,7 @@ def _backward(recs, bg, offsets, t_final, n_contrib, g_out, g_alpha, width, heig
                     la = last_alpha[lp]
                     for ch in range(f):
                         go = gout[lp, ch]
-                        col = r[_R_CH + ch]
+                        col = colv[ch]
                         if want_chans:
                             g_ch[k, ch] += alpha * tr * go
                         # colour of everything behind this Gaussian, as seen through it
@@ -456,29 +456,29 @@ class _CompositeCPU(torch.autograd.Function):
         dt = np.float64 if chans.dtype == torch.float64 else np.float32
         m2d, con, op, ch = _np(means2d, dt), _np(conics, dt), _np(opacities, dt), _np(chans, dt)
         bg = _np(background, dt)
-        grec, rects = _footprints(m2d, con, _np(cov_diag, dt), op, ch, _np(valid, np.bool_), width, height, tile)
+        grec, rects = _footprints(m2d, con, _np(cov_diag, dt), op, _np(valid, np.bool_), width, height, tile)
         depth_bits = _np(depths, dt).view(np.uint64 if dt == np.float64 else np.uint32)
         order, m_count = _depth_order(rects, depth_bits)
         offsets, ids = _bin(rects, order, m_count, width, height, tile)
         c_count, n, _ = ch.shape
         nt = ((width + tile - 1) // tile) * ((height + tile - 1) // tile)
         recs = _pack(grec, offsets, ids, nt)
-        out, t_final, n_contrib = _forward(recs, bg, offsets, c_count, width, height, tile)
-        ctx.saved = (recs, bg, offsets, ids, t_final, n_contrib, n, width, height, tile)
+        out, t_final, n_contrib = _forward(recs, ids, ch, bg, offsets, width, height, tile)
+        ctx.saved = (recs, ch, bg, offsets, ids, t_final, n_contrib, n, width, height, tile)
         ctx.torch_dtype = chans.dtype
         alpha = 1.0 - t_final[..., None]
         return torch.from_numpy(out), torch.from_numpy(alpha)
 
     @staticmethod
     def _backward(ctx, g_out, g_alpha):
-        recs, bg, offsets, ids, t_final, n_contrib, n, width, height, tile = ctx.saved
+        recs, ch, bg, offsets, ids, t_final, n_contrib, n, width, height, tile = ctx.saved
         dt = recs.dtype
         c_count = t_final.shape[0]
-        f = recs.shape[1] - _R_CH
+        f = ch.shape[2]
         g_out = _np(g_out, dt) if g_out is not None else np.zeros((c_count, height, width, f), dt)
         g_alpha = _np(g_alpha[..., 0], dt) if g_alpha is not None else np.zeros((c_count, height, width), dt)
         want_chans = bool(ctx.needs_input_grad[3])
-        g_pair, g_ch = _backward(recs, bg, offsets, t_final, n_contrib, g_out, g_alpha, width, height, tile,
+        g_pair, g_ch = _backward(recs, ids, ch, bg, offsets, t_final, n_contrib, g_out, g_alpha, width, height, tile,
                                  want_chans)
         nt = ((width + tile - 1) // tile) * ((height + tile - 1) // tile)
         r_xy, r_con, r_op, r_ch = _reduce(g_pair, g_ch, offsets, ids, c_count, n, nt, max(1, numba.get_num_threads()))
