@@ -154,6 +154,22 @@ def _depth_order(rects, depth_bits):
     return order, m_count
 
 
+@njit(cache=True, error_model="numpy")
+def _walk_slice(rects, order, m_count, c, s, tx_n, table, ids):
+    """Visit the tiles of slice s of camera c's depth order: with an empty `ids`, count pairs per
+    tile into table[c, s]; otherwise write each Gaussian at table[c, s, tile] (a cursor) and advance it."""
+    parts = table.shape[1]
+    span = (m_count[c] + parts - 1) // parts
+    for j in range(s * span, min(m_count[c], (s + 1) * span)):
+        i = order[c, j]
+        for ty in range(rects[c, i, 2], rects[c, i, 3] + 1):
+            for tx in range(rects[c, i, 0], rects[c, i, 1] + 1):
+                t = ty * tx_n + tx
+                if ids.shape[0] > 0:
+                    ids[table[c, s, t]] = i
+                table[c, s, t] += 1
+
+
 @njit(parallel=True, cache=True, error_model="numpy")
 def _bin(rects, order, m_count, width, height, tile):
     """Per (camera, tile) lists of Gaussian ids sorted front to back.
@@ -169,15 +185,9 @@ def _bin(rects, order, m_count, width, height, tile):
     nt = tx_n * ty_n
     parts = _BIN_PARTS
     counts = np.zeros((c_count, parts, nt), np.int64)
+    no_ids = np.empty(0, np.int32)
     for job in prange(c_count * parts):
-        c = job // parts
-        s = job % parts
-        span = (m_count[c] + parts - 1) // parts
-        for j in range(s * span, min(m_count[c], (s + 1) * span)):
-            i = order[c, j]
-            for ty in range(rects[c, i, 2], rects[c, i, 3] + 1):
-                for tx in range(rects[c, i, 0], rects[c, i, 1] + 1):
-                    counts[c, s, ty * tx_n + tx] += 1
+        _walk_slice(rects, order, m_count, job // parts, job % parts, tx_n, counts, no_ids)
     offsets = np.zeros(c_count * nt + 1, np.int64)
     cursor = np.empty((c_count, parts, nt), np.int64)
     pos = 0
@@ -190,16 +200,7 @@ def _bin(rects, order, m_count, width, height, tile):
     offsets[c_count * nt] = pos
     ids = np.empty(pos, np.int32)
     for job in prange(c_count * parts):
-        c = job // parts
-        s = job % parts
-        span = (m_count[c] + parts - 1) // parts
-        for j in range(s * span, min(m_count[c], (s + 1) * span)):
-            i = order[c, j]
-            for ty in range(rects[c, i, 2], rects[c, i, 3] + 1):
-                for tx in range(rects[c, i, 0], rects[c, i, 1] + 1):
-                    t = ty * tx_n + tx
-                    ids[cursor[c, s, t]] = i
-                    cursor[c, s, t] += 1
+        _walk_slice(rects, order, m_count, job // parts, job % parts, tx_n, cursor, ids)
     return offsets, ids
 
 
