@@ -160,14 +160,16 @@ def _walk_slice(rects, order, m_count, c, s, tx_n, table, ids):
     tile into table[c, s]; otherwise write each Gaussian at table[c, s, tile] (a cursor) and advance it."""
     parts = table.shape[1]
     span = (m_count[c] + parts - 1) // parts
+    scatter = ids.shape[0] > 0
+    row = table[c, s]
     for j in range(s * span, min(m_count[c], (s + 1) * span)):
         i = order[c, j]
         for ty in range(rects[c, i, 2], rects[c, i, 3] + 1):
             for tx in range(rects[c, i, 0], rects[c, i, 1] + 1):
                 t = ty * tx_n + tx
-                if ids.shape[0] > 0:
-                    ids[table[c, s, t]] = i
-                table[c, s, t] += 1
+                if scatter:
+                    ids[row[t]] = i
+                row[t] += 1
 
 
 @njit(parallel=True, cache=True, error_model="numpy")
@@ -219,6 +221,13 @@ def _pack(grec, offsets, ids, nt):
     return recs
 
 
+@njit(cache=True, error_model="numpy")
+def _record(recs, k):
+    """Pair k's record: mean x, y, conic a, b, c, opacity, half-extents x, y."""
+    r = recs[k]
+    return r[_R_X], r[_R_Y], r[_R_A], r[_R_B], r[_R_C], r[_R_O], r[_R_EX], r[_R_EY]
+
+
 @njit(parallel=True, cache=True, error_model="numpy")
 def _forward(recs, ids, chans, bg, offsets, width, height, tile):
     """-> out (C,H,W,F), t_final (C,H,W), n_contrib (C,H,W) int32 (list position past the last contributor)."""
@@ -248,15 +257,9 @@ def _forward(recs, ids, chans, bg, offsets, width, height, tile):
         for k in range(start, offsets[job + 1]):
             if n_done == tw * th:
                 break
-            r = recs[k]
-            mx = r[_R_X]
-            my = r[_R_Y]
-            ca = r[_R_A]
-            cb = r[_R_B]
-            cc = r[_R_C]
-            o = r[_R_O]
+            mx, my, ca, cb, cc, o, ex, ey = _record(recs, k)
             col = chans[c, ids[k]]
-            px0, px1, py0, py1 = _pixel_box(mx, my, r[_R_EX], r[_R_EY], x0, y0, x1, y1)
+            px0, px1, py0, py1 = _pixel_box(mx, my, ex, ey, x0, y0, x1, y1)
             for py in range(py0, py1 + 1):
                 dy = my - (py + 0.5)
                 row = (py - y0) * tw - x0
@@ -337,15 +340,9 @@ def _backward(recs, ids, chans, bg, offsets, t_final, n_contrib, g_out, g_alpha,
                 max_n = max(max_n, ncon[lp])
         for kk in range(max_n - 1, -1, -1):
             k = start + kk
-            r = recs[k]
-            mx = r[_R_X]
-            my = r[_R_Y]
-            ca = r[_R_A]
-            cb = r[_R_B]
-            cc = r[_R_C]
-            o = r[_R_O]
+            mx, my, ca, cb, cc, o, ex, ey = _record(recs, k)
             colv = chans[c, ids[k]]
-            px0, px1, py0, py1 = _pixel_box(mx, my, r[_R_EX], r[_R_EY], x0, y0, x1, y1)
+            px0, px1, py0, py1 = _pixel_box(mx, my, ex, ey, x0, y0, x1, y1)
             gx = 0.0
             gy = 0.0
             ga = 0.0
