@@ -104,7 +104,7 @@ def _footprints(means2d, conics, cov_diag, opac, valid, width, height, tile):
             if not valid[c, i] or o * 255.0 < 1.0:
                 continue
             # 2 ln(255 o) >= 9 from o >= e^4.5 / 255: skip the log for most Gaussians
-            t = MAHA_CUTOFF if o >= 0.353 else min(MAHA_CUTOFF, 2.0 * math.log(255.0 * o))
+            t = MAHA_CUTOFF if o >= 0.3531 else min(MAHA_CUTOFF, 2.0 * math.log(255.0 * o))
             t = t * 1.0001 + 1e-6
             ex = math.sqrt(t * cov_diag[c, i, 0])
             ey = math.sqrt(t * cov_diag[c, i, 1])
@@ -210,13 +210,13 @@ def _bin(rects, order, m_count, width, height, tile):
 def _pack(grec, offsets, ids, nt):
     """recs (P, 8): each pair's Gaussian record, in list order."""
     c_count = grec.shape[0]
-    width = grec.shape[2]
-    recs = np.empty((ids.shape[0], width), grec.dtype)
+    rec_len = grec.shape[2]
+    recs = np.empty((ids.shape[0], rec_len), grec.dtype)
     for job in prange(c_count * nt):
         c = job // nt
         for k in range(offsets[job], offsets[job + 1]):
             i = ids[k]
-            for j in range(width):
+            for j in range(rec_len):
                 recs[k, j] = grec[c, i, j]
     return recs
 
