@@ -25,6 +25,7 @@ import torch
 from gsa.model import GaussianModel
 from gsa.render import render_gaussians
 from gsa.render.cameras import Cameras, cameras_around
+from gsa.render.cpu import covariance_cpu, locality_order
 from gsa.render.projection import covariance_3d
 from gsa.sim3 import Sim3
 
@@ -132,13 +133,8 @@ def fine_align(source: GaussianModel, target: GaussianModel, init: Sim3, options
     target.validate("target")
     t_start = time.perf_counter()
     if options.backend in ("auto", "cpu"):
-        try:
-            from gsa.render.cpu import locality_order
-
-            # the source is rendered every iteration: store neighbours together for the CPU kernels
-            source = source.subset(locality_order(source.means))
-        except ImportError:  # pragma: no cover - numba missing
-            pass
+        # the source is rendered every iteration: store neighbours together for the CPU kernels
+        source = source.subset(locality_order(source.means))
     feat_s, sh_s = _signal(source, options.on, "source")
     feat_t, sh_t = _signal(target, options.on, "target")
     if feat_s is not None and feat_s.shape[1] != feat_t.shape[1]:
@@ -159,12 +155,7 @@ def fine_align(source: GaussianModel, target: GaussianModel, init: Sim3, options
 def _covariance(model: GaussianModel, backend: str) -> torch.Tensor:
     q, ls = torch.as_tensor(model.quats), torch.as_tensor(model.log_scales)
     if backend in ("auto", "cpu"):
-        try:
-            from gsa.render.cpu import covariance_cpu
-
-            return covariance_cpu(q, ls)
-        except ImportError:  # pragma: no cover - numba missing
-            pass
+        return covariance_cpu(q, ls)
     return covariance_3d(q, ls)
 
 
