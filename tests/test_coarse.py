@@ -119,18 +119,25 @@ def test_ambiguous_frames_are_resolved_by_hypotheses():
 
 
 @pytest.mark.parametrize("category, a, b", [("car", 0, 2), ("bus", 1, 4)])
-def test_cross_instance_front_back_flip_is_not_chosen(category, a, b):
-    # Two different instances of a near front/back-symmetric class: both the right pose and
-    # the 180° flip leave most points farther apart than the 3 % inlier distance, so an
-    # inlier count chose the flip here (benchmark pairs car-0-2, bus-1-4: RRE ≈ 180°).
+def test_cross_instance_front_back_flip_is_right_or_flagged(category, a, b):
+    # Two different instances of a near front/back-symmetric class (benchmark pairs car-0-2,
+    # bus-1-4). For bus-1-4 the 180° flip fits the other instance better than the true pose
+    # does, at every truncation distance: no geometric score can pick the truth, so the
+    # result must say so (ambiguous, the true pose among the alternatives) rather than
+    # return the flip with confidence.
     truth = random_sim3(np.random.default_rng([0, 55, a, b, CATEGORIES.index(category)]))
     source = make_object(category, seed=300 + a, n_gaussians=15_000)
     target = make_object(category, seed=300 + b, n_gaussians=15_000).transformed(truth)
     result = align(source, target, AlignOptions(stages=("coarse",)))
     assert len(result.hypotheses) > 1
-    assert rre_deg(result.transform.rotation, truth.rotation) < 5.0
     chosen = [h for h in result.hypotheses if h.get("chosen")]
     assert len(chosen) == 1 and chosen[0]["score"] == max(h["score"] for h in result.hypotheses)
+    if rre_deg(result.transform.rotation, truth.rotation) < 5.0:
+        return
+    metrics = result.metrics
+    assert metrics["ambiguous"] and metrics["doubtful"] and metrics["confidence"] < 0.5
+    alternatives = [Sim3.from_matrix(np.array(alt["transform"])) for alt in metrics["alternatives"]]
+    assert any(rre_deg(alt.rotation, truth.rotation) < 5.0 for alt in alternatives)
 
 
 def test_result_reports_ground_truth_free_quality():

@@ -14,6 +14,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 from scipy.spatial import cKDTree
 
+from gsa.align import robust
 from gsa.align.canonical import CanonicalFrame, canonical_features, frame_hypotheses, model_frame
 from gsa.align.coarse import (
     AlignmentError,
@@ -60,7 +61,7 @@ class AlignOptions:
     hypothesis_points: int = 2000
     hypothesis_iterations: int = 8
     refine_points: int = 20_000  # source Gaussians sampled for the refinement ICP
-    refine_iterations: int = 100  # cheap: cached neighbour tables, see icp_refine
+    refine_iterations: int = 40  # cheap: cached neighbour tables (icp_refine, robust.refine)
     # The feature stage and the quality metrics use at most this many source
     # Gaussians (the authors subsample to 30k-50k); the target is always used whole.
     max_points: int = 30_000
@@ -68,6 +69,14 @@ class AlignOptions:
     # Hypotheses are ranked by the symmetric nearest-neighbour distance truncated at this
     # fraction of the target's RMS radius (see _Pair.select).
     hypothesis_truncation: float = 0.1
+    # Coarse initialisation with canonical features. "global": the robust search of
+    # gsa.align.robust (SO(3) sample + frame relabellings on floater-free anchors, scored by
+    # overlap and colour); "frames": one canonical frame per model and its plausible
+    # relabellings, then the feature-guided stage (the earlier default). auto: global,
+    # except with refine off, which asks for the feature stage alone.
+    search: str = "auto"
+    anchor_count: int = 2000
+    search_rotations: int = 2048
     seed: int = 0
     fine_iterations: int = 60
     fine_views: int = 5
@@ -84,6 +93,8 @@ class AlignOptions:
             raise ValueError(f"features must be one of {', '.join(FEATURE_MODES)}, got {self.features!r}")
         if not self.tau_f > 0:
             raise ValueError("tau_f must be positive")
+        if self.search not in ("auto", "global", "frames"):
+            raise ValueError(f"search must be auto, global or frames, got {self.search!r}")
         if self.refine not in ("auto", "on", "off"):
             raise ValueError(f"refine must be auto, on or off, got {self.refine!r}")
         if self.coarse_iterations < 1 or self.max_candidates < 1:
@@ -197,17 +208,26 @@ def align(
     _report(progress, "features", 0.0)
     t = time.perf_counter()
     pair = _Pair.build(source, target, opts)
-    hypotheses = pair.hypotheses()
     timings["features"] = time.perf_counter() - t
     _report(progress, "features", 1.0)
 
-    t = time.perf_counter()
-    best, scored = pair.select(hypotheses, progress)
-    timings["hypotheses"] = time.perf_counter() - t
-
-    t = time.perf_counter()
-    coarse = pair.coarse(best, progress)
-    timings["coarse"] = time.perf_counter() - t
+    search = None
+    if pair.global_search:
+        t = time.perf_counter()
+        search = pair.search(progress)
+        best = _Hypothesis(search.best.origin, pair.src_frame, search.best.transform)
+        scored = [c.to_dict(search.best.transform) | {"chosen": c is search.best} for c in search.candidates]
+        timings["hypotheses"] = time.perf_counter() - t
+        t = time.perf_counter()
+        coarse = pair.refine_global(best.init, progress)
+        timings["coarse"] = time.perf_counter() - t
+    else:
+        t = time.perf_counter()
+        best, scored = pair.select(pair.hypotheses(), progress)
+        timings["hypotheses"] = time.perf_counter() - t
+        t = time.perf_counter()
+        coarse = pair.coarse(best, progress)
+        timings["coarse"] = time.perf_counter() - t
 
     transform = coarse.transform
     fine_result = None
@@ -221,6 +241,7 @@ def align(
     t = time.perf_counter()
     metrics = pair.quality(transform, best)
     metrics["hypothesis"] = best.label
+    metrics.update(pair.judge(transform, search))
     timings["metrics"] = time.perf_counter() - t
     timings["total"] = time.perf_counter() - t_start
     _report(progress, "done", 1.0)
@@ -294,6 +315,8 @@ class _Pair:
     weights: np.ndarray | None
     threshold: float  # GT-free inlier distance in target units
     rng: np.random.Generator
+    src_anchors: robust.Anchors | None = None
+    dst_anchors: robust.Anchors | None = None
 
     @classmethod
     def build(cls, source: GaussianModel, target: GaussianModel, opts: AlignOptions) -> _Pair:
@@ -327,6 +350,50 @@ class _Pair:
             threshold=opts.inlier_threshold * dst_frame.radius,
             rng=np.random.default_rng(opts.seed),
         )
+
+    @property
+    def global_search(self) -> bool:
+        if self.opts.search == "auto":
+            return self.mode == "canonical" and self.opts.refine != "off"
+        return self.opts.search == "global"
+
+    def anchors(self) -> tuple[robust.Anchors, robust.Anchors]:
+        if self.src_anchors is None or self.dst_anchors is None:
+            self.src_anchors = robust.anchors(self.source, self.opts.anchor_count)
+            self.dst_anchors = robust.anchors(self.target, self.opts.anchor_count)
+        return self.src_anchors, self.dst_anchors
+
+    def search(self, progress: Progress | None) -> robust.SearchResult:
+        """gsa.align.robust: global rotation search on floater-free anchors, seeded also
+        with every relabelling of the two canonical frames."""
+        src, dst = self.anchors()
+        _report(progress, "hypotheses", 0.0)
+        options = robust.SearchOptions(rotations=self.opts.search_rotations, seed=self.opts.seed)
+        result = robust.global_search(src, dst, robust.frame_relabellings(self.src_frame, self.dst_frame), options)
+        _report(progress, "hypotheses", 1.0)
+        return result
+
+    def refine_global(self, init: Sim3, progress: Progress | None) -> CoarseResult:
+        """Trimmed ICP at full resolution from the search's pose, on the Gaussians that
+        are not floaters, with correspondences both ways (gsa.align.robust.refine)."""
+        t0 = time.perf_counter()
+        src, dst = self.anchors()
+        src_tree = self.src_tree if src.kept.all() else cKDTree(self.src_pts[src.kept])
+        dst_tree = self.dst_tree if dst.kept.all() else cKDTree(self.dst_pts[dst.kept])
+        half = self.opts.refine_points // 2
+        p = src_tree.data[_subsample(self.rng, src_tree.n, half)]
+        q = dst_tree.data[_subsample(self.rng, dst_tree.n, half)]
+        transform, history = robust.refine(p, q, src_tree, dst_tree, init, self.opts.refine_iterations)
+        _report(progress, "coarse", 1.0)
+        return CoarseResult(transform=transform, iterations=len(history), converged=len(history) < self.opts.refine_iterations,
+                            history=history, matched=history[-1]["matched"] if history else 0,
+                            seconds=time.perf_counter() - t0)
+
+    def judge(self, transform: Sim3, search: robust.SearchResult | None) -> dict:
+        """Confidence in [0, 1], ambiguity and the alternative poses (GT-free)."""
+        src, dst = self.anchors()
+        w_colour = search.colour_weight if search is not None else robust.colour_weight(src, dst)
+        return robust.verdict(robust.score_pose(src, dst, transform, "final", w_colour), search)
 
     @property
     def refine(self) -> bool:

@@ -1,0 +1,688 @@
+"""Robust global registration for models without learned features.
+
+One canonical frame per model (gsa.align.canonical) moves as soon as a capture
+misses a side, carries floaters or is a different instance, and colour plays no
+part in it. This module does not trust any single frame:
+
+1. `anchors`: floaters are dropped (low opacity, or alone in their voxel) and
+   each model is voxel-downsampled to ~2k anchors with a mean position, a mean
+   CIELAB colour and a weight. The voxel size follows each model's own size, so
+   anchors are scale-free.
+2. `search`: every rotation of a near-uniform SO(3) sample (super-Fibonacci,
+   plus the canonical-frame relabellings, which make duplicates exact) is
+   placed by matching centres and RMS radii, moved by two vectorised
+   translation steps towards its nearest anchors, and scored through a grid of
+   nearest-anchor indices (an exact distance transform), both ways round.
+3. The best distinct rotations are refined by a trimmed, bidirectional ICP
+   with Horn's symmetric scale on the anchors (both directions, so a partial
+   model cannot shrink into the other), and scored by how much of the two
+   models overlap (truncated distances both ways) and, among poses whose
+   geometry scores tie, by how well colours agree: colour is what tells the
+   sides of a symmetric object apart.
+4. The margin to the best distinct alternative and the overlap itself give a
+   confidence; near-ties are reported as ambiguous with their poses.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numba
+import numpy as np
+from scipy import ndimage
+from scipy.spatial import cKDTree
+
+from gsa.align.canonical import SIGNED_PERMUTATIONS, CanonicalFrame
+from gsa.align.coarse import _nearest_candidate
+from gsa.model import GaussianModel, quat_to_rotation
+from gsa.sim3 import DegenerateCorrespondencesError, Sim3, solve_sim3
+
+# Truncation of distances in the overlap score, as a fraction of the target's
+# anchor RMS radius: far enough to count near misses, near enough that a wrong
+# pose gains nothing from points that merely lie inside the other model's box.
+TRUNCATION = 0.1
+# Pairs closer than this (fraction of the target radius) compare colours.
+COLOUR_PAIR_DISTANCE = 0.05
+# Colour similarity of a pair: exp(−ΔE² / 2σ²) in CIELAB.
+COLOUR_SIGMA = 12.0
+# A colour of one model is "shared" when the other has one within this ΔE.
+SHARED_DELTA_E = 8.0
+# In coloured matching, a ΔE of COLOUR_SIGMA weighs like this fraction of the truncation distance.
+COLOUR_MATCH = 0.5
+# Poses whose scores differ by less than this are a tie (a symmetric shape whose
+# colours cannot tell its sides apart): the result is ambiguous.
+SCORE_TIE = 0.015
+# Overlap estimation in the final refinement (see overlap_trim): Chetverikov et al. use
+# λ = 2; a larger λ keeps more pairs. Measured on the partial and deform protocols
+# (docs/benchmarks.md): λ = 4 keeps partial overlaps precise (median 0.15°) and
+# averages smooth deformations better than λ = 2 (success 75 % vs 58 % on 12 pairs).
+OVERLAP_LAMBDA = 4.0
+# Rotations closer than this are one pose, not alternatives.
+DISTINCT_DEG = 15.0
+
+
+@dataclass
+class Anchors:
+    """A voxel-downsampled, floater-free summary of a model."""
+
+    points: np.ndarray  # (A, 3) float64, model units
+    lab: np.ndarray  # (A, 3) CIELAB colour
+    weights: np.ndarray  # (A,) Gaussians per anchor (normalised to mean 1)
+    center: np.ndarray  # (3,) weighted centroid
+    radius: float  # weighted RMS distance from the centroid
+    kept: np.ndarray  # (N,) bool: Gaussians that are not floaters
+    tree: cKDTree = field(repr=False)
+
+    def __len__(self) -> int:
+        return len(self.points)
+
+
+def srgb_to_lab(rgb: np.ndarray) -> np.ndarray:
+    """sRGB in [0, 1] -> CIELAB (D65): distances approximate perceived differences."""
+    c = np.clip(np.asarray(rgb, np.float64), 0.0, 1.0)
+    lin = np.where(c <= 0.04045, c / 12.92, ((c + 0.055) / 1.055) ** 2.4)
+    m = np.array([[0.4124564, 0.3575761, 0.1804375],
+                  [0.2126729, 0.7151522, 0.0721750],
+                  [0.0193339, 0.1191920, 0.9503041]])
+    xyz = lin @ m.T / np.array([0.95047, 1.0, 1.08883])
+    f = np.where(xyz > (6 / 29) ** 3, np.cbrt(xyz), xyz / (3 * (6 / 29) ** 2) + 4 / 29)
+    return np.stack([116 * f[:, 1] - 16, 500 * (f[:, 0] - f[:, 1]), 200 * (f[:, 1] - f[:, 2])], axis=1)
+
+
+def floater_mask(model: GaussianModel) -> np.ndarray:
+    """Gaussians worth trusting for geometry: opacity at least half the model's
+    median (faint floaters go), the rest judged by density in `anchors`."""
+    o = model.opacities
+    keep = o >= 0.5 * float(np.median(o))
+    return keep if keep.sum() >= 3 else np.ones(len(model), bool)
+
+
+def anchors(model: GaussianModel, count: int = 2000, seed: int = 0) -> Anchors:
+    """Voxel-downsample the model to about `count` anchors, dropping floaters.
+
+    The voxel size is found from the model's own extent (a surface's voxel count
+    grows as size⁻²), so the same object at any scale gets comparable anchors.
+    Voxels holding far fewer Gaussians than a typical surface voxel are floaters
+    spread through space (an unpruned capture), not surface."""
+    pts = model.means.astype(np.float64)
+    kept = floater_mask(model)
+    x = pts[kept]
+    rgb = model.base_colors[kept]
+    lo, hi = x.min(0), x.max(0)
+    extent = float(np.max(hi - lo))
+    if not extent > 0:
+        raise ValueError("all Gaussians coincide; the model has no extent to align")
+    voxel = extent / np.sqrt(count)
+    for _ in range(4):
+        keys, inverse, counts = _voxelise(x, lo, voxel)
+        occupied = len(counts)
+        if 0.7 * count <= occupied <= 1.4 * count or occupied >= len(x) * 0.9:
+            break
+        voxel *= np.sqrt(occupied / count)
+    # Surface voxels hold many Gaussians; a floater's voxel one or two.
+    typical = float(np.median(np.repeat(counts, counts)))
+    solid = counts >= max(2.0, 0.1 * typical) if typical >= 8 else np.ones(len(counts), bool)
+    if solid.sum() < 4:
+        solid = np.ones(len(counts), bool)
+    gaussian_solid = solid[inverse]
+    full_kept = kept.copy()
+    full_kept[np.flatnonzero(kept)[~gaussian_solid]] = False
+    n_vox = len(counts)
+    sums = np.zeros((n_vox, 3))
+    np.add.at(sums, inverse, x)
+    csum = np.zeros((n_vox, 3))
+    np.add.at(csum, inverse, rgb)
+    points = (sums / counts[:, None])[solid]
+    colours = (csum / counts[:, None])[solid]
+    weights = counts[solid].astype(np.float64)
+    weights /= weights.mean()
+    w = weights / weights.sum()
+    center = w @ points
+    radius = float(np.sqrt(w @ np.sum((points - center) ** 2, axis=1)))
+    if not radius > 0:
+        raise ValueError("all Gaussians coincide; the model has no extent to align")
+    return Anchors(points, srgb_to_lab(colours), weights, center, radius, full_kept, cKDTree(points))
+
+
+def _voxelise(x: np.ndarray, lo: np.ndarray, voxel: float):
+    ijk = np.floor((x - lo) / voxel).astype(np.int64)
+    span = ijk.max(0) + 1
+    keys = (ijk[:, 0] * span[1] + ijk[:, 1]) * span[2] + ijk[:, 2]
+    uniq, inverse, counts = np.unique(keys, return_inverse=True, return_counts=True)
+    return uniq, inverse.ravel(), counts
+
+
+class NearestGrid:
+    """Nearest-anchor index for every cell of a grid around a point set (exact
+    Euclidean distance transform): a scoring lookup in O(1) per point, so
+    thousands of candidate rotations are scored in one vectorised pass."""
+
+    def __init__(self, points: np.ndarray, cell: float, pad: float):
+        self.points = points
+        self.lo = points.min(0) - pad
+        self.cell = cell
+        shape = np.ceil((points.max(0) + pad - self.lo) / cell).astype(int) + 1
+        self.shape = shape
+        ijk = np.floor((points - self.lo) / cell).astype(int)
+        owner = np.full(tuple(shape), -1, np.int64)
+        owner[ijk[:, 0], ijk[:, 1], ijk[:, 2]] = np.arange(len(points))
+        _, nearest = ndimage.distance_transform_edt(owner < 0, return_indices=True)
+        self.nearest_flat = np.ascontiguousarray(owner[nearest[0], nearest[1], nearest[2]].ravel())
+        self.shape = np.asarray(shape, np.int64)
+
+    def lookup(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(..., 3) points -> (nearest anchor index, distance); outside the grid: index -1, distance inf."""
+        ijk = ((x - self.lo) * (1.0 / self.cell)).astype(np.int32)  # truncation = floor inside the grid
+        inside = np.all((ijk >= 0) & (ijk < self.shape) & (x >= self.lo), axis=-1)
+        flat = (ijk[..., 0] * self.shape[1] + ijk[..., 1]) * self.shape[2] + ijk[..., 2]
+        idx = self.nearest_flat[np.where(inside, flat, 0)]
+        diff = self.points[idx] - x
+        d = np.sqrt(np.einsum("...i,...i->...", diff, diff))
+        return np.where(inside, idx, -1), np.where(inside, d, np.inf)
+
+
+def super_fibonacci_rotations(n: int) -> np.ndarray:
+    """(n, 3, 3) rotations spread near-uniformly over SO(3) (Alexa, CVPR 2022)."""
+    phi, psi = np.sqrt(2.0), 1.533751168755204288118041
+    s = np.arange(n) + 0.5
+    r, big_r = np.sqrt(s / n), np.sqrt(1.0 - s / n)
+    alpha, beta = 2 * np.pi * s / phi, 2 * np.pi * s / psi
+    q = np.stack([r * np.sin(alpha), r * np.cos(alpha), big_r * np.sin(beta), big_r * np.cos(beta)], axis=1)
+    return quat_to_rotation(q)
+
+
+@dataclass
+class Candidate:
+    transform: Sim3
+    origin: str  # "grid" or "frame:<relabelling>"
+    score: float = 0.0  # what poses are ranked by: overlap, with colour as far as the models share it
+    geometry: float = 0.0  # overlap alone: truncated closeness both ways, in [0, 1]
+    colour: float = 0.0  # colour agreement of overlapping pairs in [0, 1]
+    overlap: float = 0.0  # fraction of anchors (both ways) with a partner within COLOUR_PAIR_DISTANCE
+
+    def to_dict(self, reference: Sim3 | None = None) -> dict:
+        out = {"origin": self.origin, "score": self.score, "geometry": self.geometry, "colour": self.colour,
+               "overlap": self.overlap}
+        if reference is not None:
+            out["rotation_offset_deg"] = rotation_offset_deg(self.transform, reference)
+            out["scale_ratio"] = self.transform.scale / reference.scale
+        out["transform"] = self.transform.matrix().tolist()
+        return out
+
+
+def rotation_offset_deg(a: Sim3, b: Sim3) -> float:
+    r = a.rotation @ b.rotation.T
+    return float(np.degrees(np.arccos(np.clip((np.trace(r) - 1.0) / 2.0, -1.0, 1.0))))
+
+
+@dataclass
+class SearchOptions:
+    rotations: int = 2048  # super-Fibonacci samples (~12° apart)
+    score_points: int = 256  # anchors per model used to score every rotation
+    # Capture radii (in units of the truncation τ) of the translation/scale steps per rotation.
+    capture_steps: tuple[float, ...] = (8.0, 4.0, 2.0, 1.5)
+    translation_top: int = 24  # rotations that also try the offsets below
+    translation_step: float = 0.25  # offset grid step, fraction of the target radius
+    translation_reach: int = 2  # offsets −reach..reach steps per axis
+    scale_factors: tuple[float, ...] = (0.85, 1.0, 1.18)
+    refine_top: int = 10  # distinct rotations refined by anchor ICP
+    refine_points: int = 800  # anchors per side in the candidates' ICP
+    early_iterations: int = 10  # ICP iterations every refined start gets
+    finalists: int = 4  # starts that then run up to refine_iterations more
+    refine_iterations: int = 60
+    seed: int = 0
+
+
+@dataclass
+class SearchResult:
+    best: Candidate
+    candidates: list[Candidate]  # refined and de-duplicated, the chosen one first
+    ambiguous: bool  # a distinct pose ties with the best
+    colour_weight: float  # how far colour counted in the scores (0: not shared by the models)
+    margin: float  # lead over the best distinct alternative, in units of SCORE_TIE
+    rivals: list[Candidate]  # the poses tied with the best
+
+
+def global_search(src: Anchors, dst: Anchors, frame_rotations: list[tuple[str, np.ndarray]] | None = None,
+                  options: SearchOptions | None = None) -> SearchResult:
+    """Search SO(3) for the Sim(3) mapping `src` anchors onto `dst` anchors."""
+    opts = options or SearchOptions()
+    rng = np.random.default_rng(opts.seed)
+    rotations = super_fibonacci_rotations(opts.rotations)
+    origins = ["grid"] * len(rotations)
+    for label, r in frame_rotations or []:
+        rotations = np.concatenate([rotations, r[None]])
+        origins.append(f"frame:{label}")
+    scale0 = dst.radius / src.radius
+    tau = TRUNCATION * dst.radius
+    # Cells of τ/2 bound the lookup error well inside the truncation; a radius of
+    # padding covers poses that overhang the other model (beyond it a point scores zero).
+    dst_grid = NearestGrid(dst.points, 0.5 * tau, dst.radius)
+    src_grid = NearestGrid(src.points, 0.5 * tau / scale0, src.radius)
+
+    w_colour = colour_weight(src, dst)
+    scorer = _GridScorer(src, dst, dst_grid, src_grid, rng, opts.score_points, tau, w_colour)
+    # Centres and RMS radii are only a first guess: a capture that missed a side has
+    # its centroid moved by up to ~0.8 radius and its radius off by ~25 %.
+    scale = np.full(len(rotations), scale0)
+    t = np.broadcast_to(dst.center, (len(rotations), 3)).copy()
+    scale, t = scorer.capture(rotations, scale, t, opts.capture_steps)
+    score = scorer.score(rotations, scale, t)
+
+    # The most promising distinct rotations also try translations and scales around
+    # their estimate (the capture steps can settle on the wrong stretch of a long part).
+    top = _distinct(np.argsort(-score), rotations, opts.translation_top, DISTINCT_DEG / 2)
+    step = opts.translation_step * dst.radius
+    g = np.arange(-opts.translation_reach, opts.translation_reach + 1) * step
+    offsets = np.stack(np.meshgrid(g, g, g, indexing="ij"), -1).reshape(-1, 3)
+    factors = np.asarray(opts.scale_factors)
+    k_rot, k_off, k_fac = np.meshgrid(top, np.arange(len(offsets)), np.arange(len(factors)), indexing="ij")
+    k_rot, k_off, k_fac = k_rot.ravel(), k_off.ravel(), k_fac.ravel()
+    # Scaling about the estimated centre of the mapped source keeps a scale change from shifting it.
+    centre = t[k_rot] + scale[k_rot, None] * (rotations[k_rot] @ (scorer.src_mean - src.center))
+    trial_scale = scale[k_rot] * factors[k_fac]
+    trial_t = centre + offsets[k_off] - trial_scale[:, None] * (rotations[k_rot] @ (scorer.src_mean - src.center))
+    trial_score = scorer.score(rotations[k_rot], trial_scale, trial_t).reshape(len(top), -1)
+    pick = np.argmax(trial_score, axis=1)
+    rows = np.arange(len(top)) * trial_score.shape[1] + pick
+    s2, t2 = scorer.capture(rotations[top], trial_scale[rows], trial_t[rows], opts.capture_steps[-2:])
+    better = scorer.score(rotations[top], s2, t2) > score[top]
+    scale[top] = np.where(better, s2, scale[top])
+    t[top] = np.where(better[:, None], t2, t[top])
+    score[top] = np.maximum(score[top], scorer.score(rotations[top], s2, t2))
+
+    # Refine the best distinct rotations, and the best frame relabelling (exact on clean copies).
+    frames = np.arange(opts.rotations, len(rotations))
+    first = [int(frames[np.argmax(score[frames])])] if len(frames) else []
+    chosen = _distinct(np.concatenate([first, np.argsort(-score)]).astype(int), rotations, opts.refine_top, DISTINCT_DEG)
+
+    src_rows = _sample(rng, len(src), opts.refine_points)
+    dst_rows = _sample(rng, len(dst), opts.refine_points)
+    # Successive halving: every start gets a few ICP iterations, the leaders the rest.
+    starts = [Sim3(float(scale[i]), rotations[i], t[i] - scale[i] * rotations[i] @ src.center) for i in chosen]
+    early = [score_pose(src, dst, bidirectional_icp(src, dst, init, src_rows, dst_rows, opts.early_iterations,
+                                                    w_colour), origins[i], w_colour)
+             for i, init in zip(chosen, starts)]
+    early.sort(key=lambda c: -c.score)
+    refined = early[opts.finalists:]
+    for c in early[:opts.finalists]:
+        transform = bidirectional_icp(src, dst, c.transform, src_rows, dst_rows, opts.refine_iterations, w_colour)
+        refined.append(score_pose(src, dst, transform, c.origin, w_colour))
+    return decide(_dedupe(refined), w_colour)
+
+
+def _distinct(order: np.ndarray, rotations: np.ndarray, count: int, min_deg: float) -> list[int]:
+    """The first `count` indices of `order` whose rotations are min_deg apart."""
+    chosen: list[int] = []
+    for i in order:
+        if len(chosen) >= count:
+            break
+        if all(_angle(rotations[i], rotations[j]) > min_deg for j in chosen):
+            chosen.append(int(i))
+    return chosen
+
+
+class _GridScorer:
+    """Pose scoring on anchor samples through the nearest-anchor grids, many poses
+    at once in compiled loops (no (poses × points) temporaries)."""
+
+    def __init__(self, src: Anchors, dst: Anchors, dst_grid: NearestGrid, src_grid: NearestGrid,
+                 rng: np.random.Generator, points: int, tau: float, w_colour: float):
+        self.src, self.dst, self.dst_grid, self.src_grid = src, dst, dst_grid, src_grid
+        p_rows, q_rows = _sample(rng, len(src), points), _sample(rng, len(dst), points)
+        self.ps, self.qs = src.points[p_rows], dst.points[q_rows]
+        self.p_lab, self.q_lab = src.lab[p_rows], dst.lab[q_rows]
+        self.src_mean = self.ps.mean(0)
+        self.tau, self.w_colour = tau, w_colour
+
+    def capture(self, rotations, scale, t, reaches):
+        """Shrinking capture radii (units of τ) pull each pose's translation and scale
+        onto the nearest target anchors: Horn's symmetric scale and the centroid of the
+        captured pairs, rotation held."""
+        scale, t = scale.astype(np.float64).copy(), t.astype(np.float64).copy()
+        u = np.ascontiguousarray(np.einsum("rij,pj->rpi", rotations, self.ps - self.src.center))
+        g = self.dst_grid
+        for reach in reaches:
+            _capture_step(u, scale, t, g.nearest_flat, g.lo, 1.0 / g.cell, g.shape, self.dst.points, reach * self.tau)
+        return scale, t
+
+    def score(self, rotations, scale, t) -> np.ndarray:
+        """Overlap score both ways (with colour as far as trusted) of each pose."""
+        rotations = np.asarray(rotations, np.float64)
+        lin = scale[:, None, None] * rotations
+        off = t - np.einsum("rij,j->ri", lin, self.src.center)
+        g = self.dst_grid
+        fwd = _score_poses(np.ascontiguousarray(lin), np.ascontiguousarray(off), np.ones(len(scale)), self.ps,
+                           self.p_lab, g.nearest_flat, g.lo, 1.0 / g.cell, g.shape, self.dst.points, self.dst.lab,
+                           self.tau, self.w_colour)
+        # Reverse: x_s = Rᵀ (q − t) / s + c_s, distances back in target units (× s).
+        inv = np.transpose(rotations, (0, 2, 1)) / scale[:, None, None]
+        inv_off = self.src.center - np.einsum("rij,rj->ri", inv, t)
+        g = self.src_grid
+        rev = _score_poses(np.ascontiguousarray(inv), np.ascontiguousarray(inv_off), scale.astype(np.float64),
+                           self.qs, self.q_lab, g.nearest_flat, g.lo, 1.0 / g.cell, g.shape, self.src.points,
+                           self.src.lab, self.tau, self.w_colour)
+        return 0.5 * (fwd + rev)
+
+
+@numba.njit(cache=True, inline="always")
+def _grid_index(x0, x1, x2, lo, inv_cell, shape):  # pragma: no cover - compiled
+    f0, f1, f2 = (x0 - lo[0]) * inv_cell, (x1 - lo[1]) * inv_cell, (x2 - lo[2]) * inv_cell
+    if f0 < 0 or f1 < 0 or f2 < 0 or f0 >= shape[0] or f1 >= shape[1] or f2 >= shape[2]:
+        return -1
+    return (int(f0) * shape[1] + int(f1)) * shape[2] + int(f2)
+
+
+@numba.njit(parallel=True, cache=True)
+def _score_poses(lin, off, dist_scale, pts, lab, nearest, lo, inv_cell, shape, other, other_lab, tau, w):  # pragma: no cover
+    """Mean of _pair_scores over `pts` mapped by x -> lin[k] x + off[k], for every pose k."""
+    n_pose, n_pt = lin.shape[0], pts.shape[0]
+    out = np.zeros(n_pose)
+    inv_2s2 = 0.5 / COLOUR_SIGMA**2
+    for k in numba.prange(n_pose):
+        total = 0.0
+        for i in range(n_pt):
+            x0 = lin[k, 0, 0] * pts[i, 0] + lin[k, 0, 1] * pts[i, 1] + lin[k, 0, 2] * pts[i, 2] + off[k, 0]
+            x1 = lin[k, 1, 0] * pts[i, 0] + lin[k, 1, 1] * pts[i, 1] + lin[k, 1, 2] * pts[i, 2] + off[k, 1]
+            x2 = lin[k, 2, 0] * pts[i, 0] + lin[k, 2, 1] * pts[i, 1] + lin[k, 2, 2] * pts[i, 2] + off[k, 2]
+            cell = _grid_index(x0, x1, x2, lo, inv_cell, shape)
+            if cell < 0:
+                continue
+            j = nearest[cell]
+            d = np.sqrt((other[j, 0] - x0) ** 2 + (other[j, 1] - x1) ** 2 + (other[j, 2] - x2) ** 2) * dist_scale[k]
+            if d >= tau:
+                continue
+            c = 1.0 - d / tau
+            if w > 0:
+                de2 = (lab[i, 0] - other_lab[j, 0]) ** 2 + (lab[i, 1] - other_lab[j, 1]) ** 2 \
+                    + (lab[i, 2] - other_lab[j, 2]) ** 2
+                c *= 1.0 - 2.0 * w * (1.0 - np.exp(-de2 * inv_2s2))
+            total += c
+        out[k] = total / n_pt
+    return out
+
+
+@numba.njit(parallel=True, cache=True)
+def _capture_step(u, scale, t, nearest, lo, inv_cell, shape, other, reach):  # pragma: no cover - compiled
+    """One capture step per pose (in place): pairs within `reach` of their nearest
+    anchor give Horn's symmetric scale and the translation, rotation held."""
+    n_pose, n_pt = u.shape[0], u.shape[1]
+    for k in numba.prange(n_pose):
+        cnt = 0
+        su = np.zeros(3)
+        sy = np.zeros(3)
+        suu = 0.0
+        syy = 0.0
+        for i in range(n_pt):
+            x0 = scale[k] * u[k, i, 0] + t[k, 0]
+            x1 = scale[k] * u[k, i, 1] + t[k, 1]
+            x2 = scale[k] * u[k, i, 2] + t[k, 2]
+            cell = _grid_index(x0, x1, x2, lo, inv_cell, shape)
+            if cell < 0:
+                continue
+            j = nearest[cell]
+            d = np.sqrt((other[j, 0] - x0) ** 2 + (other[j, 1] - x1) ** 2 + (other[j, 2] - x2) ** 2)
+            if d >= reach:
+                continue
+            cnt += 1
+            for a in range(3):
+                su[a] += u[k, i, a]
+                sy[a] += other[j, a]
+            suu += u[k, i, 0] ** 2 + u[k, i, 1] ** 2 + u[k, i, 2] ** 2
+            syy += other[j, 0] ** 2 + other[j, 1] ** 2 + other[j, 2] ** 2
+        if cnt < 8:
+            continue
+        var_u = suu / cnt - (su[0] ** 2 + su[1] ** 2 + su[2] ** 2) / cnt**2
+        var_y = syy / cnt - (sy[0] ** 2 + sy[1] ** 2 + sy[2] ** 2) / cnt**2
+        if var_u <= 0 or var_y <= 0:
+            continue
+        # At most a factor 1.5 per step: few captured pairs give a noisy ratio.
+        s_new = min(max(np.sqrt(var_y / var_u), scale[k] / 1.5), scale[k] * 1.5)
+        scale[k] = s_new
+        for a in range(3):
+            t[k, a] = sy[a] / cnt - s_new * su[a] / cnt
+
+
+def colour_weight(src: Anchors, dst: Anchors) -> float:
+    """How far colour can be trusted to compare poses, from the colours alone (no
+    pose): two captures of one object share their palette, and then colour is what
+    tells a symmetric object's sides apart; two different instances (another paint)
+    do not, and then only geometry counts. Fraction of each model's anchors with a
+    colour the other also has, both ways, mapped from [0.5, 0.9] to [0, 1]."""
+    d1, _ = cKDTree(dst.lab).query(src.lab, k=1)
+    d2, _ = cKDTree(src.lab).query(dst.lab, k=1)
+    shared = 0.5 * (np.average(d1 <= SHARED_DELTA_E, weights=src.weights)
+                    + np.average(d2 <= SHARED_DELTA_E, weights=dst.weights))
+    return float(np.clip((shared - 0.5) / 0.4, 0.0, 1.0))
+
+
+def _pair_scores(d: np.ndarray, lab_a: np.ndarray, lab_b: np.ndarray, tau: float, w_colour: float) -> np.ndarray:
+    """Per point: truncated closeness to its partner, c·(1 − 2w(1 − k)) with k the
+    colour similarity and w the trust in colour. With trusted colour a close pair of
+    the wrong colour counts against a pose (one object cannot disagree with itself),
+    while a point with no partner counts nothing (the other capture may lack it):
+    a partial capture's flip can overlap more than its true pose, never in colour."""
+    closeness = 1.0 - np.minimum(d, tau) / tau
+    if w_colour <= 0:
+        return closeness
+    de2 = np.sum((lab_a - lab_b) ** 2, axis=-1)
+    return closeness * (1.0 - 2.0 * w_colour * (1.0 - np.exp(-0.5 * de2 / COLOUR_SIGMA**2)))
+
+
+def _angle(a: np.ndarray, b: np.ndarray) -> float:
+    return float(np.degrees(np.arccos(np.clip((np.trace(a @ b.T) - 1.0) / 2.0, -1.0, 1.0))))
+
+
+def _sample(rng: np.random.Generator, n: int, k: int) -> np.ndarray:
+    return np.arange(n) if k >= n else np.sort(rng.choice(n, k, replace=False))
+
+
+def bidirectional_icp(src: Anchors, dst: Anchors, init: Sim3, src_rows: np.ndarray, dst_rows: np.ndarray,
+                      iterations: int, w_colour: float = 0.0, trim: float = 2.5) -> Sim3:
+    """Robust ICP with Horn's symmetric scale on correspondences from both
+    directions: a source anchor's nearest target anchor, and a target anchor's
+    nearest mapped source anchor. One direction alone lets a partial model's
+    scale drift (it matches into the other's interior); both pin it. Pairs get
+    Tukey weights (cut-off trim × median distance) times their colour similarity
+    as far as colour is trusted: where two partial captures do not overlap, the
+    nearest partner is close in space but the wrong colour."""
+    p, q = src.points[src_rows], dst.points[dst_rows]
+    transform = init
+    # With trusted colour, partners are searched in (position, λ·Lab): a colour
+    # difference of COLOUR_SIGMA weighs like a fraction of the truncation distance,
+    # so matches reach across a misalignment towards the same-coloured part.
+    lam = COLOUR_MATCH * TRUNCATION * dst.radius / COLOUR_SIGMA * w_colour
+    dst_tree = cKDTree(np.hstack([dst.points, lam * dst.lab])) if lam > 0 else dst.tree
+    for _ in range(iterations):
+        if lam > 0:
+            s = transform.scale
+            _, j = dst_tree.query(np.hstack([transform.apply(p), lam * src.lab[src_rows]]), k=1)
+            _, i = cKDTree(np.hstack([src.points, (lam / s) * src.lab])).query(
+                np.hstack([transform.inverse().apply(q), (lam / s) * dst.lab[dst_rows]]), k=1)
+            d_f = np.linalg.norm(transform.apply(p) - dst.points[j], axis=1)
+            d_r = np.linalg.norm(q - transform.apply(src.points[i]), axis=1)
+        else:
+            d_f, j = dst.tree.query(transform.apply(p), k=1)
+            d_r, i = src.tree.query(transform.inverse().apply(q), k=1)
+            d_r = d_r * transform.scale
+        a = np.concatenate([p, src.points[i]])
+        b = np.concatenate([dst.points[j], q])
+        d = np.concatenate([d_f, d_r])
+        cut = trim * max(float(np.median(d)), 1e-12 * dst.radius)
+        weight = np.clip(1.0 - (d / cut) ** 2, 0.0, None) ** 2
+        if w_colour > 0:
+            de2 = np.concatenate([np.sum((src.lab[src_rows] - dst.lab[j]) ** 2, 1),
+                                  np.sum((dst.lab[dst_rows] - src.lab[i]) ** 2, 1)])
+            colour = (1.0 - w_colour) + w_colour * np.exp(-0.5 * de2 / COLOUR_SIGMA**2)
+            weight = weight * colour
+        keep = weight > 1e-6
+        try:
+            new = solve_sim3(a[keep], b[keep], weight[keep])
+        except DegenerateCorrespondencesError:
+            break
+        step = new @ transform.inverse()
+        transform = new
+        if _angle(step.rotation, np.eye(3)) < 1e-3 and abs(np.log(step.scale)) < 1e-5 and \
+                np.linalg.norm(step.translation) < 1e-5 * dst.radius:
+            break
+    return transform
+
+
+def score_pose(src: Anchors, dst: Anchors, transform: Sim3, origin: str = "", w_colour: float = 0.0) -> Candidate:
+    """Score, overlap-only geometry, colour agreement and overlap fraction of a pose (all anchors)."""
+    tau = TRUNCATION * dst.radius
+    d_f, j = dst.tree.query(transform.apply(src.points), k=1)
+    d_r, i = src.tree.query(transform.inverse().apply(dst.points), k=1)
+    d_r = d_r * transform.scale
+
+    def both(fwd: np.ndarray, rev: np.ndarray) -> float:
+        return float(0.5 * (np.average(fwd, weights=src.weights) + np.average(rev, weights=dst.weights)))
+
+    score = both(_pair_scores(d_f, src.lab, dst.lab[j], tau, w_colour),
+                 _pair_scores(d_r, dst.lab, src.lab[i], tau, w_colour))
+    geometry = both(1 - np.minimum(d_f, tau) / tau, 1 - np.minimum(d_r, tau) / tau)
+    near = COLOUR_PAIR_DISTANCE * dst.radius
+    pair_f, pair_r = d_f <= near, d_r <= near
+    de = np.concatenate([np.linalg.norm(src.lab[pair_f] - dst.lab[j[pair_f]], axis=1),
+                         np.linalg.norm(dst.lab[pair_r] - src.lab[i[pair_r]], axis=1)])
+    colour = float(np.mean(np.exp(-0.5 * (de / COLOUR_SIGMA) ** 2))) if len(de) else 0.0
+    overlap = float(0.5 * (pair_f.mean() + pair_r.mean()))
+    return Candidate(transform, origin, score, geometry, colour, overlap)
+
+
+def _dedupe(cands: list[Candidate]) -> list[Candidate]:
+    """Several starts converge to one pose: keep the best-scoring copy of each."""
+    cands = sorted(cands, key=lambda c: -c.score)
+    out: list[Candidate] = []
+    for c in cands:
+        if all(rotation_offset_deg(c.transform, o.transform) > DISTINCT_DEG
+               or abs(np.log(c.transform.scale / o.transform.scale)) > 0.2 for o in out):
+            out.append(c)
+    return out
+
+
+def decide(cands: list[Candidate], w_colour: float) -> SearchResult:
+    """The best score wins; a distinct pose within SCORE_TIE of it makes the result ambiguous."""
+    best = cands[0]
+    rivals = [c for c in cands[1:] if c.score >= best.score - SCORE_TIE]
+    margin = (best.score - cands[1].score) / SCORE_TIE if len(cands) > 1 else float("inf")
+    return SearchResult(best, cands, bool(rivals), w_colour, float(margin), rivals)
+
+
+# A result is reported doubtful below this confidence.
+CONFIDENCE_THRESHOLD = 0.5
+
+
+def verdict(final: Candidate, search: SearchResult | None) -> dict:
+    """GT-free judgement of a final pose: `confidence` in [0, 1] combines how well the
+    two models overlap there with how clearly the pose beat the best distinct
+    alternative of the search; `ambiguous` marks a tie nothing could break
+    (a colourless symmetric object), with the tied poses as `alternatives`."""
+    fit = float(np.clip((final.geometry - 0.35) / 0.3, 0.0, 1.0))
+    ambiguous = bool(search is not None and search.ambiguous)
+    separation = 1.0 if search is None else float(np.clip(search.margin / 3.0, 0.0, 1.0))
+    confidence = min(fit, separation)
+    if ambiguous:
+        confidence = min(confidence, 0.25)
+    out = {
+        "confidence": confidence,
+        "ambiguous": ambiguous,
+        "doubtful": ambiguous or confidence < CONFIDENCE_THRESHOLD,
+        "score": final.score,
+        "margin": None if search is None else search.margin,
+        "overlap_score": final.geometry,
+        "overlap_fraction": final.overlap,
+        "colour_agreement": final.colour,
+    }
+    if search is not None:
+        out["colour_weight"] = search.colour_weight
+        shown = search.rivals if ambiguous else search.candidates[1:4]
+        out["alternatives"] = [c.to_dict(final.transform) for c in shown]
+    return out
+
+
+def frame_relabellings(src: CanonicalFrame, dst: CanonicalFrame) -> list[tuple[str, np.ndarray]]:
+    """Rotations mapping the source's canonical axes onto the target's, under all 24
+    axis relabellings: where the frames hold (clean copies) one of them is exact,
+    and the search refines from it."""
+    return [(_perm_label(g), dst.axes.T @ g @ src.axes) for g in SIGNED_PERMUTATIONS]
+
+
+def _perm_label(g: np.ndarray) -> str:
+    axes = "xyz"
+    return "".join(("-" if g[i, j] < 0 else "+") + axes[j] for i in range(3) for j in range(3) if g[i, j] != 0)
+
+
+def refine(source_points: np.ndarray, target_points: np.ndarray, source_tree: cKDTree, target_tree: cKDTree,
+           init: Sim3, iterations: int = 40, neighbours: int = 6) -> tuple[Sim3, list[dict]]:
+    """Full-resolution trimmed ICP on correspondences from both directions.
+
+    `source_points`/`target_points` are samples (rows of the trees' points are
+    matched against); each direction's k nearest neighbours are cached and
+    scanned by a compiled kernel while the pose moves little, re-queried when
+    the cache stops being trustworthy, as gsa.align.coarse.icp_refine does for
+    one direction. Both directions: where two captures overlap only in part, a
+    one-way match pulls the overlap's boundary inwards and biases the scale."""
+    p = np.ascontiguousarray(source_points, np.float64)
+    q = np.ascontiguousarray(target_points, np.float64)
+    src_all = np.ascontiguousarray(source_tree.data, np.float64)
+    dst_all = np.ascontiguousarray(target_tree.data, np.float64)
+    transform = init
+    history: list[dict] = []
+    it = 0
+    while it < iterations:
+        k_f = min(neighbours, len(dst_all))
+        k_s = min(neighbours, len(src_all))
+        _, tab_f = target_tree.query(transform.apply(p), k=k_f, workers=_workers(len(p)))
+        _, tab_r = source_tree.query(transform.inverse().apply(q), k=k_s, workers=_workers(len(q)))
+        tab_f = np.ascontiguousarray(tab_f.reshape(len(p), -1), np.int64)
+        tab_r = np.ascontiguousarray(tab_r.reshape(len(q), -1), np.int64)
+        inner = 0
+        while it < iterations:
+            it += 1
+            inner += 1
+            d_f, j = _nearest_candidate(np.ascontiguousarray(transform.apply(p)), dst_all, tab_f)
+            d_r, i = _nearest_candidate(np.ascontiguousarray(transform.inverse().apply(q)), src_all, tab_r)
+            d = np.concatenate([d_f, d_r * transform.scale])
+            a = np.concatenate([p, src_all[i]])
+            b = np.concatenate([dst_all[j], q])
+            keep = overlap_trim(d)
+            try:
+                new = solve_sim3(a[keep], b[keep])
+            except DegenerateCorrespondencesError:
+                return transform, history
+            step = new @ transform.inverse()
+            angle = _angle(step.rotation, np.eye(3))
+            history.append({"stage": "refine", "iteration": it, "matched": int(keep.sum()),
+                            "rms_residual": float(np.sqrt(np.mean(d[keep] ** 2))),
+                            "delta_rotation_deg": angle, "scale": new.scale})
+            transform = new
+            if angle < 1e-3 and abs(np.log(step.scale)) < 2e-6:
+                if inner <= 2:
+                    return transform, history
+                break  # converged on the cached tables: re-query once to confirm
+            if inner >= 10:
+                break
+    return transform, history
+
+
+def overlap_trim(d: np.ndarray, lam: float = OVERLAP_LAMBDA) -> np.ndarray:
+    """Trimmed-ICP overlap estimate (Chetverikov et al. 2005): keep the fraction ξ of
+    pairs with the smallest residuals that minimises RMS(ξ) / ξ^(1+λ), ξ ≥ 0.3. Where the two
+    models overlap only in part the residuals jump and ξ stops at the overlap; where
+    one is a deformed copy of the other they grow smoothly and ξ stays near 1, so
+    the fit averages the deformation instead of locking onto one part of it."""
+    order = np.argsort(d)
+    cum = np.cumsum(d[order] ** 2)
+    n = len(d)
+    xi = np.linspace(0.3, 1.0, 15)
+    counts = np.maximum((xi * n).astype(int), 3)
+    rms = np.sqrt(cum[counts - 1] / counts)
+    best = int(counts[np.argmin(rms / xi ** (1.0 + lam))])
+    keep = np.zeros(n, bool)
+    keep[order[:best]] = True
+    return keep
+
+
+def _workers(n: int) -> int:
+    return -1 if n >= 20_000 else 1
