@@ -60,7 +60,7 @@ class AlignOptions:
     # Ambiguous canonical frames: each hypothesis is tried on a source subsample.
     hypothesis_points: int = 2000
     hypothesis_iterations: int = 8
-    refine_points: int = 20_000  # source Gaussians sampled for the refinement ICP
+    refine_points: int = 12_000  # Gaussians sampled for the refinement ICP (half per side in the robust path)
     refine_iterations: int = 40  # cheap: cached neighbour tables (icp_refine, robust.refine)
     # The feature stage and the quality metrics use at most this many source
     # Gaussians (the authors subsample to 30k-50k); the target is always used whole.

@@ -226,7 +226,7 @@ class SearchOptions:
     translation_reach: int = 2  # offsets −reach..reach steps per axis
     scale_factors: tuple[float, ...] = (0.85, 1.0, 1.18)
     refine_top: int = 10  # distinct rotations refined by anchor ICP
-    refine_points: int = 800  # anchors per side in the candidates' ICP
+    refine_points: int = 800  # anchors per side in the starts' ICP
     early_iterations: int = 10  # ICP iterations every refined start gets
     finalists: int = 4  # starts that then run up to refine_iterations more
     refine_iterations: int = 60
@@ -492,13 +492,17 @@ def bidirectional_icp(src: Anchors, dst: Anchors, init: Sim3, src_rows: np.ndarr
     # difference of COLOUR_SIGMA weighs like a fraction of the truncation distance,
     # so matches reach across a misalignment towards the same-coloured part.
     lam = COLOUR_MATCH * TRUNCATION * dst.radius / COLOUR_SIGMA * w_colour
-    dst_tree = cKDTree(np.hstack([dst.points, lam * dst.lab])) if lam > 0 else dst.tree
+    if lam > 0:
+        dst_tree = cKDTree(np.hstack([dst.points, lam * dst.lab]))
+        # In source units the colour axis shrinks with the scale; the start's scale is
+        # close enough for choosing partners (distances below are exact).
+        lam_src = lam / init.scale
+        src_tree = cKDTree(np.hstack([src.points, lam_src * src.lab]))
+        p_lab, q_lab = lam * src.lab[src_rows], lam_src * dst.lab[dst_rows]
     for _ in range(iterations):
         if lam > 0:
-            s = transform.scale
-            _, j = dst_tree.query(np.hstack([transform.apply(p), lam * src.lab[src_rows]]), k=1)
-            _, i = cKDTree(np.hstack([src.points, (lam / s) * src.lab])).query(
-                np.hstack([transform.inverse().apply(q), (lam / s) * dst.lab[dst_rows]]), k=1)
+            _, j = dst_tree.query(np.hstack([transform.apply(p), p_lab]), k=1)
+            _, i = src_tree.query(np.hstack([transform.inverse().apply(q), q_lab]), k=1)
             d_f = np.linalg.norm(transform.apply(p) - dst.points[j], axis=1)
             d_r = np.linalg.norm(q - transform.apply(src.points[i]), axis=1)
         else:
@@ -522,8 +526,9 @@ def bidirectional_icp(src: Anchors, dst: Anchors, init: Sim3, src_rows: np.ndarr
             break
         step = new @ transform.inverse()
         transform = new
-        if _angle(step.rotation, np.eye(3)) < 1e-3 and abs(np.log(step.scale)) < 1e-5 and \
-                np.linalg.norm(step.translation) < 1e-5 * dst.radius:
+        # Anchors are a summary: the full-resolution refinement does the last digits.
+        if _angle(step.rotation, np.eye(3)) < 0.01 and abs(np.log(step.scale)) < 1e-4 and \
+                np.linalg.norm(step.translation) < 1e-4 * dst.radius:
             break
     return transform
 
