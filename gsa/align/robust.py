@@ -51,7 +51,9 @@ SHARED_DELTA_E = 8.0
 COLOUR_MATCH = 0.5
 # Poses whose scores differ by less than this are a tie (a symmetric shape whose
 # colours cannot tell its sides apart): the result is ambiguous.
-SCORE_TIE = 0.015
+SCORE_TIE = 0.03
+# Unfinished starts scoring within this of the best finished one are finished too.
+RIVAL_WINDOW = 0.08
 # Overlap estimation in the final refinement (see overlap_trim): Chetverikov et al. use
 # λ = 2; a larger λ keeps more pairs. Measured on the partial and deform protocols
 # (docs/benchmarks.md): λ = 4 keeps partial overlaps precise (median 0.15°) and
@@ -217,14 +219,14 @@ def rotation_offset_deg(a: Sim3, b: Sim3) -> float:
 
 @dataclass
 class SearchOptions:
-    rotations: int = 2048  # super-Fibonacci samples (~12° apart)
+    rotations: int = 2048  # super-Fibonacci samples: any rotation within ~10° (median), 17° (worst)
     score_points: int = 256  # anchors per model used to score every rotation
     # Capture radii (in units of the truncation τ) of the translation/scale steps per rotation.
-    capture_steps: tuple[float, ...] = (8.0, 4.0, 2.0, 1.5)
+    capture_steps: tuple[float, ...] = (8.0, 8.0, 6.0, 4.0, 3.0, 2.0, 1.5)
     translation_top: int = 24  # rotations that also try the offsets below
     translation_step: float = 0.25  # offset grid step, fraction of the target radius
     translation_reach: int = 2  # offsets −reach..reach steps per axis
-    scale_factors: tuple[float, ...] = (0.85, 1.0, 1.18)
+    scale_factors: tuple[float, ...] = (0.7, 0.85, 1.0, 1.18, 1.4)
     refine_top: int = 10  # distinct rotations refined by anchor ICP
     refine_points: int = 800  # anchors per side in the starts' ICP
     early_iterations: int = 10  # ICP iterations every refined start gets
@@ -304,8 +306,14 @@ def global_search(src: Anchors, dst: Anchors, frame_rotations: list[tuple[str, n
                                                     w_colour), origins[i], w_colour)
              for i, init in zip(chosen, starts)]
     early.sort(key=lambda c: -c.score)
-    refined = early[opts.finalists:]
-    for c in early[:opts.finalists]:
+    refined = []
+    for k, c in enumerate(early):
+        # Past the finalists, a start still runs to convergence if its unfinished score
+        # is close to the best: a symmetric pose half-way there must not look worse
+        # than it is, or a tie would pass for a clear win.
+        if k >= opts.finalists and (not refined or c.score < max(r.score for r in refined) - RIVAL_WINDOW):
+            refined.append(c)
+            continue
         transform = bidirectional_icp(src, dst, c.transform, src_rows, dst_rows, opts.refine_iterations, w_colour)
         refined.append(score_pose(src, dst, transform, c.origin, w_colour))
     return decide(_dedupe(refined), w_colour)
@@ -478,7 +486,7 @@ def _sample(rng: np.random.Generator, n: int, k: int) -> np.ndarray:
 
 
 def bidirectional_icp(src: Anchors, dst: Anchors, init: Sim3, src_rows: np.ndarray, dst_rows: np.ndarray,
-                      iterations: int, w_colour: float = 0.0, trim: float = 2.5) -> Sim3:
+                      iterations: int, w_colour: float = 0.0, trim: float = 4.0) -> Sim3:
     """Robust ICP with Horn's symmetric scale on correspondences from both
     directions: a source anchor's nearest target anchor, and a target anchor's
     nearest mapped source anchor. One direction alone lets a partial model's
