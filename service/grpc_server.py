@@ -55,12 +55,16 @@ def _ts(t: float | None) -> Timestamp | None:
 
 
 def _transform(d: dict) -> pb.Transform:
+    metrics = d.get("metrics") or {}
     return pb.Transform(
         matrix=[float(x) for row in d["transform"] for x in row],
         scale=float(d["scale"]),
         rotation=[float(x) for row in d["rotation"] for x in row],
         quaternion=[float(x) for x in d["quaternion"]],
         translation=[float(x) for x in d["translation"]],
+        confidence=float(metrics.get("confidence", 0.0)),
+        ambiguous=bool(metrics.get("ambiguous", False)),
+        doubtful=bool(metrics.get("doubtful", False)),
     )
 
 

@@ -122,18 +122,24 @@ class Problem(_message.Message):
     def __init__(self, type: _Optional[str] = ..., title: _Optional[str] = ..., status: _Optional[int] = ..., detail: _Optional[str] = ...) -> None: ...
 
 class Transform(_message.Message):
-    __slots__ = ("matrix", "scale", "rotation", "quaternion", "translation")
+    __slots__ = ("matrix", "scale", "rotation", "quaternion", "translation", "confidence", "ambiguous", "doubtful")
     MATRIX_FIELD_NUMBER: _ClassVar[int]
     SCALE_FIELD_NUMBER: _ClassVar[int]
     ROTATION_FIELD_NUMBER: _ClassVar[int]
     QUATERNION_FIELD_NUMBER: _ClassVar[int]
     TRANSLATION_FIELD_NUMBER: _ClassVar[int]
+    CONFIDENCE_FIELD_NUMBER: _ClassVar[int]
+    AMBIGUOUS_FIELD_NUMBER: _ClassVar[int]
+    DOUBTFUL_FIELD_NUMBER: _ClassVar[int]
     matrix: _containers.RepeatedScalarFieldContainer[float]
     scale: float
     rotation: _containers.RepeatedScalarFieldContainer[float]
     quaternion: _containers.RepeatedScalarFieldContainer[float]
     translation: _containers.RepeatedScalarFieldContainer[float]
-    def __init__(self, matrix: _Optional[_Iterable[float]] = ..., scale: _Optional[float] = ..., rotation: _Optional[_Iterable[float]] = ..., quaternion: _Optional[_Iterable[float]] = ..., translation: _Optional[_Iterable[float]] = ...) -> None: ...
+    confidence: float
+    ambiguous: bool
+    doubtful: bool
+    def __init__(self, matrix: _Optional[_Iterable[float]] = ..., scale: _Optional[float] = ..., rotation: _Optional[_Iterable[float]] = ..., quaternion: _Optional[_Iterable[float]] = ..., translation: _Optional[_Iterable[float]] = ..., confidence: _Optional[float] = ..., ambiguous: _Optional[bool] = ..., doubtful: _Optional[bool] = ...) -> None: ...
 
 class Artifact(_message.Message):
     __slots__ = ("name", "size", "content_type")
