@@ -7,8 +7,12 @@ exit code, never a traceback.
 from __future__ import annotations
 
 import argparse
+import gc
+import importlib
 import json
+import os
 import sys
+from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
@@ -19,6 +23,55 @@ EXIT_FAILED = 1
 
 class CliError(Exception):
     """An error to show as one line."""
+
+
+# Errors shown as one line: (module, class). Looked up only in modules already imported
+# (an exception cannot come from a module that never loaded), so `main` need not import
+# gsa.recon (OpenCV) or gsa.align.coarse (numba, scipy) for a verb that does not use them.
+_ONE_LINE_ERRORS = (
+    ("gsa.io.ply", "PlyError"),
+    ("gsa.align.coarse", "AlignmentError"),
+    ("gsa.model", "ModelError"),
+    ("gsa.recon.sfm", "SfMError"),
+    ("gsa.recon.masks", "MaskError"),
+)
+
+
+def _one_line_error_types() -> tuple[type[BaseException], ...]:
+    types: list[type[BaseException]] = [CliError, ValueError]
+    for module, name in _ONE_LINE_ERRORS:
+        loaded = sys.modules.get(module)
+        if loaded is not None and isinstance(getattr(loaded, name, None), type):
+            types.append(getattr(loaded, name))
+    return tuple(types)
+
+
+class _LazyChoices(Sequence):
+    """argparse `choices` read from a module on first use (validation, help), so that
+    building the parser does not import it (gsa.synth for `gsa align`)."""
+
+    def __init__(self, module: str, name: str):
+        self.module, self.name = module, name
+        self._values: tuple | None = None
+
+    def _load(self) -> tuple:
+        if self._values is None:
+            self._values = tuple(getattr(importlib.import_module(self.module), self.name))
+        return self._values
+
+    def __getitem__(self, index):
+        return self._load()[index]
+
+    def __len__(self) -> int:
+        return len(self._load())
+
+    def __repr__(self) -> str:
+        return repr(self._load())
+
+
+def _lazy_choices(action: argparse.Action, module: str, name: str) -> None:
+    """Set after add_argument, which formats (so iterates) any choices it is given."""
+    action.choices = _LazyChoices(module, name)
 
 
 class ProgressPrinter:
@@ -171,6 +224,37 @@ def _print_transform(result, out: str | None = None) -> None:
     print(f"time         {result.timings['total']:.2f} s")
     if out:
         print(f"result       {out}")
+    warning = doubt_warning(m, out)
+    if warning:
+        sys.stdout.flush()
+        print(warning, file=sys.stderr, flush=True)
+
+
+def _number(value) -> float | None:
+    return float(value) if isinstance(value, (int, float)) and not isinstance(value, bool) else None
+
+
+def doubt_warning(metrics: dict | None, out: str | None = None) -> str | None:
+    """One stderr line when align() judged its own result doubtful (metrics "doubtful":
+    a tie between distinct poses, or low confidence), else None. Only `.get`: results
+    without these keys give None."""
+    if not metrics or not metrics.get("doubtful"):
+        return None
+    confidence = _number(metrics.get("confidence"))
+    conf = "unknown" if confidence is None else f"{confidence:.2f}"
+    alternatives = [a for a in metrics.get("alternatives") or [] if isinstance(a, dict)]
+    where = f'; see "alternatives" in {out or "result.json"}' if alternatives else ""
+    if metrics.get("ambiguous") and alternatives:
+        best = _number(metrics.get("score"))
+        scores = [_number(a.get("score")) for a in alternatives]
+        gaps = [best - v for v in scores if v is not None] if best is not None else []
+        within = f" within {max(0.0, max(gaps)):.3g} of the best" if gaps else " as well as the best"
+        offsets = [_number(a.get("rotation_offset_deg")) for a in alternatives]
+        turned = ", ".join(f"{v:.0f}°" for v in offsets if v is not None)
+        away = f", rotated {turned} away" if turned else ""
+        return (f"gsa: warning: ambiguous alignment: {len(alternatives) + 1} poses score{within} "
+                f"(confidence {conf}{away}){where}")
+    return f"gsa: warning: low confidence ({conf}): the alignment may be wrong{where}"
 
 
 def cmd_demo(args: argparse.Namespace) -> int:
@@ -243,8 +327,6 @@ def cmd_bench(args: argparse.Namespace) -> int:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    from gsa.synth import CATEGORIES
-
     parser = argparse.ArgumentParser(prog="gsa", description="Gaussian Splatting Alignment (GSA)")
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
 
@@ -262,7 +344,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("demo", help="align generated example data with a known answer")
     p.add_argument("--out", default="out/demo")
-    p.add_argument("--category", default="car", choices=CATEGORIES)
+    _lazy_choices(p.add_argument("--category", default="car"), "gsa.synth", "CATEGORIES")
     p.add_argument("--gaussians", type=int, default=50_000)
     p.add_argument("--stages", default="auto", help="auto, coarse or coarse,fine (as gsa align)")
     p.add_argument("--seed", type=int, default=7)
@@ -270,7 +352,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=cmd_demo)
 
     p = sub.add_parser("synth", help="write a generated object as a 3DGS PLY")
-    p.add_argument("category", choices=CATEGORIES)
+    _lazy_choices(p.add_argument("category"), "gsa.synth", "CATEGORIES")
     p.add_argument("--out", required=True)
     p.add_argument("--seed", type=int, default=0, help="which instance")
     p.add_argument("--sample-seed", type=int, default=None, help="where its Gaussians fall")
@@ -311,29 +393,53 @@ def _add_module_commands(sub) -> None:
         add_service_parsers(sub)
 
 
+def _use_workqueue_threads() -> None:
+    """numba's workqueue threading layer unless NUMBA_THREADING_LAYER says otherwise, as
+    gsa.render.cpu and the service worker already choose. The default GNU OpenMP layer
+    spin-waits in its barriers: with other load on the machine (2 shared cores, 50k pair)
+    the in-process alignment took 1.4-1.6 s with it against 1.1 s, single runs up to 5 s.
+    Must be set before the first kernel launches the threads; later it has no effect
+    (gsa.render.cpu's own setting came too late after the coarse kernels), and after
+    numba's import the environment variable is no longer read (the service worker's
+    setdefault came too late under `gsa worker`, which then skipped its warm-up)."""
+    if "NUMBA_THREADING_LAYER" in os.environ:
+        return
+    numba = sys.modules.get("numba")
+    if numba is not None:
+        numba.config.THREADING_LAYER = "workqueue"
+    else:
+        os.environ["NUMBA_THREADING_LAYER"] = "workqueue"
+
+
 def main(argv: list[str] | None = None) -> int:
-    from gsa.align.coarse import AlignmentError
-    from gsa.io.ply import PlyError
-    from gsa.model import ModelError
-
-    try:
-        from gsa.recon import MaskError, SfMError
-    except ImportError:  # the recon extra is optional
-        MaskError = SfMError = CliError  # noqa: N806
-
+    # argv None: this is the `gsa` process itself (console script, python -m gsa.cli).
+    program = argv is None
     parser = build_parser()
     args = parser.parse_args(argv)
+    if program:  # process-wide settings: not for a caller's process (tests call main(argv))
+        _use_workqueue_threads()
+        # The imported modules (numpy, scipy, numba: ~70k objects) live until exit: keep
+        # the garbage collector from walking them again in every full collection.
+        gc.freeze()
     try:
         return int(args.func(args) or 0)
-    except (CliError, PlyError, AlignmentError, ModelError, SfMError, MaskError, ValueError) as exc:
-        print(f"gsa: error: {exc}", file=sys.stderr)
-        return EXIT_FAILED
-    except OSError as exc:
-        print(f"gsa: error: {exc.filename or ''}: {exc.strerror or exc}", file=sys.stderr)
-        return EXIT_FAILED
     except KeyboardInterrupt:
         print("gsa: interrupted", file=sys.stderr)
         return 130
+    except Exception as exc:
+        if isinstance(exc, _one_line_error_types()):
+            print(f"gsa: error: {exc}", file=sys.stderr)
+            return EXIT_FAILED
+        if isinstance(exc, OSError):
+            print(f"gsa: error: {exc.filename or ''}: {exc.strerror or exc}", file=sys.stderr)
+            return EXIT_FAILED
+        raise
+    finally:
+        if program:
+            # Exit without the interpreter's final collections over that heap: they cost
+            # 0.2-0.3 s after an alignment (numba's target context). Nothing of ours waits
+            # for them: outputs are written and closed, atexit handlers still run.
+            gc.freeze()
 
 
 if __name__ == "__main__":

@@ -46,6 +46,31 @@ def test_progress_is_shown_on_stderr(pair, tmp_path):
     src, tgt, _ = pair
     r = gsa("align", src, tgt, "--out", tmp_path / "r.json")
     assert r.returncode == 0 and "coarse" in r.stderr
+    assert "warning" not in r.stderr  # a clear, coloured pair is not doubtful
+
+
+def _colourless_ellipsoid(n, seed):
+    """Gaussians on an ellipsoid with three distinct axes, all one colour: four poses
+    (the 180° turns about its axes) fit equally well and nothing can tell them apart."""
+    from gsa.model import GaussianModel
+
+    v = np.random.default_rng(seed).normal(size=(n, 3))
+    v /= np.linalg.norm(v, axis=1, keepdims=True)
+    return GaussianModel(means=v * [3.0, 2.0, 1.0], quats=np.tile([1.0, 0, 0, 0], (n, 1)),
+                         log_scales=np.full((n, 3), np.log(0.03)), opacity_logits=np.full(n, 2.0),
+                         sh=np.full((n, 1, 3), 0.5))
+
+
+def test_symmetric_colourless_pair_warns_once(tmp_path):
+    src = write_ply(_colourless_ellipsoid(3000, 1), tmp_path / "s.ply")
+    tgt = write_ply(_colourless_ellipsoid(3000, 2).transformed(random_sim3(np.random.default_rng(1))),
+                    tmp_path / "t.ply")
+    r = gsa("align", src, tgt, "--out", tmp_path / "r.json", "--quiet")
+    assert r.returncode == 0, r.stderr
+    metrics = json.loads((tmp_path / "r.json").read_text())["metrics"]
+    assert metrics["doubtful"] and metrics["alternatives"]
+    warnings = [line for line in r.stderr.splitlines() if line.startswith("gsa: warning:")]
+    assert len(warnings) == 1 and "alternatives" in warnings[0], r.stderr
 
 
 @pytest.mark.parametrize(
@@ -87,3 +112,74 @@ def test_demo_prints_error_against_truth(tmp_path):
     assert "RRE" in r.stdout and "aligned" in r.stdout
     data = json.loads((tmp_path / "demo" / "result.json").read_text())
     assert data["ground_truth"]["accuracy"]["rre_deg"] < 2.0
+
+
+def _doubtful(**extra):
+    metrics = {"doubtful": True, "ambiguous": True, "confidence": 0.25, "score": 0.61,
+               "alternatives": [{"rotation_offset_deg": 180.0, "score": 0.60},
+                                {"rotation_offset_deg": 90.0, "score": 0.598}]}
+    return {**metrics, **extra}
+
+
+@pytest.mark.parametrize(
+    "metrics, expected",
+    [
+        (_doubtful(), ["ambiguous alignment", "3 poses", "within 0.012", "confidence 0.25", "180°",
+                       '"alternatives" in r.json']),
+        (_doubtful(ambiguous=False, confidence=0.32), ["low confidence (0.32)", '"alternatives" in r.json']),
+        ({"doubtful": True, "confidence": 0.1}, ["low confidence (0.10)"]),
+        (_doubtful(doubtful=False), None),
+        ({"inlier_fraction": 0.9}, None),  # a result from before these keys existed
+    ],
+    ids=["ambiguous", "low-confidence", "no-alternatives", "confident", "old-metrics"],
+)
+def test_doubt_warning(metrics, expected):
+    from gsa.cli import doubt_warning
+
+    line = doubt_warning(metrics, "r.json")
+    if expected is None:
+        assert line is None
+    else:
+        assert line is not None and line.startswith("gsa: warning:") and "\n" not in line
+        for part in expected:
+            assert part in line
+
+
+@pytest.mark.parametrize("doubtful", [True, False])
+def test_doubtful_result_prints_one_warning_on_stderr(doubtful, capsys):
+    from types import SimpleNamespace
+
+    from gsa.cli import _print_transform
+
+    metrics = {"inlier_fraction": 0.9, "rms_residual": 0.01, "feature_agreement": 0.9, **_doubtful(doubtful=doubtful)}
+    result = SimpleNamespace(transform=Sim3.identity(), metrics=metrics, timings={"total": 1.0}, features="canonical")
+    _print_transform(result, "r.json")
+    out, err = capsys.readouterr()
+    assert "scale" in out and "warning" not in out
+    warnings = [line for line in err.splitlines() if line.startswith("gsa: warning:")]
+    assert len(warnings) == (1 if doubtful else 0)
+
+
+def test_parser_does_not_import_other_verbs_modules():
+    """`gsa align` start-up: building the parser loads the alignment, not OpenCV (recon),
+    torch (features, renderer), the generator or the service."""
+    code = ("import sys; from gsa.cli import build_parser; build_parser()\n"
+            "heavy = [m for m in ('cv2', 'torch', 'transformers', 'gsa.synth', 'gsa.recon.images', 'fastapi', 'grpc')"
+            " if m in sys.modules]\n"
+            "assert not heavy, heavy")
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert r.returncode == 0, r.stderr
+
+
+def test_category_choices_are_checked_and_listed(capsys):
+    from gsa.cli import build_parser
+    from gsa.synth import CATEGORIES
+
+    parser = build_parser()
+    assert parser.parse_args(["synth", "chair", "--out", "x.ply"]).category == "chair"
+    with pytest.raises(SystemExit):
+        parser.parse_args(["synth", "sofa", "--out", "x.ply"])
+    assert "invalid choice: 'sofa'" in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        parser.parse_args(["demo", "--help"])
+    assert "{" + ",".join(CATEGORIES) + "}" in capsys.readouterr().out
