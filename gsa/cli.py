@@ -129,6 +129,7 @@ def _align_options(args: argparse.Namespace):
         "weight_by_opacity": args.weight_by_opacity,
         "seed": args.seed,
         "refine": args.refine,
+        "search": args.search,
     }
     for name in ("fine_iterations", "fine_views", "fine_lr", "fine_image_size", "fine_on"):
         value = getattr(args, name, None)
@@ -169,6 +170,10 @@ def add_align_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--weight-by-opacity", action="store_true", help="weight correspondences by opacity")
     p.add_argument("--refine", default=d.refine, choices=["auto", "on", "off"],
                    help="nearest-neighbour ICP after the feature stage (auto: with canonical features)")
+    p.add_argument("--search", default=d.search, choices=["auto", "global", "frames"],
+                   help="coarse initialisation without learned features: global (robust SO(3) search on "
+                        "floater-free anchors, overlap and colour scored), frames (one canonical frame per "
+                        "model, the earlier default); auto: global unless --refine off")
     p.add_argument("--seed", type=int, default=d.seed)
     p.add_argument("--fine-iterations", type=int, default=None)
     p.add_argument("--fine-views", type=int, default=None)

@@ -95,6 +95,9 @@ class AlignOptions:
             raise ValueError("tau_f must be positive")
         if self.search not in ("auto", "global", "frames"):
             raise ValueError(f"search must be auto, global or frames, got {self.search!r}")
+        # Bounded: both set the size of arrays the search holds at once.
+        if not (100 <= self.anchor_count <= 20_000 and 64 <= self.search_rotations <= 20_000):
+            raise ValueError("anchor_count must be in 100..20000 and search_rotations in 64..20000")
         if self.refine not in ("auto", "on", "off"):
             raise ValueError(f"refine must be auto, on or off, got {self.refine!r}")
         if self.coarse_iterations < 1 or self.max_candidates < 1:
