@@ -124,11 +124,13 @@ def tiny_pairs(monkeypatch):
     monkeypatch.setattr(P, "dup_pairs", lambda quick, seed: pairs("dup"))
     monkeypatch.setattr(P, "same_pairs", lambda quick, seed: pairs("same"))
     monkeypatch.setattr(P, "category_pairs", lambda quick, seed, instances=None: pairs("category"))
+    for kind in ("partial", "noisy", "symmetric", "deform"):
+        monkeypatch.setattr(P, f"{kind}_pairs", lambda quick, seed, kind=kind: pairs(kind))
     # The fine stage renders: far too slow for a unit test; its rows are covered by the quick run.
     monkeypatch.setattr(P, "fine_available", lambda: False)
 
 
-@pytest.mark.parametrize("name", ["dup", "same", "category"])
+@pytest.mark.parametrize("name", ["dup", "same", "category", "partial", "noisy", "symmetric", "deform"])
 def test_protocol_table_and_json(tiny_pairs, tmp_path, capsys, name):
     P.run_protocols([name], quick=True, out=str(tmp_path), peers=["icp"])
     text = capsys.readouterr().out
@@ -148,6 +150,14 @@ def test_protocol_table_and_json(tiny_pairs, tmp_path, capsys, name):
     if name == "category":
         assert set(gsa["per_category_mean_rre_deg"]) == {"car", "bus"}
         assert "car RRE (°)" in text
+    # GSA rows carry align()'s flag; the calibration is under the table and over all protocols run
+    assert {"confidence", "doubtful"} <= set(gsa["records"][0]) and "flagged_rate" in gsa
+    assert "flagged_rate" not in rows[peers_mod.PlainICP.label]
+    assert "Confidence calibration (success = RRE < 5°):" in text
+    assert f"Confidence calibration, {P.GSA_COARSE}, over {name}: 2 results" in text
+    if name == "symmetric":  # tiny pairs are not symmetric objects: only the identity pose counts
+        assert "success, any symmetric pose (RRE<5°)" in text
+        assert gsa["success_rate_any_symmetric"] == gsa["success_rate"]
 
 
 def test_ablation_rows(tiny_pairs, tmp_path, capsys):

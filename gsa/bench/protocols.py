@@ -12,6 +12,21 @@ ablation  paper Table 4 / Sec. 4.5: coarse iterations (1, 3, until convergence),
           fine views (3 similar, 3 diverse, 30), fine on colours, features off
 speed     coarse, fine, lifting and rendering time and peak memory vs Gaussian count
 io        PLY write/read time and memory for a 1M-Gaussian file
+
+Robustness (real captures; gsa.synth.variants). Each: 30 pairs, 20k/30k Gaussians
+(--quick: 6 pairs, 3k); source and target are two independent samplings, the
+target moved by a random Sim(3) (≤180° per axis, 0.1–10× scale):
+partial   each model cut by its own random plane, 60–80 % of it kept
+noisy     each model with 20 % bright, faint floaters around it
+symmetric 4- to 8-fold symmetric objects (prism, wheel, bottle) whose colour
+          marks one sector; strict success against the true pose, plus
+          `rre_any_symmetric_deg` (the best of the k symmetric poses)
+deform    target = a stretched, tapered and bent copy of the instance
+
+GSA rows carry align()'s `confidence` and `doubtful` (metrics) per pair; tables
+then add how well the flag tracks failure (flagged rate, success among the
+unflagged, share of failures flagged), and `run_protocols` ends with that
+calibration over all protocols run, for the GSA coarse row.
 """
 
 from __future__ import annotations
@@ -32,9 +47,20 @@ import numpy as np
 
 from gsa.align.pipeline import AlignOptions, align
 from gsa.bench.peers import Peer, available_peers
-from gsa.metrics import accuracy
+from gsa.metrics import accuracy, rre_deg
 from gsa.sim3 import Sim3
-from gsa.synth import CATEGORIES, make_object, paper_perturbation, random_sim3
+from gsa.synth import (
+    CATEGORIES,
+    add_floaters,
+    cut_by_plane,
+    deform,
+    make_object,
+    make_symmetric_object,
+    paper_perturbation,
+    random_sim3,
+    symmetric_spec,
+    symmetry_rotations,
+)
 
 SUCCESS_RRE_DEG = 5.0
 GSA_COARSE = "GSA coarse"
@@ -46,7 +72,8 @@ NOISE_NOTE = ("Timings: 2 shared CPU cores, other jobs running; seconds are nois
               "(compare ratios measured in one run, not absolute values across runs).")
 
 Pair = tuple[str, Callable[[], tuple]]  # (label, make() -> (source, target, truth))
-Runner = Callable[[object, object], dict]  # (source, target) -> {method: (Sim3 | Exception, seconds)}
+# (source, target) -> {method: (Sim3 | Exception, seconds[, extra fields for the record])}
+Runner = Callable[[object, object], dict]
 
 
 def fine_available() -> bool:
@@ -74,12 +101,21 @@ def gsa_runner(fine: bool, labels: tuple[str, str] = (GSA_COARSE, GSA_FINE), **o
         t0 = time.perf_counter()
         result = align(source, target, AlignOptions(stages=stages, **options))
         total = time.perf_counter() - t0
-        out = {coarse_label: (result.coarse.transform, total - result.timings.get("fine", 0.0))}
+        # The confidence of the whole result (both rows: one align() call); None/False
+        # when align() does not report one.
+        flags = {"confidence": _float_or_none(result.metrics.get("confidence")),
+                 "ambiguous": bool(result.metrics.get("ambiguous", False)),
+                 "doubtful": bool(result.metrics.get("doubtful", False))}
+        out = {coarse_label: (result.coarse.transform, total - result.timings.get("fine", 0.0), flags)}
         if fine:
-            out[fine_label] = (result.transform, total)
+            out[fine_label] = (result.transform, total, dict(flags))
         return out
 
     return run
+
+
+def _float_or_none(x) -> float | None:
+    return None if x is None else float(x)
 
 
 def peer_runner(peer: Peer, seed: int) -> Runner:
@@ -106,18 +142,23 @@ def default_runners(seed: int, peers: list[str] | None, quick: bool) -> list[Run
 
 
 def evaluate(name: str, pairs: list[Pair], runners: list[Runner], extra: Callable[[str], dict] | None = None,
-             out: Path | None = None) -> list[dict]:
+             out: Path | None = None, judge: Callable[[Sim3, Sim3, object, object], dict] | None = None) -> list[dict]:
     """Every runner on every pair (generated once, in turn); one row per method.
     With `out`, the rows so far are saved after each pair (as NAME.partial.json),
-    so a run cut short still leaves its numbers."""
+    so a run cut short still leaves its numbers. `judge(estimate, truth, source,
+    target)` adds fields to the record of each successful estimate."""
     records: dict[str, list[dict]] = {}
     for done, (label, make) in enumerate(pairs, 1):
         source, target, truth = make()
         for run in runners:
-            for method, (est, seconds) in run(source, target).items():
+            for method, (est, seconds, *fields) in run(source, target).items():
                 rec = {"pair": label, "seconds": seconds, **(extra(label) if extra else {})}
+                if fields:
+                    rec.update(fields[0])
                 if isinstance(est, Sim3):
                     rec.update(accuracy(est, truth, source.means, target.means))
+                    if judge is not None:
+                        rec.update(judge(est, truth, source, target))
                 else:
                     rec.update(error=f"{type(est).__name__}: {est}", rre_deg=float("nan"),
                                scale_error_pct=float("nan"), ate=float("nan"), ate_normalized=float("nan"))
@@ -157,7 +198,42 @@ def summarise(protocol: str, method: str, records: list[dict]) -> dict:
     }
     if any("category" in r for r in records):
         row["per_category_mean_rre_deg"] = _per_category(records)
+    if any("rre_any_symmetric_deg" in r for r in records):
+        any_rre = np.array([r.get("rre_any_symmetric_deg", np.nan) for r in records], np.float64)
+        row["mean_rre_any_symmetric_deg"] = float(np.nanmean(any_rre)) if np.isfinite(any_rre).any() else float("nan")
+        row["success_rate_any_symmetric"] = float(np.sum(any_rre < SUCCESS_RRE_DEG) / len(records))
+    row.update(calibration(records))
     return row
+
+
+def _is_success(rec: dict) -> bool:
+    return "error" not in rec and bool(rec.get("rre_deg", np.nan) < SUCCESS_RRE_DEG)
+
+
+def calibration(records: list[dict]) -> dict:
+    """How well the `doubtful` flag (align()'s metrics, GSA rows only) tracks
+    failure (RRE ≥ 5° or an error), over the records that carry it; {} if none do.
+    flagged_rate: share flagged; unflagged_success_rate: share of the unflagged
+    that succeeded; failures_flagged_rate: share of the failures that were
+    flagged (NaN where the denominator is empty)."""
+    recs = [r for r in records if "doubtful" in r]
+    if not recs:
+        return {}
+    flagged = np.array([bool(r["doubtful"]) for r in recs])
+    success = np.array([_is_success(r) for r in recs])
+    unflagged, failures = success[~flagged], flagged[~success]
+    conf = [r["confidence"] for r in recs if r.get("confidence") is not None]
+    return {
+        "flag_results": len(recs),
+        "flagged": int(flagged.sum()),
+        "flagged_rate": float(flagged.mean()),
+        "unflagged": len(unflagged),
+        "unflagged_success_rate": float(unflagged.mean()) if len(unflagged) else float("nan"),
+        "failures": len(failures),
+        "failures_flagged_rate": float(failures.mean()) if len(failures) else float("nan"),
+        "confidence_reported": len(conf),
+        "mean_confidence": float(np.mean(conf)) if conf else float("nan"),
+    }
 
 
 def add_time_ratio(rows: list[dict], reference: str = GSA_COARSE) -> None:
@@ -227,6 +303,85 @@ def _category_of(label: str) -> dict:
     return {"category": label.split("-")[0]}
 
 
+# Robustness pairs: source/target sizes (the target is the bigger capture).
+ROBUST_COUNT = (6, 30)  # (quick, full)
+ROBUST_SIZES = ((3000, 3000), (20_000, 30_000))
+
+
+def _robust_sizes(quick: bool) -> tuple[int, int, int]:
+    return (ROBUST_COUNT[0], *ROBUST_SIZES[0]) if quick else (ROBUST_COUNT[1], *ROBUST_SIZES[1])
+
+
+def _variant_pairs(quick: bool, seed: int, tag: int, base: int,
+                   vary: Callable[[object, np.random.Generator, str], object]) -> list[Pair]:
+    """Pairs over the 6 categories in turn: two independent samplings of one
+    instance, each passed through vary(model, rng, 'source' | 'target') with its
+    own generator, the target then moved by a random Sim(3)."""
+    count, n_src, n_dst = _robust_sizes(quick)
+    pairs = []
+    for i in range(count):
+        cat = CATEGORIES[i % len(CATEGORIES)]
+
+        def make(cat=cat, i=i):
+            rng = np.random.default_rng([seed, tag, i])
+            truth = random_sim3(rng)
+            src_rng, dst_rng = (np.random.default_rng([seed, tag, i, side]) for side in (1, 2))
+            source = make_object(cat, seed=base + i, n_gaussians=n_src, sample_seed=10 * base + i)
+            target = make_object(cat, seed=base + i, n_gaussians=n_dst, sample_seed=20 * base + i)
+            return vary(source, src_rng, "source"), vary(target, dst_rng, "target").transformed(truth), truth
+
+        pairs.append((f"{cat}-{i}", make))
+    return pairs
+
+
+def partial_pairs(quick: bool, seed: int) -> list[Pair]:
+    """Each model cut by its own random plane (60–80 % kept)."""
+    return _variant_pairs(quick, seed, 91, 400, lambda m, rng, side: cut_by_plane(m, rng, keep=(0.6, 0.8)))
+
+
+def noisy_pairs(quick: bool, seed: int) -> list[Pair]:
+    """Each model with 20 % floaters (of its own Gaussian count)."""
+    return _variant_pairs(quick, seed, 92, 500, lambda m, rng, side: add_floaters(m, rng, fraction=0.2))
+
+
+def deform_pairs(quick: bool, seed: int) -> list[Pair]:
+    """Source: the instance; target: a deformed sampling of it (stretch, taper, bend)."""
+    return _variant_pairs(quick, seed, 93, 600, lambda m, rng, side: deform(m, rng) if side == "target" else m)
+
+
+def symmetric_pairs(quick: bool, seed: int) -> list[Pair]:
+    """Symmetric instances (families cycling prism, wheel, bottle); labels 'family-kK-i'."""
+    count, n_src, n_dst = _robust_sizes(quick)
+    pairs = []
+    for i in range(count):
+        family, k = symmetric_spec(700 + i)
+
+        def make(i=i):
+            rng = np.random.default_rng([seed, 94, i])
+            truth = random_sim3(rng)
+            source = make_symmetric_object(700 + i, n_src, sample_seed=7000 + i)
+            target = make_symmetric_object(700 + i, n_dst, sample_seed=14_000 + i)
+            return source, target.transformed(truth), truth
+
+        pairs.append((f"{family}-k{k}-{i}", make))
+    return pairs
+
+
+def _symmetric_fields(label: str) -> dict:
+    parts = label.split("-")
+    if len(parts) == 3 and parts[1][:1] == "k" and parts[1][1:].isdigit():
+        return {"family": parts[0], "symmetry_order": int(parts[1][1:])}
+    return {}
+
+
+def symmetric_judge(est: Sim3, truth: Sim3, source, target) -> dict:
+    """RRE against the nearest of the k poses the geometry cannot tell apart:
+    truth ∘ (rotation by 2πj/k about the symmetry axis, in source coordinates)."""
+    errors = [rre_deg(est.rotation, truth.rotation @ rot) for rot in symmetry_rotations(source)]
+    j = int(np.argmin(errors))
+    return {"rre_any_symmetric_deg": float(errors[j]), "symmetric_pose": j}
+
+
 # ---------------------------------------------------------------- protocols
 
 
@@ -253,6 +408,31 @@ def protocol_category(quick: bool, seed: int, out: Path, peers: list[str] | None
     for row in rows:
         row["per_category_mean_rre_deg"] = _per_category(row["records"])
     _save(out, "category", rows)
+    return rows
+
+
+def protocol_partial(quick: bool, seed: int, out: Path, peers: list[str] | None = None) -> list[dict]:
+    rows = evaluate("partial", partial_pairs(quick, seed), default_runners(seed, peers, quick), _category_of, out=out)
+    _save(out, "partial", rows)
+    return rows
+
+
+def protocol_noisy(quick: bool, seed: int, out: Path, peers: list[str] | None = None) -> list[dict]:
+    rows = evaluate("noisy", noisy_pairs(quick, seed), default_runners(seed, peers, quick), _category_of, out=out)
+    _save(out, "noisy", rows)
+    return rows
+
+
+def protocol_symmetric(quick: bool, seed: int, out: Path, peers: list[str] | None = None) -> list[dict]:
+    rows = evaluate("symmetric", symmetric_pairs(quick, seed), default_runners(seed, peers, quick),
+                    _symmetric_fields, out=out, judge=symmetric_judge)
+    _save(out, "symmetric", rows)
+    return rows
+
+
+def protocol_deform(quick: bool, seed: int, out: Path, peers: list[str] | None = None) -> list[dict]:
+    rows = evaluate("deform", deform_pairs(quick, seed), default_runners(seed, peers, quick), _category_of, out=out)
+    _save(out, "deform", rows)
     return rows
 
 
@@ -523,6 +703,10 @@ PROTOCOLS = {
     "ablation": protocol_ablation,
     "speed": protocol_speed,
     "io": protocol_io,
+    "partial": protocol_partial,
+    "noisy": protocol_noisy,
+    "symmetric": protocol_symmetric,
+    "deform": protocol_deform,
 }
 
 
@@ -573,18 +757,53 @@ def format_table(name: str, rows: list[dict]) -> str:
             lines.append(f"| {r['method']} | " + " | ".join(_f(per.get(c, float('nan')), 2) for c in cats)
                          + f" | {_f(r['mean_rre_deg'], 2)} | {r['success_rate'] * 100:.0f}% | "
                            f"{r['seconds_per_pair']:.2f} | {_f(r['time_ratio_vs_gsa_coarse'], 2)} |")
-        return "\n".join(lines)
+        return "\n".join(lines + _calibration_lines(rows))
+    symmetric = any("success_rate_any_symmetric" in r for r in rows)
+    sym_head, sym_rule = (" success, any symmetric pose (RRE<5°) |", "---:|") if symmetric else ("", "")
     lines = ["| method | pairs | mean RRE (°) | median RRE (°) | mean scale err (%) | mean ATE / diag | "
-             "success (RRE<5°) | s / pair | time ratio vs GSA coarse |",
-             "|---|---:|---:|---:|---:|---:|---:|---:|---:|"]
+             "success (RRE<5°) |" + sym_head + " s / pair | time ratio vs GSA coarse |",
+             "|---|---:|---:|---:|---:|---:|---:|" + sym_rule + "---:|---:|"]
     for r in rows:
         failed = f" ({r['failed']} failed)" if r.get("failed") else ""
+        sym = f" {_pct(r.get('success_rate_any_symmetric'))} |" if symmetric else ""
         lines.append(
             f"| {r['method']} | {r['pairs']}{failed} | {_f(r['mean_rre_deg'], 4)} | {_f(r['median_rre_deg'], 4)} | "
-            f"{_f(r['mean_scale_error_pct'], 4)} | {_f(r['mean_ate_normalized'], 5)} | {r['success_rate'] * 100:.0f}% | "
-            f"{r['seconds_per_pair']:.2f} | {_f(r['time_ratio_vs_gsa_coarse'], 2)} |"
+            f"{_f(r['mean_scale_error_pct'], 4)} | {_f(r['mean_ate_normalized'], 5)} | {r['success_rate'] * 100:.0f}% |"
+            f"{sym} {r['seconds_per_pair']:.2f} | {_f(r['time_ratio_vs_gsa_coarse'], 2)} |"
         )
-    return "\n".join(lines)
+    return "\n".join(lines + _calibration_lines(rows))
+
+
+def _pct(x: float | None) -> str:
+    return "—" if x is None or not np.isfinite(x) else f"{x * 100:.0f}%"
+
+
+def _calibration_text(c: dict) -> str:
+    text = (f"{c['flagged']}/{c['flag_results']} flagged doubtful ({_pct(c['flagged_rate'])}); "
+            f"unflagged: {c['unflagged']}, {_pct(c['unflagged_success_rate'])} succeed; "
+            f"failures: {c['failures']}, {_pct(c['failures_flagged_rate'])} flagged")
+    if not c.get("confidence_reported"):
+        text += " (align() reported no confidence)"
+    return text
+
+
+def _calibration_lines(rows: list[dict]) -> list[str]:
+    """Lines under a table: the doubtful flag against success, for rows that carry it."""
+    cal = [r for r in rows if "flagged_rate" in r]
+    if not cal:
+        return []
+    return ["", "Confidence calibration (success = RRE < 5°):"] + [f"- {r['method']}: {_calibration_text(r)}" for r in cal]
+
+
+def calibration_summary(results: dict[str, list[dict]], method: str = GSA_COARSE) -> str | None:
+    """One line over all protocols run: `method`'s doubtful flag against success."""
+    names = [n for n, rows in results.items() if any(r.get("method") == method and "flagged_rate" in r for r in rows)]
+    records = [rec for n in names for r in results[n] if r.get("method") == method for rec in r["records"]]
+    c = calibration(records)
+    if not c:
+        return None
+    return (f"Confidence calibration, {method}, over {', '.join(names)}: {c['flag_results']} results; "
+            + _calibration_text(c))
 
 
 def run_protocols(names: list[str], quick: bool = False, out: str = "out/bench", seed: int = 0,
@@ -596,11 +815,15 @@ def run_protocols(names: list[str], quick: bool = False, out: str = "out/bench",
     print(f"GSA benchmarks — {date.today().isoformat()}, {platform.machine()}, {os.cpu_count()} CPU cores"
           f"{' (quick)' if quick else ''}\n{NOISE_NOTE}")
     start = time.perf_counter()
+    results = {}
     for name in names:
         t0 = time.perf_counter()
-        rows = PROTOCOLS[name](quick, seed, out_dir, peers)
+        rows = results[name] = PROTOCOLS[name](quick, seed, out_dir, peers)
         print(f"\n### {name} ({time.perf_counter() - t0:.0f} s wall)\n")
         print(format_table(name, rows))
         sys.stdout.flush()
+    summary = calibration_summary(results)
+    if summary:
+        print(f"\n{summary}")
     print(f"\nTotal wall time {time.perf_counter() - start:.0f} s. JSON: {out_dir}/")
     return 0

@@ -2,5 +2,26 @@
 
 from gsa.synth.objects import CATEGORIES, make_object
 from gsa.synth.perturb import paper_perturbation, random_sim3
+from gsa.synth.variants import (
+    SYMMETRIC_FAMILIES,
+    add_floaters,
+    cut_by_plane,
+    deform,
+    make_symmetric_object,
+    symmetric_spec,
+    symmetry_rotations,
+)
 
-__all__ = ["CATEGORIES", "make_object", "paper_perturbation", "random_sim3"]
+__all__ = [
+    "CATEGORIES",
+    "SYMMETRIC_FAMILIES",
+    "add_floaters",
+    "cut_by_plane",
+    "deform",
+    "make_object",
+    "make_symmetric_object",
+    "paper_perturbation",
+    "random_sim3",
+    "symmetric_spec",
+    "symmetry_rotations",
+]
