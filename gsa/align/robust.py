@@ -584,6 +584,14 @@ def decide(cands: list[Candidate], w_colour: float) -> SearchResult:
 
 # A result is reported doubtful below this confidence.
 CONFIDENCE_THRESHOLD = 0.5
+# confidence = min(fit, separation): fit maps the final overlap score (truncated
+# closeness both ways, anchors) from FIT_FLOOR..FIT_FLOOR+FIT_SPAN onto 0..1, so a
+# pose whose models overlap less than FIT_FLOOR + FIT_SPAN/2 = 0.55 is doubtful; two
+# complete captures of one object score 0.6-0.8, duplicates 0.8-0.9. Separation maps
+# the lead over the best distinct alternative (units of SCORE_TIE) from 0..MARGIN_SPAN.
+# Calibrated on all benchmark protocols together (docs/benchmarks.md, "confidence").
+FIT_FLOOR, FIT_SPAN = 0.45, 0.2
+MARGIN_SPAN = 4.0
 
 
 def verdict(final: Candidate, search: SearchResult | None) -> dict:
@@ -591,9 +599,9 @@ def verdict(final: Candidate, search: SearchResult | None) -> dict:
     two models overlap there with how clearly the pose beat the best distinct
     alternative of the search; `ambiguous` marks a tie nothing could break
     (a colourless symmetric object), with the tied poses as `alternatives`."""
-    fit = float(np.clip((final.geometry - 0.35) / 0.3, 0.0, 1.0))
+    fit = float(np.clip((final.geometry - FIT_FLOOR) / FIT_SPAN, 0.0, 1.0))
     ambiguous = bool(search is not None and search.ambiguous)
-    separation = 1.0 if search is None else float(np.clip(search.margin / 3.0, 0.0, 1.0))
+    separation = 1.0 if search is None else float(np.clip(search.margin / MARGIN_SPAN, 0.0, 1.0))
     confidence = min(fit, separation)
     if ambiguous:
         confidence = min(confidence, 0.25)

@@ -105,7 +105,10 @@ def gsa_runner(fine: bool, labels: tuple[str, str] = (GSA_COARSE, GSA_FINE), **o
         # when align() does not report one.
         flags = {"confidence": _float_or_none(result.metrics.get("confidence")),
                  "ambiguous": bool(result.metrics.get("ambiguous", False)),
-                 "doubtful": bool(result.metrics.get("doubtful", False))}
+                 "doubtful": bool(result.metrics.get("doubtful", False)),
+                 # what the confidence is made of, kept for calibration
+                 **{k: _float_or_none(result.metrics.get(k)) for k in ("margin", "overlap_score", "score",
+                                                                        "colour_weight")}}
         out = {coarse_label: (result.coarse.transform, total - result.timings.get("fine", 0.0), flags)}
         if fine:
             out[fine_label] = (result.transform, total, dict(flags))
