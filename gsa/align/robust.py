@@ -265,58 +265,69 @@ def global_search(src: Anchors, dst: Anchors, frame_rotations: list[tuple[str, n
     w_colour = colour_weight(src, dst)
     scorer = _GridScorer(src, dst, dst_grid, src_grid, rng, opts.score_points, tau, w_colour)
     # Centres and RMS radii are only a first guess: a capture that missed a side has
-    # its centroid moved by up to ~0.8 radius and its radius off by ~25 %.
+    # its centroid moved by up to a radius and its radius off by up to ~40 %.
     scale = np.full(len(rotations), scale0)
     t = np.broadcast_to(dst.center, (len(rotations), 3)).copy()
     scale, t = scorer.capture(rotations, scale, t, opts.capture_steps)
     score = scorer.score(rotations, scale, t)
-
-    # The most promising distinct rotations also try translations and scales around
-    # their estimate (the capture steps can settle on the wrong stretch of a long part).
     top = _distinct(np.argsort(-score), rotations, opts.translation_top, DISTINCT_DEG / 2)
-    step = opts.translation_step * dst.radius
-    g = np.arange(-opts.translation_reach, opts.translation_reach + 1) * step
-    offsets = np.stack(np.meshgrid(g, g, g, indexing="ij"), -1).reshape(-1, 3)
-    factors = np.asarray(opts.scale_factors)
-    k_rot, k_off, k_fac = np.meshgrid(top, np.arange(len(offsets)), np.arange(len(factors)), indexing="ij")
-    k_rot, k_off, k_fac = k_rot.ravel(), k_off.ravel(), k_fac.ravel()
-    # Scaling about the estimated centre of the mapped source keeps a scale change from shifting it.
-    centre = t[k_rot] + scale[k_rot, None] * (rotations[k_rot] @ (scorer.src_mean - src.center))
-    trial_scale = scale[k_rot] * factors[k_fac]
-    trial_t = centre + offsets[k_off] - trial_scale[:, None] * (rotations[k_rot] @ (scorer.src_mean - src.center))
-    trial_score = scorer.score(rotations[k_rot], trial_scale, trial_t).reshape(len(top), -1)
-    pick = np.argmax(trial_score, axis=1)
-    rows = np.arange(len(top)) * trial_score.shape[1] + pick
-    s2, t2 = scorer.capture(rotations[top], trial_scale[rows], trial_t[rows], opts.capture_steps[-2:])
-    better = scorer.score(rotations[top], s2, t2) > score[top]
-    scale[top] = np.where(better, s2, scale[top])
-    t[top] = np.where(better[:, None], t2, t[top])
-    score[top] = np.maximum(score[top], scorer.score(rotations[top], s2, t2))
+    _try_offsets(scorer, rotations, scale, t, score, top, opts)
 
     # Refine the best distinct rotations, and the best frame relabelling (exact on clean copies).
     frames = np.arange(opts.rotations, len(rotations))
     first = [int(frames[np.argmax(score[frames])])] if len(frames) else []
     chosen = _distinct(np.concatenate([first, np.argsort(-score)]).astype(int), rotations, opts.refine_top, DISTINCT_DEG)
+    starts = [(origins[i], Sim3(float(scale[i]), rotations[i], t[i] - scale[i] * rotations[i] @ src.center))
+              for i in chosen]
+    return decide(_dedupe(_refine_starts(src, dst, starts, w_colour, rng, opts)), w_colour)
 
+
+def _try_offsets(scorer: _GridScorer, rotations: np.ndarray, scale: np.ndarray, t: np.ndarray, score: np.ndarray,
+                 top: list[int], opts: SearchOptions) -> None:
+    """The most promising rotations also try a grid of translation offsets and scale
+    factors around their estimate, then two capture steps (the capture can settle on
+    the wrong stretch of a long part). Updates scale, t and score in place where better."""
+    src = scorer.src
+    step = opts.translation_step * scorer.dst.radius
+    g = np.arange(-opts.translation_reach, opts.translation_reach + 1) * step
+    offsets = np.stack(np.meshgrid(g, g, g, indexing="ij"), -1).reshape(-1, 3)
+    factors = np.asarray(opts.scale_factors)
+    k_rot, k_off, k_fac = (k.ravel() for k in np.meshgrid(top, np.arange(len(offsets)), np.arange(len(factors)),
+                                                          indexing="ij"))
+    # Scaling about the mapped centre of the sampled anchors keeps a scale change from shifting them.
+    arm = rotations[k_rot] @ (scorer.src_mean - src.center)
+    trial_scale = scale[k_rot] * factors[k_fac]
+    trial_t = t[k_rot] + scale[k_rot, None] * arm + offsets[k_off] - trial_scale[:, None] * arm
+    trial_score = scorer.score(rotations[k_rot], trial_scale, trial_t).reshape(len(top), -1)
+    rows = np.arange(len(top)) * trial_score.shape[1] + np.argmax(trial_score, axis=1)
+    s2, t2 = scorer.capture(rotations[top], trial_scale[rows], trial_t[rows], opts.capture_steps[-2:])
+    new_score = scorer.score(rotations[top], s2, t2)
+    better = new_score > score[top]
+    scale[top] = np.where(better, s2, scale[top])
+    t[top] = np.where(better[:, None], t2, t[top])
+    score[top] = np.maximum(score[top], new_score)
+
+
+def _refine_starts(src: Anchors, dst: Anchors, starts: list[tuple[str, Sim3]], w_colour: float,
+                   rng: np.random.Generator, opts: SearchOptions) -> list[Candidate]:
+    """Successive halving: every start gets a few ICP iterations, the leaders the rest."""
     src_rows = _sample(rng, len(src), opts.refine_points)
     dst_rows = _sample(rng, len(dst), opts.refine_points)
-    # Successive halving: every start gets a few ICP iterations, the leaders the rest.
-    starts = [Sim3(float(scale[i]), rotations[i], t[i] - scale[i] * rotations[i] @ src.center) for i in chosen]
     early = [score_pose(src, dst, bidirectional_icp(src, dst, init, src_rows, dst_rows, opts.early_iterations,
-                                                    w_colour), origins[i], w_colour)
-             for i, init in zip(chosen, starts)]
+                                                    w_colour), origin, w_colour)
+             for origin, init in starts]
     early.sort(key=lambda c: -c.score)
-    refined = []
+    refined: list[Candidate] = []
     for k, c in enumerate(early):
         # Past the finalists, a start still runs to convergence if its unfinished score
         # is close to the best: a symmetric pose half-way there must not look worse
         # than it is, or a tie would pass for a clear win.
-        if k >= opts.finalists and (not refined or c.score < max(r.score for r in refined) - RIVAL_WINDOW):
+        if k >= opts.finalists and c.score < max(r.score for r in refined) - RIVAL_WINDOW:
             refined.append(c)
             continue
         transform = bidirectional_icp(src, dst, c.transform, src_rows, dst_rows, opts.refine_iterations, w_colour)
         refined.append(score_pose(src, dst, transform, c.origin, w_colour))
-    return decide(_dedupe(refined), w_colour)
+    return refined
 
 
 def _distinct(order: np.ndarray, rotations: np.ndarray, count: int, min_deg: float) -> list[int]:
