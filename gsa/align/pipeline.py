@@ -5,6 +5,7 @@ The CLI, the service worker, the benchmarks and the tests all call this.
 
 from __future__ import annotations
 
+import functools
 import os
 import time
 from collections.abc import Callable
@@ -76,7 +77,7 @@ class AlignOptions:
     # except with refine off, which asks for the feature stage alone.
     search: str = "auto"
     anchor_count: int = 2000
-    search_rotations: int = 2048
+    search_rotations: int = 4096
     seed: int = 0
     fine_iterations: int = 60
     fine_views: int = 5
@@ -314,7 +315,6 @@ class _Pair:
     src_tree: cKDTree
     dst_tree: cKDTree
     dst_feat: np.ndarray
-    dst_feat_tree: cKDTree
     weights: np.ndarray | None
     threshold: float  # GT-free inlier distance in target units
     rng: np.random.Generator
@@ -348,11 +348,15 @@ class _Pair:
             src_tree=cKDTree(src_pts),
             dst_tree=cKDTree(dst_pts),
             dst_feat=dst_feat,
-            dst_feat_tree=cKDTree(np.asarray(dst_feat, np.float64)),
             weights=source.opacities if opts.weight_by_opacity else None,
             threshold=opts.inlier_threshold * dst_frame.radius,
             rng=np.random.default_rng(opts.seed),
         )
+
+    @functools.cached_property
+    def dst_feat_tree(self) -> cKDTree:
+        """Feature-space tree of the target (only the feature-guided stage queries it)."""
+        return cKDTree(np.asarray(self.dst_feat, np.float64))
 
     @property
     def global_search(self) -> bool:

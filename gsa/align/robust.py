@@ -269,14 +269,19 @@ def global_search(src: Anchors, dst: Anchors, frame_rotations: list[tuple[str, n
     scale = np.full(len(rotations), scale0)
     t = np.broadcast_to(dst.center, (len(rotations), 3)).copy()
     scale, t = scorer.capture(rotations, scale, t, opts.capture_steps)
-    score = scorer.score(rotations, scale, t)
+    # Candidates are ranked by the mean of the coloured score and the geometric one: a
+    # rotation ten degrees off the truth pairs many points with the wrong colour and can
+    # rank below a geometric flip; the geometric half keeps it in the running, and
+    # colour decides after ICP, where the pose is exact enough for colours to compare.
+    score = scorer.score(rotations, scale, t, blend=True)
     top = _distinct(np.argsort(-score), rotations, opts.translation_top, DISTINCT_DEG / 2)
     _try_offsets(scorer, rotations, scale, t, score, top, opts)
 
     # Refine the best distinct rotations, and the best frame relabelling (exact on clean copies).
     frames = np.arange(opts.rotations, len(rotations))
     first = [int(frames[np.argmax(score[frames])])] if len(frames) else []
-    chosen = _distinct(np.concatenate([first, np.argsort(-score)]).astype(int), rotations, opts.refine_top, DISTINCT_DEG)
+    chosen = _distinct(np.concatenate([first, np.argsort(-score)]).astype(int), rotations, opts.refine_top,
+                       DISTINCT_DEG)
     starts = [(origins[i], Sim3(float(scale[i]), rotations[i], t[i] - scale[i] * rotations[i] @ src.center))
               for i in chosen]
     return decide(_dedupe(_refine_starts(src, dst, starts, w_colour, rng, opts)), w_colour)
@@ -298,10 +303,10 @@ def _try_offsets(scorer: _GridScorer, rotations: np.ndarray, scale: np.ndarray, 
     arm = rotations[k_rot] @ (scorer.src_mean - src.center)
     trial_scale = scale[k_rot] * factors[k_fac]
     trial_t = t[k_rot] + scale[k_rot, None] * arm + offsets[k_off] - trial_scale[:, None] * arm
-    trial_score = scorer.score(rotations[k_rot], trial_scale, trial_t).reshape(len(top), -1)
+    trial_score = scorer.score(rotations[k_rot], trial_scale, trial_t, blend=True).reshape(len(top), -1)
     rows = np.arange(len(top)) * trial_score.shape[1] + np.argmax(trial_score, axis=1)
     s2, t2 = scorer.capture(rotations[top], trial_scale[rows], trial_t[rows], opts.capture_steps[-2:])
-    new_score = scorer.score(rotations[top], s2, t2)
+    new_score = scorer.score(rotations[top], s2, t2, blend=True)
     better = new_score > score[top]
     scale[top] = np.where(better, s2, scale[top])
     t[top] = np.where(better[:, None], t2, t[top])
@@ -365,8 +370,9 @@ class _GridScorer:
             _capture_step(u, scale, t, g.nearest_flat, g.lo, 1.0 / g.cell, g.shape, self.dst.points, reach * self.tau)
         return scale, t
 
-    def score(self, rotations, scale, t) -> np.ndarray:
-        """Overlap score both ways (with colour as far as trusted) of each pose."""
+    def score(self, rotations, scale, t, blend: bool = False) -> np.ndarray:
+        """Overlap score both ways (with colour as far as trusted) of each pose;
+        blend: the mean of that and the geometry-only score (one pass computes both)."""
         rotations = np.asarray(rotations, np.float64)
         lin = scale[:, None, None] * rotations
         off = t - np.einsum("rij,j->ri", lin, self.src.center)
@@ -381,7 +387,8 @@ class _GridScorer:
         rev = _score_poses(np.ascontiguousarray(inv), np.ascontiguousarray(inv_off), scale.astype(np.float64),
                            self.qs, self.q_lab, g.nearest_flat, g.lo, 1.0 / g.cell, g.shape, self.src.points,
                            self.src.lab, self.tau, self.w_colour)
-        return 0.5 * (fwd + rev)
+        both = 0.5 * (fwd + rev)  # (poses, 2): coloured, geometric
+        return both.mean(axis=1) if blend else both[:, 0]
 
 
 @numba.njit(cache=True, inline="always")
@@ -394,12 +401,14 @@ def _grid_index(x0, x1, x2, lo, inv_cell, shape):  # pragma: no cover - compiled
 
 @numba.njit(parallel=True, cache=True)
 def _score_poses(lin, off, dist_scale, pts, lab, nearest, lo, inv_cell, shape, other, other_lab, tau, w):  # pragma: no cover
-    """Mean of _pair_scores over `pts` mapped by x -> lin[k] x + off[k], for every pose k."""
+    """Per pose k, the mean over `pts` mapped by x -> lin[k] x + off[k] of _pair_scores
+    (column 0) and of the truncated closeness alone (column 1)."""
     n_pose, n_pt = lin.shape[0], pts.shape[0]
-    out = np.zeros(n_pose)
+    out = np.zeros((n_pose, 2))
     inv_2s2 = 0.5 / COLOUR_SIGMA**2
     for k in numba.prange(n_pose):
         total = 0.0
+        geometric = 0.0
         for i in range(n_pt):
             x0 = lin[k, 0, 0] * pts[i, 0] + lin[k, 0, 1] * pts[i, 1] + lin[k, 0, 2] * pts[i, 2] + off[k, 0]
             x1 = lin[k, 1, 0] * pts[i, 0] + lin[k, 1, 1] * pts[i, 1] + lin[k, 1, 2] * pts[i, 2] + off[k, 1]
@@ -412,12 +421,14 @@ def _score_poses(lin, off, dist_scale, pts, lab, nearest, lo, inv_cell, shape, o
             if d >= tau:
                 continue
             c = 1.0 - d / tau
+            geometric += c
             if w > 0:
                 de2 = (lab[i, 0] - other_lab[j, 0]) ** 2 + (lab[i, 1] - other_lab[j, 1]) ** 2 \
                     + (lab[i, 2] - other_lab[j, 2]) ** 2
                 c *= 1.0 - 2.0 * w * (1.0 - np.exp(-de2 * inv_2s2))
             total += c
-        out[k] = total / n_pt
+        out[k, 0] = total / n_pt
+        out[k, 1] = geometric / n_pt
     return out
 
 
