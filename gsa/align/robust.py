@@ -689,7 +689,12 @@ def refine(source_points: np.ndarray, target_points: np.ndarray, source_tree: cK
             d = np.concatenate([d_f, d_r * transform.scale])
             a = np.concatenate([p, src_all[i]])
             b = np.concatenate([dst_all[j], q])
-            keep = overlap_trim(d)
+            # The overlap fraction is estimated once per neighbour table and held while
+            # the pose settles on it: re-estimated every step, its jumps between grid
+            # values keep the pose from converging.
+            if inner == 1:
+                fraction = overlap_fraction(d)
+            keep = _smallest(d, fraction)
             try:
                 new = solve_sim3(a[keep], b[keep])
             except DegenerateCorrespondencesError:
@@ -700,7 +705,8 @@ def refine(source_points: np.ndarray, target_points: np.ndarray, source_tree: cK
                             "rms_residual": float(np.sqrt(np.mean(d[keep] ** 2))),
                             "delta_rotation_deg": angle, "scale": new.scale})
             transform = new
-            if angle < 1e-3 and abs(np.log(step.scale)) < 2e-6:
+            # Steps below these sit in the sampling noise of the correspondences.
+            if angle < 2e-3 and abs(np.log(step.scale)) < 2e-5:
                 if inner <= 2:
                     return transform, history
                 break  # converged on the cached tables: re-query once to confirm
@@ -710,21 +716,27 @@ def refine(source_points: np.ndarray, target_points: np.ndarray, source_tree: cK
 
 
 def overlap_trim(d: np.ndarray, lam: float = OVERLAP_LAMBDA) -> np.ndarray:
-    """Trimmed-ICP overlap estimate (Chetverikov et al. 2005): keep the fraction ξ of
+    """The pairs that overlap_fraction keeps (a boolean mask over d)."""
+    return _smallest(d, overlap_fraction(d, lam))
+
+
+def _smallest(d: np.ndarray, fraction: float) -> np.ndarray:
+    keep = np.zeros(len(d), bool)
+    keep[np.argsort(d)[: max(int(fraction * len(d)), 3)]] = True
+    return keep
+
+
+def overlap_fraction(d: np.ndarray, lam: float = OVERLAP_LAMBDA) -> float:
+    """Trimmed-ICP overlap estimate (Chetverikov et al. 2005): the fraction ξ of
     pairs with the smallest residuals that minimises RMS(ξ) / ξ^(1+λ), ξ ≥ 0.3. Where the two
     models overlap only in part the residuals jump and ξ stops at the overlap; where
     one is a deformed copy of the other they grow smoothly and ξ stays near 1, so
     the fit averages the deformation instead of locking onto one part of it."""
-    order = np.argsort(d)
-    cum = np.cumsum(d[order] ** 2)
-    n = len(d)
+    cum = np.cumsum(np.sort(d) ** 2)
     xi = np.linspace(0.3, 1.0, 15)
-    counts = np.maximum((xi * n).astype(int), 3)
+    counts = np.maximum((xi * len(d)).astype(int), 3)
     rms = np.sqrt(cum[counts - 1] / counts)
-    best = int(counts[np.argmin(rms / xi ** (1.0 + lam))])
-    keep = np.zeros(n, bool)
-    keep[order[:best]] = True
-    return keep
+    return float(xi[np.argmin(rms / xi ** (1.0 + lam))])
 
 
 def _workers(n: int) -> int:
