@@ -226,6 +226,10 @@ def _print_transform(result, out: str | None = None) -> None:
         f"quality      inliers {m['inlier_fraction']:.3f}, rms residual {m['rms_residual']:.4g}, "
         f"feature agreement {m['feature_agreement']:.3f} ({result.features} features)"
     )
+    if "confidence" in m:
+        verdict = "ambiguous" if m.get("ambiguous") else ("doubtful" if m.get("doubtful") else "confident")
+        print(f"confidence   {m['confidence']:.2f} ({verdict}; overlap {m.get('overlap_score', float('nan')):.3f}, "
+              f"colour agreement {m.get('colour_agreement', float('nan')):.2f})")
     print(f"time         {result.timings['total']:.2f} s")
     if out:
         print(f"result       {out}")
