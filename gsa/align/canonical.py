@@ -146,6 +146,12 @@ def _signed_permutations() -> list[np.ndarray]:
 SIGNED_PERMUTATIONS = _signed_permutations()  # the 24 rotations of a cube
 
 
+def relabelling_label(g: np.ndarray) -> str:
+    """A signed permutation as text, e.g. '+y-x+z' (row i: which axis, with which sign)."""
+    axes = "xyz"
+    return "".join(("-" if g[i, j] < 0 else "+") + axes[j] for i in range(3) for j in range(3) if g[i, j] != 0)
+
+
 def frame_hypotheses(
     *frames: CanonicalFrame,
     extent_tolerance: float = EXTENT_TOLERANCE,

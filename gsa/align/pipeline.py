@@ -16,7 +16,13 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from gsa.align import robust
-from gsa.align.canonical import CanonicalFrame, canonical_features, frame_hypotheses, model_frame
+from gsa.align.canonical import (
+    CanonicalFrame,
+    canonical_features,
+    frame_hypotheses,
+    model_frame,
+    relabelling_label,
+)
 from gsa.align.coarse import (
     AlignmentError,
     CoarseOptions,
@@ -427,7 +433,7 @@ class _Pair:
             out.append(_Hypothesis("centroid", self.src_frame, _centroid_init(self.src_frame, self.dst_frame)))
         for g in frame_hypotheses(self.src_frame, self.dst_frame):
             frame = self.src_frame.rotated(g)
-            out.append(_Hypothesis(_label(g), frame, _initial_transform(frame, self.dst_frame)))
+            out.append(_Hypothesis(relabelling_label(g), frame, _initial_transform(frame, self.dst_frame)))
         return out
 
     def select(self, hypotheses: list[_Hypothesis], progress: Progress | None) -> tuple[_Hypothesis, list[dict]]:
@@ -548,11 +554,6 @@ class _Pair:
 
 def _subsample(rng: np.random.Generator, n: int, k: int) -> np.ndarray:
     return np.arange(n) if k >= n else np.sort(rng.choice(n, k, replace=False))
-
-
-def _label(g: np.ndarray) -> str:
-    axes = "xyz"
-    return "".join(("-" if g[i, j] < 0 else "+") + axes[j] for i in range(3) for j in range(3) if g[i, j] != 0)
 
 
 def _reverse_distances(transform: Sim3, target_points: np.ndarray, source_tree: cKDTree) -> np.ndarray:

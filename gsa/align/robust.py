@@ -32,8 +32,8 @@ import numpy as np
 from scipy import ndimage
 from scipy.spatial import cKDTree
 
-from gsa.align.canonical import SIGNED_PERMUTATIONS, CanonicalFrame
-from gsa.align.coarse import _nearest_candidate
+from gsa.align.canonical import SIGNED_PERMUTATIONS, CanonicalFrame, relabelling_label
+from gsa.align.coarse import _nearest_candidate, rotation_angle
 from gsa.model import GaussianModel, quat_to_rotation
 from gsa.sim3 import DegenerateCorrespondencesError, Sim3, solve_sim3
 
@@ -213,8 +213,7 @@ class Candidate:
 
 
 def rotation_offset_deg(a: Sim3, b: Sim3) -> float:
-    r = a.rotation @ b.rotation.T
-    return float(np.degrees(np.arccos(np.clip((np.trace(r) - 1.0) / 2.0, -1.0, 1.0))))
+    return _angle(a.rotation, b.rotation)
 
 
 @dataclass
@@ -500,7 +499,8 @@ def _pair_scores(d: np.ndarray, lab_a: np.ndarray, lab_b: np.ndarray, tau: float
 
 
 def _angle(a: np.ndarray, b: np.ndarray) -> float:
-    return float(np.degrees(np.arccos(np.clip((np.trace(a @ b.T) - 1.0) / 2.0, -1.0, 1.0))))
+    """Degrees between two rotation matrices."""
+    return float(np.degrees(rotation_angle(a @ b.T)))
 
 
 def _sample(rng: np.random.Generator, n: int, k: int) -> np.ndarray:
@@ -648,12 +648,7 @@ def frame_relabellings(src: CanonicalFrame, dst: CanonicalFrame) -> list[tuple[s
     """Rotations mapping the source's canonical axes onto the target's, under all 24
     axis relabellings: where the frames hold (clean copies) one of them is exact,
     and the search refines from it."""
-    return [(_perm_label(g), dst.axes.T @ g @ src.axes) for g in SIGNED_PERMUTATIONS]
-
-
-def _perm_label(g: np.ndarray) -> str:
-    axes = "xyz"
-    return "".join(("-" if g[i, j] < 0 else "+") + axes[j] for i in range(3) for j in range(3) if g[i, j] != 0)
+    return [(relabelling_label(g), dst.axes.T @ g @ src.axes) for g in SIGNED_PERMUTATIONS]
 
 
 def refine(source_points: np.ndarray, target_points: np.ndarray, source_tree: cKDTree, target_tree: cKDTree,

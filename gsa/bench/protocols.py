@@ -414,28 +414,29 @@ def protocol_category(quick: bool, seed: int, out: Path, peers: list[str] | None
     return rows
 
 
-def protocol_partial(quick: bool, seed: int, out: Path, peers: list[str] | None = None) -> list[dict]:
-    rows = evaluate("partial", partial_pairs(quick, seed), default_runners(seed, peers, quick), _category_of, out=out)
-    _save(out, "partial", rows)
-    return rows
+def _capture_protocol(name: str):
+    """partial, noisy and deform: pairs from NAME_pairs (looked up when run), categories
+    cycled, default runners."""
+
+    def protocol(quick: bool, seed: int, out: Path, peers: list[str] | None = None) -> list[dict]:
+        pairs = globals()[f"{name}_pairs"](quick, seed)
+        rows = evaluate(name, pairs, default_runners(seed, peers, quick), _category_of, out=out)
+        _save(out, name, rows)
+        return rows
+
+    protocol.__name__ = f"protocol_{name}"
+    return protocol
 
 
-def protocol_noisy(quick: bool, seed: int, out: Path, peers: list[str] | None = None) -> list[dict]:
-    rows = evaluate("noisy", noisy_pairs(quick, seed), default_runners(seed, peers, quick), _category_of, out=out)
-    _save(out, "noisy", rows)
-    return rows
+protocol_partial = _capture_protocol("partial")
+protocol_noisy = _capture_protocol("noisy")
+protocol_deform = _capture_protocol("deform")
 
 
 def protocol_symmetric(quick: bool, seed: int, out: Path, peers: list[str] | None = None) -> list[dict]:
     rows = evaluate("symmetric", symmetric_pairs(quick, seed), default_runners(seed, peers, quick),
                     _symmetric_fields, out=out, judge=symmetric_judge)
     _save(out, "symmetric", rows)
-    return rows
-
-
-def protocol_deform(quick: bool, seed: int, out: Path, peers: list[str] | None = None) -> list[dict]:
-    rows = evaluate("deform", deform_pairs(quick, seed), default_runners(seed, peers, quick), _category_of, out=out)
-    _save(out, "deform", rows)
     return rows
 
 
