@@ -1,4 +1,5 @@
-"""`align()`: features -> coarse (with frame hypotheses) -> fine, one call.
+"""`align()`: features -> coarse (the robust global search of gsa.align.robust, or frame
+hypotheses + the paper's feature-guided ICP) -> fine, one call, with a GT-free verdict.
 
 The CLI, the service worker, the benchmarks and the tests all call this.
 """

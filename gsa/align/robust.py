@@ -8,17 +8,18 @@ part in it. This module does not trust any single frame:
    each model is voxel-downsampled to ~2k anchors with a mean position, a mean
    CIELAB colour and a weight. The voxel size follows each model's own size, so
    anchors are scale-free.
-2. `search`: every rotation of a near-uniform SO(3) sample (super-Fibonacci,
-   plus the canonical-frame relabellings, which make duplicates exact) is
-   placed by matching centres and RMS radii, moved by two vectorised
-   translation steps towards its nearest anchors, and scored through a grid of
-   nearest-anchor indices (an exact distance transform), both ways round.
-3. The best distinct rotations are refined by a trimmed, bidirectional ICP
-   with Horn's symmetric scale on the anchors (both directions, so a partial
-   model cannot shrink into the other), and scored by how much of the two
-   models overlap (truncated distances both ways) and, among poses whose
-   geometry scores tie, by how well colours agree: colour is what tells the
-   sides of a symmetric object apart.
+2. `global_search`: every rotation of a near-uniform SO(3) sample (super-Fibonacci,
+   plus the canonical-frame relabellings, which make duplicates exact) is placed by
+   matching centres and RMS radii, pulled by vectorised capture steps (translation and
+   Horn scale from the anchors within a shrinking radius), and scored through a grid of
+   nearest-anchor indices (an exact distance transform), both ways round; the leaders
+   also try a grid of offsets and scale factors.
+3. The best distinct rotations are refined by a robust, bidirectional, colour-matched
+   ICP with Horn's symmetric scale on the anchors (both directions, so a partial model
+   cannot shrink into the other), and scored by how much of the two models overlap
+   (truncated distances both ways), a close pair of the wrong colour counting against
+   a pose as far as the two models share a palette: colour is what tells the sides of
+   a symmetric object apart.
 4. The margin to the best distinct alternative and the overlap itself give a
    confidence; near-ties are reported as ambiguous with their poses.
 """
