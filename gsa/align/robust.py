@@ -237,12 +237,19 @@ class SearchOptions:
 
 @dataclass
 class SearchResult:
-    best: Candidate
     candidates: list[Candidate]  # refined and de-duplicated, the chosen one first
-    ambiguous: bool  # a distinct pose ties with the best
     colour_weight: float  # how far colour counted in the scores (0: not shared by the models)
     margin: float  # lead over the best distinct alternative, in units of SCORE_TIE
     rivals: list[Candidate]  # the poses tied with the best
+
+    @property
+    def best(self) -> Candidate:
+        return self.candidates[0]
+
+    @property
+    def ambiguous(self) -> bool:
+        """A distinct pose ties with the best."""
+        return bool(self.rivals)
 
 
 def global_search(src: Anchors, dst: Anchors, frame_rotations: list[tuple[str, np.ndarray]] | None = None,
@@ -602,7 +609,7 @@ def decide(cands: list[Candidate], w_colour: float) -> SearchResult:
     best = cands[0]
     rivals = [c for c in cands[1:] if c.score >= best.score - SCORE_TIE]
     margin = (best.score - cands[1].score) / SCORE_TIE if len(cands) > 1 else float("inf")
-    return SearchResult(best, cands, bool(rivals), w_colour, float(margin), rivals)
+    return SearchResult(cands, w_colour, float(margin), rivals)
 
 
 # A result is reported doubtful below this confidence.
