@@ -1,10 +1,48 @@
 """GSA: Gaussian Splatting Alignment (CVPR 2026) — the library.
 
 Importable and testable without any web framework; `service/` builds on it.
+
+    from gsa import align, AlignOptions, read_ply
+    result = align(read_ply("a.ply"), read_ply("b.ply"), AlignOptions())
+    result.transform.matrix()  # 4×4 with target ≈ T(source)
 """
+
+from __future__ import annotations
+
+import importlib
+from typing import TYPE_CHECKING
 
 from gsa.model import GaussianModel, merge_models
 from gsa.sim3 import Sim3, solve_sim3
 
-__all__ = ["GaussianModel", "Sim3", "merge_models", "solve_sim3"]
+if TYPE_CHECKING:  # pragma: no cover - for type checkers and IDEs only
+    from gsa.align.pipeline import AlignmentError, AlignmentResult, AlignOptions
+    from gsa.io.ply import read_ply, write_ply
+
+# The alignment API pulls in scipy and numba; it loads on first use so that
+# `import gsa` (and the CLI's start-up) stays cheap.
+_LAZY = {
+    "align": "",  # the gsa.align package, callable (see its docstring)
+    "AlignOptions": "gsa.align.pipeline",
+    "AlignmentResult": "gsa.align.pipeline",
+    "AlignmentError": "gsa.align.pipeline",
+    "read_ply": "gsa.io.ply",
+    "write_ply": "gsa.io.ply",
+}
+
+__all__ = ["GaussianModel", "Sim3", "merge_models", "solve_sim3", *_LAZY]
 __version__ = "0.1.0"
+
+
+def __getattr__(name: str):
+    if name == "align":
+        return importlib.import_module("gsa.align")
+    if name in _LAZY:
+        value = getattr(importlib.import_module(_LAZY[name]), name)
+        globals()[name] = value
+        return value
+    raise AttributeError(f"module 'gsa' has no attribute {name!r}")
+
+
+def __dir__() -> list[str]:
+    return sorted(set(globals()) | set(_LAZY))
