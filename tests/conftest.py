@@ -4,6 +4,30 @@ import pytest
 from gsa.synth import make_object
 
 
+@pytest.fixture(scope="session", autouse=True)
+def compiled_kernels():
+    """Compile the numba kernels (alignment search, ICP, CPU rasterizer forward and
+    backward) once, before any test starts a server, worker or CLI process: those then
+    load them from numba's on-disk cache instead of compiling the same kernels side by
+    side on a 2-core machine (tens of seconds each when cold)."""
+    import torch
+
+    from gsa.align.pipeline import AlignOptions, align
+    from gsa.render import orbit_cameras, rasterize
+
+    model = make_object("car", seed=0, n_gaussians=600)
+    align(model, model, AlignOptions(stages=("coarse",)))
+    align(model, model, AlignOptions(stages=("coarse",), search="frames"))
+    params = [
+        torch.tensor(a, dtype=torch.float32, requires_grad=True)
+        for a in (model.means, model.quats, model.log_scales, model.opacity_logits, model.sh[:, :1])
+    ]
+    cams = orbit_cameras(model.means.mean(0), 3.0, 1, width=24, height=16, fov=60, seed=0)
+    features = torch.zeros((len(model), 3), requires_grad=True)
+    out = rasterize(*params, features, cams, backend="cpu")
+    (out.colors.sum() + out.features.sum()).backward()
+
+
 @pytest.fixture(scope="session")
 def car_model():
     return make_object("car", seed=3, n_gaussians=6000, sh_degree=3)
