@@ -4,6 +4,7 @@ in-process worker thread)."""
 
 from __future__ import annotations
 
+import logging
 import threading
 import uuid
 from dataclasses import dataclass, field
@@ -11,6 +12,9 @@ from dataclasses import dataclass, field
 from service.jobs import JobStore, RedisJobStore, SQLiteJobStore
 from service.settings import Settings, get_settings
 from service.storage import Storage, make_storage
+from service.webhook_delivery import deliver_with_retries
+
+log = logging.getLogger("gsa.worker")
 
 
 class RQQueue:
@@ -19,7 +23,7 @@ class RQQueue:
     GPU/CPU memory is returned to the OS when it ends)."""
 
     def __init__(self, redis_conn, settings: Settings):
-        import rq
+        import rq  # lazy: embedded mode runs without RQ installed or loaded
 
         self.settings = settings
         self.q = rq.Queue(settings.queue_name, connection=redis_conn)
@@ -41,7 +45,7 @@ class RQQueue:
     def lost(self, ref: str) -> bool:
         """True if RQ no longer holds a live message for this ref (dropped, failed,
         or "started" by a worker that died before claiming the job)."""
-        from rq.exceptions import NoSuchJobError
+        from rq.exceptions import NoSuchJobError  # lazy: see RQQueue.__init__
         from rq.job import Job as RQJob
 
         try:
@@ -57,7 +61,7 @@ class RQQueue:
         )
 
     def enqueue_webhook(self, job_id: str) -> None:
-        from rq import Retry
+        from rq import Retry  # lazy: see RQQueue.__init__
 
         n = max(self.settings.webhook_max_attempts - 1, 0)
         self.hooks.enqueue(
@@ -89,8 +93,6 @@ class EmbeddedQueue:
         return False  # the store is the queue: nothing to lose
 
     def enqueue_webhook(self, job_id: str) -> None:
-        from service.webhooks import deliver_with_retries
-
         threading.Thread(
             target=deliver_with_retries,
             args=(self.store, job_id, self.settings),
@@ -118,10 +120,32 @@ def make_backend(settings: Settings | None = None) -> Backend:
     settings = settings or get_settings()
     storage = make_storage(settings)
     if settings.redis_url:
-        import redis
+        import redis  # lazy: embedded mode needs no Redis client
 
         r = redis.Redis.from_url(settings.redis_url, health_check_interval=30)
         store = RedisJobStore(r)
         return Backend(settings, store, storage, RQQueue(r, settings), redis=r)
     store = SQLiteJobStore(settings.sqlite_file)
     return Backend(settings, store, storage, EmbeddedQueue(store, settings))
+
+
+_process_backend: Backend | None = None
+
+
+def process_backend() -> Backend:
+    """The backend of this process, made from the environment on first use: what
+    RQ tasks (job runs, webhook deliveries) use, since RQ passes them only ids."""
+    global _process_backend
+    if _process_backend is None:
+        _process_backend = make_backend()
+    return _process_backend
+
+
+def notify_webhook(backend: Backend, job_id: str) -> None:
+    """Queue the job's completion webhook, if it asked for one."""
+    job = backend.store.get(job_id)
+    if job is not None and job.webhook:
+        try:
+            backend.queue.enqueue_webhook(job_id)
+        except Exception:  # a webhook problem never fails a job
+            log.exception("could not enqueue webhook for %s", job_id)

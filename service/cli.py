@@ -106,6 +106,8 @@ def _settings_env(args) -> None:
 
 
 def cmd_serve(args) -> int:
+    # Lazy imports here and in cmd_worker: every `gsa` command registers these
+    # verbs, so the server stack (FastAPI, uvicorn, RQ) loads only when used.
     import logging
 
     import uvicorn

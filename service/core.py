@@ -11,11 +11,13 @@ from collections.abc import Iterable
 from pathlib import Path
 from typing import Any, BinaryIO
 
-from service.backend import Backend
+from service.backend import Backend, notify_webhook
 from service.inputs import check_image, sniff, validate_ply, validate_zip
 from service.jobs import TERMINAL, Asset, InputRef, Job, JobState, new_id
+from service.options import validate_options
 from service.problems import Problem, invalid_input, not_found, too_large
 from service.storage import CHUNK, new_key
+from service.webhook_delivery import check_url
 
 
 class _Hashing:
@@ -121,31 +123,6 @@ def get_asset(b: Backend, owner: str, asset_id: str) -> Asset:
     return a
 
 
-def validate_options(options: dict[str, Any]) -> dict[str, Any]:
-    from service.worker import SERVICE_OPTIONS, align_option_names, server_only_option
-
-    fixed = sorted(k for k in options if server_only_option(k))
-    if fixed:
-        # Paths and devices are the server's business: a client path must never reach the filesystem.
-        raise invalid_input(
-            f"option(s) set by the server, not the client: {', '.join(fixed)}"
-        )
-    known = align_option_names()
-    if known is not None:
-        unknown = sorted(set(options) - known - SERVICE_OPTIONS)
-        if unknown:
-            raise invalid_input(
-                f"unknown option(s): {', '.join(unknown)}",
-                allowed=sorted(known | SERVICE_OPTIONS),
-            )
-    outs = options.get("outputs")
-    if outs is not None:
-        bad = sorted(set(outs) - {"result", "aligned", "merged", "renders"})
-        if bad:
-            raise invalid_input(f"unknown output(s): {', '.join(bad)}")
-    return options
-
-
 def claim(
     b: Backend, owner: str, idempotency_key: str | None, fingerprint: str
 ) -> tuple[str, Job | None]:
@@ -199,8 +176,6 @@ def check_request(
         raise too_large(f"{n_sources} sources exceeds the limit of {s.max_sources}")
     validate_options(options)
     if webhook:
-        from service.webhooks import check_url
-
         try:
             check_url(webhook["url"], s.webhook_allow_private)
         except ValueError as exc:
@@ -268,9 +243,7 @@ def cancel_job(b: Backend, owner: str, job_id: str) -> Job:
         finished_at=now,
         stage="cancelled",
     ):
-        from service.worker import _notify
-
-        _notify(b, job_id)
+        notify_webhook(b, job_id)
     else:
         b.store.update(job_id, states={JobState.running}, cancel_requested=True)
     return get_job(b, owner, job_id)

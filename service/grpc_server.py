@@ -15,6 +15,8 @@ from grpc_health.v1 import health, health_pb2, health_pb2_grpc
 from grpc_reflection.v1alpha import reflection
 
 from service import core
+from service.api.deps import owner_for_key
+from service.api.schemas import AlignOptionsIn
 from service.backend import Backend
 from service.grpc_gen import alignment_pb2 as pb
 from service.grpc_gen import alignment_pb2_grpc as pbg
@@ -120,8 +122,6 @@ class AlignmentServicer(pbg.AlignmentServiceServicer):
 
     # -------------------------------------------------------------- helpers
     def _owner(self, context) -> str:
-        from service.api.deps import owner_for_key
-
         md = dict(context.invocation_metadata())
         auth = md.get("authorization", "")
         key = auth[7:] if auth.lower().startswith("bearer ") else None
@@ -200,8 +200,6 @@ class AlignmentServicer(pbg.AlignmentServiceServicer):
                 raise invalid_input("options_json is not JSON") from None
             if not isinstance(options, dict):
                 raise invalid_input("options_json must be a JSON object")
-            from service.api.schemas import AlignOptionsIn
-
             try:
                 options = AlignOptionsIn.model_validate(options).to_dict()
             except ValueError as exc:

@@ -17,6 +17,7 @@ import gc
 import logging
 import mimetypes
 import os
+import re
 import socket
 import sys
 import tempfile
@@ -25,14 +26,14 @@ import time
 import uuid
 from pathlib import Path
 
-from service.backend import Backend, make_backend
+from service.backend import Backend, notify_webhook, process_backend
 from service.jobs import Artifact, InputRef, Job, JobState
+from service.inputs import safe_extract
+from service.options import DEFAULT_OUTPUTS, renders_available, server_options
 from service.problems import PROBLEM_BASE
 
 log = logging.getLogger("gsa.worker")
 
-SERVICE_OPTIONS = {"outputs", "renders", "recon_iterations"}
-DEFAULT_OUTPUTS = ("result", "aligned", "merged", "renders")
 
 
 class JobCancelled(Exception):
@@ -79,34 +80,6 @@ def content_type(name: str) -> str:
     if name.endswith(".json"):
         return "application/json"
     return mimetypes.guess_type(name)[0] or "application/octet-stream"
-
-
-def server_only_option(name: str) -> bool:
-    return name in ("device", "feature_settings") or name.endswith(("_weights", "_path", "_dir", "_device"))
-
-
-def server_options(settings, known: set[str]) -> dict:
-    """Deployment settings for AlignOptions fields that exist in this library build:
-    extractor weights (DINOv2 backbone, sphere-mapper head) live on the worker."""
-    out = {}
-    if "device" in known and settings.worker_device:
-        out["device"] = settings.worker_device
-    if "feature_settings" in known and (settings.dinov2_weights or settings.spheremap_weights):
-        from gsa.features import FeatureSettings
-
-        out["feature_settings"] = FeatureSettings.from_env(
-            backbone=str(settings.dinov2_weights) if settings.dinov2_weights else None,
-            head=str(settings.spheremap_weights) if settings.spheremap_weights else None,
-        )
-    return out
-
-
-def align_option_names() -> set[str] | None:
-    try:
-        from gsa.align.pipeline import AlignOptions
-    except Exception:
-        return None
-    return {f.name for f in dataclasses.fields(AlignOptions)}
 
 
 # Where each library stage sits in a job's overall 0..1 progress (the library
@@ -253,8 +226,6 @@ def _load(
                 "image-set inputs need the reconstruction library (gsa.recon), which is not available in this "
                 "build; submit 3DGS PLY models instead",
             ) from None
-        from service.inputs import safe_extract
-
         archive = backend.storage.download(ref.key, workdir / f"{name}.zip")
         images = safe_extract(archive, workdir / f"{name}-images", s)
         preset = "gpu" if s.worker_device.startswith("cuda") else "cpu"
@@ -286,8 +257,6 @@ def _load(
 def _collect(paths: dict, prefix: str) -> list[tuple[str, Path]]:
     """write_outputs' {artifact name: path} -> (public name, file); names may hold
     one folder level ("renders/before.png"), served as artifacts/renders/before.png."""
-    import re
-
     clean = lambda n: "/".join(
         re.sub(r"[^A-Za-z0-9._-]", "_", seg).lstrip("._-") or "x"
         for seg in n.split("/")
@@ -304,15 +273,6 @@ def _collect(paths: dict, prefix: str) -> list[tuple[str, Path]]:
         else:
             out.append((prefix + name, p))
     return out
-
-
-def renders_available() -> bool:
-    import importlib.util
-
-    try:
-        return importlib.util.find_spec("gsa.render.views") is not None
-    except ModuleNotFoundError:
-        return False
 
 
 def execute(job_id: str, backend: Backend) -> JobState | None:
@@ -334,7 +294,7 @@ def execute(job_id: str, backend: Backend) -> JobState | None:
                 f"gave up after {job.attempts} attempts",
             ),
         )
-        _notify(backend, job_id)
+        notify_webhook(backend, job_id)
         return JobState.failed
     token = uuid.uuid4().hex
     now = time.time()
@@ -418,7 +378,7 @@ def execute(job_id: str, backend: Backend) -> JobState | None:
             )  # no partial artifacts from a failed attempt
         _release_memory()
     if final is not None:
-        _notify(backend, job_id)
+        notify_webhook(backend, job_id)
     return final
 
 
@@ -569,15 +529,6 @@ def _finish(
     )
 
 
-def _notify(backend: Backend, job_id: str) -> None:
-    job = backend.store.get(job_id)
-    if job is not None and job.webhook:
-        try:
-            backend.queue.enqueue_webhook(job_id)
-        except Exception:  # a webhook problem never fails a job
-            log.exception("could not enqueue webhook for %s", job_id)
-
-
 def _release_memory() -> None:
     gc.collect()
     torch = sys.modules.get("torch")
@@ -636,7 +587,7 @@ def reap(backend: Backend, *, force: bool = False) -> list[str]:
             )
             touched.append(job.id)
             if job.cancel_requested or job.attempts >= job.max_attempts:
-                _notify(backend, job.id)
+                notify_webhook(backend, job.id)
     return touched
 
 
@@ -710,19 +661,9 @@ def start_embedded_workers(
 
 
 # -------------------------------------------------------------- RQ worker
-_backend: Backend | None = None
-
-
-def _get_backend() -> Backend:
-    global _backend
-    if _backend is None:
-        _backend = make_backend()
-    return _backend
-
-
 def run_job(job_id: str) -> str | None:
     """RQ task entry point (runs in the forked work horse)."""
-    state = execute(job_id, _get_backend())
+    state = execute(job_id, process_backend())
     return state.value if state else None
 
 
@@ -770,7 +711,7 @@ def run_rq_worker(burst: bool = False, name: str | None = None) -> None:
     """A worker process: RQ worker on the job + webhook queues, plus a reaper."""
     from rq import Worker
 
-    backend = _get_backend()
+    backend = process_backend()
     if backend.redis is None:
         raise SystemExit(
             "gsa worker needs GSA_REDIS_URL (embedded mode runs workers inside `gsa serve`)"

@@ -20,6 +20,7 @@ from service.api.schemas import JobCreate, Problem
 from service.backend import Backend, make_backend
 from service.metrics import Metrics
 from service.settings import Settings, get_settings
+from service.worker import start_embedded_workers, start_reaper
 
 log = logging.getLogger("gsa.api")
 
@@ -38,8 +39,6 @@ def create_app(
 
     @asynccontextmanager
     async def lifespan(app: FastAPI):
-        from service.worker import start_embedded_workers, start_reaper
-
         b = app.state.backend
         stop = threading.Event()
         start_reaper(b, stop)
@@ -47,7 +46,7 @@ def create_app(
             start_embedded_workers(b, stop)
         grpc_server = None
         if b.settings.grpc_port:
-            from service.grpc_server import serve_grpc
+            from service.grpc_server import serve_grpc  # lazy: grpcio loads only when gRPC is on
 
             grpc_server = serve_grpc(b, b.settings.grpc_port, metrics=app.state.metrics)
         try:

@@ -10,6 +10,7 @@ from typing import Annotated
 
 from fastapi import APIRouter, Depends, Header, Query, Request, Response
 from fastapi.concurrency import run_in_threadpool
+from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse, StreamingResponse
 from prometheus_client import CONTENT_TYPE_LATEST, generate_latest
 
@@ -241,8 +242,6 @@ async def create_job(
         try:
             spec = JobCreate.model_validate_json(await request.body())
         except ValueError as exc:
-            from fastapi.exceptions import RequestValidationError
-
             errs = (
                 exc.errors()
                 if hasattr(exc, "errors")

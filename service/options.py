@@ -1,0 +1,70 @@
+"""Job options: which ones a client may set, which the server sets, which outputs exist."""
+
+from __future__ import annotations
+
+import dataclasses
+import importlib.util
+from typing import Any
+
+from service.problems import invalid_input
+
+SERVICE_OPTIONS = {"outputs", "renders", "recon_iterations"}
+DEFAULT_OUTPUTS = ("result", "aligned", "merged", "renders")
+
+
+def server_only_option(name: str) -> bool:
+    return name in ("device", "feature_settings") or name.endswith(("_weights", "_path", "_dir", "_device"))
+
+
+def server_options(settings, known: set[str]) -> dict:
+    """Deployment settings for AlignOptions fields that exist in this library build:
+    extractor weights (DINOv2 backbone, sphere-mapper head) live on the worker."""
+    out = {}
+    if "device" in known and settings.worker_device:
+        out["device"] = settings.worker_device
+    if "feature_settings" in known and (settings.dinov2_weights or settings.spheremap_weights):
+        from gsa.features import FeatureSettings  # lazy: loads the feature extractors (torch)
+
+        out["feature_settings"] = FeatureSettings.from_env(
+            backbone=str(settings.dinov2_weights) if settings.dinov2_weights else None,
+            head=str(settings.spheremap_weights) if settings.spheremap_weights else None,
+        )
+    return out
+
+
+def align_option_names() -> set[str] | None:
+    try:
+        from gsa.align.pipeline import AlignOptions  # lazy: ~1 s of imports, kept off API start-up
+    except Exception:
+        return None
+    return {f.name for f in dataclasses.fields(AlignOptions)}
+
+
+def renders_available() -> bool:
+    try:
+        return importlib.util.find_spec("gsa.render.views") is not None
+    except ModuleNotFoundError:
+        return False
+
+
+def validate_options(options: dict[str, Any]) -> dict[str, Any]:
+    fixed = sorted(k for k in options if server_only_option(k))
+    if fixed:
+        # Paths and devices are the server's business: a client path must never reach the filesystem.
+        raise invalid_input(
+            f"option(s) set by the server, not the client: {', '.join(fixed)}"
+        )
+    known = align_option_names()
+    if known is not None:
+        unknown = sorted(set(options) - known - SERVICE_OPTIONS)
+        if unknown:
+            raise invalid_input(
+                f"unknown option(s): {', '.join(unknown)}",
+                allowed=sorted(known | SERVICE_OPTIONS),
+            )
+    outs = options.get("outputs")
+    if outs is not None:
+        bad = sorted(set(outs) - {"result", "aligned", "merged", "renders"})
+        if bad:
+            raise invalid_input(f"unknown output(s): {', '.join(bad)}")
+    return options
