@@ -3,13 +3,14 @@
 from __future__ import annotations
 
 import numpy as np
-from gsa.align.coarse import rotation_angle
+
+from gsa.geometry import rotation_distance_deg
 from gsa.sim3 import Sim3
 
 
 def rre_deg(r_est: np.ndarray, r_gt: np.ndarray) -> float:
     """Relative rotation error: the angle of R_est R_gtᵀ in degrees (safe near 0 and 180)."""
-    return float(np.degrees(rotation_angle(np.asarray(r_est) @ np.asarray(r_gt).T)))
+    return rotation_distance_deg(r_est, r_gt)
 
 
 def scale_error_pct(s_est: float, s_gt: float) -> float:

@@ -11,7 +11,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from gsa.model import quat_to_rotation, rotation_to_quat
+from gsa.geometry import quat_to_rotation, rotation_to_quat
 
 
 class DegenerateCorrespondencesError(ValueError):

@@ -14,10 +14,10 @@ import pytest
 
 from gsa.bench import peers as peers_mod
 from gsa.bench import protocols as P
+from gsa.geometry import euler_xyz
 from gsa.metrics import accuracy
 from gsa.sim3 import Sim3
 from gsa.synth import make_object
-from gsa.synth.perturb import euler_xyz
 
 TABLE_COLUMNS = ["method", "mean RRE (°)", "mean scale err (%)", "success (RRE<5°)", "s / pair",
                  "time ratio vs GSA coarse"]

@@ -8,7 +8,8 @@ import pytest
 from scipy.spatial import cKDTree
 
 from gsa.align import robust
-from gsa.align.pipeline import AlignOptions, align
+from gsa.align.pipeline import align
+from gsa.geometry import quat_to_rotation, super_fibonacci_rotations
 from gsa.metrics import accuracy, rre_deg
 from gsa.sim3 import Sim3
 from gsa.synth import make_object, random_sim3
@@ -22,7 +23,7 @@ def _grey(model):
 
 
 def test_super_fibonacci_rotations_cover_so3():
-    rots = robust.super_fibonacci_rotations(2048)
+    rots = super_fibonacci_rotations(2048)
     assert np.allclose(np.einsum("nij,nkj->nik", rots, rots), np.eye(3), atol=1e-9)
     assert np.allclose(np.linalg.det(rots), 1.0)
     # Uniform random probes: typically ~10° from the nearest sample, never more than ~17°
@@ -35,8 +36,6 @@ def test_super_fibonacci_rotations_cover_so3():
 
 def random_rotations(n, rng):
     q = rng.normal(size=(n, 4))
-    from gsa.model import quat_to_rotation
-
     return quat_to_rotation(q / np.linalg.norm(q, axis=1, keepdims=True))
 
 

@@ -2,7 +2,8 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from gsa.model import GaussianModel, ModelError, merge_models, quat_to_rotation
+from gsa.geometry import quat_to_rotation
+from gsa.model import GaussianModel, ModelError, merge_models
 from gsa.sh import eval_sh, rotate_sh, sh_basis
 from gsa.sim3 import Sim3
 

@@ -11,6 +11,7 @@ import pytest
 from scipy.spatial import cKDTree
 
 from gsa.bench import protocols as P
+from gsa.geometry import axis_rotation, euler_xyz
 from gsa.sim3 import Sim3
 from gsa.synth import (
     SYMMETRIC_FAMILIES,
@@ -22,9 +23,7 @@ from gsa.synth import (
     symmetric_spec,
     symmetry_rotations,
 )
-from gsa.synth.perturb import euler_xyz
 from gsa.synth.shapes import RegularPrism, Torus
-from gsa.synth.variants import axis_rotation
 
 LUMA = np.array([0.2126, 0.7152, 0.0722])
 

@@ -20,6 +20,7 @@ import numba
 import numpy as np
 from scipy.spatial import cKDTree
 
+from gsa.geometry import rotation_angle
 from gsa.sim3 import DegenerateCorrespondencesError, Sim3, solve_sim3
 
 Progress = Callable[[str, float], None]
@@ -273,10 +274,3 @@ def query_workers(n_queries: int, workers: int = -1) -> int:
     """scipy starts fresh threads on every parallel query; below ~20k queries
     that costs more than it saves."""
     return workers if n_queries >= 20_000 else 1
-
-
-def rotation_angle(r: np.ndarray) -> float:
-    """Angle of a rotation matrix in radians, accurate near 0 and near π."""
-    r = np.asarray(r, np.float64)
-    axis = np.array([r[2, 1] - r[1, 2], r[0, 2] - r[2, 0], r[1, 0] - r[0, 1]])
-    return float(np.arctan2(0.5 * np.linalg.norm(axis), 0.5 * (np.trace(r) - 1.0)))

@@ -34,8 +34,9 @@ from scipy import ndimage
 from scipy.spatial import cKDTree
 
 from gsa.align.canonical import SIGNED_PERMUTATIONS, CanonicalFrame, relabelling_label
-from gsa.align.coarse import _nearest_candidate, rotation_angle
-from gsa.model import GaussianModel, quat_to_rotation
+from gsa.align.coarse import _nearest_candidate
+from gsa.geometry import rotation_distance_deg, super_fibonacci_rotations
+from gsa.model import GaussianModel
 from gsa.sim3 import DegenerateCorrespondencesError, Sim3, solve_sim3
 
 # Truncation of distances in the overlap score, as a fraction of the target's
@@ -184,16 +185,6 @@ class NearestGrid:
         return np.where(inside, idx, -1), np.where(inside, d, np.inf)
 
 
-def super_fibonacci_rotations(n: int) -> np.ndarray:
-    """(n, 3, 3) rotations spread near-uniformly over SO(3) (Alexa, CVPR 2022)."""
-    phi, psi = np.sqrt(2.0), 1.533751168755204288118041
-    s = np.arange(n) + 0.5
-    r, big_r = np.sqrt(s / n), np.sqrt(1.0 - s / n)
-    alpha, beta = 2 * np.pi * s / phi, 2 * np.pi * s / psi
-    q = np.stack([r * np.sin(alpha), r * np.cos(alpha), big_r * np.sin(beta), big_r * np.cos(beta)], axis=1)
-    return quat_to_rotation(q)
-
-
 @dataclass
 class Candidate:
     transform: Sim3
@@ -214,7 +205,7 @@ class Candidate:
 
 
 def rotation_offset_deg(a: Sim3, b: Sim3) -> float:
-    return _angle(a.rotation, b.rotation)
+    return rotation_distance_deg(a.rotation, b.rotation)
 
 
 @dataclass
@@ -348,7 +339,7 @@ def _distinct(order: np.ndarray, rotations: np.ndarray, count: int, min_deg: flo
     for i in order:
         if len(chosen) >= count:
             break
-        if all(_angle(rotations[i], rotations[j]) > min_deg for j in chosen):
+        if all(rotation_distance_deg(rotations[i], rotations[j]) > min_deg for j in chosen):
             chosen.append(int(i))
     return chosen
 
@@ -506,11 +497,6 @@ def _pair_scores(d: np.ndarray, lab_a: np.ndarray, lab_b: np.ndarray, tau: float
     return closeness * (1.0 - 2.0 * w_colour * (1.0 - np.exp(-0.5 * de2 / COLOUR_SIGMA**2)))
 
 
-def _angle(a: np.ndarray, b: np.ndarray) -> float:
-    """Degrees between two rotation matrices."""
-    return float(np.degrees(rotation_angle(a @ b.T)))
-
-
 def _sample(rng: np.random.Generator, n: int, k: int) -> np.ndarray:
     return np.arange(n) if k >= n else np.sort(rng.choice(n, k, replace=False))
 
@@ -565,7 +551,7 @@ def bidirectional_icp(src: Anchors, dst: Anchors, init: Sim3, src_rows: np.ndarr
         step = new @ transform.inverse()
         transform = new
         # Anchors are a summary: the full-resolution refinement does the last digits.
-        if _angle(step.rotation, np.eye(3)) < 0.01 and abs(np.log(step.scale)) < 1e-4 and \
+        if rotation_distance_deg(step.rotation, np.eye(3)) < 0.01 and abs(np.log(step.scale)) < 1e-4 and \
                 np.linalg.norm(step.translation) < 1e-4 * dst.radius:
             break
     return transform
@@ -703,7 +689,7 @@ def refine(source_points: np.ndarray, target_points: np.ndarray, source_tree: cK
             except DegenerateCorrespondencesError:
                 return transform, history
             step = new @ transform.inverse()
-            angle = _angle(step.rotation, np.eye(3))
+            angle = rotation_distance_deg(step.rotation, np.eye(3))
             history.append({"stage": "refine", "iteration": it, "matched": int(keep.sum()),
                             "rms_residual": float(np.sqrt(np.mean(d[keep] ** 2))),
                             "delta_rotation_deg": angle, "scale": new.scale})

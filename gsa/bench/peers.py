@@ -32,6 +32,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial import cKDTree
 
+from gsa.geometry import nearest_rotation
 from gsa.model import GaussianModel
 from gsa.sim3 import Sim3
 
@@ -153,7 +154,7 @@ class Open3DFPFH(Peer):
             reg.ICPConvergenceCriteria(max_iteration=60),
         )
         m = np.asarray(icp.transformation, np.float64)
-        rigid = Sim3(1.0, _nearest_rotation(m[:3, :3]), m[:3, 3])
+        rigid = Sim3(1.0, nearest_rotation(m[:3, :3]), m[:3, 3])
         # x_t = c_d + r_d · rigid((x_s − c_s) / r_s)
         to_unit = Sim3(1.0 / rs, np.eye(3), -cs / rs)
         from_unit = Sim3(rd, np.eye(3), cd)
@@ -205,7 +206,7 @@ class SplatReg(Peer):
         return Sim3.from_matrix(result.T.detach().cpu().double().numpy())
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def _import_error(module: str) -> str | None:
     """Import check in a child process: open3d ships its own TBB, and loading it
     before numba has started its threads makes numba drop its TBB layer with a
@@ -227,12 +228,6 @@ def _to_splatreg(model: GaussianModel, gaussians_type):
         colors=torch.as_tensor(model.base_colors, dtype=torch.float32),
         log_scales=True,
     )
-
-
-def _nearest_rotation(a: np.ndarray) -> np.ndarray:
-    u, _, vt = np.linalg.svd(a)
-    d = np.sign(np.linalg.det(u @ vt))
-    return u @ np.diag([1.0, 1.0, d]) @ vt
 
 
 PEERS: dict[str, type[Peer]] = {"icp": PlainICP, "open3d": Open3DFPFH, "splatreg": SplatReg}

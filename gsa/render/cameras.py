@@ -15,7 +15,7 @@ from pathlib import Path
 
 import numpy as np
 
-from gsa.model import rotation_to_quat
+from gsa.geometry import rotation_to_quat
 from gsa.sim3 import Sim3
 
 

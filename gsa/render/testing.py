@@ -4,7 +4,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from gsa.model import GaussianModel, normalize_quats
+from gsa.geometry import normalize_quats
+from gsa.model import GaussianModel
 
 
 def blob_object(n: int, seed: int = 0, sh_degree: int = 0, feature_dim: int = 3) -> GaussianModel:

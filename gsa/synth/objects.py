@@ -10,7 +10,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from gsa.model import GaussianModel, normalize_quats
+from gsa.geometry import normalize_quats, quat_multiply
+from gsa.model import GaussianModel
 from gsa.synth.shapes import Box, Cylinder, Ellipsoid, Primitive
 
 CATEGORIES = ("airplane", "bus", "boat", "car", "chair", "motorcycle")
@@ -143,8 +144,6 @@ def _quats_from_normals(normals: np.ndarray, rng: np.random.Generator) -> np.nda
     q_align = np.concatenate([np.cos(half)[:, None], np.sin(half)[:, None] * safe], axis=1)
     spin = rng.uniform(0, np.pi, len(n))
     q_spin = np.stack([np.cos(spin), np.zeros_like(spin), np.zeros_like(spin), np.sin(spin)], axis=1)
-    from gsa.model import quat_multiply
-
     return normalize_quats(quat_multiply(q_align, q_spin))
 
 

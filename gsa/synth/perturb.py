@@ -4,16 +4,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from gsa.geometry import euler_xyz
 from gsa.sim3 import Sim3
-
-
-def euler_xyz(angles_rad: np.ndarray) -> np.ndarray:
-    """R = Rz(c) Ry(b) Rx(a) for angles (a, b, c)."""
-    a, b, c = angles_rad
-    rx = np.array([[1, 0, 0], [0, np.cos(a), -np.sin(a)], [0, np.sin(a), np.cos(a)]])
-    ry = np.array([[np.cos(b), 0, np.sin(b)], [0, 1, 0], [-np.sin(b), 0, np.cos(b)]])
-    rz = np.array([[np.cos(c), -np.sin(c), 0], [np.sin(c), np.cos(c), 0], [0, 0, 1]])
-    return rz @ ry @ rx
 
 
 def random_sim3(

@@ -16,7 +16,8 @@ import colorsys
 
 import numpy as np
 
-from gsa.model import GaussianModel, merge_models, normalize_quats
+from gsa.geometry import axis_rotation, normalize_quats
+from gsa.model import GaussianModel, merge_models
 from gsa.synth.objects import _quats_from_normals
 from gsa.synth.shapes import Cylinder, Primitive, RegularPrism, Torus, _frame
 
@@ -252,13 +253,6 @@ def make_symmetric_object(seed: int = 0, n_gaussians: int = 20_000, sample_seed:
                           symmetry_axis=[0.0, 0.0, 1.0], symmetry_center=[0.0, 0.0, 0.0], symmetry_order=k,
                           mark_angle=float(mark_angle))
     return model
-
-
-def axis_rotation(axis, angle: float) -> np.ndarray:
-    """Rotation matrix by `angle` (radians) about the unit vector `axis` (Rodrigues)."""
-    a = _unit(np.asarray(axis, np.float64))
-    kx = np.array([[0, -a[2], a[1]], [a[2], 0, -a[0]], [-a[1], a[0], 0]])
-    return np.eye(3) + np.sin(angle) * kx + (1 - np.cos(angle)) * (kx @ kx)
 
 
 def symmetry_rotations(model: GaussianModel) -> list[np.ndarray]:
