@@ -30,7 +30,7 @@ from service.backend import Backend, notify_webhook, process_backend
 from service.jobs import Artifact, InputRef, Job, JobState
 from service.inputs import safe_extract
 from service.options import DEFAULT_OUTPUTS, renders_available, server_options
-from service.problems import PROBLEM_BASE
+from service.problems import Problem, invalid_input
 
 log = logging.getLogger("gsa.worker")
 
@@ -46,28 +46,6 @@ class LeaseLost(Exception):
 
 class JobTimeout(Exception):
     pass
-
-
-class JobFailed(Exception):
-    """A failure with a client-facing problem (bad input, missing capability)."""
-
-    def __init__(self, status: int, kind: str, title: str, detail: str):
-        super().__init__(detail)
-        self.problem = {
-            "type": PROBLEM_BASE + kind,
-            "title": title,
-            "status": status,
-            "detail": detail,
-        }
-
-
-def problem(status: int, kind: str, title: str, detail: str) -> dict:
-    return {
-        "type": PROBLEM_BASE + kind,
-        "title": title,
-        "status": status,
-        "detail": detail,
-    }
 
 
 def worker_name() -> str:
@@ -216,16 +194,9 @@ def _load(
         path = backend.storage.download(ref.key, workdir / f"{name}.ply")
         return read_ply(path, max_gaussians=s.max_gaussians)
     if ref.kind == "images":
-        try:
-            from gsa.recon import ImageSetError, MaskError, SfMError, reconstruct
-        except ImportError:
-            raise JobFailed(
-                501,
-                "reconstruction-unavailable",
-                "Image-set reconstruction unavailable",
-                "image-set inputs need the reconstruction library (gsa.recon), which is not available in this "
-                "build; submit 3DGS PLY models instead",
-            ) from None
+        # lazy: SfM and 3DGS training load OpenCV, pycolmap and torch
+        from gsa.recon import ImageSetError, MaskError, SfMError, reconstruct
+
         archive = backend.storage.download(ref.key, workdir / f"{name}.zip")
         images = safe_extract(archive, workdir / f"{name}-images", s)
         preset = "gpu" if s.worker_device.startswith("cuda") else "cpu"
@@ -238,7 +209,7 @@ def _load(
                 iterations=recon_iterations,
             )
         except (ImageSetError, SfMError, MaskError) as exc:
-            raise JobFailed(
+            raise Problem(
                 422,
                 "reconstruction-failed",
                 "Reconstruction failed",
@@ -249,9 +220,7 @@ def _load(
         }
         reconstructions[name] = (summary, Path(res.model_path))
         return res.model
-    raise JobFailed(
-        422, "invalid-input", "Invalid input", f"unknown input kind {ref.kind!r}"
-    )
+    raise invalid_input(f"unknown input kind {ref.kind!r}")
 
 
 def _collect(paths: dict, prefix: str) -> list[tuple[str, Path]]:
@@ -287,12 +256,12 @@ def execute(job_id: str, backend: Backend) -> JobState | None:
             states={JobState.queued},
             state=JobState.failed,
             finished_at=time.time(),
-            error=problem(
+            error=Problem(
                 500,
                 "attempts-exhausted",
                 "Job failed",
                 f"gave up after {job.attempts} attempts",
-            ),
+            ).to_dict(),
         )
         notify_webhook(backend, job_id)
         return JobState.failed
@@ -330,43 +299,24 @@ def execute(job_id: str, backend: Backend) -> JobState | None:
         )
     except (LeaseLost, JobTimeout) as exc:
         if isinstance(exc, JobTimeout):
-            err = problem(
+            err = Problem(
                 504,
                 "job-timeout",
                 "Job timed out",
                 f"the job ran longer than {s.job_timeout_s:.0f} s",
-            )
+            ).to_dict()
             final = (
                 JobState.failed
                 if _finish(backend, job_id, token, JobState.failed, error=err)
                 else None
             )
-    except JobFailed as exc:
-        final = (
-            JobState.failed
-            if _finish(backend, job_id, token, JobState.failed, error=exc.problem)
-            else None
-        )
     except Exception as exc:
-        # The library's input errors (unreadable PLY, inconsistent model, a model
-        # the aligner cannot use) are the client's to fix: 422, not 500.
-        if isinstance(exc, ValueError) and type(exc).__name__ in (
-            "PlyError",
-            "ModelError",
-            "AlignmentError",
-        ):
-            err = problem(422, "invalid-input", "Invalid input", str(exc))
-        else:
+        err = problem_for(exc)
+        if err.status >= 500:
             log.exception("job %s failed", job_id)
-            err = problem(
-                500,
-                "alignment-failed",
-                "Alignment failed",
-                f"{type(exc).__name__}: {exc}",
-            )
         final = (
             JobState.failed
-            if _finish(backend, job_id, token, JobState.failed, error=err)
+            if _finish(backend, job_id, token, JobState.failed, error=err.to_dict())
             else None
         )
     finally:
@@ -380,6 +330,26 @@ def execute(job_id: str, backend: Backend) -> JobState | None:
     if final is not None:
         notify_webhook(backend, job_id)
     return final
+
+
+def library_input_errors() -> tuple[type[Exception], ...]:
+    """The library's errors about its input (unreadable PLY, inconsistent model,
+    a model the aligner cannot use): the client's to fix, so 422, not 500."""
+    # lazy: the aligner's modules are heavy; by the time a job fails they are loaded
+    from gsa.align.coarse import AlignmentError
+    from gsa.io.ply import PlyError
+    from gsa.model import ModelError
+
+    return (PlyError, ModelError, AlignmentError)
+
+
+def problem_for(exc: Exception) -> Problem:
+    """The problem a job attempt that raised `exc` reports, chosen by exception type."""
+    if isinstance(exc, Problem):
+        return exc
+    if isinstance(exc, library_input_errors()):
+        return invalid_input(str(exc))
+    return Problem(500, "alignment-failed", "Alignment failed", f"{type(exc).__name__}: {exc}")
 
 
 def _run(
@@ -401,7 +371,7 @@ def _run(
     known = {f.name for f in dataclasses.fields(AlignOptions)}
     unknown = sorted(set(opts_in) - known)
     if unknown:
-        raise JobFailed(
+        raise Problem(
             422,
             "invalid-input",
             "Invalid options",
@@ -413,7 +383,7 @@ def _run(
     try:
         opts = AlignOptions(**opts_in)
     except (TypeError, ValueError) as exc:
-        raise JobFailed(422, "invalid-input", "Invalid options", str(exc)) from None
+        raise Problem(422, "invalid-input", "Invalid options", str(exc)) from None
 
     with tempfile.TemporaryDirectory(prefix="gsa-job-") as tmp:
         work = Path(tmp)
@@ -559,12 +529,12 @@ def reap(backend: Backend, *, force: bool = False) -> list[str]:
                 job.id, state=JobState.cancelled, finished_at=now, **common
             )
         elif job.attempts >= job.max_attempts:
-            err = problem(
+            err = Problem(
                 500,
                 "worker-lost",
                 "Job failed",
                 f"the worker running this job was lost {job.attempts} times; giving up",
-            )
+            ).to_dict()
             ok = backend.store.update(
                 job.id, state=JobState.failed, finished_at=now, error=err, **common
             )
