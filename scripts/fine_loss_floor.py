@@ -19,9 +19,9 @@ import torch
 from scipy.optimize import least_squares
 from scipy.spatial.transform import Rotation
 
-from gsa.align.canonical import canonical_features
 from gsa.align.pipeline import AlignOptions, align
 from gsa.bench.protocols import same_pairs
+from gsa.canonical import canonical_features
 from gsa.metrics import rre_deg, scale_error_pct
 from gsa.render import render_model
 from gsa.render.cameras import cameras_around

@@ -3,9 +3,9 @@ import tracemalloc
 import numpy as np
 import pytest
 
-from gsa.align.canonical import canonical_features, frame_hypotheses, model_frame
 from gsa.align.coarse import AlignmentError, find_candidates
 from gsa.align.pipeline import AlignOptions, align
+from gsa.canonical import canonical_features, frame_hypotheses, model_frame
 from gsa.metrics import accuracy, rre_deg
 from gsa.sim3 import Sim3
 from gsa.synth import CATEGORIES, make_object, random_sim3
@@ -111,7 +111,7 @@ def test_ambiguous_frames_are_resolved_by_hypotheses():
     pts = rng.normal(size=(4000, 3)) * [3.0, 1.0, 1.0]
     pts = pts[np.abs(pts[:, 0]) < 6]
     frame = model_frame(make_object("chair", seed=1, n_gaussians=100))
-    from gsa.align.canonical import canonical_frame
+    from gsa.canonical import canonical_frame
 
     sym = canonical_frame(pts)
     assert len(frame_hypotheses(sym, sym)) > 1
@@ -152,8 +152,9 @@ def test_result_reports_ground_truth_free_quality():
     assert m["inlier_fraction"] > 0.99 and m["feature_agreement"] > 0.99
     assert d["stages"]["coarse"]["history"], "per-iteration history is recorded"
     # The same numbers for a wrong answer are clearly worse.
-    from gsa.align.pipeline import quality_metrics
     from scipy.spatial import cKDTree
+
+    from gsa.align.pipeline import quality_metrics
 
     wrong = Sim3(truth.scale, truth.rotation @ Sim3.from_quaternion(1, [0, 0, 0, 1], [0, 0, 0]).rotation,
                  truth.translation)

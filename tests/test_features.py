@@ -16,7 +16,7 @@ import pytest
 import torch
 import torch.nn.functional as F
 
-from gsa.align.canonical import canonical_features
+from gsa.canonical import canonical_features
 from gsa.features import (
     CanonicalExtractor,
     Dinov2PCAExtractor,

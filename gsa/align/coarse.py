@@ -16,10 +16,10 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 
-import numba
 import numpy as np
 from scipy.spatial import cKDTree
 
+from gsa.align.nearest import nearest_candidate, query_workers
 from gsa.geometry import rotation_angle
 from gsa.sim3 import DegenerateCorrespondencesError, Sim3, solve_sim3
 
@@ -187,37 +187,12 @@ def coarse_align(
     q_all = np.ascontiguousarray(target_points, np.float64)
 
     def match(x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        return _nearest_candidate(np.ascontiguousarray(x), q_all, table)
+        return nearest_candidate(np.ascontiguousarray(x), q_all, table)
 
     result = _icp(p, q_all, match, init, opts, w, progress, "features")
     result.candidates = candidates.pair_count
     result.truncated_sources = candidates.truncated
     return result
-
-
-@numba.njit(parallel=True, cache=True)
-def _nearest_candidate(x, q, table):  # pragma: no cover - compiled
-    """Per row i: the candidate table[i, k] (-1 = none) closest to x[i]."""
-    n, k = table.shape
-    dist = np.empty(n)
-    index = np.empty(n, np.int64)
-    for i in numba.prange(n):
-        best = np.inf
-        arg = -1
-        for j in range(k):
-            t = table[i, j]
-            if t < 0:
-                continue
-            d0 = x[i, 0] - q[t, 0]
-            d1 = x[i, 1] - q[t, 1]
-            d2 = x[i, 2] - q[t, 2]
-            d = d0 * d0 + d1 * d1 + d2 * d2
-            if d < best:
-                best = d
-                arg = t
-        dist[i] = np.sqrt(best)
-        index[i] = arg
-    return dist, index
 
 
 def icp_refine(
@@ -255,7 +230,7 @@ def icp_refine(
         table = np.ascontiguousarray(table.reshape(len(p), -1), np.int64)
 
         def match(x: np.ndarray, table: np.ndarray = table) -> tuple[np.ndarray, np.ndarray]:
-            return _nearest_candidate(np.ascontiguousarray(x), q, table)
+            return nearest_candidate(np.ascontiguousarray(x), q, table)
 
         inner = replace(opts, max_iterations=budget)
         result = _icp(p, q, match, transform, inner, weights, progress, "refine")
@@ -268,9 +243,3 @@ def icp_refine(
     result.history = history
     result.iterations = len(history)
     return result
-
-
-def query_workers(n_queries: int, workers: int = -1) -> int:
-    """scipy starts fresh threads on every parallel query; below ~20k queries
-    that costs more than it saves."""
-    return workers if n_queries >= 20_000 else 1

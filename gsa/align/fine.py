@@ -22,6 +22,7 @@ from typing import Callable
 import numpy as np
 import torch
 
+from gsa.canonical import canonical_features
 from gsa.model import GaussianModel
 from gsa.render import render_gaussians
 from gsa.render.cameras import Cameras, cameras_around
@@ -85,10 +86,6 @@ def _signal(model: GaussianModel, on: str, name: str) -> tuple[np.ndarray | None
         return None, model.sh
     if model.features is not None:
         return model.features, None
-    try:
-        from gsa.align.canonical import canonical_features
-    except ImportError as exc:
-        raise ValueError(f"{name} model has no features and no canonical feature extractor is available") from exc
     return np.asarray(canonical_features(model), np.float32), None
 
 

@@ -17,13 +17,6 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from gsa.align import robust
-from gsa.align.canonical import (
-    CanonicalFrame,
-    canonical_features,
-    frame_hypotheses,
-    model_frame,
-    relabelling_label,
-)
 from gsa.align.coarse import (
     AlignmentError,
     CoarseOptions,
@@ -31,7 +24,14 @@ from gsa.align.coarse import (
     coarse_align,
     find_candidates,
     icp_refine,
-    query_workers,
+)
+from gsa.align.nearest import query_workers
+from gsa.canonical import (
+    CanonicalFrame,
+    canonical_features,
+    frame_hypotheses,
+    model_frame,
+    relabelling_label,
 )
 from gsa.model import GaussianModel, ModelError
 from gsa.sim3 import Sim3

@@ -1,6 +1,6 @@
 """Robust global registration for models without learned features.
 
-One canonical frame per model (gsa.align.canonical) moves as soon as a capture
+One canonical frame per model (gsa.canonical) moves as soon as a capture
 misses a side, carries floaters or is a different instance, and colour plays no
 part in it. This module does not trust any single frame:
 
@@ -33,8 +33,8 @@ import numpy as np
 from scipy import ndimage
 from scipy.spatial import cKDTree
 
-from gsa.align.canonical import SIGNED_PERMUTATIONS, CanonicalFrame, relabelling_label
-from gsa.align.coarse import _nearest_candidate
+from gsa.align.nearest import nearest_candidate
+from gsa.canonical import SIGNED_PERMUTATIONS, CanonicalFrame, relabelling_label
 from gsa.geometry import rotation_distance_deg, super_fibonacci_rotations
 from gsa.model import GaussianModel
 from gsa.sim3 import DegenerateCorrespondencesError, Sim3, solve_sim3
@@ -673,8 +673,8 @@ def refine(source_points: np.ndarray, target_points: np.ndarray, source_tree: cK
         while it < iterations:
             it += 1
             inner += 1
-            d_f, j = _nearest_candidate(np.ascontiguousarray(transform.apply(p)), dst_all, tab_f)
-            d_r, i = _nearest_candidate(np.ascontiguousarray(transform.inverse().apply(q)), src_all, tab_r)
+            d_f, j = nearest_candidate(np.ascontiguousarray(transform.apply(p)), dst_all, tab_f)
+            d_r, i = nearest_candidate(np.ascontiguousarray(transform.inverse().apply(q)), src_all, tab_r)
             d = np.concatenate([d_f, d_r * transform.scale])
             a = np.concatenate([p, src_all[i]])
             b = np.concatenate([dst_all[j], q])

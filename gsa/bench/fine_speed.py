@@ -37,7 +37,7 @@ def main(argv=None) -> int:
     from gsa.sim3 import Sim3
 
     try:
-        from gsa.align.canonical import canonical_features
+        from gsa.canonical import canonical_features
         from gsa.synth import make_object
 
         src = make_object("car", 0, args.gaussians, sample_seed=1)

@@ -481,8 +481,8 @@ def _fine_from(source, target, coarse_result, cameras, on: str, views: int, seed
     """The pipeline's fine stage (gsa.align.pipeline._Pair.fine) from a given coarse
     result with an explicit camera set: canonical features from the frames the
     coarse stage chose, as align() builds them."""
-    from gsa.align.canonical import canonical_features
     from gsa.align.fine import FineOptions, fine_align
+    from gsa.canonical import canonical_features
 
     if coarse_result.features == "canonical":
         source = source.with_features(canonical_features(source.means.astype(np.float64), coarse_result.source_frame))
@@ -494,9 +494,10 @@ def _fine_from(source, target, coarse_result, cameras, on: str, views: int, seed
 
 
 def ablation_runner(seed: int, quick: bool = False) -> Runner:
-    from gsa.align.coarse import CoarseOptions, icp_refine
-    from gsa.align.canonical import model_frame
     from scipy.spatial import cKDTree
+
+    from gsa.align.coarse import CoarseOptions, icp_refine
+    from gsa.canonical import model_frame
 
     def run(source, target):
         out = {}
@@ -572,8 +573,8 @@ def _speed_child(n: int, seed: int, stage: str, quick: bool = False) -> dict:
     elif stage == "fine":
         align(small_s, small_t, AlignOptions(stages=("coarse", "fine"), fine_iterations=1))
         coarse = align(source, target)
-        from gsa.align.canonical import canonical_features
         from gsa.align.fine import FineOptions, fine_align
+        from gsa.canonical import canonical_features
 
         src = source.with_features(canonical_features(source.means.astype(np.float64), coarse.source_frame))
         dst = target.with_features(canonical_features(target.means.astype(np.float64), coarse.target_frame))

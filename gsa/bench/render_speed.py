@@ -27,7 +27,7 @@ def _scene(n: int):
 
         model = blob_object(n)
     if model.features is None:
-        from gsa.align.canonical import canonical_features
+        from gsa.canonical import canonical_features
 
         model = model.with_features(canonical_features(model))
     return model

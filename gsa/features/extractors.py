@@ -16,6 +16,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
+from gsa.canonical import canonical_features
 from gsa.features.vit import WeightsError, load_backbone, load_sphere_head, to_input
 
 __all__ = ["FeatureExtractor", "FeatureSettings", "SphereMapExtractor", "Dinov2PCAExtractor",
@@ -195,7 +196,7 @@ class Dinov2PCAExtractor(FeatureExtractor):
 
 
 class CanonicalExtractor(FeatureExtractor):
-    """The weight-free default: the model's canonical 3-D features (gsa.align.canonical)
+    """The weight-free default: the model's canonical 3-D features (gsa.canonical)
     rendered to 2D with the rasterizer. Needs the model and cameras, not pixels. Maps are
     alpha-premultiplied (exactly what the renderer composites, background 0), not hard-masked:
     that keeps them consistent with the renderer at soft silhouettes."""
@@ -213,7 +214,6 @@ class CanonicalExtractor(FeatureExtractor):
     def extract_views(self, images, masks, *, model=None, cameras=None) -> np.ndarray:
         if model is None or cameras is None:
             raise ValueError("the canonical extractor needs model= and cameras=")
-        from gsa.align.canonical import canonical_features
         from gsa.render import render_model
 
         feats = canonical_features(model)

@@ -9,6 +9,7 @@
 
 from __future__ import annotations
 
+from gsa.canonical import canonical_features
 from gsa.features.extractors import (
     EXTRACTORS,
     CanonicalExtractor,
@@ -54,8 +55,6 @@ def prepare_for_alignment(model: GaussianModel, mode: str = "auto", settings: Fe
                              "(use auto, canonical, spheremap or dinov2, or `gsa lift` it first)")
         return model
     if mode == "canonical":
-        from gsa.align.canonical import canonical_features
-
         out = model.with_features(canonical_features(model))
         out.metadata["features"] = "canonical"
         return out

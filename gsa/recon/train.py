@@ -11,7 +11,7 @@ i.e. Gaussians that only ever explained masked-out background.
 Features. `feature_maps` (C, h, w, D) from a 2D extractor are fitted from iteration 0.
 With features="canonical" (the weight-free default) there is no 2D extractor: after a
 colour-only phase (the first `feature_start` fraction of the iterations) the model's
-canonical features (gsa.align.canonical) are rendered into every training view, masked
+canonical features (gsa.canonical) are rendered into every training view, masked
 (background 0), and from then on lifted back exactly like extractor maps. The lift is
 not circular in effect: the maps are masked, so Gaussians outside the object mask are
 driven to zero features and pruned, and each Gaussian's feature becomes the multi-view
@@ -33,6 +33,7 @@ import torch
 import torch.nn.functional as F
 from scipy.spatial import cKDTree
 
+from gsa.canonical import canonical_features
 from gsa.model import SH_C0, GaussianModel, sh_coeff_count
 from gsa.render import rasterize
 from gsa.render.cameras import Cameras
@@ -387,8 +388,6 @@ def _prepare_feature_maps(maps: np.ndarray, masks: np.ndarray, w: int, h: int) -
 @torch.no_grad()
 def _canonical_feature_maps(params, sh_tensor, cams: Cameras, masks: np.ndarray, backend: str) -> torch.Tensor:
     """Render the current geometry's canonical features into every view, masked (background 0)."""
-    from gsa.align.canonical import canonical_features
-
     model = _to_model(params, sh_tensor())
     f = canonical_features(model)
     maps = []

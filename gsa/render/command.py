@@ -27,7 +27,7 @@ def cmd_render(args) -> int:
     model = read_ply(args.model)
     model.validate(args.model)
     if args.features and model.features is None:
-        from gsa.align.canonical import canonical_features
+        from gsa.canonical import canonical_features
 
         model = model.with_features(canonical_features(model))
     paths = render_model_views(model, args.out, views=args.views, features=args.features, size=args.size,
