@@ -3,13 +3,16 @@
 from __future__ import annotations
 
 import dataclasses
-import importlib.util
-from typing import Any
+from typing import Any, Literal, get_args
 
 from service.problems import invalid_input
 
 SERVICE_OPTIONS = {"outputs", "renders", "recon_iterations"}
-DEFAULT_OUTPUTS = ("result", "aligned", "merged", "renders")
+# The artifacts a job can produce: the one definition (the HTTP schema's enum,
+# validation and the worker's default all come from it).
+OutputName = Literal["result", "aligned", "merged", "renders"]
+OUTPUT_NAMES: tuple[str, ...] = get_args(OutputName)
+DEFAULT_OUTPUTS = OUTPUT_NAMES  # a job that names no outputs gets all of them
 
 
 def server_only_option(name: str) -> bool:
@@ -32,19 +35,11 @@ def server_options(settings, known: set[str]) -> dict:
     return out
 
 
-def align_option_names() -> set[str] | None:
-    try:
-        from gsa.align.pipeline import AlignOptions  # lazy: ~1 s of imports, kept off API start-up
-    except Exception:
-        return None
+def align_option_names() -> set[str]:
+    """The option names this library build's AlignOptions accepts."""
+    from gsa.align.pipeline import AlignOptions  # lazy: ~1 s of imports, kept off API start-up
+
     return {f.name for f in dataclasses.fields(AlignOptions)}
-
-
-def renders_available() -> bool:
-    try:
-        return importlib.util.find_spec("gsa.render.views") is not None
-    except ModuleNotFoundError:
-        return False
 
 
 def validate_options(options: dict[str, Any]) -> dict[str, Any]:
@@ -55,16 +50,15 @@ def validate_options(options: dict[str, Any]) -> dict[str, Any]:
             f"option(s) set by the server, not the client: {', '.join(fixed)}"
         )
     known = align_option_names()
-    if known is not None:
-        unknown = sorted(set(options) - known - SERVICE_OPTIONS)
-        if unknown:
-            raise invalid_input(
-                f"unknown option(s): {', '.join(unknown)}",
-                allowed=sorted(known | SERVICE_OPTIONS),
-            )
+    unknown = sorted(set(options) - known - SERVICE_OPTIONS)
+    if unknown:
+        raise invalid_input(
+            f"unknown option(s): {', '.join(unknown)}",
+            allowed=sorted(known | SERVICE_OPTIONS),
+        )
     outs = options.get("outputs")
     if outs is not None:
-        bad = sorted(set(outs) - {"result", "aligned", "merged", "renders"})
+        bad = sorted(set(outs) - set(OUTPUT_NAMES))
         if bad:
             raise invalid_input(f"unknown output(s): {', '.join(bad)}")
     return options

@@ -12,7 +12,6 @@ comes back cannot overwrite the job's newer attempt.
 
 from __future__ import annotations
 
-import dataclasses
 import gc
 import logging
 import mimetypes
@@ -29,7 +28,7 @@ from pathlib import Path
 from service.backend import Backend, notify_webhook, process_backend
 from service.jobs import Artifact, InputRef, Job, JobState
 from service.inputs import safe_extract
-from service.options import DEFAULT_OUTPUTS, renders_available, server_options
+from service.options import DEFAULT_OUTPUTS, align_option_names, server_options
 from service.problems import Problem, invalid_input
 
 log = logging.getLogger("gsa.worker")
@@ -365,10 +364,7 @@ def _run(
     if opts_in.pop("renders", True) is False:
         outputs.discard("renders")
     notes = []
-    if "renders" in outputs and not renders_available():
-        outputs.discard("renders")
-        notes.append("renders skipped: this build has no renderer (gsa.render)")
-    known = {f.name for f in dataclasses.fields(AlignOptions)}
+    known = align_option_names()
     unknown = sorted(set(opts_in) - known)
     if unknown:
         raise Problem(
@@ -663,10 +659,9 @@ def _warm_up() -> None:
 
         m = make_object("car", seed=0, n_gaussians=500)
         align(m, m, AlignOptions(coarse_iterations=2))
-        if renders_available():
-            # Import only (torch and the render kernels): running torch ops here
-            # would start its OpenMP pool, which does not survive fork().
-            import gsa.render.views  # noqa: F401
+        # Import only (torch and the render kernels): running torch ops here
+        # would start its OpenMP pool, which does not survive fork().
+        import gsa.render.views  # noqa: F401
     except Exception:  # a broken library shows up in the jobs' errors; keep serving
         log.exception("worker warm-up failed")
         return

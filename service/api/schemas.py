@@ -8,8 +8,7 @@ from typing import Any, Literal
 from pydantic import BaseModel, ConfigDict, Field
 
 from service.jobs import Asset, Job, JobState
-
-OutputName = Literal["result", "aligned", "merged", "renders"]
+from service.options import OutputName
 
 
 class Problem(BaseModel):

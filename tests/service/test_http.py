@@ -28,12 +28,6 @@ ALIGN = {"stages": ["coarse"], "coarse_iterations": 30, "seed": 0}
 OPTS = {**ALIGN, "outputs": ["result", "aligned", "merged"]}
 
 
-def _have_renderer() -> bool:
-    from service.worker import renders_available
-
-    return renders_available()
-
-
 def test_pair_job_end_to_end_matches_library(http, pair, tmp_path):
     r = submit_pair(
         http, pair, ALIGN
@@ -61,12 +55,9 @@ def test_pair_job_end_to_end_matches_library(http, pair, tmp_path):
     names = {a["name"] for a in done["artifacts"]}
     assert {"aligned.ply", "merged.ply", "result.json"} <= names
     pngs = [a for a in done["artifacts"] if a["name"].startswith("renders/")]
-    if _have_renderer():
-        assert pngs and all(a["content_type"] == "image/png" for a in pngs), done[
-            "artifacts"
-        ]
-    else:
-        assert not pngs and "renders skipped" in " ".join(res.get("notes", []))
+    assert pngs and all(a["content_type"] == "image/png" for a in pngs), done[
+        "artifacts"
+    ]
     for a in done["artifacts"]:
         d = http.get(a["href"])
         assert d.status_code == 200 and d.headers["content-type"].startswith(
@@ -127,18 +118,14 @@ def test_assets_then_json_job_and_multi_model(http, pair):
         "s1/aligned.ply",
         "s1/result.json",
     }
-    if (
-        _have_renderer()
-    ):  # per-pair before/after views, plus all models from shared cameras
-        assert "synchronized/synchronized.png" in renders
-        assert any(n.startswith("s0/renders/") for n in renders)
-        assert any(n.startswith("s1/renders/") for n in renders)
-        png = http.get(f"/v1/jobs/{done['id']}/artifacts/synchronized/synchronized.png")
-        assert png.headers["content-type"] == "image/png" and png.content.startswith(
-            b"\x89PNG"
-        )
-    else:
-        assert not renders
+    # per-pair before/after views, plus all models from shared cameras
+    assert "synchronized/synchronized.png" in renders
+    assert any(n.startswith("s0/renders/") for n in renders)
+    assert any(n.startswith("s1/renders/") for n in renders)
+    png = http.get(f"/v1/jobs/{done['id']}/artifacts/synchronized/synchronized.png")
+    assert png.headers["content-type"] == "image/png" and png.content.startswith(
+        b"\x89PNG"
+    )
     assert (
         http.get(f"/v1/jobs/{done['id']}/artifacts/s1/result.json").json()[
             "source_asset_id"
