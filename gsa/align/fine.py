@@ -24,10 +24,8 @@ import torch
 
 from gsa.canonical import canonical_features
 from gsa.model import GaussianModel
-from gsa.render import render_gaussians
+from gsa.render import covariance, locality_order, render_gaussians, resolve_backend
 from gsa.render.cameras import Cameras, cameras_around
-from gsa.render.cpu import covariance_cpu, locality_order
-from gsa.render.projection import covariance_3d
 from gsa.sim3 import Sim3
 
 LOSSES = ("smooth_l1", "l1", "l2")
@@ -129,7 +127,8 @@ def fine_align(source: GaussianModel, target: GaussianModel, init: Sim3, options
     source.validate("source")
     target.validate("target")
     t_start = time.perf_counter()
-    if options.backend in ("auto", "cpu"):
+    backend = resolve_backend(options.backend)
+    if backend == "cpu":
         # the source is rendered every iteration: store neighbours together for the CPU kernels
         source = source.subset(locality_order(source.means))
     feat_s, sh_s = _signal(source, options.on, "source")
@@ -137,7 +136,7 @@ def fine_align(source: GaussianModel, target: GaussianModel, init: Sim3, options
     if feat_s is not None and feat_s.shape[1] != feat_t.shape[1]:
         raise ValueError(f"feature dimensions differ: source {feat_s.shape[1]}, target {feat_t.shape[1]}")
     cams = select_cameras(target, options, cameras)
-    render = dict(backend=options.backend)
+    render = dict(backend=backend)
     # The native kernels use every core; torch only does small elementwise work here, and its
     # idle OpenMP threads spinning between ops slowed the loop on a 2-core machine. Restored below.
     torch_threads = torch.get_num_threads()
@@ -150,10 +149,7 @@ def fine_align(source: GaussianModel, target: GaussianModel, init: Sim3, options
 
 
 def _covariance(model: GaussianModel, backend: str) -> torch.Tensor:
-    q, ls = torch.as_tensor(model.quats), torch.as_tensor(model.log_scales)
-    if backend in ("auto", "cpu"):
-        return covariance_cpu(q, ls)
-    return covariance_3d(q, ls)
+    return covariance(torch.as_tensor(model.quats), torch.as_tensor(model.log_scales), backend)
 
 
 def _fine_align(source, target, init, options, cams, render, feat_s, sh_s, feat_t, sh_t, progress, t_start):
@@ -161,14 +157,14 @@ def _fine_align(source, target, init, options, cams, render, feat_s, sh_s, feat_
     with torch.no_grad():
         vm_t = torch.as_tensor(cams.viewmats, dtype=torch.float32)
         intr = torch.as_tensor(cams.intrinsics, dtype=torch.float32)
-        tgt = render_gaussians(torch.as_tensor(target.means), _covariance(target, options.backend),
+        tgt = render_gaussians(torch.as_tensor(target.means), _covariance(target, render["backend"]),
                                torch.sigmoid(torch.as_tensor(target.opacity_logits)), vm_t, intr, cams.width,
                                cams.height, sh=None if sh_t is None else torch.as_tensor(sh_t),
                                features=None if feat_t is None else torch.as_tensor(feat_t), **render)
         img_t = tgt.features if feat_t is not None else tgt.colors
         fg_t = tgt.alpha[..., 0] > options.alpha_threshold
         means_s = torch.as_tensor(source.means)
-        cov_s = _covariance(source, options.backend)
+        cov_s = _covariance(source, render["backend"])
         op_s = torch.sigmoid(torch.as_tensor(source.opacity_logits))
         sig_s = dict(sh=None if sh_s is None else torch.as_tensor(sh_s),
                      features=None if feat_s is None else torch.as_tensor(feat_s))

@@ -9,19 +9,24 @@ so that importing `gsa.render.cameras` or the CLI does not load torch.
 
 from __future__ import annotations
 
+import importlib
+
 from gsa.render.cameras import Cameras, cameras_around, look_at, orbit_cameras
 
 _LAZY = {
-    "BACKENDS", "RenderOutput", "available_backends", "camera_tensors", "cuda_available", "rasterize",
-    "render_gaussians", "render_model", "colors_from_sh", "covariance_3d", "project",
+    name: "gsa.render.rasterizer"
+    for name in (
+        "BACKENDS", "RenderOutput", "available_backends", "camera_tensors", "covariance", "cuda_available",
+        "rasterize", "render_gaussians", "render_model", "resolve_backend", "colors_from_sh", "covariance_3d",
+        "project",
+    )
 }
+_LAZY["locality_order"] = "gsa.render.cpu"
 
 __all__ = ["Cameras", "cameras_around", "look_at", "orbit_cameras", *sorted(_LAZY)]
 
 
 def __getattr__(name: str):
     if name in _LAZY:
-        from gsa.render import rasterizer
-
-        return getattr(rasterizer, name)
+        return getattr(importlib.import_module(_LAZY[name]), name)
     raise AttributeError(f"module 'gsa.render' has no attribute {name!r}")

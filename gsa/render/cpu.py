@@ -27,7 +27,7 @@ import numpy as np
 import torch
 from numba import njit, prange
 
-from gsa.render.reference import ALPHA_MAX, ALPHA_MIN, MAHA_CUTOFF, T_MIN
+from gsa.render.constants import ALPHA_MAX, ALPHA_MIN, EPS2D, MAHA_CUTOFF, NEAR, T_MIN
 
 TILE = 16
 _CHUNKS = 64  # work items per camera for loops over Gaussians (load balance across threads)
@@ -526,9 +526,6 @@ def set_threads(n: int) -> None:
 # Native twin of gsa.render.projection.project (same formulas, same Jacobian clamp), with a
 # hand-written backward to view matrices, means and 3D covariances. torch autograd on the
 # vectorised version costs ~10x more than compositing at 50k Gaussians, hence this path.
-
-EPS2D = 0.3
-NEAR = 0.01
 
 
 @njit(parallel=True, cache=True, error_model="numpy")

@@ -13,15 +13,14 @@ from __future__ import annotations
 
 import torch
 
+from gsa.render.output import split_channels
 from gsa.render.projection import colors_from_sh
 
 
 def render_gsplat(means, cov3d, opacities, viewmats, intrinsics, width: int, height: int, *, colors=None, sh=None,
                   features=None, background=None, feature_background=None, depth: bool = False):
     """Same contract as gsa.render.render_gaussians; tensors are moved to CUDA (differentiably)."""
-    import gsplat
-
-    from gsa.render.rasterizer import split_channels
+    import gsplat  # optional dependency: only this backend needs it
 
     dev = torch.device("cuda")
     dtype = torch.float32  # gsplat kernels are float32

@@ -10,29 +10,19 @@ One entry point, `rasterize(...)`, with backends:
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-
 import numpy as np
 import torch
 
 from gsa.render.cameras import Cameras, cameras_around, look_at, orbit_cameras
+from gsa.render.cuda import render_gsplat
+from gsa.render.output import RenderOutput, split_channels
 from gsa.render.projection import colors_from_sh, covariance_3d, project
+from gsa.render.reference import composite_reference
 
 __all__ = ["Cameras", "RenderOutput", "cameras_around", "look_at", "orbit_cameras", "rasterize",
            "render_gaussians", "render_model", "available_backends"]
 
 BACKENDS = ("auto", "cpu", "cuda", "reference")
-
-
-@dataclass
-class RenderOutput:
-    """Per-camera images: colors (C,H,W,3) | None, features (C,H,W,D) | None, alpha (C,H,W,1),
-    depth (C,H,W,1) | None (expected camera depth of the visible surface, 0 where alpha == 0)."""
-
-    colors: torch.Tensor | None
-    features: torch.Tensor | None
-    alpha: torch.Tensor
-    depth: torch.Tensor | None
 
 
 def cuda_available() -> bool:
@@ -49,7 +39,8 @@ def available_backends() -> list[str]:
     return ["cpu", "reference"] + (["cuda"] if cuda_available() else [])
 
 
-def _resolve_backend(backend: str) -> str:
+def resolve_backend(backend: str) -> str:
+    """The backend that `backend` ("auto" included) renders with here: "cpu", "cuda" or "reference"."""
     if backend not in BACKENDS:
         raise ValueError(f"unknown backend {backend!r}; choose one of {BACKENDS}")
     if backend == "auto":
@@ -76,7 +67,7 @@ def render_gaussians(means, cov3d, opacities, viewmats, intrinsics, width: int, 
     features (N,D) composited like colour; background (3,) for colour and
     feature_background (D,) for features (default zeros).
     """
-    backend = _resolve_backend(backend)
+    backend = resolve_backend(backend)
     if colors is not None and sh is not None:
         raise ValueError("give colors or sh, not both")
     n = means.shape[0]
@@ -89,13 +80,13 @@ def render_gaussians(means, cov3d, opacities, viewmats, intrinsics, width: int, 
         raise ValueError(f"features must be (N, D) with N={n}, got {tuple(features.shape)}")
     c_count = viewmats.shape[0]
     if backend == "cuda":
-        from gsa.render.cuda import render_gsplat
-
         return render_gsplat(means, cov3d, opacities, viewmats, intrinsics, width, height, colors=colors, sh=sh,
                              features=features, background=background, feature_background=feature_background,
                              depth=depth)
     dtype = means.dtype
     if backend == "cpu":
+        # gsa.render.cpu is imported by the functions that use it: it loads numba and sets its
+        # threading layer, which only the CPU backend needs.
         from gsa.render.cpu import project_cpu
 
         means2d, conics, z, cov_diag, valid = project_cpu(means, cov3d, viewmats, intrinsics, width, height)
@@ -126,30 +117,22 @@ def render_gaussians(means, cov3d, opacities, viewmats, intrinsics, width: int, 
     bg = torch.cat(bgs)
     op = opacities[None].expand(c_count, n)
     if backend == "cpu":
-        from gsa.render.cpu import composite_cpu
+        from gsa.render.cpu import composite_cpu  # lazy: see above
 
         out, alpha = composite_cpu(means2d, conics, op, chan, cov_diag, z.detach(), valid, bg, width, height, tile)
     else:
-        from gsa.render.reference import composite_reference
-
         out, alpha = composite_reference(means2d, conics, op, chan, z, valid, bg, width, height)
     return split_channels(out, alpha, colors is not None, None if features is None else features.shape[1], depth)
 
 
-def split_channels(out: torch.Tensor, alpha: torch.Tensor, has_colors: bool, feature_dim: int | None,
-                   depth: bool) -> RenderOutput:
-    """Unstack composited channels [colour(3) | features(D) | depth·alpha(1)] (C,H,W,·):
-    every backend composites them as one stack."""
-    i = 0
-    col = feat = dep = None
-    if has_colors:
-        col, i = out[..., 0:3], 3
-    if feature_dim is not None:
-        feat, i = out[..., i:i + feature_dim], i + feature_dim
-    if depth:
-        acc = out[..., i:i + 1]
-        dep = torch.where(alpha > 1e-6, acc / alpha.clamp_min(1e-6), torch.zeros_like(acc))
-    return RenderOutput(col, feat, alpha, dep)
+def covariance(quats: torch.Tensor, log_scales: torch.Tensor, backend: str = "auto") -> torch.Tensor:
+    """(N,3,3) 3D covariances R S S^T R^T as `backend` computes them (the CPU backend has a
+    native kernel with a hand-written backward; the others use torch)."""
+    if resolve_backend(backend) == "cpu":
+        from gsa.render.cpu import covariance_cpu  # lazy: see render_gaussians
+
+        return covariance_cpu(quats, log_scales)
+    return covariance_3d(quats, log_scales)
 
 
 def camera_tensors(cameras: Cameras, dtype=torch.float32) -> tuple[torch.Tensor, torch.Tensor]:
@@ -174,13 +157,8 @@ def rasterize(means, quats, log_scales, opacity_logits, colors_or_sh, features=N
     means = _as_tensor(means)
     dtype = means.dtype
     quats, log_scales, opacity_logits = (_as_tensor(a, dtype) for a in (quats, log_scales, opacity_logits))
-    backend = _resolve_backend(backend)
-    if backend == "cpu":
-        from gsa.render.cpu import covariance_cpu
-
-        cov3d = covariance_cpu(quats, log_scales)
-    else:
-        cov3d = covariance_3d(quats, log_scales)
+    backend = resolve_backend(backend)
+    cov3d = covariance(quats, log_scales, backend)
     vm, intr = camera_tensors(cameras, dtype)
     if viewmats is not None:
         vm = _as_tensor(viewmats, dtype)

@@ -13,10 +13,7 @@ from __future__ import annotations
 
 import torch
 
-ALPHA_MIN = 1.0 / 255.0
-ALPHA_MAX = 0.99
-T_MIN = 1e-4
-MAHA_CUTOFF = 9.0
+from gsa.render.constants import ALPHA_MAX, ALPHA_MIN, MAHA_CUTOFF, T_MIN
 
 
 def composite_reference(means2d, conics, opacities, chans, depths, valid, background, width: int, height: int):
