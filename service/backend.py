@@ -32,7 +32,7 @@ class RQQueue:
     def enqueue(self, job_id: str) -> str:
         ref = f"{job_id}-{uuid.uuid4().hex[:8]}"
         self.q.enqueue(
-            "service.worker.run_job",
+            "service.worker.run_job",  # by name: workers of any version resolve it
             job_id,
             job_id=ref,
             # Our own lease/reaper does retries; RQ's timeout is only the backstop.

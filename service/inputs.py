@@ -1,4 +1,5 @@
-"""Validation of uploaded inputs: 3DGS PLY headers, image-set zips, images.
+"""Job inputs: validating uploads (3DGS PLY headers, image-set zips, images) and,
+on the worker, loading them as models (load_input).
 
 All checks read headers / central directories only: nothing is decoded or
 extracted before it has passed the limits, so a hostile upload (zip bomb,
@@ -9,11 +10,14 @@ from __future__ import annotations
 
 import struct
 import zipfile
+from collections.abc import Callable
 from pathlib import Path, PurePosixPath, PureWindowsPath
 
 import numpy as np
 
-from service.problems import invalid_input, too_large
+from service.backend import Backend
+from service.jobs import InputRef
+from service.problems import Problem, invalid_input, too_large
 
 IMAGE_EXTS = {".png", ".jpg", ".jpeg"}
 
@@ -208,3 +212,52 @@ def safe_extract(path: Path, dest: Path, settings) -> Path:
                         )
                     dst.write(chunk)
     return dest
+
+
+# ------------------------------------------------ loading a job's inputs (worker side)
+def load_input(
+    backend: Backend,
+    ref: InputRef,
+    workdir: Path,
+    name: str,
+    progress: Callable[[str, float], None],
+    reconstructions: dict | None = None,
+    recon_iterations: int | None = None,
+):
+    """A job input as a GaussianModel: a PLY as is, an image set through gsa.recon
+    (its summary and model file are recorded in `reconstructions`)."""
+    reconstructions = {} if reconstructions is None else reconstructions
+    from gsa.io.ply import read_ply  # lazy: keeps the library off API start-up
+
+    s = backend.settings
+    if ref.kind == "ply":
+        path = backend.storage.download(ref.key, workdir / f"{name}.ply")
+        return read_ply(path, max_gaussians=s.max_gaussians)
+    if ref.kind == "images":
+        # lazy: SfM and 3DGS training load OpenCV, pycolmap and torch
+        from gsa.recon import ImageSetError, MaskError, SfMError, reconstruct
+
+        archive = backend.storage.download(ref.key, workdir / f"{name}.zip")
+        images = safe_extract(archive, workdir / f"{name}-images", s)
+        preset = "gpu" if s.worker_device.startswith("cuda") else "cpu"
+        try:
+            res = reconstruct(
+                images,
+                workdir / f"{name}-recon",
+                preset=preset,
+                progress=lambda st, f: progress(f"recon:{st}", f),
+                iterations=recon_iterations,
+            )
+        except (ImageSetError, SfMError, MaskError) as exc:
+            raise Problem(
+                422,
+                "reconstruction-failed",
+                "Reconstruction failed",
+                f"{name} images: {exc}",
+            ) from None
+        summary = {
+            k: v for k, v in res.summary().items() if k not in ("model", "cameras")
+        }
+        reconstructions[name] = (summary, Path(res.model_path))
+        return res.model
+    raise invalid_input(f"unknown input kind {ref.kind!r}")

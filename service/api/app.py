@@ -18,9 +18,10 @@ from service.api.middleware import BodyLimit, RequestMetrics, install_error_hand
 from service.api.routes import router
 from service.api.schemas import JobCreate, Problem
 from service.backend import Backend, make_backend
+from service.leases import start_reaper
 from service.metrics import Metrics
+from service.runners import start_embedded_workers
 from service.settings import Settings, get_settings
-from service.worker import start_embedded_workers, start_reaper
 
 log = logging.getLogger("gsa.api")
 

@@ -1,0 +1,249 @@
+"""Running one attempt of a job: claim it, load inputs, call the library, store artifacts.
+
+The attempt's lease, heartbeat and progress reports are service.leases'; a
+failure becomes an RFC 9457 problem (service.problems) chosen by exception type.
+"""
+
+from __future__ import annotations
+
+import gc
+import logging
+import sys
+import tempfile
+import threading
+import time
+import uuid
+from pathlib import Path
+
+from service.artifacts import collect_outputs, store_artifacts, synchronized_renders
+from service.backend import Backend, notify_webhook
+from service.inputs import load_input
+from service.jobs import Job, JobState
+from service.leases import (
+    JobCancelled,
+    JobProgress,
+    JobTimeout,
+    LeaseLost,
+    finish_attempt,
+    heartbeat,
+    worker_name,
+)
+from service.options import DEFAULT_OUTPUTS, align_option_names, server_options
+from service.problems import Problem, invalid_input
+
+log = logging.getLogger("gsa.worker")
+
+
+def execute(job_id: str, backend: Backend) -> JobState | None:
+    """Run one attempt of a job. Returns the state it left the job in (None: not ours)."""
+    store, s = backend.store, backend.settings
+    job = store.get(job_id)
+    if job is None or job.state != JobState.queued:
+        return None
+    if job.attempts >= job.max_attempts:
+        store.update(
+            job_id,
+            states={JobState.queued},
+            state=JobState.failed,
+            finished_at=time.time(),
+            error=Problem(
+                500,
+                "attempts-exhausted",
+                "Job failed",
+                f"gave up after {job.attempts} attempts",
+            ).to_dict(),
+        )
+        notify_webhook(backend, job_id)
+        return JobState.failed
+    token = uuid.uuid4().hex
+    now = time.time()
+    if not store.update(
+        job_id,
+        states={JobState.queued},
+        state=JobState.running,
+        attempts=job.attempts + 1,
+        run_token=token,
+        lease_until=now + s.lease_s,
+        worker=worker_name(),
+        started_at=now,
+        stage="loading",
+        progress=0.0,
+        error=None,
+    ):
+        return None  # another worker claimed it, or it was cancelled meanwhile
+    lost, stop = threading.Event(), threading.Event()
+    hb = threading.Thread(
+        target=heartbeat, args=(backend, job_id, token, lost, stop), daemon=True
+    )
+    hb.start()
+    prog = JobProgress(backend, job, token, lost, max(len(job.sources), 1))
+    art_prefix = f"jobs/{job_id}/{token}"
+    final: JobState | None = None
+    try:
+        final = _run(backend, job, token, prog, art_prefix)
+    except JobCancelled:
+        final = (
+            JobState.cancelled
+            if finish_attempt(backend, job_id, token, JobState.cancelled)
+            else None
+        )
+    except (LeaseLost, JobTimeout) as exc:
+        if isinstance(exc, JobTimeout):
+            err = Problem(
+                504,
+                "job-timeout",
+                "Job timed out",
+                f"the job ran longer than {s.job_timeout_s:.0f} s",
+            ).to_dict()
+            final = (
+                JobState.failed
+                if finish_attempt(backend, job_id, token, JobState.failed, error=err)
+                else None
+            )
+    except Exception as exc:
+        err = problem_for(exc)
+        if err.status >= 500:
+            log.exception("job %s failed", job_id)
+        final = (
+            JobState.failed
+            if finish_attempt(backend, job_id, token, JobState.failed, error=err.to_dict())
+            else None
+        )
+    finally:
+        stop.set()
+        prog.finish()
+        if final != JobState.succeeded:
+            backend.storage.delete_prefix(
+                art_prefix
+            )  # no partial artifacts from a failed attempt
+        _release_memory()
+    if final is not None:
+        notify_webhook(backend, job_id)
+    return final
+
+
+def library_input_errors() -> tuple[type[Exception], ...]:
+    """The library's errors about its input (unreadable PLY, inconsistent model,
+    a model the aligner cannot use): the client's to fix, so 422, not 500."""
+    # lazy: the aligner's modules are heavy; by the time a job fails they are loaded
+    from gsa.align.coarse import AlignmentError
+    from gsa.io.ply import PlyError
+    from gsa.model import ModelError
+
+    return (PlyError, ModelError, AlignmentError)
+
+
+def problem_for(exc: Exception) -> Problem:
+    """The problem a job attempt that raised `exc` reports, chosen by exception type."""
+    if isinstance(exc, Problem):
+        return exc
+    if isinstance(exc, library_input_errors()):
+        return invalid_input(str(exc))
+    return Problem(500, "alignment-failed", "Alignment failed", f"{type(exc).__name__}: {exc}")
+
+
+def _run(
+    backend: Backend, job: Job, token: str, prog: JobProgress, art_prefix: str
+) -> JobState | None:
+    # lazy: the aligner (numba kernels, ~1 s of imports) loads in the processes that run jobs
+    from gsa.align.outputs import write_outputs
+    from gsa.align.pipeline import AlignOptions, align
+
+    opts_in = dict(job.options)
+    outputs = set(opts_in.pop("outputs", None) or DEFAULT_OUTPUTS)
+    recon_iterations = opts_in.pop("recon_iterations", None)
+    reconstructions: dict = {}
+    if opts_in.pop("renders", True) is False:
+        outputs.discard("renders")
+    notes = []
+    known = align_option_names()
+    unknown = sorted(set(opts_in) - known)
+    if unknown:
+        raise Problem(
+            422,
+            "invalid-input",
+            "Invalid options",
+            f"unknown alignment options: {', '.join(unknown)}",
+        )
+    if "stages" in opts_in and isinstance(opts_in["stages"], list):
+        opts_in["stages"] = tuple(opts_in["stages"])
+    opts_in.update(server_options(backend.settings, known))
+    try:
+        opts = AlignOptions(**opts_in)
+    except (TypeError, ValueError) as exc:
+        raise Problem(422, "invalid-input", "Invalid options", str(exc)) from None
+
+    with tempfile.TemporaryDirectory(prefix="gsa-job-") as tmp:
+        work = Path(tmp)
+        prog("loading", 0.0)
+        target = load_input(
+            backend, job.target, work, "target", prog, reconstructions, recon_iterations
+        )
+        results, files, transforms = [], [], []
+        multi = len(job.sources) > 1
+        for i, ref in enumerate(job.sources):
+            prog.part = i
+            source = load_input(
+                backend,
+                ref,
+                work,
+                f"source{i}",
+                prog,
+                reconstructions,
+                recon_iterations,
+            )
+            prog.check(force=True)
+            res = align(source, target, opts, progress=prog)
+            prog("writing", 0.99)
+            out_dir = work / f"out{i}"
+            extra = {
+                "job_id": job.id,
+                "source_asset_id": ref.asset_id,
+                "target_asset_id": job.target.asset_id,
+            }
+            paths = write_outputs(
+                res, source, target, out_dir, outputs=outputs, extra=extra
+            )
+            d = res.to_dict()
+            d["source_asset_id"] = ref.asset_id
+            results.append(d)
+            files += collect_outputs(paths, f"s{i}/" if multi else "")
+            transforms.append(res.transform)
+            del source, res
+        if multi and "renders" in outputs:
+            prog.part = len(job.sources) - 1
+            prog("renders", 0.0)
+            files += synchronized_renders(backend, job, target, transforms, work, notes)
+        # Models reconstructed from image sets are results in their own right.
+        files += [
+            (f"reconstructed/{n}.ply", p)
+            for n, (_, p) in sorted(reconstructions.items())
+        ]
+        prog.check(force=True)
+        artifacts = store_artifacts(backend, files, art_prefix)
+    result = dict(results[0]) if len(results) == 1 else {}
+    result["results"] = results
+    if reconstructions:
+        result["reconstructions"] = {
+            n: summ for n, (summ, _) in reconstructions.items()
+        }
+    if notes:
+        result["notes"] = notes
+    ok = finish_attempt(
+        backend,
+        job.id,
+        token,
+        JobState.succeeded,
+        result=result,
+        artifacts=artifacts,
+        progress=1.0,
+        stage="done",
+    )
+    return JobState.succeeded if ok else None
+
+
+def _release_memory() -> None:
+    gc.collect()
+    torch = sys.modules.get("torch")
+    if torch is not None and torch.cuda.is_available():
+        torch.cuda.empty_cache()

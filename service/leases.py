@@ -1,0 +1,264 @@
+"""Who owns a running job: leases, heartbeats, progress reports, the reaper.
+
+Delivery is at-least-once. A worker claims a queued job by compare-and-set
+(state queued -> running, attempts + 1, a fresh run_token, a lease) and keeps
+renewing the lease from a heartbeat thread. If the worker dies (SIGKILL, OOM,
+machine lost) the lease expires and any reaper (every API process and every
+worker runs one) puts the job back in the queue, or fails it once
+max_attempts is spent, so no job stays "running" forever. Every write a worker
+makes is conditional on its run_token, so a worker that was presumed dead but
+comes back cannot overwrite the job's newer attempt.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import socket
+import threading
+import time
+
+from service.backend import Backend, notify_webhook
+from service.jobs import Job, JobState
+from service.problems import Problem
+
+log = logging.getLogger("gsa.worker")
+
+
+class JobCancelled(Exception):
+    """The client cancelled the job: stop the attempt, mark it cancelled."""
+
+
+class LeaseLost(Exception):
+    """This attempt no longer owns the job (lease expired, newer attempt): stop, write nothing."""
+
+
+class JobTimeout(Exception):
+    """The attempt ran past job_timeout_s: stop and fail the job (504)."""
+
+
+def worker_name() -> str:
+    return f"{socket.gethostname()}:{os.getpid()}"
+
+
+# Where each library stage sits in a job's overall 0..1 progress (the library
+# reports a fraction per stage); unknown stages hold the current value, so the
+# published progress never goes backwards.
+STAGE_SPAN = {
+    "loading": (0.0, 0.05), "features": (0.05, 0.2), "hypotheses": (0.2, 0.4), "coarse": (0.4, 0.7),
+    "refine": (0.7, 0.8), "fine": (0.8, 0.97), "writing": (0.97, 0.99), "renders": (0.97, 0.99), "done": (0.97, 0.99),
+}  # fmt: skip
+
+
+# Image-set inputs: gsa.recon's stages ("recon:sfm:features" -> "sfm") come first.
+RECON_SPAN = {
+    "images": (0.0, 0.02),
+    "sfm": (0.02, 0.1),
+    "masks": (0.1, 0.12),
+    "train": (0.12, 0.4),
+}
+
+
+class JobProgress:
+    """The progress callback handed to align(): writes stage/progress (throttled),
+    records stage durations, and raises to abort on cancel/lease loss/timeout."""
+
+    def __init__(
+        self,
+        backend: Backend,
+        job: Job,
+        token: str,
+        lost: threading.Event,
+        n_parts: int,
+    ):
+        self.b, self.job_id, self.token, self.lost = backend, job.id, token, lost
+        self.n = n_parts
+        self.part = 0
+        self.started = time.monotonic()
+        self.stage: str | None = None
+        self.stage_t0 = time.monotonic()
+        self.last_write = 0.0
+        self.last_check = 0.0
+        self.overall = 0.0
+
+    def check(self, force: bool = False) -> None:
+        if self.lost.is_set():
+            raise LeaseLost()
+        if time.monotonic() - self.started > self.b.settings.job_timeout_s:
+            raise JobTimeout()
+        now = time.monotonic()
+        if force or now - self.last_check > 0.2:
+            self.last_check = now
+            job = self.b.store.get(self.job_id)
+            if job is None or job.run_token != self.token:
+                raise LeaseLost()
+            if job.cancel_requested or job.state == JobState.cancelled:
+                raise JobCancelled()
+
+    def set_stage(self, stage: str) -> None:
+        if stage != self.stage:
+            now = time.monotonic()
+            if self.stage is not None:
+                self.b.store.record_stage(self.stage, now - self.stage_t0)
+            self.stage, self.stage_t0 = stage, now
+
+    def __call__(self, stage: str, fraction: float) -> None:
+        changed = stage != self.stage
+        self.set_stage(stage)
+        self.check(force=changed)
+        now = time.monotonic()
+        if changed or now - self.last_write > 0.2:
+            self.last_write = now
+            f = max(0.0, min(1.0, float(fraction)))
+            key = stage.split(":")[1] if stage.startswith("recon:") else stage
+            span = RECON_SPAN if stage.startswith("recon:") else STAGE_SPAN
+            lo, hi = span.get(key, (None, None))
+            within = (
+                (lo + f * (hi - lo))
+                if lo is not None
+                else (self.overall * self.n - self.part)
+            )
+            # 1.0 is kept for "succeeded"; a running job's progress stays below it.
+            self.overall = min(max(self.overall, (self.part + within) / self.n), 0.999)
+            self.b.store.update(
+                self.job_id,
+                states={JobState.running},
+                token=self.token,
+                stage=stage,
+                progress=self.overall,
+            )
+
+    def finish(self) -> None:
+        self.set_stage("__end__")
+
+
+def heartbeat(
+    backend: Backend,
+    job_id: str,
+    token: str,
+    lost: threading.Event,
+    stop: threading.Event,
+) -> None:
+    lease = backend.settings.lease_s
+    while not stop.wait(lease / 3):
+        try:
+            ok = backend.store.update(
+                job_id,
+                states={JobState.running},
+                token=token,
+                lease_until=time.time() + lease,
+            )
+        except Exception:  # transient store error: the lease has slack for two misses
+            log.exception("lease renewal failed for %s", job_id)
+            continue
+        if not ok:
+            lost.set()
+            return
+
+
+def finish_attempt(
+    backend: Backend, job_id: str, token: str, state: JobState, **fields
+) -> bool:
+    return backend.store.update(
+        job_id,
+        states={JobState.running},
+        token=token,
+        state=state,
+        finished_at=time.time(),
+        lease_until=None,
+        **fields,
+    )
+
+
+# ------------------------------------------------------------------ reaper
+def reap(backend: Backend, *, force: bool = False) -> list[str]:
+    """Requeue (or fail, when attempts are spent) running jobs whose lease expired.
+
+    force=True treats every running job as lost: embedded mode at startup, where
+    the only possible worker was the previous process.
+    """
+    now = time.time()
+    touched = []
+    for job in backend.store.running():
+        if not force and job.lease_until is not None and job.lease_until > now:
+            continue
+        common = dict(
+            states={JobState.running},
+            token=job.run_token,
+            lease_until=None,
+            worker=None,
+        )
+        if job.cancel_requested:
+            ok = backend.store.update(
+                job.id, state=JobState.cancelled, finished_at=now, **common
+            )
+        elif job.attempts >= job.max_attempts:
+            err = Problem(
+                500,
+                "worker-lost",
+                "Job failed",
+                f"the worker running this job was lost {job.attempts} times; giving up",
+            ).to_dict()
+            ok = backend.store.update(
+                job.id, state=JobState.failed, finished_at=now, error=err, **common
+            )
+        else:
+            ok = backend.store.update(
+                job.id,
+                state=JobState.queued,
+                stage="requeued",
+                run_token=None,
+                **common,
+            )
+            if ok:
+                backend.queue.enqueue(job.id)
+        if ok:
+            log.warning(
+                "reaped job %s (attempt %d, worker %s)",
+                job.id,
+                job.attempts,
+                job.worker,
+            )
+            touched.append(job.id)
+            if job.cancel_requested or job.attempts >= job.max_attempts:
+                notify_webhook(backend, job.id)
+    return touched
+
+
+def _requeue(backend: Backend, job_id: str) -> None:
+    ref = backend.queue.enqueue(job_id)
+    backend.store.update(job_id, queue_ref=ref, enqueued_at=time.time())
+
+
+def resend_lost(backend: Backend) -> list[str]:
+    """Queued jobs whose queue message is gone (e.g. the worker died between
+    dequeuing and claiming) are enqueued again. Duplicates are harmless: the
+    claim is a compare-and-set, so only one delivery ever runs the job."""
+    now = time.time()
+    grace = 2 * backend.settings.lease_s
+    out = []
+    for job_id in backend.store.queued_ids():
+        job = backend.store.get(job_id)
+        if job is None or job.state != JobState.queued or not job.queue_ref:
+            continue
+        if job.enqueued_at is not None and now - job.enqueued_at < grace:
+            continue
+        if backend.queue.lost(job.queue_ref):
+            log.warning("re-sending lost queue message for job %s", job_id)
+            _requeue(backend, job_id)
+            out.append(job_id)
+    return out
+
+
+def start_reaper(backend: Backend, stop: threading.Event) -> threading.Thread:
+    def loop():
+        while not stop.wait(backend.settings.reaper_interval_s):
+            try:
+                reap(backend)
+                resend_lost(backend)
+            except Exception:
+                log.exception("reaper pass failed")
+
+    t = threading.Thread(target=loop, name="gsa-reaper", daemon=True)
+    t.start()
+    return t
