@@ -7,7 +7,7 @@ import re
 from pathlib import Path
 
 from service.backend import Backend
-from service.jobs import Artifact, Job
+from service.models import Artifact, Job
 
 
 def content_type(name: str) -> str:

@@ -9,9 +9,11 @@ import threading
 import uuid
 from dataclasses import dataclass, field
 
-from service.jobs import JobStore, RedisJobStore, SQLiteJobStore
+from service.redis_store import RedisJobStore
 from service.settings import Settings, get_settings
+from service.sqlite_store import SQLiteJobStore
 from service.storage import Storage, make_storage
+from service.store import JobStore
 from service.webhook_delivery import deliver_with_retries
 
 log = logging.getLogger("gsa.worker")

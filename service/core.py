@@ -13,7 +13,7 @@ from typing import Any, BinaryIO
 
 from service.backend import Backend, notify_webhook
 from service.inputs import check_image, sniff, validate_ply, validate_zip
-from service.jobs import TERMINAL, Asset, InputRef, Job, JobState, new_id
+from service.models import TERMINAL, Asset, InputRef, Job, JobState, new_id
 from service.options import validate_options
 from service.problems import Problem, invalid_input, not_found, too_large
 from service.storage import CHUNK, new_key

@@ -18,7 +18,6 @@ from pathlib import Path
 from service.artifacts import collect_outputs, store_artifacts, synchronized_renders
 from service.backend import Backend, notify_webhook
 from service.inputs import load_input
-from service.jobs import Job, JobState
 from service.leases import (
     JobCancelled,
     JobProgress,
@@ -28,6 +27,7 @@ from service.leases import (
     heartbeat,
     worker_name,
 )
+from service.models import Job, JobState
 from service.options import DEFAULT_OUTPUTS, align_option_names, server_options
 from service.problems import Problem, invalid_input
 

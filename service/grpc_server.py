@@ -20,7 +20,7 @@ from service.api.schemas import AlignOptionsIn
 from service.backend import Backend
 from service.grpc_gen import alignment_pb2 as pb
 from service.grpc_gen import alignment_pb2_grpc as pbg
-from service.jobs import Job, JobState
+from service.models import Job, JobState
 from service.problems import Problem, invalid_input, too_large
 from service.storage import CHUNK
 

@@ -16,7 +16,7 @@ from pathlib import Path, PurePosixPath, PureWindowsPath
 import numpy as np
 
 from service.backend import Backend
-from service.jobs import InputRef
+from service.models import InputRef
 from service.problems import Problem, invalid_input, too_large
 
 IMAGE_EXTS = {".png", ".jpg", ".jpeg"}

@@ -19,7 +19,7 @@ import threading
 import time
 
 from service.backend import Backend, notify_webhook
-from service.jobs import Job, JobState
+from service.models import Job, JobState
 from service.problems import Problem
 
 log = logging.getLogger("gsa.worker")

@@ -29,7 +29,7 @@ from service.api.schemas import (
 )
 from service.api.upload import Form, parse_multipart
 from service.backend import Backend
-from service.jobs import JobState
+from service.models import JobState
 from service.problems import Problem as ProblemError
 from service.problems import invalid_input
 

@@ -7,7 +7,7 @@ from typing import Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field
 
-from service.jobs import Asset, Job, JobState
+from service.models import Asset, Job, JobState
 from service.options import OutputName
 
 

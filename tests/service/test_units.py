@@ -62,6 +62,18 @@ def _job(jid, owner="o", t=None):
     )
 
 
+def test_both_stores_implement_the_store_protocol():
+    """Each store defines every JobStore method itself (the protocol's bodies are `...`)."""
+    from service.redis_store import RedisJobStore
+    from service.store import JobStore
+
+    wanted = {n for n, v in vars(JobStore).items() if callable(v) and not n.startswith("_")}
+    assert {"create", "get", "update", "list", "ping"} <= wanted
+    for store in (RedisJobStore, SQLiteJobStore):
+        assert JobStore not in store.__mro__
+        assert wanted <= set(vars(store)), (store.__name__, sorted(wanted - set(vars(store))))
+
+
 def test_sqlite_store_cas_persistence_and_pages(tmp_path):
     db = tmp_path / "jobs.sqlite3"
     st = SQLiteJobStore(db)

@@ -1,0 +1,179 @@
+"""The job store of distributed mode: Redis.
+
+Each job is a Redis hash whose fields are JSON values; state changes go through
+one Lua compare-and-set script (_CAS) so the API (cancel), workers (progress,
+completion) and reapers (lost workers) never overwrite each other.
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from enum import Enum
+from typing import Any
+
+from pydantic import BaseModel
+
+from service.models import Asset, Job, JobState
+
+
+def _enc(v: Any) -> str:
+    if isinstance(v, BaseModel):
+        return v.model_dump_json()
+    if isinstance(v, list):
+        return json.dumps(
+            [x.model_dump(mode="json") if isinstance(x, BaseModel) else x for x in v]
+        )
+    if isinstance(v, Enum):
+        return json.dumps(v.value)
+    return json.dumps(v)
+
+
+# KEYS: the job's hash, the job-key prefix, the state-set prefix.
+# ARGV: allowed states ("a,b" or ""), required run_token ("" = any), then field/value pairs.
+_CAS = """
+local st = redis.call('HGET', KEYS[1], 'state')
+if not st then return 0 end
+if ARGV[1] ~= '' then
+  local ok = false
+  for s in string.gmatch(ARGV[1], '[^,]+') do if s == st then ok = true end end
+  if not ok then return 0 end
+end
+if ARGV[2] ~= '' and redis.call('HGET', KEYS[1], 'run_token') ~= ARGV[2] then return 0 end
+local newst = nil
+for i = 3, #ARGV, 2 do
+  redis.call('HSET', KEYS[1], ARGV[i], ARGV[i+1])
+  if ARGV[i] == 'state' then newst = ARGV[i+1] end
+end
+redis.call('HINCRBY', KEYS[1], 'version', 1)
+if newst and newst ~= st then
+  local id = string.sub(KEYS[1], string.len(KEYS[2]) + 1)
+  redis.call('SREM', KEYS[3] .. st, id)
+  redis.call('SADD', KEYS[3] .. newst, id)
+end
+return 1
+"""
+
+
+class RedisJobStore:
+    """Distributed mode: one Redis hash per job, JSON field values."""
+
+    def __init__(self, redis_client, prefix: str = "gsa:"):
+        self.r = redis_client
+        self.p = prefix
+        self._cas = self.r.register_script(_CAS)
+
+    def _jk(self, job_id):
+        return f"{self.p}job:{job_id}"
+
+    def create(self, job: Job) -> None:
+        data = {k: _enc(getattr(job, k)) for k in Job.model_fields}
+        pipe = self.r.pipeline(transaction=True)
+        pipe.hset(self._jk(job.id), mapping=data)
+        pipe.zadd(f"{self.p}owner:{job.owner}", {job.id: job.created_at})
+        pipe.sadd(f"{self.p}state:{_enc(job.state)}", job.id)
+        pipe.execute()
+
+    def _decode(self, raw: dict) -> Job | None:
+        if not raw:
+            return None
+        d = {k.decode(): json.loads(v) for k, v in raw.items()}
+        return Job.model_validate(d)
+
+    def get(self, job_id: str) -> Job | None:
+        return self._decode(self.r.hgetall(self._jk(job_id)))
+
+    def update(self, job_id, *, states=None, token=None, **fields) -> bool:
+        fields.setdefault("updated_at", time.time())
+        argv = [
+            ",".join(_enc(s) for s in states) if states else "",
+            _enc(token) if token else "",
+        ]
+        for k, v in fields.items():
+            argv += [k, _enc(v)]
+        keys = [self._jk(job_id), f"{self.p}job:", f"{self.p}state:"]
+        return bool(self._cas(keys=keys, args=argv))
+
+    def _many(self, ids) -> list[Job]:
+        pipe = self.r.pipeline(transaction=False)
+        for i in ids:
+            pipe.hgetall(self._jk(i.decode() if isinstance(i, bytes) else i))
+        return [j for j in map(self._decode, pipe.execute()) if j is not None]
+
+    def list(self, owner, state, limit, cursor):
+        key = f"{self.p}owner:{owner}"
+        out: list[Job] = []
+        top = "+inf" if cursor is None else cursor[0]
+        offset = 0
+        while len(out) < limit:
+            batch = self.r.zrevrangebyscore(
+                key, top, "-inf", start=offset, num=200, withscores=True
+            )
+            if not batch:
+                break
+            offset += len(batch)
+            ids = []
+            for raw_id, score in batch:
+                jid = raw_id.decode()
+                # Ties in created_at: zrevrange orders equal scores by id descending.
+                if cursor is not None and score == cursor[0] and jid >= cursor[1]:
+                    continue
+                ids.append(jid)
+            for job in self._many(ids):
+                if state is None or job.state == state:
+                    out.append(job)
+                    if len(out) == limit:
+                        break
+        return out
+
+    def running(self):
+        return self._many(self.r.smembers(f"{self.p}state:{_enc(JobState.running)}"))
+
+    def queued_ids(self):
+        return [
+            i.decode()
+            for i in self.r.smembers(f"{self.p}state:{_enc(JobState.queued)}")
+        ]
+
+    def counts(self):
+        pipe = self.r.pipeline(transaction=False)
+        for s in JobState:
+            pipe.scard(f"{self.p}state:{_enc(s)}")
+        return {s.value: int(n) for s, n in zip(JobState, pipe.execute())}
+
+    def claim_idempotency(self, owner, key, body_hash, job_id):
+        k = f"{self.p}idem:{owner}:{key}"
+        if self.r.set(k, f"{job_id}|{body_hash}", nx=True, ex=24 * 3600):
+            return None
+        job, _, h = self.r.get(k).decode().partition("|")
+        return job, h
+
+    def release_idempotency(self, owner, key):
+        self.r.delete(f"{self.p}idem:{owner}:{key}")
+
+    def delete_asset(self, asset_id):
+        self.r.delete(f"{self.p}asset:{asset_id}")
+
+    def put_asset(self, asset):
+        self.r.set(f"{self.p}asset:{asset.id}", asset.model_dump_json())
+
+    def get_asset(self, asset_id):
+        raw = self.r.get(f"{self.p}asset:{asset_id}")
+        return Asset.model_validate_json(raw) if raw else None
+
+    def record_stage(self, stage, seconds):
+        pipe = self.r.pipeline(transaction=False)
+        pipe.hincrby(f"{self.p}stage_count", stage, 1)
+        pipe.hincrbyfloat(f"{self.p}stage_seconds", stage, seconds)
+        pipe.execute()
+
+    def stage_stats(self):
+        counts = self.r.hgetall(f"{self.p}stage_count")
+        secs = self.r.hgetall(f"{self.p}stage_seconds")
+        return {k.decode(): (int(v), float(secs.get(k, 0))) for k, v in counts.items()}
+
+    def ping(self):
+        try:
+            return bool(self.r.ping())
+        except Exception:
+            return False

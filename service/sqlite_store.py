@@ -1,0 +1,184 @@
+"""The job store of embedded mode: SQLite.
+
+Compare-and-set updates run inside `BEGIN IMMEDIATE` transactions; the file
+survives API restarts.
+"""
+
+from __future__ import annotations
+
+import sqlite3
+import threading
+import time
+from pathlib import Path
+
+from service.models import Asset, Job, JobState
+
+
+class SQLiteJobStore:
+    """Embedded mode: one process owns the file; a lock serialises writers."""
+
+    def __init__(self, path: str | Path):
+        Path(path).parent.mkdir(parents=True, exist_ok=True)
+        self.db = sqlite3.connect(
+            str(path), check_same_thread=False, isolation_level=None, timeout=30
+        )
+        self.lock = threading.RLock()
+        with self.lock:
+            self.db.execute("PRAGMA journal_mode=WAL")
+            self.db.execute("PRAGMA synchronous=NORMAL")
+            self.db.executescript(
+                """
+                CREATE TABLE IF NOT EXISTS jobs (id TEXT PRIMARY KEY, owner TEXT, state TEXT,
+                    created_at REAL, data TEXT);
+                CREATE INDEX IF NOT EXISTS jobs_owner ON jobs(owner, created_at DESC, id DESC);
+                CREATE INDEX IF NOT EXISTS jobs_state ON jobs(state);
+                CREATE TABLE IF NOT EXISTS assets (id TEXT PRIMARY KEY, data TEXT);
+                CREATE TABLE IF NOT EXISTS idem (k TEXT PRIMARY KEY, job_id TEXT, hash TEXT, at REAL);
+                CREATE TABLE IF NOT EXISTS stages (stage TEXT PRIMARY KEY, n INTEGER, secs REAL);
+                """
+            )
+
+    def create(self, job):
+        with self.lock:
+            self.db.execute(
+                "INSERT INTO jobs VALUES (?,?,?,?,?)",
+                (
+                    job.id,
+                    job.owner,
+                    job.state.value,
+                    job.created_at,
+                    job.model_dump_json(),
+                ),
+            )
+
+    def get(self, job_id):
+        with self.lock:
+            row = self.db.execute(
+                "SELECT data FROM jobs WHERE id=?", (job_id,)
+            ).fetchone()
+        return Job.model_validate_json(row[0]) if row else None
+
+    def update(self, job_id, *, states=None, token=None, **fields):
+        fields.setdefault("updated_at", time.time())
+        with self.lock:
+            self.db.execute("BEGIN IMMEDIATE")
+            try:
+                row = self.db.execute(
+                    "SELECT data FROM jobs WHERE id=?", (job_id,)
+                ).fetchone()
+                if row is None:
+                    self.db.execute("ROLLBACK")
+                    return False
+                job = Job.model_validate_json(row[0])
+                if (states and job.state not in states) or (
+                    token and job.run_token != token
+                ):
+                    self.db.execute("ROLLBACK")
+                    return False
+                job = job.model_validate(
+                    {**job.model_dump(), **fields, "version": job.version + 1}
+                )
+                self.db.execute(
+                    "UPDATE jobs SET state=?, data=? WHERE id=?",
+                    (job.state.value, job.model_dump_json(), job_id),
+                )
+                self.db.execute("COMMIT")
+                return True
+            except BaseException:
+                self.db.execute("ROLLBACK")
+                raise
+
+    def list(self, owner, state, limit, cursor):
+        q, args = "SELECT data FROM jobs WHERE owner=?", [owner]
+        if state is not None:
+            q += " AND state=?"
+            args.append(state.value)
+        if cursor is not None:
+            q += " AND (created_at < ? OR (created_at = ? AND id < ?))"
+            args += [cursor[0], cursor[0], cursor[1]]
+        q += " ORDER BY created_at DESC, id DESC LIMIT ?"
+        args.append(limit)
+        with self.lock:
+            rows = self.db.execute(q, args).fetchall()
+        return [Job.model_validate_json(r[0]) for r in rows]
+
+    def running(self):
+        with self.lock:
+            rows = self.db.execute(
+                "SELECT data FROM jobs WHERE state='running'"
+            ).fetchall()
+        return [Job.model_validate_json(r[0]) for r in rows]
+
+    def queued_ids(self):
+        with self.lock:
+            rows = self.db.execute(
+                "SELECT id FROM jobs WHERE state='queued' ORDER BY created_at"
+            ).fetchall()
+        return [r[0] for r in rows]
+
+    def counts(self):
+        with self.lock:
+            rows = dict(
+                self.db.execute(
+                    "SELECT state, COUNT(*) FROM jobs GROUP BY state"
+                ).fetchall()
+            )
+        return {s.value: int(rows.get(s.value, 0)) for s in JobState}
+
+    def claim_idempotency(self, owner, key, body_hash, job_id):
+        k = f"{owner}:{key}"
+        with self.lock:
+            cur = self.db.execute(
+                "INSERT OR IGNORE INTO idem VALUES (?,?,?,?)",
+                (k, job_id, body_hash, time.time()),
+            )
+            if cur.rowcount == 1:
+                return None
+            row = self.db.execute(
+                "SELECT job_id, hash FROM idem WHERE k=?", (k,)
+            ).fetchone()
+        return row[0], row[1]
+
+    def release_idempotency(self, owner, key):
+        with self.lock:
+            self.db.execute("DELETE FROM idem WHERE k=?", (f"{owner}:{key}",))
+
+    def delete_asset(self, asset_id):
+        with self.lock:
+            self.db.execute("DELETE FROM assets WHERE id=?", (asset_id,))
+
+    def put_asset(self, asset):
+        with self.lock:
+            self.db.execute(
+                "INSERT OR REPLACE INTO assets VALUES (?,?)",
+                (asset.id, asset.model_dump_json()),
+            )
+
+    def get_asset(self, asset_id):
+        with self.lock:
+            row = self.db.execute(
+                "SELECT data FROM assets WHERE id=?", (asset_id,)
+            ).fetchone()
+        return Asset.model_validate_json(row[0]) if row else None
+
+    def record_stage(self, stage, seconds):
+        with self.lock:
+            self.db.execute(
+                "INSERT INTO stages VALUES (?,1,?) ON CONFLICT(stage) DO UPDATE SET n=n+1, secs=secs+excluded.secs",
+                (stage, seconds),
+            )
+
+    def stage_stats(self):
+        with self.lock:
+            return {
+                s: (n, secs)
+                for s, n, secs in self.db.execute("SELECT stage, n, secs FROM stages")
+            }
+
+    def ping(self):
+        try:
+            with self.lock:
+                self.db.execute("SELECT 1")
+            return True
+        except Exception:
+            return False

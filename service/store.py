@@ -1,0 +1,71 @@
+"""What a job store must do: the contract the Redis and SQLite stores both meet.
+
+Every state change is a compare-and-set (`update` with `states`/`token`), so
+the API, workers and reapers can write the same job without locks of their own.
+"""
+
+from __future__ import annotations
+
+from typing import Protocol
+
+from service.models import Asset, Job, JobState
+
+
+class JobStore(Protocol):
+    """Jobs, assets, idempotency keys and stage timings; see RedisJobStore and SQLiteJobStore."""
+
+    def create(self, job: Job) -> None: ...
+
+    def get(self, job_id: str) -> Job | None: ...
+
+    def update(
+        self,
+        job_id: str,
+        *,
+        states: set[JobState] | None = None,
+        token: str | None = None,
+        **fields,
+    ) -> bool:
+        """Set fields iff the job is in one of `states` (any if None) and, if given,
+        holds run_token `token`; False when the condition (or the job) is missing."""
+        ...
+
+    def list(
+        self,
+        owner: str,
+        state: JobState | None,
+        limit: int,
+        cursor: tuple[float, str] | None,
+    ) -> list[Job]:
+        """The owner's jobs, newest first, after `cursor` (created_at, id)."""
+        ...
+
+    def running(self) -> list[Job]: ...
+
+    def queued_ids(self) -> list[str]: ...
+
+    def counts(self) -> dict[str, int]:
+        """Jobs per state (every state present)."""
+        ...
+
+    def claim_idempotency(
+        self, owner: str, key: str, body_hash: str, job_id: str
+    ) -> tuple[str, str] | None:
+        """Reserve `key` for job_id; if it was taken: (earlier job id, its body hash)."""
+        ...
+
+    def release_idempotency(self, owner: str, key: str) -> None: ...
+
+    def put_asset(self, asset: Asset) -> None: ...
+
+    def delete_asset(self, asset_id: str) -> None: ...
+
+    def get_asset(self, asset_id: str) -> Asset | None: ...
+
+    def record_stage(self, stage: str, seconds: float) -> None: ...
+
+    def stage_stats(self) -> dict[str, tuple[int, float]]:
+        """{stage: (count, total seconds)}"""
+        ...
+
+    def ping(self) -> bool: ...
