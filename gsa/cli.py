@@ -17,7 +17,6 @@ from pathlib import Path
 
 import numpy as np
 
-EXIT_USAGE = 2
 EXIT_FAILED = 1
 
 

@@ -13,6 +13,7 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 
 from gsa.geometry import normalize_quats, quat_multiply, rotation_to_quat
+from gsa.sh import rotate_sh
 
 SH_C0 = 0.28209479177387814
 
@@ -193,8 +194,6 @@ class GaussianModel:
         Means, log-scales (+ log s), rotations (q_R ⊗ q) and SH bands 1..3
         (rotated exactly) change; opacities, DC colours and features do not.
         """
-        from gsa.sh import rotate_sh
-
         rot = np.asarray(sim3.rotation, np.float64)
         means = sim3.apply(self.means.astype(np.float64))
         q_r = rotation_to_quat(rot)

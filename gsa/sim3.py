@@ -94,12 +94,6 @@ class Sim3:
             "translation": self.translation.tolist(),
         }
 
-    @classmethod
-    def from_dict(cls, d: dict) -> Sim3:
-        if "transform" in d:
-            return cls.from_matrix(np.asarray(d["transform"]))
-        return cls(d["scale"], d["rotation"], d["translation"])
-
 
 def solve_sim3(src: np.ndarray, dst: np.ndarray, weights: np.ndarray | None = None) -> Sim3:
     """Closed-form T minimising Σ w_i ‖s R x_i + t − y_i‖² (rotation, translation)

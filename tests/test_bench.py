@@ -127,7 +127,7 @@ def tiny_pairs(monkeypatch):
     for kind in ("partial", "noisy", "symmetric", "deform"):
         monkeypatch.setattr(P, f"{kind}_pairs", lambda quick, seed, kind=kind: pairs(kind))
     # The fine stage renders: far too slow for a unit test; its rows are covered by the quick run.
-    monkeypatch.setattr(P, "fine_available", lambda: False)
+    monkeypatch.setattr(P, "FINE_ROWS", False)
 
 
 @pytest.mark.parametrize("name", ["dup", "same", "category", "partial", "noisy", "symmetric", "deform"])

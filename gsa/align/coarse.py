@@ -35,7 +35,6 @@ class CoarseOptions:
     tau_f: float = 0.01  # feature-distance threshold (paper default)
     max_iterations: int = 30  # stops earlier once the matches stop changing
     max_candidates: int = 32  # K: the most feature-similar candidates kept per source
-    weight_by_opacity: bool = False
     trim: float | None = 3.0  # drop matches beyond trim × median residual (None: keep all)
     # Convergence: the update is below these (radians; relative scale), or the matches repeat.
     rotation_tolerance: float = 2e-5
@@ -64,7 +63,6 @@ class CoarseResult:
     history: list[dict] = field(default_factory=list)
     matched: int = 0
     candidates: int = 0
-    truncated_sources: int = 0
     seconds: float = 0.0
 
 
@@ -191,7 +189,6 @@ def coarse_align(
 
     result = _icp(p, q_all, match, init, opts, w, progress, "features")
     result.candidates = candidates.pair_count
-    result.truncated_sources = candidates.truncated
     return result
 
 

@@ -138,7 +138,7 @@ def fine_align(source: GaussianModel, target: GaussianModel, init: Sim3, options
     cams = select_cameras(target, options, cameras)
     render = dict(backend=backend)
     # The native kernels use every core; torch only does small elementwise work here, and its
-    # idle OpenMP threads spinning between ops slowed the loop on a 2-core machine. Restored below.
+    # idle OpenMP threads spinning between ops compete with them for the cores. Restored below.
     torch_threads = torch.get_num_threads()
     torch.set_num_threads(1)
     try:

@@ -55,7 +55,7 @@ def write_outputs(
     if "merged" in outputs:
         paths["merged.ply"] = write_ply(merge_models(aligned, target), out / "merged.ply")
     if "renders" in outputs:
-        from gsa.render.views import write_alignment_renders
+        from gsa.render.views import write_alignment_renders  # lazy: loads torch, only renders need it
 
         renders = write_alignment_renders(source, target, Sim3.identity(), result.transform, out / "renders")
         paths.update({f"renders/{p.name}": p for p in renders.values()})

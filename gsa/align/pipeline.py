@@ -42,16 +42,15 @@ if TYPE_CHECKING:
 Progress = Callable[[str, float], None]
 FEATURE_MODES = ("auto", "file", "canonical", "spheremap", "dinov2")
 EXTRACTOR_MODES = ("spheremap", "dinov2")
-STAGES = ("coarse", "fine")
 STAGE_CHOICES = (("auto",), ("coarse",), ("coarse", "fine"))
 
 
 @dataclass
 class AlignOptions:
     # auto: coarse+fine when the coarse stage ends at the feature-guided ICP (the paper's
-    # pipeline: files' features, or refine off), where the fine stage measured 4-6x lower
-    # RRE; coarse alone after the nearest-neighbour refinement, which already sits below the
-    # fine loss's own floor (~0.05° at 5 views x 128 px; docs/benchmarks.md "fine stage").
+    # pipeline: files' features, or refine off), which the fine stage still improves; coarse
+    # alone after the nearest-neighbour refinement, which already ends below what the fine
+    # loss can resolve (docs/benchmarks.md "fine stage").
     stages: tuple[str, ...] = ("auto",)
     # auto: the files' own features when both have them, else the configured extractor
     # (gsa.features.FeatureSettings / GSA_FEATURES_*) when its weights are set, else canonical.
@@ -118,7 +117,6 @@ class AlignOptions:
             tau_f=self.tau_f,
             max_iterations=iterations or self.coarse_iterations,
             max_candidates=self.max_candidates,
-            weight_by_opacity=self.weight_by_opacity,
             trim=self.trim,
         )
 
@@ -208,7 +206,7 @@ def align(
     if _needs_extractor(opts, source, target):
         # Lift 2D extractor features onto both models (gsa.features); background
         # Gaussians are pruned, which changes the counts but not the transform.
-        from gsa.features import prepare_pair
+        from gsa.features import prepare_pair  # lazy: loads torch, only extractor features need it
 
         t = time.perf_counter()
         source, target, mode, reports = prepare_pair(source, target, opts.features, opts.feature_settings, progress)
@@ -444,8 +442,8 @@ class _Pair:
         τ = hypothesis_truncation × the target's RMS radius. A truncated mean distance,
         not the 3 % inlier fraction: for two different instances of a category most
         points lie farther apart than 3 % whichever way round, and that count cannot
-        tell a front/back flip of a near-symmetric shape from the right pose (measured:
-        4 of 60 category pairs flipped by 180°, none with the truncated distance)."""
+        tell a front/back flip of a near-symmetric shape from the right pose (on the
+        category protocol, docs/benchmarks.md, the count chose 180° flips, this does not)."""
         if len(hypotheses) == 1:
             return hypotheses[0], []
         opts = self.opts
@@ -515,7 +513,7 @@ class _Pair:
         return coarse
 
     def fine(self, best: _Hypothesis, init: Sim3, progress: Progress | None, cameras: Cameras | None = None):
-        from gsa.align.fine import FineOptions, fine_align
+        from gsa.align.fine import FineOptions, fine_align  # lazy: loads torch and the renderer
 
         src_model, dst_model = self.source, self.target
         if self.mode == "canonical":

@@ -44,10 +44,14 @@ from datetime import date
 from pathlib import Path
 
 import numpy as np
+from scipy.spatial import cKDTree
 
+from gsa.align.coarse import CoarseOptions, icp_refine
 from gsa.align.pipeline import AlignOptions, align
 from gsa.bench.peers import Peer, available_peers
+from gsa.canonical import canonical_features, model_frame
 from gsa.metrics import accuracy, rre_deg
+from gsa.render.cameras import cameras_around
 from gsa.sim3 import Sim3
 from gsa.synth import (
     CATEGORIES,
@@ -76,12 +80,9 @@ Pair = tuple[str, Callable[[], tuple]]  # (label, make() -> (source, target, tru
 Runner = Callable[[object, object], dict]
 
 
-def fine_available() -> bool:
-    try:
-        import gsa.align.fine  # noqa: F401
-    except ImportError:
-        return False
-    return True
+# Rows that run the fine stage (it renders, so they dominate a protocol's time). Always on in
+# a real run; unit tests of the protocol tables switch it off.
+FINE_ROWS = True
 
 
 # ---------------------------------------------------------------- runners
@@ -134,9 +135,9 @@ def peer_runner(peer: Peer, seed: int) -> Runner:
 
 
 def default_runners(seed: int, peers: list[str] | None, quick: bool) -> list[Runner]:
-    runners = [gsa_runner(fine_available(), **(QUICK_FINE if quick else {}))]
-    if not fine_available():
-        print("note: gsa.align.fine is not importable; GSA rows are coarse only")
+    runners = [gsa_runner(FINE_ROWS, **(QUICK_FINE if quick else {}))]
+    if not FINE_ROWS:
+        print("note: fine-stage rows off; GSA rows are coarse only")
     runners += [peer_runner(p, seed) for p in available_peers(peers)]
     return runners
 
@@ -396,7 +397,7 @@ def protocol_dup(quick: bool, seed: int, out: Path, peers: list[str] | None = No
 
 def protocol_same(quick: bool, seed: int, out: Path, peers: list[str] | None = None) -> list[dict]:
     runners = default_runners(seed, peers, quick)
-    if fine_available():
+    if FINE_ROWS:
         # What the fine stage adds to the paper's coarse stage (the default pipeline's NN
         # refinement already ends below the fine loss's floor on this protocol).
         runners.insert(1, gsa_runner(True, (GSA_PAPER_COARSE, GSA_PAPER_FINE), refine="off",
@@ -468,8 +469,6 @@ FINE_BASE = dict(coarse_iterations=3, hypothesis_iterations=3, refine="off")
 
 def similar_cameras(target, n: int = 3, pool: int = 60, image_size: int = 128, seed: int = 0):
     """n mutually close orbit cameras: the first of a dense orbit and its n-1 nearest."""
-    from gsa.render.cameras import cameras_around
-
     cams = cameras_around(target.means, pool, image_size, seed=seed)
     centers = cams.centers() - target.means.astype(np.float64).mean(0)
     dirs = centers / np.linalg.norm(centers, axis=1, keepdims=True)
@@ -481,8 +480,7 @@ def _fine_from(source, target, coarse_result, cameras, on: str, views: int, seed
     """The pipeline's fine stage (gsa.align.pipeline._Pair.fine) from a given coarse
     result with an explicit camera set: canonical features from the frames the
     coarse stage chose, as align() builds them."""
-    from gsa.align.fine import FineOptions, fine_align
-    from gsa.canonical import canonical_features
+    from gsa.align.fine import FineOptions, fine_align  # lazy: loads torch and the renderer
 
     if coarse_result.features == "canonical":
         source = source.with_features(canonical_features(source.means.astype(np.float64), coarse_result.source_frame))
@@ -494,11 +492,6 @@ def _fine_from(source, target, coarse_result, cameras, on: str, views: int, seed
 
 
 def ablation_runner(seed: int, quick: bool = False) -> Runner:
-    from scipy.spatial import cKDTree
-
-    from gsa.align.coarse import CoarseOptions, icp_refine
-    from gsa.canonical import model_frame
-
     def run(source, target):
         out = {}
         for label, opts in ABLATION_COARSE:
@@ -517,10 +510,8 @@ def ablation_runner(seed: int, quick: bool = False) -> Runner:
         res = icp_refine(source.means.astype(np.float64)[rows], dst, cKDTree(dst), init, CoarseOptions(max_iterations=200))
         out["features off (plain ICP, centroid/RMS start)"] = (res.transform, time.perf_counter() - t0)
 
-        if not fine_available():
+        if not FINE_ROWS:
             return out
-        from gsa.render.cameras import cameras_around
-
         t0 = time.perf_counter()
         base = align(source, target, AlignOptions(**FINE_BASE))
         coarse_s = time.perf_counter() - t0
@@ -547,8 +538,8 @@ def protocol_ablation(quick: bool, seed: int, out: Path, peers: list[str] | None
     # Cross-instance pairs like Table 4. Full: 3 instances per category (18 pairs)
     # rather than 5 (60): 9 configurations per pair, 4 of them rendering.
     pairs = category_pairs(quick, seed, instances=2 if quick else 3)
-    if not fine_available():
-        print("note: gsa.align.fine is not importable; fine-stage ablation rows skipped")
+    if not FINE_ROWS:
+        print("note: fine-stage rows off; fine-stage ablation rows skipped")
     rows = evaluate("ablation", pairs, [ablation_runner(seed, quick)], _category_of, out=out)
     add_time_ratio(rows, ABLATION_REFERENCE)  # no "GSA coarse" row here: ratio vs the default pipeline
     for row in rows:
@@ -573,8 +564,7 @@ def _speed_child(n: int, seed: int, stage: str, quick: bool = False) -> dict:
     elif stage == "fine":
         align(small_s, small_t, AlignOptions(stages=("coarse", "fine"), fine_iterations=1))
         coarse = align(source, target)
-        from gsa.align.fine import FineOptions, fine_align
-        from gsa.canonical import canonical_features
+        from gsa.align.fine import FineOptions, fine_align  # lazy: torch, only this stage's child process
 
         src = source.with_features(canonical_features(source.means.astype(np.float64), coarse.source_frame))
         dst = target.with_features(canonical_features(target.means.astype(np.float64), coarse.target_frame))
@@ -583,8 +573,7 @@ def _speed_child(n: int, seed: int, stage: str, quick: bool = False) -> dict:
         row.update(views=d.fine_views, image_size=d.fine_image_size, iterations=d.fine_iterations)
         fn = lambda: fine_align(src, dst, coarse.transform, opts)  # noqa: E731
     elif stage == "render":
-        from gsa.render import render_model
-        from gsa.render.cameras import cameras_around
+        from gsa.render import render_model  # lazy: torch, only this stage's child process
 
         cams = cameras_around(target.means, 1, 256)
         render_model(small_t, cams, features=False)
@@ -623,23 +612,11 @@ def _rss_now_mb() -> float:
 
 def speed_stages() -> list[str]:
     stages = ["coarse"]
-    if fine_available():
+    if FINE_ROWS:
         stages.append("fine")
     else:
-        print("note: speed: gsa.align.fine absent, fine timing skipped")
-    try:
-        import gsa.render  # noqa: F401
-
-        stages.append("render")
-    except ImportError:
-        print("note: speed: gsa.render absent, rendering timing skipped")
-    try:
-        import gsa.features.lift  # noqa: F401
-
-        stages.append("lift")
-    except ImportError:
-        print("note: speed: gsa.features.lift absent, lifting timing skipped")
-    return stages
+        print("note: speed: fine-stage rows off, fine timing skipped")
+    return [*stages, "render", "lift"]
 
 
 def protocol_speed(quick: bool, seed: int, out: Path, peers: list[str] | None = None) -> list[dict]:

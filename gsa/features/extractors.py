@@ -18,6 +18,7 @@ import torch.nn.functional as F
 
 from gsa.canonical import canonical_features
 from gsa.features.vit import WeightsError, load_backbone, load_sphere_head, to_input
+from gsa.render import render_model
 
 __all__ = ["FeatureExtractor", "FeatureSettings", "SphereMapExtractor", "Dinov2PCAExtractor",
            "CanonicalExtractor", "EXTRACTORS", "make_extractor", "WeightsError"]
@@ -74,7 +75,6 @@ class FeatureExtractor(ABC):
     (images (C,H,W,3), masks (C,H,W)) and may use the model and cameras it came from."""
 
     name = "base"
-    needs_geometry = False  # True: features come from the 3D model, not from pixels
 
     def extract(self, image: np.ndarray, mask: np.ndarray) -> np.ndarray:
         """image (H,W,3) float in [0,1], mask (H,W) bool -> (H,W,3) float32, 0 outside mask."""
@@ -202,7 +202,6 @@ class CanonicalExtractor(FeatureExtractor):
     that keeps them consistent with the renderer at soft silhouettes."""
 
     name = "canonical"
-    needs_geometry = True
 
     def __init__(self, backend: str = "auto"):
         self.backend = backend
@@ -214,8 +213,6 @@ class CanonicalExtractor(FeatureExtractor):
     def extract_views(self, images, masks, *, model=None, cameras=None) -> np.ndarray:
         if model is None or cameras is None:
             raise ValueError("the canonical extractor needs model= and cameras=")
-        from gsa.render import render_model
-
         feats = canonical_features(model)
         out = render_model(model.with_features(feats), cameras, features=True, depth=False,
                            backend=self.backend, feature_background=np.zeros(3))

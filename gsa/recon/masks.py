@@ -186,9 +186,3 @@ def compute_masks(images: np.ndarray, method: str = "auto", cameras=None, points
         out.append(mask)
         used.append(m)
     return np.stack(out), used
-
-
-def apply_masks(images: np.ndarray, masks: np.ndarray, background=(1.0, 1.0, 1.0)) -> np.ndarray:
-    """Masked images (Alg. 1): outside the mask, the given background colour. (C,H,W,3)."""
-    bg = np.asarray(background, images.dtype)
-    return np.where(masks[..., None], images, bg)

@@ -19,10 +19,10 @@ import numpy as np
 from gsa.io.ply import write_ply
 from gsa.model import GaussianModel
 from gsa.recon.images import load_image_set
-from gsa.recon.masks import compute_masks
+from gsa.recon.masks import SamOnnxMasker, compute_masks
 from gsa.recon.sfm import SfMResult, run_sfm
-from gsa.render.cameras import write_cameras_json
 from gsa.recon.train import PRESETS, TrainConfig, TrainResult, train_gaussians
+from gsa.render.cameras import write_cameras_json
 
 Progress = Callable[[str, float], None]
 
@@ -99,8 +99,6 @@ def reconstruct(images_path: str | Path, out_dir: str | Path, preset: str | Trai
     report("masks", 0.0)
     sam = None
     if masks == "sam":
-        from gsa.recon.masks import SamOnnxMasker
-
         sam = SamOnnxMasker(sam_encoder, sam_decoder)
     mk, used = compute_masks(imgs, masks, sfm.cameras, sfm.points, sam=sam)
     (out / "masks").mkdir(exist_ok=True)

@@ -18,6 +18,7 @@ import numpy as np
 
 from gsa.recon.images import ImageSet
 from gsa.render.cameras import Cameras
+from gsa.sim3 import solve_sim3
 
 Progress = Callable[[str, float], None]
 
@@ -189,8 +190,6 @@ def _from_reconstruction(rec, images: ImageSet, timings: dict) -> SfMResult:
 def centre_error(est: Cameras, true: Cameras) -> tuple[float, "object"]:
     """Fit a Sim(3) taking estimated camera centres onto true ones; returns (RMS residual in
     true units, the Sim3). est and true must list the same images in the same order."""
-    from gsa.sim3 import solve_sim3
-
     a, b = est.centers(), true.centers()
     t = solve_sim3(a, b)
     res = np.linalg.norm(t.apply(a) - b, axis=1)

@@ -18,7 +18,9 @@ import numpy as np
 from gsa.model import SH_C0, GaussianModel
 from gsa.recon.images import write_rgb
 from gsa.render import Cameras, render_model
+from gsa.render.cameras import look_at
 from gsa.sim3 import Sim3
+from gsa.synth import make_object
 
 
 @dataclass
@@ -52,8 +54,6 @@ def textured_object(category: str = "car", seed: int = 0, n_gaussians: int = 60_
     """A gsa.synth object whose colours carry a 3D noise texture plus random coloured
     spots of varied size (blob-like marks give SIFT distinctive keypoints)."""
     from scipy.spatial import cKDTree
-
-    from gsa.synth import make_object
 
     model = make_object(category, seed=seed, n_gaussians=n_gaussians)
     size = float(np.linalg.norm(model.means.max(0) - model.means.min(0)))
@@ -99,8 +99,6 @@ def render_image_set(out_dir: str | Path, *, category: str = "car", seed: int = 
     lo, hi = np.radians(elevation_range)
     el = np.arcsin(np.sin(lo) + (np.sin(hi) - np.sin(lo)) * (i + 0.5) / n_views)
     dirs = np.stack([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el)], axis=1)
-    from gsa.render.cameras import look_at
-
     views = np.stack([look_at(center + radius * d, center) for d in dirs])
     f = 0.5 * size / np.tan(np.radians(fov) / 2)
     cams = Cameras(views, f, f, size / 2, size / 2, size, size)

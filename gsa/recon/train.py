@@ -35,7 +35,7 @@ from scipy.spatial import cKDTree
 
 from gsa.canonical import canonical_features
 from gsa.model import SH_C0, GaussianModel, sh_coeff_count
-from gsa.render import rasterize
+from gsa.render import rasterize, render_model
 from gsa.render.cameras import Cameras
 
 Progress = Callable[[str, float], None]
@@ -77,8 +77,9 @@ class TrainConfig:
 
 
 PRESETS = {
-    # About 1.5 minutes on 2 idle CPU cores for 30 views: 128 px, 1000 iterations, faster
-    # position/colour learning (measured: 600 its 30.2 -> 28.9 dB, 1500 its 30.8 dB at 167 s).
+    # Sized for CPU-only training (30 views in minutes): 128 px, 1000 iterations and faster
+    # position/colour learning; fewer iterations cost held-out PSNR, more buy little for their
+    # time (docs/benchmarks.md, reconstruction).
     "cpu": TrainConfig(iterations=1000, resolution=128, lr_means=1.6e-3, lr_means_final=1.6e-5, lr_sh_dc=1e-2,
                        lr_features=1e-2, densify_from=100, densify_until=750, densify_every=100,
                        max_gaussians=30_000),
@@ -363,8 +364,6 @@ def train_gaussians(images: np.ndarray, masks: np.ndarray, cameras: Cameras, poi
         model.metadata["features"] = "lifted:canonical" if isinstance(features, str) else "lifted:maps"
     # held-out evaluation at the training resolution
     ps, psm = [], []
-    from gsa.render import render_model
-
     for i in held:
         r = render_model(model, cams[i], features=False, background=bg_t, depth=False, backend=cfg.backend)
         pred = r.colors[0].numpy()

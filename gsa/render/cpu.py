@@ -33,8 +33,8 @@ TILE = 16
 _CHUNKS = 64  # work items per camera for loops over Gaussians (load balance across threads)
 
 # numba's OpenMP layer shares libgomp with torch; on a busy machine spinning torch threads and
-# descheduled numba threads made barriers cost up to 100x (measured: 4 ms -> 800 ms per kernel).
-# The built-in workqueue layer degrades gracefully. It must not be entered from two Python
+# descheduled numba threads make its barriers orders of magnitude slower. The built-in
+# workqueue layer degrades gracefully. It must not be entered from two Python
 # threads at once, hence _KERNEL_LOCK around every kernel call (the kernels use all cores anyway).
 if "NUMBA_THREADING_LAYER" not in os.environ:
     numba.config.THREADING_LAYER = "workqueue"
@@ -502,8 +502,8 @@ def locality_order(points: np.ndarray, bits: int = 10) -> np.ndarray:
     """Permutation sorting points along a 3D Morton (Z-order) curve.
 
     Rendering does not depend on the Gaussians' order, but the kernels gather them in depth
-    order per tile; with neighbours stored nearby those gathers hit the cache (measured: packing
-    50k Gaussians' records for 5 views 4.9 -> 2.2 ms). Worth it for a model rendered many times.
+    order per tile; with neighbours stored nearby those gathers hit the cache (packing the
+    per-pair records takes about half as long). Worth it for a model rendered many times.
     """
     p = np.asarray(points, np.float64)
     if len(p) == 0:
@@ -515,11 +515,6 @@ def locality_order(points: np.ndarray, bits: int = 10) -> np.ndarray:
         for axis in range(3):
             code |= ((q[:, axis] >> np.uint64(b)) & np.uint64(1)) << np.uint64(3 * b + axis)
     return np.argsort(code, kind="stable")
-
-
-def set_threads(n: int) -> None:
-    """Limit numba's worker threads (e.g. inside a service worker)."""
-    numba.set_num_threads(max(1, min(int(n), numba.config.NUMBA_NUM_THREADS)))
 
 
 # ---------------------------------------------------------------- projection

@@ -1,6 +1,7 @@
-"""gsplat backend (CUDA). UNTESTED in this repository's CI: written against the documented
-`gsplat.rasterization(...)` API (gsplat >= 1.0, `covars=` argument) on a machine without a
-GPU. Used by `backend="auto"` only when torch.cuda.is_available() and gsplat imports.
+"""gsplat backend (CUDA), written against the documented `gsplat.rasterization(...)` API
+(gsplat >= 1.0, `covars=` argument). The test suite needs neither a GPU nor gsplat, so it
+does not exercise this path. Used by `backend="auto"` only when torch.cuda.is_available()
+and gsplat imports.
 
 Colour (SH evaluated in torch, same convention as the CPU path), features and camera depth
 are rendered together as one post-activation channel stack (sh_degree=None), so every

@@ -2,7 +2,7 @@
 
 One entry point, `rasterize(...)`, with backends:
   "cpu"       torch projection + native numba compositing with a hand-written backward (default here);
-  "cuda"      gsplat.rasterization on a CUDA device (used by "auto" when available; untested on CPU-only hosts);
+  "cuda"      gsplat.rasterization on a CUDA device (used by "auto" when available; see gsa.render.cuda);
   "reference" torch projection + dense pure-torch compositing (slow; ground truth for tests).
 `render_gaussians(...)` is the same on precomputed 3D covariances and explicit view matrices
 (which may be similarities, so gradients reach a Sim(3) applied to the model through the cameras).
