@@ -12,11 +12,10 @@ import threading
 from contextlib import asynccontextmanager
 
 from fastapi import FastAPI
-from fastapi.openapi.utils import get_openapi
 
+from service.api import artifacts, assets, jobs, ops
 from service.api.middleware import BodyLimit, RequestMetrics, install_error_handlers
-from service.api.routes import router
-from service.api.schemas import JobCreate, Problem
+from service.api.openapi import custom_openapi
 from service.backend import Backend, make_backend
 from service.leases import start_reaper
 from service.metrics import Metrics
@@ -87,28 +86,9 @@ def create_app(
 
     app.add_middleware(BodyLimit, max_bytes_for=cap)
     app.add_middleware(RequestMetrics, metrics=app.state.metrics)
-    app.include_router(router)
+    # This order is the order of the paths in the OpenAPI document.
+    for resource in (ops, assets, jobs, artifacts):
+        app.include_router(resource.router)
 
-    def openapi():
-        if app.openapi_schema:
-            return app.openapi_schema
-        schema = get_openapi(
-            title=app.title,
-            version=app.version,
-            summary=app.summary,
-            description=app.description,
-            routes=app.routes,
-        )
-        comps = schema.setdefault("components", {}).setdefault("schemas", {})
-        # Bodies parsed by hand (json or streamed multipart) are declared in
-        # openapi_extra; make sure the models they reference are present.
-        for model in (JobCreate, Problem):
-            js = model.model_json_schema(ref_template="#/components/schemas/{model}")
-            for name, d in js.pop("$defs", {}).items():
-                comps.setdefault(name, d)
-            comps.setdefault(model.__name__, js)
-        app.openapi_schema = schema
-        return schema
-
-    app.openapi = openapi
+    app.openapi = lambda: custom_openapi(app)
     return app

@@ -7,6 +7,7 @@ request costs more than that under many concurrent pollers."""
 from __future__ import annotations
 
 import hmac
+from typing import Annotated
 
 from fastapi import Depends, Request
 from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
@@ -56,3 +57,8 @@ async def require_owner(
         p.headers["WWW-Authenticate"] = 'Bearer realm="gsa"'
         raise p
     return owner
+
+
+# Handler parameter types: the caller's owner id (401 without a valid key) and the app's backend.
+Owner = Annotated[str, Depends(require_owner)]
+B = Annotated[Backend, Depends(get_backend)]

@@ -250,6 +250,25 @@ def test_gsa_does_not_import_service():
     assert r.returncode == 0, r.stderr
 
 
+def test_openapi_paths_and_methods_are_the_public_contract(tmp_path):
+    """The routers are split per resource; the document's paths, their order and
+    methods are what clients were given, and must not move."""
+    from service.api.app import create_app
+
+    app = create_app(Settings(storage_root=tmp_path, auth_disabled=True), run_workers=False)
+    assert [(p, list(ops)) for p, ops in app.openapi()["paths"].items()] == [
+        ("/healthz", ["get"]),
+        ("/readyz", ["get"]),
+        ("/metrics", ["get"]),
+        ("/v1/assets", ["post"]),
+        ("/v1/assets/{asset_id}", ["get"]),
+        ("/v1/jobs", ["post", "get"]),
+        ("/v1/jobs/{job_id}", ["get"]),
+        ("/v1/jobs/{job_id}:cancel", ["post"]),
+        ("/v1/jobs/{job_id}/artifacts/{name}", ["get"]),
+    ]
+
+
 def test_readyz_reports_unreachable_redis(tmp_path):
     from fastapi.testclient import TestClient
 

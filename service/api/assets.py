@@ -1,0 +1,60 @@
+"""Assets: uploading a model (PLY) or an image set, reading its metadata."""
+
+from __future__ import annotations
+
+from fastapi import APIRouter, Request, Response
+from fastapi.concurrency import run_in_threadpool
+
+from service import core
+from service.api.deps import B, Owner
+from service.api.openapi import UPLOAD_BODY, problem_responses
+from service.api.schemas import AssetOut
+from service.api.upload import parse_multipart
+from service.problems import invalid_input
+
+router = APIRouter()
+
+
+@router.post(
+    "/v1/assets",
+    status_code=201,
+    response_model=AssetOut,
+    tags=["assets"],
+    summary="Upload a model (PLY) or an image set (zip or several images)",
+    openapi_extra=UPLOAD_BODY,
+    responses=problem_responses(401, 413, 422),
+)
+async def upload_asset(request: Request, response: Response, owner: Owner, b: B):
+    s = b.settings
+    form = await parse_multipart(request, s.max_upload_bytes, max_files=s.max_images)
+    try:
+        files = form.files.get("file", [])
+        if not files:
+            raise invalid_input("multipart field 'file' is required")
+        if len(files) == 1:
+            asset = await run_in_threadpool(
+                core.ingest, b, owner, files[0].file, files[0].filename
+            )
+        else:
+            asset = await run_in_threadpool(
+                core.ingest_images,
+                b,
+                owner,
+                [(f.filename, f.file) for f in files],
+                "images",
+            )
+    finally:
+        form.close()
+    response.headers["Location"] = f"/v1/assets/{asset.id}"
+    return AssetOut.from_asset(asset)
+
+
+@router.get(
+    "/v1/assets/{asset_id}",
+    response_model=AssetOut,
+    tags=["assets"],
+    summary="Asset metadata",
+    responses=problem_responses(401, 404),
+)
+async def get_asset(asset_id: str, owner: Owner, b: B):
+    return AssetOut.from_asset(core.get_asset(b, owner, asset_id))

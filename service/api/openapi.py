@@ -1,0 +1,108 @@
+"""The hand-written parts of the OpenAPI document.
+
+Request bodies that the handlers parse themselves (JSON or streamed multipart)
+are not visible to FastAPI, so they are declared here and attached with
+`openapi_extra`; `custom_openapi` makes sure the models they reference exist.
+"""
+
+from __future__ import annotations
+
+from fastapi import FastAPI
+from fastapi.openapi.utils import get_openapi
+
+from service.api.middleware import PROBLEM_JSON
+from service.api.schemas import JobCreate, Problem
+
+
+def problem_responses(*codes: int) -> dict:
+    """`responses=` entries for these status codes: RFC 9457 bodies as application/problem+json."""
+    return {c: {"model": Problem, "content": {PROBLEM_JSON: {}}} for c in codes}
+
+
+# POST /v1/assets: one or more files in the multipart field "file".
+UPLOAD_BODY = {
+    "requestBody": {
+        "required": True,
+        "content": {
+            "multipart/form-data": {
+                "schema": {
+                    "type": "object",
+                    "required": ["file"],
+                    "properties": {
+                        "file": {
+                            "type": "array",
+                            "items": {"type": "string", "format": "binary"},
+                            "description": "one 3DGS .ply, one .zip of images, or several PNG/JPEG images",
+                        }
+                    },
+                }
+            }
+        },
+    }
+}
+
+# POST /v1/jobs: asset ids as JSON, or the files themselves as multipart.
+JOB_BODY = {
+    "requestBody": {
+        "required": True,
+        "content": {
+            "application/json": {
+                "schema": {"$ref": "#/components/schemas/JobCreate"}
+            },
+            "multipart/form-data": {
+                "schema": {
+                    "type": "object",
+                    "properties": {
+                        "source": {
+                            "type": "array",
+                            "items": {"type": "string", "format": "binary"},
+                            "description": "source model(s): 3DGS .ply or .zip of images; several = multi-model job",
+                        },
+                        "target": {
+                            "type": "string",
+                            "format": "binary",
+                            "description": "target (reference) .ply or .zip",
+                        },
+                        "source_images": {
+                            "type": "array",
+                            "items": {"type": "string", "format": "binary"},
+                            "description": "source image set as individual PNG/JPEG files",
+                        },
+                        "target_images": {
+                            "type": "array",
+                            "items": {"type": "string", "format": "binary"},
+                            "description": "target image set as individual PNG/JPEG files",
+                        },
+                        "options": {
+                            "type": "string",
+                            "description": "JSON object, see AlignOptionsIn",
+                        },
+                        "webhook_url": {"type": "string"},
+                        "webhook_secret": {"type": "string"},
+                    },
+                }
+            },
+        },
+    }
+}
+
+
+def custom_openapi(app: FastAPI) -> dict:
+    """app.openapi: the generated document plus the models the hand-written bodies reference."""
+    if app.openapi_schema:
+        return app.openapi_schema
+    schema = get_openapi(
+        title=app.title,
+        version=app.version,
+        summary=app.summary,
+        description=app.description,
+        routes=app.routes,
+    )
+    comps = schema.setdefault("components", {}).setdefault("schemas", {})
+    for model in (JobCreate, Problem):
+        js = model.model_json_schema(ref_template="#/components/schemas/{model}")
+        for name, d in js.pop("$defs", {}).items():
+            comps.setdefault(name, d)
+        comps.setdefault(model.__name__, js)
+    app.openapi_schema = schema
+    return schema

@@ -1,0 +1,50 @@
+"""Operations endpoints: liveness, readiness, Prometheus metrics."""
+
+from __future__ import annotations
+
+from fastapi import APIRouter, Request, Response
+from prometheus_client import CONTENT_TYPE_LATEST, generate_latest
+
+from service.api.deps import B, Owner
+from service.api.openapi import problem_responses
+from service.api.schemas import Health
+from service.problems import Problem as ProblemError
+
+router = APIRouter()
+
+
+@router.get("/healthz", response_model=Health, tags=["ops"], summary="Liveness")
+async def healthz() -> Health:
+    return Health(status="ok")
+
+
+@router.get(
+    "/readyz",
+    response_model=Health,
+    tags=["ops"],
+    summary="Readiness: job store and storage reachable",
+    responses=problem_responses(503),
+)
+def readyz(b: B):
+    checks = b.ready()
+    if not all(checks.values()):
+        bad = ", ".join(k for k, v in checks.items() if not v)
+        p = ProblemError(
+            503, "not-ready", "Service not ready", f"unreachable: {bad}", checks=checks
+        )
+        raise p
+    return Health(status="ready", checks=checks)
+
+
+@router.get(
+    "/metrics",
+    tags=["ops"],
+    summary="Prometheus metrics (any valid API key)",
+    responses={200: {"content": {CONTENT_TYPE_LATEST: {}}}},
+    response_class=Response,
+)
+def metrics(request: Request, owner: Owner):
+    return Response(
+        generate_latest(request.app.state.metrics.registry),
+        media_type=CONTENT_TYPE_LATEST,
+    )
