@@ -6,6 +6,7 @@ import hashlib
 import hmac
 import io
 import json
+import re
 import threading
 import zipfile
 from http.server import BaseHTTPRequestHandler, HTTPServer
@@ -410,6 +411,7 @@ def test_webhook_signed_and_retried(http, pair):
 
 
 def test_image_set_job(http, pair):
+    pytest.importorskip("pycolmap", reason="image-set jobs run pycolmap SfM, which is not installed")
     buf = io.BytesIO()
     with zipfile.ZipFile(buf, "w") as zf:
         for i in range(3):
@@ -430,26 +432,19 @@ def test_image_set_job(http, pair):
             "id"
         ],
     )
-    try:
-        import gsa.recon  # noqa: F401
-
-        have_recon = True
-    except ImportError:
-        have_recon = False
-    if not have_recon:
-        assert job["state"] == "failed"
-        assert job["error"]["type"].endswith("/reconstruction-unavailable"), job[
-            "error"
-        ]
-        assert "not available in this build" in job["error"]["detail"]
-    else:
-        # Three flat grey 16x12 pictures: the real pipeline (pycolmap SfM) runs and
-        # cannot register them; the client gets the library's reason as a 422.
-        assert job["state"] == "failed", job
-        assert job["error"]["status"] == 422, job["error"]
-        assert job["error"]["type"].endswith("/reconstruction-failed"), job["error"]
-        assert job["error"]["detail"].startswith("source0 images:")
-        assert job["artifacts"] == []
+    # Three flat grey 16x12 pictures: the real pipeline runs (images loaded,
+    # pycolmap features and matching) and its mapper cannot register them; the
+    # client gets the library's reason as a 422, and the job shows how far it got.
+    assert job["state"] == "failed", job
+    assert job["error"]["status"] == 422, job["error"]
+    assert job["error"]["type"].endswith("/reconstruction-failed"), job["error"]
+    assert re.match(r"source0 images: 0 of 3 images registered", job["error"]["detail"]), job["error"]
+    assert job["stage"] == "recon:sfm:mapping", job
+    assert 0.02 <= job["progress"] < 0.1, job  # inside the SfM span of the progress bar
+    metrics = http.get("/metrics").text
+    for stage in ("recon:images", "recon:sfm:features", "recon:sfm:matching"):
+        assert f'gsa_stage_duration_seconds_count{{stage="{stage}"}}' in metrics, stage
+    assert job["artifacts"] == []
 
 
 def test_ops_endpoints_and_openapi(stack, http):
