@@ -138,12 +138,14 @@ def _align_options(args: argparse.Namespace):
 
 
 def _feature_settings(args: argparse.Namespace):
-    """FeatureSettings only when an extractor may run (importing it loads torch)."""
-    if args.features in ("file", "canonical") or not (args.backbone or args.head or args.features != "auto"):
+    """FeatureSettings from --backbone/--head and GSA_FEATURES_* / GSA_LIFT_* (the library reads
+    no environment), unless the features come from the files or the canonical frame."""
+    if args.features in ("file", "canonical"):
         return None
-    from gsa.features import FeatureSettings
+    from gsa.features.settings import FeatureSettings
+    from gsa.settings_env import feature_settings_env
 
-    return FeatureSettings.from_env(backbone=args.backbone, head=args.head)
+    return FeatureSettings(**feature_settings_env(backbone=args.backbone, head=args.head))
 
 
 def add_align_arguments(p: argparse.ArgumentParser) -> None:
@@ -325,9 +327,8 @@ def cmd_synth(args: argparse.Namespace) -> int:
 
 
 def cmd_bench(args: argparse.Namespace) -> int:
-    from gsa.bench.protocols import run_protocols
-
     from gsa.bench.peers import PEERS
+    from gsa.bench.protocols import run_protocols
 
     names = {"all": list(PEERS), "default": None, "none": []}
     peers = names[args.peers] if args.peers in names else [p for p in args.peers.split(",") if p]

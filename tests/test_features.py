@@ -33,6 +33,7 @@ from gsa.features.command import add_lift_parser
 from gsa.features.vit import DinoV2, VitConfig, hf_to_hub, load_backbone, load_sphere_head, sphere_mapper_head, to_input
 from gsa.io.ply import read_ply, write_ply
 from gsa.model import GaussianModel, ModelError, merge_models
+from gsa.settings_env import feature_settings_env, sam_paths_env
 from gsa.synth import make_object
 
 TINY = VitConfig(embed_dim=64, depth=2, num_heads=1, patch_size=14, pos_grid=37)
@@ -294,6 +295,19 @@ def test_prepare_pair_resolves_modes_for_the_pipeline(small_model, weights):
 
 
 def test_settings_from_environment():
-    s = FeatureSettings.from_env({"GSA_FEATURES_EXTRACTOR": "dinov2", "GSA_FEATURES_BACKBONE": "/w/dinov2",
-                                  "GSA_LIFT_VIEWS": "7", "GSA_PRUNE_THRESHOLD": "0.2"}, lift_views=9)
+    env = {"GSA_FEATURES_EXTRACTOR": "dinov2", "GSA_FEATURES_BACKBONE": "/w/dinov2", "GSA_LIFT_VIEWS": "7",
+           "GSA_PRUNE_THRESHOLD": "0.2", "GSA_FEATURES_HEAD": ""}
+    s = FeatureSettings(**feature_settings_env(env, lift_views=9, head=None))
     assert (s.extractor, s.backbone, s.head, s.lift_views, s.prune_threshold) == ("dinov2", "/w/dinov2", None, 9, 0.2)
+    assert FeatureSettings.from_env(env, lift_views=9) == s  # the deprecated spelling service/ still uses
+    assert sam_paths_env("enc.onnx", None, {"GSA_SAM_DECODER": "dec.onnx"}) == ("enc.onnx", "dec.onnx")
+
+
+def test_library_reads_no_environment(monkeypatch, small_model):
+    """GSA_FEATURES_* reach the aligner only through settings built at the edge (gsa.cli)."""
+    from gsa.align.pipeline import AlignOptions, _needs_extractor
+
+    monkeypatch.setenv("GSA_FEATURES_EXTRACTOR", "dinov2")
+    assert not _needs_extractor(AlignOptions(), small_model, small_model.with_features(None))
+    assert _needs_extractor(AlignOptions(feature_settings=FeatureSettings(extractor="dinov2")), small_model,
+                            small_model.with_features(None))

@@ -7,7 +7,6 @@ The CLI, the service worker, the benchmarks and the tests all call this.
 from __future__ import annotations
 
 import functools
-import os
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field, replace
@@ -52,8 +51,8 @@ class AlignOptions:
     # alone after the nearest-neighbour refinement, which already ends below what the fine
     # loss can resolve (docs/benchmarks.md "fine stage").
     stages: tuple[str, ...] = ("auto",)
-    # auto: the files' own features when both have them, else the configured extractor
-    # (gsa.features.FeatureSettings / GSA_FEATURES_*) when its weights are set, else canonical.
+    # auto: the files' own features when both have them, else the extractor of feature_settings
+    # (the CLI reads GSA_FEATURES_* into them) when its weights are set, else canonical.
     features: str = "auto"
     feature_settings: object | None = None  # gsa.features.FeatureSettings for spheremap/dinov2
     tau_f: float = 0.01
@@ -275,9 +274,8 @@ def _needs_extractor(opts: AlignOptions, source: GaussianModel, target: Gaussian
         return True
     if opts.features != "auto" or (source.feature_dim and source.feature_dim == target.feature_dim):
         return False
-    if opts.feature_settings is not None:
-        return getattr(opts.feature_settings, "extractor", "canonical") in EXTRACTOR_MODES
-    return os.environ.get("GSA_FEATURES_EXTRACTOR", "canonical") in EXTRACTOR_MODES
+    # No settings: the defaults' extractor, canonical (the CLI passes settings from GSA_FEATURES_*).
+    return getattr(opts.feature_settings, "extractor", "canonical") in EXTRACTOR_MODES
 
 
 def _feature_mode(source: GaussianModel, target: GaussianModel, requested: str) -> str:

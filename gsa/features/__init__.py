@@ -18,7 +18,7 @@ _HOME = {
     "Dinov2PCAExtractor": "gsa.features.extractors",
     "EXTRACTORS": "gsa.features.extractors",
     "FeatureExtractor": "gsa.features.extractors",
-    "FeatureSettings": "gsa.features.extractors",
+    "FeatureSettings": "gsa.features.settings",
     "LiftReport": "gsa.features.lift",
     "SphereMapExtractor": "gsa.features.extractors",
     "WeightsError": "gsa.features.extractors",

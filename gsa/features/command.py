@@ -34,10 +34,11 @@ def add_lift_parser(subparsers) -> None:
 def cmd_lift(args) -> int:
     from gsa.features import FeatureSettings, lift_features, make_extractor, prune_background
     from gsa.io.ply import read_ply, write_ply
+    from gsa.settings_env import feature_settings_env
 
-    s = FeatureSettings.from_env(backbone=args.backbone, head=args.head, lift_views=args.views,
-                                 lift_image_size=args.size, lift_iterations=args.iterations, lift_lr=args.lr,
-                                 prune_threshold=args.prune, backend=args.backend)
+    s = FeatureSettings(**feature_settings_env(
+        backbone=args.backbone, head=args.head, lift_views=args.views, lift_image_size=args.size,
+        lift_iterations=args.iterations, lift_lr=args.lr, prune_threshold=args.prune, backend=args.backend))
     if s.lift_views < 1 or s.lift_image_size < 8 or s.lift_iterations < 0:
         raise ValueError("--views must be >= 1, --size >= 8 and --iterations >= 0")
     extractor = make_extractor(args.features, s)  # fails fast, before reading a large model

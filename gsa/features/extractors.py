@@ -7,16 +7,14 @@ and the coarse stage's feature threshold treat them alike.
 
 from __future__ import annotations
 
-import os
 from abc import ABC, abstractmethod
-from dataclasses import dataclass, fields
-from typing import ClassVar
 
 import numpy as np
 import torch
 import torch.nn.functional as F
 
 from gsa.canonical import canonical_features
+from gsa.features.settings import FeatureSettings
 from gsa.features.vit import WeightsError, load_backbone, load_sphere_head, to_input
 from gsa.render import render_model
 
@@ -26,48 +24,6 @@ __all__ = ["FeatureExtractor", "FeatureSettings", "SphereMapExtractor", "Dinov2P
 # Setting names as they appear in errors, the CLI (--backbone/--head) and the environment.
 BACKBONE_SETTING = "features.backbone (--backbone, GSA_FEATURES_BACKBONE)"
 HEAD_SETTING = "features.head (--head, GSA_FEATURES_HEAD)"
-
-
-@dataclass
-class FeatureSettings:
-    """Where weights live and how lifting runs. Paths are local; nothing is downloaded.
-
-    backbone: HF Dinov2 folder or torch.hub DINOv2 state dict (spheremap and dinov2);
-    head: sphere_mapper checkpoint (spheremap only);
-    extractor: what `--features auto` uses for a model without features
-    ("canonical" unless weights are configured).
-    """
-
-    extractor: str = "canonical"
-    backbone: str | None = None
-    head: str | None = None
-    input_size: int = 518  # 37x37 patches of 14 px, as GSA feeds the spherical mapper
-    batch_size: int = 4  # images per backbone forward (memory vs. overhead)
-    lift_views: int = 24
-    lift_image_size: int = 128
-    lift_iterations: int = 150
-    lift_lr: float = 0.02
-    lift_batch_views: int = 4
-    prune_threshold: float = 0.1  # the authors' background-Gaussian threshold
-    backend: str = "auto"  # rasterizer backend
-
-    ENV: ClassVar[dict[str, str]] = {"extractor": "GSA_FEATURES_EXTRACTOR", "backbone": "GSA_FEATURES_BACKBONE",
-           "head": "GSA_FEATURES_HEAD", "lift_views": "GSA_LIFT_VIEWS",
-           "lift_image_size": "GSA_LIFT_IMAGE_SIZE", "lift_iterations": "GSA_LIFT_ITERATIONS",
-           "prune_threshold": "GSA_PRUNE_THRESHOLD"}
-
-    @classmethod
-    def from_env(cls, environ=None, **overrides) -> FeatureSettings:
-        """Settings from GSA_FEATURES_* / GSA_LIFT_* variables; keyword overrides win when not None."""
-        environ = os.environ if environ is None else environ
-        kw = {}
-        types = {f.name: f.type for f in fields(cls)}
-        for name, var in cls.ENV.items():
-            if environ.get(var):
-                raw = environ[var]
-                kw[name] = int(raw) if types[name] == "int" else float(raw) if types[name] == "float" else raw
-        kw.update({k: v for k, v in overrides.items() if v is not None})
-        return cls(**kw)
 
 
 class FeatureExtractor(ABC):

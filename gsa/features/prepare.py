@@ -47,7 +47,7 @@ def prepare_for_alignment(model: GaussianModel, mode: str = "auto", settings: Fe
     `extractor` reuses an already-built extractor (weights loaded once; for dinov2 the same
     PCA basis for both models of a pair). A LiftReport is appended to `reports` when lifting ran.
     """
-    settings = settings or FeatureSettings.from_env()
+    settings = settings or FeatureSettings()
     mode = resolve_mode(mode, settings, model)
     if mode == "file":
         if model.features is None:
@@ -97,7 +97,7 @@ def prepare_pair(source: GaussianModel, target: GaussianModel, mode: str = "auto
     spheremap/dinov2 both models are lifted with ONE extractor (weights loaded once; for dinov2
     one PCA basis, fitted on the source) and background-pruned, then aligned as "file".
     """
-    settings = settings or FeatureSettings.from_env()
+    settings = settings or FeatureSettings()
     mode = resolve_mode(mode, settings, source, target)
     if mode in ("file", "canonical"):
         if mode == "file":

@@ -27,14 +27,16 @@ def add_reconstruct_parser(subparsers) -> argparse.ArgumentParser:
 def run_reconstruct(args) -> int:
     from gsa.recon import ImageSetError, MaskError, SfMError
     from gsa.recon.pipeline import reconstruct
+    from gsa.settings_env import sam_paths_env
 
     def progress(stage, frac):
         print(f"\r{stage:14s} {100 * frac:5.1f}%", end="", file=sys.stderr, flush=True)
 
+    sam_encoder, sam_decoder = sam_paths_env(args.sam_encoder, args.sam_decoder)
     try:
         res = reconstruct(args.images, args.out, preset=args.preset, features=args.features, progress=progress,
                           masks=args.masks, matching=args.matching, iterations=args.iterations,
-                          sam_encoder=args.sam_encoder, sam_decoder=args.sam_decoder)
+                          sam_encoder=sam_encoder, sam_decoder=sam_decoder)
     except (ImageSetError, SfMError, MaskError) as exc:
         print(f"\nerror: {exc}", file=sys.stderr)
         return 2

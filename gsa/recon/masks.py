@@ -15,7 +15,6 @@ Backends:
 
 from __future__ import annotations
 
-import os
 from pathlib import Path
 
 import cv2
@@ -100,18 +99,18 @@ class SamOnnxMasker:
     """SAM (ONNX export: an image encoder taking a (1,3,1024,1024) normalised image and the
     official prompt decoder export) run with onnxruntime; prompts are object points.
 
-    encoder_path, decoder_path: local .onnx files (or set GSA_SAM_ENCODER / GSA_SAM_DECODER).
+    encoder_path, decoder_path: local .onnx files (`gsa reconstruct` also reads them from
+    GSA_SAM_ENCODER / GSA_SAM_DECODER, see gsa.settings_env).
     """
 
     MEAN = np.array([123.675, 116.28, 103.53], np.float32)
     STD = np.array([58.395, 57.12, 57.375], np.float32)
 
     def __init__(self, encoder_path: str | None = None, decoder_path: str | None = None):
-        encoder_path = encoder_path or os.environ.get("GSA_SAM_ENCODER")
-        decoder_path = decoder_path or os.environ.get("GSA_SAM_DECODER")
         if not encoder_path or not decoder_path:
             raise MaskError("the SAM mask backend needs local ONNX files: pass sam_encoder/sam_decoder "
-                            "or set GSA_SAM_ENCODER and GSA_SAM_DECODER (nothing is downloaded)")
+                            "(gsa reconstruct: --sam-encoder/--sam-decoder or GSA_SAM_ENCODER and "
+                            "GSA_SAM_DECODER; nothing is downloaded)")
         for p in (encoder_path, decoder_path):
             if not Path(p).is_file():
                 raise MaskError(f"SAM checkpoint not found: {p}")

@@ -1,0 +1,39 @@
+"""Feature-extraction and lifting settings (no torch: the CLI builds them before it knows
+whether an extractor will run)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+
+@dataclass
+class FeatureSettings:
+    """Where weights live and how lifting runs. Paths are local; nothing is downloaded.
+
+    backbone: HF Dinov2 folder or torch.hub DINOv2 state dict (spheremap and dinov2);
+    head: sphere_mapper checkpoint (spheremap only);
+    extractor: what `--features auto` uses for a model without features
+    ("canonical" unless weights are configured).
+    """
+
+    extractor: str = "canonical"
+    backbone: str | None = None
+    head: str | None = None
+    input_size: int = 518  # 37x37 patches of 14 px, as GSA feeds the spherical mapper
+    batch_size: int = 4  # images per backbone forward (memory vs. overhead)
+    lift_views: int = 24
+    lift_image_size: int = 128
+    lift_iterations: int = 150
+    lift_lr: float = 0.02
+    lift_batch_views: int = 4
+    prune_threshold: float = 0.1  # the authors' background-Gaussian threshold
+    backend: str = "auto"  # rasterizer backend
+
+    @classmethod
+    def from_env(cls, environ=None, **overrides) -> FeatureSettings:
+        """Deprecated: the environment is read at the edges. Use
+        FeatureSettings(**gsa.settings_env.feature_settings_env(environ, **overrides));
+        kept until service/options.py does."""
+        from gsa.settings_env import feature_settings_env
+
+        return cls(**feature_settings_env(environ, **overrides))
