@@ -3,6 +3,7 @@ as HTTP, plus the standard grpc.health.v1 service and server reflection."""
 
 from __future__ import annotations
 
+import hashlib
 import json
 import logging
 import tempfile
@@ -227,7 +228,6 @@ class AlignmentServicer(pbg.AlignmentServiceServicer):
                 if tgt_up
                 else core.get_asset(self.b, owner, header.target_asset_id)
             )
-            import hashlib
 
             def digest(f):
                 h = hashlib.sha256()

@@ -40,7 +40,7 @@ def validate_ply(path: Path, max_gaussians: int, display_name: str) -> int:
     Uses the library's own header parser so the service accepts exactly what
     the workers can read, without loading the body (which may be gigabytes).
     """
-    from gsa.io import ply as plymod
+    from gsa.io import ply as plymod  # lazy: keeps the library off API start-up
 
     try:
         with open(path, "rb") as fh:

@@ -139,6 +139,8 @@ def heartbeat(
     lost: threading.Event,
     stop: threading.Event,
 ) -> None:
+    """Thread body: renew the lease every lease_s/3 until `stop`; set `lost` once
+    the store refuses (another attempt owns the job now)."""
     lease = backend.settings.lease_s
     while not stop.wait(lease / 3):
         try:
@@ -159,6 +161,7 @@ def heartbeat(
 def finish_attempt(
     backend: Backend, job_id: str, token: str, state: JobState, **fields
 ) -> bool:
+    """End this attempt in `state`; False if the attempt no longer owns the job."""
     return backend.store.update(
         job_id,
         states={JobState.running},

@@ -94,7 +94,7 @@ def _warm_up() -> None:
 
 def run_rq_worker(burst: bool = False, name: str | None = None) -> None:
     """A worker process: RQ worker on the job + webhook queues, plus a reaper."""
-    from rq import Worker
+    from rq import Worker  # lazy: embedded mode runs without RQ
 
     backend = process_backend()
     if backend.redis is None:

@@ -11,6 +11,6 @@ here, so these names must stay importable from service.worker. The code lives in
 
 from __future__ import annotations
 
-from service.execution import execute, problem_for  # noqa: F401
+from service.execution import execute  # noqa: F401
 from service.leases import reap, resend_lost, start_reaper  # noqa: F401
 from service.runners import run_job, run_rq_worker, start_embedded_workers  # noqa: F401

@@ -2,8 +2,10 @@
 
 from __future__ import annotations
 
+import json
 import logging
 import time
+from http import HTTPStatus
 
 from fastapi import FastAPI, Request
 from fastapi.exceptions import RequestValidationError
@@ -71,8 +73,6 @@ def install_error_handlers(app: FastAPI) -> None:
 
 
 def _title(status: int) -> str:
-    from http import HTTPStatus
-
     try:
         return HTTPStatus(status).phrase
     except ValueError:
@@ -124,8 +124,6 @@ class BodyLimit:
 
 
 async def _send_problem(scope, send, p: Problem) -> None:
-    import json
-
     body = json.dumps(p.to_dict(scope.get("path"))).encode()
     await send(
         {
