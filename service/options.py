@@ -5,6 +5,8 @@ from __future__ import annotations
 import dataclasses
 from typing import Any, Literal, get_args
 
+from gsa.features.settings import FeatureSettings  # torch-free: safe at API start-up
+from gsa.settings_env import feature_settings_env
 from service.problems import invalid_input
 
 SERVICE_OPTIONS = {"outputs", "renders", "recon_iterations"}
@@ -26,11 +28,11 @@ def server_options(settings, known: set[str]) -> dict:
     if "device" in known and settings.worker_device:
         out["device"] = settings.worker_device
     if "feature_settings" in known and (settings.dinov2_weights or settings.spheremap_weights):
-        from gsa.features import FeatureSettings  # lazy: loads the feature extractors (torch)
-
-        out["feature_settings"] = FeatureSettings.from_env(
-            backbone=str(settings.dinov2_weights) if settings.dinov2_weights else None,
-            head=str(settings.spheremap_weights) if settings.spheremap_weights else None,
+        out["feature_settings"] = FeatureSettings(
+            **feature_settings_env(
+                backbone=str(settings.dinov2_weights) if settings.dinov2_weights else None,
+                head=str(settings.spheremap_weights) if settings.spheremap_weights else None,
+            )
         )
     return out
 
