@@ -1,42 +1,17 @@
-"""Robust global registration for models without learned features.
-
-One canonical frame per model (gsa.canonical) moves as soon as a capture
-misses a side, carries floaters or is a different instance, and colour plays no
-part in it. This module does not trust any single frame:
-
-1. `anchors`: floaters are dropped (low opacity, or alone in their voxel) and
-   each model is voxel-downsampled to ~2k anchors with a mean position, a mean
-   CIELAB colour and a weight. The voxel size follows each model's own size, so
-   anchors are scale-free.
-2. `global_search`: every rotation of a near-uniform SO(3) sample (super-Fibonacci,
-   plus the canonical-frame relabellings, which make duplicates exact) is placed by
-   matching centres and RMS radii, pulled by vectorised capture steps (translation and
-   Horn scale from the anchors within a shrinking radius), and scored through a grid of
-   nearest-anchor indices (an exact distance transform), both ways round; the leaders
-   also try a grid of offsets and scale factors.
-3. The best distinct rotations are refined by a robust, bidirectional, colour-matched
-   ICP with Horn's symmetric scale on the anchors (both directions, so a partial model
-   cannot shrink into the other), and scored by how much of the two models overlap
-   (truncated distances both ways), a close pair of the wrong colour counting against
-   a pose as far as the two models share a palette: colour is what tells the sides of
-   a symmetric object apart.
-4. The margin to the best distinct alternative and the overlap itself give a
-   confidence; near-ties are reported as ambiguous with their poses.
-"""
+"""The global search over SO(3): pose scoring through nearest-anchor grids (numba kernels),
+capture steps, offset trials, successive-halving refinement of the best starts by a
+bidirectional coloured ICP on the anchors, and the decision between the refined poses."""
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numba
 import numpy as np
-from scipy import ndimage
 from scipy.spatial import cKDTree
 
-from gsa.align.nearest import nearest_candidate
-from gsa.canonical import SIGNED_PERMUTATIONS, CanonicalFrame, relabelling_label
+from gsa.align.robust.anchoring import Anchors, NearestGrid, _sample, colour_weight
 from gsa.geometry import rotation_distance_deg, super_fibonacci_rotations
-from gsa.model import GaussianModel
 from gsa.sim3 import DegenerateCorrespondencesError, Sim3, solve_sim3
 
 # Truncation of distances in the overlap score, as a fraction of the target's
@@ -47,8 +22,6 @@ TRUNCATION = 0.1
 COLOUR_PAIR_DISTANCE = 0.05
 # Colour similarity of a pair: exp(−ΔE² / 2σ²) in CIELAB.
 COLOUR_SIGMA = 12.0
-# A colour of one model is "shared" when the other has one within this ΔE.
-SHARED_DELTA_E = 8.0
 # In coloured matching, a ΔE of COLOUR_SIGMA weighs like this fraction of the truncation distance.
 COLOUR_MATCH = 0.5
 # Poses whose scores differ by less than this are a tie (a symmetric shape whose
@@ -56,133 +29,8 @@ COLOUR_MATCH = 0.5
 SCORE_TIE = 0.03
 # Unfinished starts scoring within this of the best finished one are finished too.
 RIVAL_WINDOW = 0.08
-# Overlap estimation in the final refinement (see overlap_trim): Chetverikov et al. use
-# λ = 2; a larger λ keeps more pairs. Measured on the partial and deform protocols
-# (docs/benchmarks.md): λ = 4 keeps partial overlaps precise (median 0.15°) and
-# averages smooth deformations better than λ = 2 (success 75 % vs 58 % on 12 pairs).
-OVERLAP_LAMBDA = 4.0
 # Rotations closer than this are one pose, not alternatives.
 DISTINCT_DEG = 15.0
-
-
-@dataclass
-class Anchors:
-    """A voxel-downsampled, floater-free summary of a model."""
-
-    points: np.ndarray  # (A, 3) float64, model units
-    lab: np.ndarray  # (A, 3) CIELAB colour
-    weights: np.ndarray  # (A,) Gaussians per anchor (normalised to mean 1)
-    center: np.ndarray  # (3,) weighted centroid
-    radius: float  # weighted RMS distance from the centroid
-    kept: np.ndarray  # (N,) bool: Gaussians that are not floaters
-    tree: cKDTree = field(repr=False)
-
-    def __len__(self) -> int:
-        return len(self.points)
-
-
-def srgb_to_lab(rgb: np.ndarray) -> np.ndarray:
-    """sRGB in [0, 1] -> CIELAB (D65): distances approximate perceived differences."""
-    c = np.clip(np.asarray(rgb, np.float64), 0.0, 1.0)
-    lin = np.where(c <= 0.04045, c / 12.92, ((c + 0.055) / 1.055) ** 2.4)
-    m = np.array([[0.4124564, 0.3575761, 0.1804375],
-                  [0.2126729, 0.7151522, 0.0721750],
-                  [0.0193339, 0.1191920, 0.9503041]])
-    xyz = lin @ m.T / np.array([0.95047, 1.0, 1.08883])
-    f = np.where(xyz > (6 / 29) ** 3, np.cbrt(xyz), xyz / (3 * (6 / 29) ** 2) + 4 / 29)
-    return np.stack([116 * f[:, 1] - 16, 500 * (f[:, 0] - f[:, 1]), 200 * (f[:, 1] - f[:, 2])], axis=1)
-
-
-def floater_mask(model: GaussianModel) -> np.ndarray:
-    """Gaussians worth trusting for geometry: opacity at least half the model's
-    median (faint floaters go), the rest judged by density in `anchors`."""
-    o = model.opacities
-    keep = o >= 0.5 * float(np.median(o))
-    return keep if keep.sum() >= 3 else np.ones(len(model), bool)
-
-
-def anchors(model: GaussianModel, count: int = 2000, seed: int = 0) -> Anchors:
-    """Voxel-downsample the model to about `count` anchors, dropping floaters.
-
-    The voxel size is found from the model's own extent (a surface's voxel count
-    grows as size⁻²), so the same object at any scale gets comparable anchors.
-    Voxels holding far fewer Gaussians than a typical surface voxel are floaters
-    spread through space (an unpruned capture), not surface."""
-    pts = model.means.astype(np.float64)
-    kept = floater_mask(model)
-    x = pts[kept]
-    rgb = model.base_colors[kept]
-    lo, hi = x.min(0), x.max(0)
-    extent = float(np.max(hi - lo))
-    if not extent > 0:
-        raise ValueError("all Gaussians coincide; the model has no extent to align")
-    voxel = extent / np.sqrt(count)
-    for _ in range(4):
-        keys, inverse, counts = _voxelise(x, lo, voxel)
-        occupied = len(counts)
-        if 0.7 * count <= occupied <= 1.4 * count or occupied >= len(x) * 0.9:
-            break
-        voxel *= np.sqrt(occupied / count)
-    # Surface voxels hold many Gaussians; a floater's voxel one or two.
-    typical = float(np.median(np.repeat(counts, counts)))
-    solid = counts >= max(2.0, 0.1 * typical) if typical >= 8 else np.ones(len(counts), bool)
-    if solid.sum() < 4:
-        solid = np.ones(len(counts), bool)
-    gaussian_solid = solid[inverse]
-    full_kept = kept.copy()
-    full_kept[np.flatnonzero(kept)[~gaussian_solid]] = False
-    n_vox = len(counts)
-    sums = np.zeros((n_vox, 3))
-    np.add.at(sums, inverse, x)
-    csum = np.zeros((n_vox, 3))
-    np.add.at(csum, inverse, rgb)
-    points = (sums / counts[:, None])[solid]
-    colours = (csum / counts[:, None])[solid]
-    weights = counts[solid].astype(np.float64)
-    weights /= weights.mean()
-    w = weights / weights.sum()
-    center = w @ points
-    radius = float(np.sqrt(w @ np.sum((points - center) ** 2, axis=1)))
-    if not radius > 0:
-        raise ValueError("all Gaussians coincide; the model has no extent to align")
-    return Anchors(points, srgb_to_lab(colours), weights, center, radius, full_kept, cKDTree(points))
-
-
-def _voxelise(x: np.ndarray, lo: np.ndarray, voxel: float):
-    ijk = np.floor((x - lo) / voxel).astype(np.int64)
-    span = ijk.max(0) + 1
-    keys = (ijk[:, 0] * span[1] + ijk[:, 1]) * span[2] + ijk[:, 2]
-    uniq, inverse, counts = np.unique(keys, return_inverse=True, return_counts=True)
-    return uniq, inverse.ravel(), counts
-
-
-class NearestGrid:
-    """Nearest-anchor index for every cell of a grid around a point set (exact
-    Euclidean distance transform): a scoring lookup in O(1) per point, so
-    thousands of candidate rotations are scored in one vectorised pass."""
-
-    def __init__(self, points: np.ndarray, cell: float, pad: float):
-        self.points = points
-        self.lo = points.min(0) - pad
-        self.cell = cell
-        shape = np.ceil((points.max(0) + pad - self.lo) / cell).astype(int) + 1
-        self.shape = shape
-        ijk = np.floor((points - self.lo) / cell).astype(int)
-        owner = np.full(tuple(shape), -1, np.int64)
-        owner[ijk[:, 0], ijk[:, 1], ijk[:, 2]] = np.arange(len(points))
-        _, nearest = ndimage.distance_transform_edt(owner < 0, return_indices=True)
-        self.nearest_flat = np.ascontiguousarray(owner[nearest[0], nearest[1], nearest[2]].ravel())
-        self.shape = np.asarray(shape, np.int64)
-
-    def lookup(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """(..., 3) points -> (nearest anchor index, distance); outside the grid: index -1, distance inf."""
-        ijk = ((x - self.lo) * (1.0 / self.cell)).astype(np.int32)  # truncation = floor inside the grid
-        inside = np.all((ijk >= 0) & (ijk < self.shape) & (x >= self.lo), axis=-1)
-        flat = (ijk[..., 0] * self.shape[1] + ijk[..., 1]) * self.shape[2] + ijk[..., 2]
-        idx = self.nearest_flat[np.where(inside, flat, 0)]
-        diff = self.points[idx] - x
-        d = np.sqrt(np.einsum("...i,...i->...", diff, diff))
-        return np.where(inside, idx, -1), np.where(inside, d, np.inf)
 
 
 @dataclass
@@ -471,19 +319,6 @@ def _capture_step(u, scale, t, nearest, lo, inv_cell, shape, other, reach):  # p
             t[k, a] = sy[a] / cnt - s_new * su[a] / cnt
 
 
-def colour_weight(src: Anchors, dst: Anchors) -> float:
-    """How far colour can be trusted to compare poses, from the colours alone (no
-    pose): two captures of one object share their palette, and then colour is what
-    tells a symmetric object's sides apart; two different instances (another paint)
-    do not, and then only geometry counts. Fraction of each model's anchors with a
-    colour the other also has, both ways, mapped from [0.5, 0.9] to [0, 1]."""
-    d1, _ = cKDTree(dst.lab).query(src.lab, k=1)
-    d2, _ = cKDTree(src.lab).query(dst.lab, k=1)
-    shared = 0.5 * (np.average(d1 <= SHARED_DELTA_E, weights=src.weights)
-                    + np.average(d2 <= SHARED_DELTA_E, weights=dst.weights))
-    return float(np.clip((shared - 0.5) / 0.4, 0.0, 1.0))
-
-
 def _pair_scores(d: np.ndarray, lab_a: np.ndarray, lab_b: np.ndarray, tau: float, w_colour: float) -> np.ndarray:
     """Per point: truncated closeness to its partner, c·(1 − 2w(1 − k)) with k the
     colour similarity and w the trust in colour. With trusted colour a close pair of
@@ -495,10 +330,6 @@ def _pair_scores(d: np.ndarray, lab_a: np.ndarray, lab_b: np.ndarray, tau: float
         return closeness
     de2 = np.sum((lab_a - lab_b) ** 2, axis=-1)
     return closeness * (1.0 - 2.0 * w_colour * (1.0 - np.exp(-0.5 * de2 / COLOUR_SIGMA**2)))
-
-
-def _sample(rng: np.random.Generator, n: int, k: int) -> np.ndarray:
-    return np.arange(n) if k >= n else np.sort(rng.choice(n, k, replace=False))
 
 
 def bidirectional_icp(src: Anchors, dst: Anchors, init: Sim3, src_rows: np.ndarray, dst_rows: np.ndarray,
@@ -596,137 +427,3 @@ def decide(cands: list[Candidate], w_colour: float) -> SearchResult:
     rivals = [c for c in cands[1:] if c.score >= best.score - SCORE_TIE]
     margin = (best.score - cands[1].score) / SCORE_TIE if len(cands) > 1 else float("inf")
     return SearchResult(cands, w_colour, float(margin), rivals)
-
-
-# A result is reported doubtful below this confidence.
-CONFIDENCE_THRESHOLD = 0.5
-# confidence = min(fit, separation): fit maps the final overlap score (truncated
-# closeness both ways, anchors) from FIT_FLOOR..FIT_FLOOR+FIT_SPAN onto 0..1, so a
-# pose whose models overlap less than FIT_FLOOR + FIT_SPAN/2 = 0.55 is doubtful; two
-# complete captures of one object score 0.6-0.8, duplicates 0.8-0.9. Separation maps
-# the lead over the best distinct alternative (units of SCORE_TIE) from 0..MARGIN_SPAN.
-# Calibrated on all benchmark protocols together (docs/benchmarks.md, "confidence").
-FIT_FLOOR, FIT_SPAN = 0.45, 0.2
-MARGIN_SPAN = 4.0
-
-
-def verdict(final: Candidate, search: SearchResult | None) -> dict:
-    """GT-free judgement of a final pose: `confidence` in [0, 1] combines how well the
-    two models overlap there with how clearly the pose beat the best distinct
-    alternative of the search; `ambiguous` marks a tie nothing could break
-    (a colourless symmetric object), with the tied poses as `alternatives`."""
-    fit = float(np.clip((final.geometry - FIT_FLOOR) / FIT_SPAN, 0.0, 1.0))
-    ambiguous = bool(search is not None and search.ambiguous)
-    separation = 1.0 if search is None else float(np.clip(search.margin / MARGIN_SPAN, 0.0, 1.0))
-    confidence = min(fit, separation)
-    if ambiguous:
-        confidence = min(confidence, 0.25)
-    out = {
-        "confidence": confidence,
-        "ambiguous": ambiguous,
-        "doubtful": ambiguous or confidence < CONFIDENCE_THRESHOLD,
-        "score": final.score,
-        "margin": None if search is None else search.margin,
-        "overlap_score": final.geometry,
-        "overlap_fraction": final.overlap,
-        "colour_agreement": final.colour,
-    }
-    if search is not None:
-        out["colour_weight"] = search.colour_weight
-        shown = search.rivals if ambiguous else search.candidates[1:4]
-        out["alternatives"] = [c.to_dict(final.transform) for c in shown]
-    return out
-
-
-def frame_relabellings(src: CanonicalFrame, dst: CanonicalFrame) -> list[tuple[str, np.ndarray]]:
-    """Rotations mapping the source's canonical axes onto the target's, under all 24
-    axis relabellings: where the frames hold (clean copies) one of them is exact,
-    and the search refines from it."""
-    return [(relabelling_label(g), dst.axes.T @ g @ src.axes) for g in SIGNED_PERMUTATIONS]
-
-
-def refine(source_points: np.ndarray, target_points: np.ndarray, source_tree: cKDTree, target_tree: cKDTree,
-           init: Sim3, iterations: int = 40, neighbours: int = 6) -> tuple[Sim3, list[dict]]:
-    """Full-resolution trimmed ICP on correspondences from both directions.
-
-    `source_points`/`target_points` are samples (rows of the trees' points are
-    matched against); each direction's k nearest neighbours are cached and
-    scanned by a compiled kernel while the pose moves little, re-queried when
-    the cache stops being trustworthy, as gsa.align.coarse.icp_refine does for
-    one direction. Both directions: where two captures overlap only in part, a
-    one-way match pulls the overlap's boundary inwards and biases the scale."""
-    p = np.ascontiguousarray(source_points, np.float64)
-    q = np.ascontiguousarray(target_points, np.float64)
-    src_all = np.ascontiguousarray(source_tree.data, np.float64)
-    dst_all = np.ascontiguousarray(target_tree.data, np.float64)
-    transform = init
-    history: list[dict] = []
-    it = 0
-    while it < iterations:
-        k_f = min(neighbours, len(dst_all))
-        k_s = min(neighbours, len(src_all))
-        _, tab_f = target_tree.query(transform.apply(p), k=k_f, workers=_workers(len(p)))
-        _, tab_r = source_tree.query(transform.inverse().apply(q), k=k_s, workers=_workers(len(q)))
-        tab_f = np.ascontiguousarray(tab_f.reshape(len(p), -1), np.int64)
-        tab_r = np.ascontiguousarray(tab_r.reshape(len(q), -1), np.int64)
-        inner = 0
-        while it < iterations:
-            it += 1
-            inner += 1
-            d_f, j = nearest_candidate(np.ascontiguousarray(transform.apply(p)), dst_all, tab_f)
-            d_r, i = nearest_candidate(np.ascontiguousarray(transform.inverse().apply(q)), src_all, tab_r)
-            d = np.concatenate([d_f, d_r * transform.scale])
-            a = np.concatenate([p, src_all[i]])
-            b = np.concatenate([dst_all[j], q])
-            # The overlap fraction is estimated once per neighbour table and held while
-            # the pose settles on it: re-estimated every step, its jumps between grid
-            # values keep the pose from converging.
-            if inner == 1:
-                fraction = overlap_fraction(d)
-            keep = _smallest(d, fraction)
-            try:
-                new = solve_sim3(a[keep], b[keep])
-            except DegenerateCorrespondencesError:
-                return transform, history
-            step = new @ transform.inverse()
-            angle = rotation_distance_deg(step.rotation, np.eye(3))
-            history.append({"stage": "refine", "iteration": it, "matched": int(keep.sum()),
-                            "rms_residual": float(np.sqrt(np.mean(d[keep] ** 2))),
-                            "delta_rotation_deg": angle, "scale": new.scale})
-            transform = new
-            # Steps below these sit in the sampling noise of the correspondences.
-            if angle < 2e-3 and abs(np.log(step.scale)) < 2e-5:
-                if inner <= 2:
-                    return transform, history
-                break  # converged on the cached tables: re-query once to confirm
-            if inner >= 10:
-                break
-    return transform, history
-
-
-def overlap_trim(d: np.ndarray, lam: float = OVERLAP_LAMBDA) -> np.ndarray:
-    """The pairs that overlap_fraction keeps (a boolean mask over d)."""
-    return _smallest(d, overlap_fraction(d, lam))
-
-
-def _smallest(d: np.ndarray, fraction: float) -> np.ndarray:
-    keep = np.zeros(len(d), bool)
-    keep[np.argsort(d)[: max(int(fraction * len(d)), 3)]] = True
-    return keep
-
-
-def overlap_fraction(d: np.ndarray, lam: float = OVERLAP_LAMBDA) -> float:
-    """Trimmed-ICP overlap estimate (Chetverikov et al. 2005): the fraction ξ of
-    pairs with the smallest residuals that minimises RMS(ξ) / ξ^(1+λ), ξ ≥ 0.3. Where the two
-    models overlap only in part the residuals jump and ξ stops at the overlap; where
-    one is a deformed copy of the other they grow smoothly and ξ stays near 1, so
-    the fit averages the deformation instead of locking onto one part of it."""
-    cum = np.cumsum(np.sort(d) ** 2)
-    xi = np.linspace(0.3, 1.0, 15)
-    counts = np.maximum((xi * len(d)).astype(int), 3)
-    rms = np.sqrt(cum[counts - 1] / counts)
-    return float(xi[np.argmin(rms / xi ** (1.0 + lam))])
-
-
-def _workers(n: int) -> int:
-    return -1 if n >= 20_000 else 1

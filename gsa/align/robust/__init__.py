@@ -1,0 +1,102 @@
+"""Robust global registration for models without learned features.
+
+One canonical frame per model (gsa.canonical) moves as soon as a capture
+misses a side, carries floaters or is a different instance, and colour plays no
+part in it. This module does not trust any single frame:
+
+1. `anchors`: floaters are dropped (low opacity, or alone in their voxel) and
+   each model is voxel-downsampled to ~2k anchors with a mean position, a mean
+   CIELAB colour and a weight. The voxel size follows each model's own size, so
+   anchors are scale-free.
+2. `global_search`: every rotation of a near-uniform SO(3) sample (super-Fibonacci,
+   plus the canonical-frame relabellings, which make duplicates exact) is placed by
+   matching centres and RMS radii, pulled by vectorised capture steps (translation and
+   Horn scale from the anchors within a shrinking radius), and scored through a grid of
+   nearest-anchor indices (an exact distance transform), both ways round; the leaders
+   also try a grid of offsets and scale factors.
+3. The best distinct rotations are refined by a robust, bidirectional, colour-matched
+   ICP with Horn's symmetric scale on the anchors (both directions, so a partial model
+   cannot shrink into the other), and scored by how much of the two models overlap
+   (truncated distances both ways), a close pair of the wrong colour counting against
+   a pose as far as the two models share a palette: colour is what tells the sides of
+   a symmetric object apart.
+4. The margin to the best distinct alternative and the overlap itself give a
+   confidence; near-ties are reported as ambiguous with their poses.
+
+Modules: anchoring (1, and the colour trust), search (2-3, with the numba scoring and
+capture kernels), refine (the full-resolution refinement, frame relabellings, verdict).
+"""
+
+from gsa.align.robust.anchoring import (
+    SHARED_DELTA_E,
+    Anchors,
+    NearestGrid,
+    anchors,
+    colour_weight,
+    floater_mask,
+    srgb_to_lab,
+)
+from gsa.align.robust.refine import (
+    CONFIDENCE_THRESHOLD,
+    FIT_FLOOR,
+    FIT_SPAN,
+    MARGIN_SPAN,
+    OVERLAP_LAMBDA,
+    frame_relabellings,
+    overlap_fraction,
+    overlap_trim,
+    refine,
+    verdict,
+)
+from gsa.align.robust.search import (
+    COLOUR_MATCH,
+    COLOUR_PAIR_DISTANCE,
+    COLOUR_SIGMA,
+    DISTINCT_DEG,
+    RIVAL_WINDOW,
+    SCORE_TIE,
+    TRUNCATION,
+    Candidate,
+    SearchOptions,
+    SearchResult,
+    bidirectional_icp,
+    decide,
+    global_search,
+    rotation_offset_deg,
+    score_pose,
+)
+
+__all__ = [
+    "Anchors",
+    "COLOUR_MATCH",
+    "COLOUR_PAIR_DISTANCE",
+    "COLOUR_SIGMA",
+    "CONFIDENCE_THRESHOLD",
+    "Candidate",
+    "DISTINCT_DEG",
+    "FIT_FLOOR",
+    "FIT_SPAN",
+    "MARGIN_SPAN",
+    "NearestGrid",
+    "OVERLAP_LAMBDA",
+    "RIVAL_WINDOW",
+    "SCORE_TIE",
+    "SHARED_DELTA_E",
+    "SearchOptions",
+    "SearchResult",
+    "TRUNCATION",
+    "anchors",
+    "bidirectional_icp",
+    "colour_weight",
+    "decide",
+    "floater_mask",
+    "frame_relabellings",
+    "global_search",
+    "overlap_fraction",
+    "overlap_trim",
+    "refine",
+    "rotation_offset_deg",
+    "score_pose",
+    "srgb_to_lab",
+    "verdict",
+]
