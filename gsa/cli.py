@@ -405,8 +405,8 @@ def _add_module_commands(sub) -> None:
 def _use_workqueue_threads() -> None:
     """numba's workqueue threading layer unless NUMBA_THREADING_LAYER says otherwise, as
     gsa.render.cpu and the service worker already choose. The default GNU OpenMP layer
-    spin-waits in its barriers: with other load on the machine (2 shared cores, 50k pair)
-    the in-process alignment took 1.4-1.6 s with it against 1.1 s, single runs up to 5 s.
+    spin-waits in its barriers, which makes alignments markedly slower and erratic when other
+    work shares the cores.
     Must be set before the first kernel launches the threads; later it has no effect
     (gsa.render.cpu's own setting came too late after the coarse kernels), and after
     numba's import the environment variable is no longer read (the service worker's

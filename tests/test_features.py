@@ -299,7 +299,6 @@ def test_settings_from_environment():
            "GSA_PRUNE_THRESHOLD": "0.2", "GSA_FEATURES_HEAD": ""}
     s = FeatureSettings(**feature_settings_env(env, lift_views=9, head=None))
     assert (s.extractor, s.backbone, s.head, s.lift_views, s.prune_threshold) == ("dinov2", "/w/dinov2", None, 9, 0.2)
-    assert FeatureSettings.from_env(env, lift_views=9) == s  # the deprecated spelling service/ still uses
     assert sam_paths_env("enc.onnx", None, {"GSA_SAM_DECODER": "dec.onnx"}) == ("enc.onnx", "dec.onnx")
 
 

@@ -78,7 +78,7 @@ class FineResult:
                 "best_iteration": self.best_iteration, "views": len(self.cameras), "timing": dict(self.timing)}
 
 
-def _signal(model: GaussianModel, on: str, name: str) -> tuple[np.ndarray | None, np.ndarray | None]:
+def _signal(model: GaussianModel, on: str) -> tuple[np.ndarray | None, np.ndarray | None]:
     """(features, sh) to render for `model`."""
     if on == "colors":
         return None, model.sh
@@ -131,8 +131,8 @@ def fine_align(source: GaussianModel, target: GaussianModel, init: Sim3, options
     if backend == "cpu":
         # the source is rendered every iteration: store neighbours together for the CPU kernels
         source = source.subset(locality_order(source.means))
-    feat_s, sh_s = _signal(source, options.on, "source")
-    feat_t, sh_t = _signal(target, options.on, "target")
+    feat_s, sh_s = _signal(source, options.on)
+    feat_t, sh_t = _signal(target, options.on)
     if feat_s is not None and feat_s.shape[1] != feat_t.shape[1]:
         raise ValueError(f"feature dimensions differ: source {feat_s.shape[1]}, target {feat_t.shape[1]}")
     cams = select_cameras(target, options, cameras)

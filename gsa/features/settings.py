@@ -1,5 +1,6 @@
 """Feature-extraction and lifting settings (no torch: the CLI builds them before it knows
-whether an extractor will run)."""
+whether an extractor will run). Taken as arguments; gsa.settings_env reads them from the
+environment for the CLI and the service."""
 
 from __future__ import annotations
 
@@ -28,12 +29,3 @@ class FeatureSettings:
     lift_batch_views: int = 4
     prune_threshold: float = 0.1  # the authors' background-Gaussian threshold
     backend: str = "auto"  # rasterizer backend
-
-    @classmethod
-    def from_env(cls, environ=None, **overrides) -> FeatureSettings:
-        """Deprecated: the environment is read at the edges. Use
-        FeatureSettings(**gsa.settings_env.feature_settings_env(environ, **overrides));
-        kept until service/options.py does."""
-        from gsa.settings_env import feature_settings_env
-
-        return cls(**feature_settings_env(environ, **overrides))
