@@ -379,7 +379,8 @@ class _Pair:
         src, dst = self.anchors()
         _report(progress, "hypotheses", 0.0)
         options = robust.SearchOptions(rotations=self.opts.search_rotations, seed=self.opts.seed)
-        result = robust.global_search(src, dst, robust.frame_relabellings(self.src_frame, self.dst_frame), options)
+        result = robust.global_search(src, dst, robust.frame_relabellings(self.src_frame, self.dst_frame), options,
+                                      widen_if=lambda first: robust.verdict(first.best, first)["doubtful"])
         _report(progress, "hypotheses", 1.0)
         return result
 

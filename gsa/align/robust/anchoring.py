@@ -6,6 +6,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
+import numba
 import numpy as np
 from scipy import ndimage
 from scipy.spatial import cKDTree
@@ -147,6 +148,15 @@ def colour_weight(src: Anchors, dst: Anchors) -> float:
     shared = 0.5 * (np.average(d1 <= SHARED_DELTA_E, weights=src.weights)
                     + np.average(d2 <= SHARED_DELTA_E, weights=dst.weights))
     return float(np.clip((shared - 0.5) / 0.4, 0.0, 1.0))
+
+
+@numba.njit(cache=True, inline="always")
+def grid_index(x0, x1, x2, lo, inv_cell, shape):  # pragma: no cover - compiled
+    """Flat cell index of a point in a NearestGrid's lattice, −1 outside it (numba)."""
+    f0, f1, f2 = (x0 - lo[0]) * inv_cell, (x1 - lo[1]) * inv_cell, (x2 - lo[2]) * inv_cell
+    if f0 < 0 or f1 < 0 or f2 < 0 or f0 >= shape[0] or f1 >= shape[1] or f2 >= shape[2]:
+        return -1
+    return (int(f0) * shape[1] + int(f1)) * shape[2] + int(f2)
 
 
 def _sample(rng: np.random.Generator, n: int, k: int) -> np.ndarray:

@@ -4,13 +4,15 @@ bidirectional coloured ICP on the anchors, and the decision between the refined 
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numba
 import numpy as np
 from scipy.spatial import cKDTree
 
-from gsa.align.robust.anchoring import Anchors, NearestGrid, _sample, colour_weight
+from gsa.align.robust.anchoring import Anchors, NearestGrid, _sample, colour_weight, grid_index
+from gsa.align.robust.placement import placed_starts
 from gsa.geometry import rotation_distance_deg, super_fibonacci_rotations
 from gsa.sim3 import DegenerateCorrespondencesError, Sim3, solve_sim3
 
@@ -71,6 +73,13 @@ class SearchOptions:
     early_iterations: int = 10  # ICP iterations every refined start gets
     finalists: int = 4  # starts that then run up to refine_iterations more
     refine_iterations: int = 60
+    # Placement search (gsa.align.robust.placement), run when `widen_if` says so.
+    place_rotations: int = 256  # coarse grid: any rotation within ~20° of one
+    place_points: int = 24  # anchors per side scored per placement
+    place_step: float = 0.35  # lattice of source-centre positions, fraction of the target radius
+    place_truncation: float = 0.25  # loose: the coarse rotation is up to ~20° off
+    place_scales: tuple[float, ...] = (0.75, 1.0, 1.33)
+    place_top: int = 6  # distinct placements refined to convergence
     seed: int = 0
 
 
@@ -92,8 +101,12 @@ class SearchResult:
 
 
 def global_search(src: Anchors, dst: Anchors, frame_rotations: list[tuple[str, np.ndarray]] | None = None,
-                  options: SearchOptions | None = None) -> SearchResult:
-    """Search SO(3) for the Sim(3) mapping `src` anchors onto `dst` anchors."""
+                  options: SearchOptions | None = None,
+                  widen_if: Callable[[SearchResult], bool] | None = None) -> SearchResult:
+    """Search SO(3) for the Sim(3) mapping `src` anchors onto `dst` anchors. If
+    widen_if(result) holds (the pipeline: the answer is doubtful), placements that do
+    not trust centroids join the candidates (gsa.align.robust.placement) and the best
+    of all wins."""
     opts = options or SearchOptions()
     rng = np.random.default_rng(opts.seed)
     rotations = super_fibonacci_rotations(opts.rotations)
@@ -130,7 +143,23 @@ def global_search(src: Anchors, dst: Anchors, frame_rotations: list[tuple[str, n
                        DISTINCT_DEG)
     starts = [(origins[i], Sim3(float(scale[i]), rotations[i], t[i] - scale[i] * rotations[i] @ src.center))
               for i in chosen]
-    return decide(_dedupe(_refine_starts(src, dst, starts, w_colour, rng, opts)), w_colour)
+    refined = _refine_starts(src, dst, starts, w_colour, rng, opts)
+    result = decide(_dedupe(refined), w_colour)
+    if widen_if is None or not widen_if(result):
+        return result
+    # Placed starts begin up to ~20° off and look poor after a few iterations (a partial
+    # overlap converges slowly), so each runs to convergence rather than being halved.
+    src_rows = _sample(rng, len(src), opts.refine_points)
+    dst_rows = _sample(rng, len(dst), opts.refine_points)
+    for r, s_, t_ in placed_starts(src, dst, rng, rotations=opts.place_rotations, points=opts.place_points,
+                                   step=opts.place_step, truncation=opts.place_truncation, scales=opts.place_scales,
+                                   count=opts.place_top, min_deg=DISTINCT_DEG, capture=scorer.capture,
+                                   capture_steps=opts.capture_steps[-3:]):
+        init = Sim3(s_, r, t_ - s_ * r @ src.center)
+        transform = bidirectional_icp(src, dst, init, src_rows, dst_rows,
+                                      opts.early_iterations + opts.refine_iterations, w_colour)
+        refined.append(score_pose(src, dst, transform, "placed", w_colour))
+    return decide(_dedupe(refined), w_colour)
 
 
 def _try_offsets(scorer: _GridScorer, rotations: np.ndarray, scale: np.ndarray, t: np.ndarray, score: np.ndarray,
@@ -237,14 +266,6 @@ class _GridScorer:
         return both.mean(axis=1) if blend else both[:, 0]
 
 
-@numba.njit(cache=True, inline="always")
-def _grid_index(x0, x1, x2, lo, inv_cell, shape):  # pragma: no cover - compiled
-    f0, f1, f2 = (x0 - lo[0]) * inv_cell, (x1 - lo[1]) * inv_cell, (x2 - lo[2]) * inv_cell
-    if f0 < 0 or f1 < 0 or f2 < 0 or f0 >= shape[0] or f1 >= shape[1] or f2 >= shape[2]:
-        return -1
-    return (int(f0) * shape[1] + int(f1)) * shape[2] + int(f2)
-
-
 @numba.njit(parallel=True, cache=True)
 def _score_poses(lin, off, dist_scale, pts, lab, nearest, lo, inv_cell, shape, other, other_lab, tau, w):  # pragma: no cover
     """Per pose k, the mean over `pts` mapped by x -> lin[k] x + off[k] of _pair_scores
@@ -259,7 +280,7 @@ def _score_poses(lin, off, dist_scale, pts, lab, nearest, lo, inv_cell, shape, o
             x0 = lin[k, 0, 0] * pts[i, 0] + lin[k, 0, 1] * pts[i, 1] + lin[k, 0, 2] * pts[i, 2] + off[k, 0]
             x1 = lin[k, 1, 0] * pts[i, 0] + lin[k, 1, 1] * pts[i, 1] + lin[k, 1, 2] * pts[i, 2] + off[k, 1]
             x2 = lin[k, 2, 0] * pts[i, 0] + lin[k, 2, 1] * pts[i, 1] + lin[k, 2, 2] * pts[i, 2] + off[k, 2]
-            cell = _grid_index(x0, x1, x2, lo, inv_cell, shape)
+            cell = grid_index(x0, x1, x2, lo, inv_cell, shape)
             if cell < 0:
                 continue
             j = nearest[cell]
@@ -293,7 +314,7 @@ def _capture_step(u, scale, t, nearest, lo, inv_cell, shape, other, reach):  # p
             x0 = scale[k] * u[k, i, 0] + t[k, 0]
             x1 = scale[k] * u[k, i, 1] + t[k, 1]
             x2 = scale[k] * u[k, i, 2] + t[k, 2]
-            cell = _grid_index(x0, x1, x2, lo, inv_cell, shape)
+            cell = grid_index(x0, x1, x2, lo, inv_cell, shape)
             if cell < 0:
                 continue
             j = nearest[cell]
