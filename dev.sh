@@ -2,6 +2,7 @@
 # The project's two entry points on a fresh machine:
 #   ./dev.sh demo   set up .venv, then align generated example data end to end
 #   ./dev.sh test   set up .venv (and redis-server, docker-compose if missing), then run the test suite
+#   ./dev.sh lint   set up .venv, then ruff check and ruff format --check (CI runs it before the tests)
 # Extra arguments go to `gsa demo` or pytest.
 set -euo pipefail
 cd "$(dirname "$0")"
@@ -45,8 +46,13 @@ case "$cmd" in
         setup_system_tools
         exec "$VENV/bin/python" -m pytest -q "$@"
         ;;
+    lint)
+        setup_python
+        "$VENV/bin/ruff" check .
+        exec "$VENV/bin/ruff" format --check .
+        ;;
     *)
-        echo "usage: ./dev.sh demo|test [args...]" >&2
+        echo "usage: ./dev.sh demo|test|lint [args...]" >&2
         exit 2
         ;;
 esac

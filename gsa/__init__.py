@@ -16,8 +16,8 @@ from gsa.model import GaussianModel, merge_models
 from gsa.sim3 import Sim3, solve_sim3
 
 if TYPE_CHECKING:  # pragma: no cover - for type checkers and IDEs only
-    from gsa.align.pipeline import AlignmentError, AlignmentResult, AlignOptions
-    from gsa.io.ply import read_ply, write_ply
+    from gsa.align.pipeline import AlignmentError, AlignmentResult, AlignOptions  # noqa: F401
+    from gsa.io.ply import read_ply, write_ply  # noqa: F401
 
 # The alignment API pulls in scipy and numba; it loads on first use so that
 # `import gsa` (and the CLI's start-up) stays cheap.

@@ -13,6 +13,7 @@ import json
 import os
 import sys
 from collections.abc import Sequence
+from importlib.metadata import entry_points
 from pathlib import Path
 
 import numpy as np
@@ -152,29 +153,54 @@ def add_align_arguments(p: argparse.ArgumentParser) -> None:
     from gsa.align.pipeline import FEATURE_MODES, AlignOptions
 
     d = AlignOptions()
-    p.add_argument("--stages", default=",".join(d.stages),
-                   help="auto, coarse or coarse,fine (default: %(default)s = coarse,fine unless the "
-                        "nearest-neighbour refinement ran, see README)")
-    p.add_argument("--target-cameras", default=None, metavar="CAMERAS_JSON",
-                   help="the target's training cameras (a reconstruction's cameras.json): the fine stage "
-                        "renders from them instead of orbit cameras")
-    p.add_argument("--features", default=d.features, choices=list(FEATURE_MODES),
-                   help="auto: the files' own features when both have them, else the configured extractor "
-                        "(GSA_FEATURES_EXTRACTOR + weights), else canonical; spheremap/dinov2 lift 2D features first")
-    p.add_argument("--backbone", "--weights", dest="backbone", default=None,
-                   help="DINOv2 weights: Hugging Face folder or torch.hub .pth (env GSA_FEATURES_BACKBONE)")
+    p.add_argument(
+        "--stages",
+        default=",".join(d.stages),
+        help="auto, coarse or coarse,fine (default: %(default)s = coarse,fine unless the "
+        "nearest-neighbour refinement ran, see README)",
+    )
+    p.add_argument(
+        "--target-cameras",
+        default=None,
+        metavar="CAMERAS_JSON",
+        help="the target's training cameras (a reconstruction's cameras.json): the fine stage "
+        "renders from them instead of orbit cameras",
+    )
+    p.add_argument(
+        "--features",
+        default=d.features,
+        choices=list(FEATURE_MODES),
+        help="auto: the files' own features when both have them, else the configured extractor "
+        "(GSA_FEATURES_EXTRACTOR + weights), else canonical; spheremap/dinov2 lift 2D features first",
+    )
+    p.add_argument(
+        "--backbone",
+        "--weights",
+        dest="backbone",
+        default=None,
+        help="DINOv2 weights: Hugging Face folder or torch.hub .pth (env GSA_FEATURES_BACKBONE)",
+    )
     p.add_argument("--head", default=None, help="sphere_mapper head checkpoint (env GSA_FEATURES_HEAD)")
     p.add_argument("--tau-f", type=float, default=d.tau_f, help="feature distance threshold τ_f")
     p.add_argument("--iterations", type=int, default=d.coarse_iterations, help="coarse iteration limit")
-    p.add_argument("--max-candidates", type=int, default=d.max_candidates,
-                   help="feature candidates kept per source Gaussian")
+    p.add_argument(
+        "--max-candidates", type=int, default=d.max_candidates, help="feature candidates kept per source Gaussian"
+    )
     p.add_argument("--weight-by-opacity", action="store_true", help="weight correspondences by opacity")
-    p.add_argument("--refine", default=d.refine, choices=["auto", "on", "off"],
-                   help="nearest-neighbour ICP after the feature stage (auto: with canonical features)")
-    p.add_argument("--search", default=d.search, choices=["auto", "global", "frames"],
-                   help="coarse initialisation without learned features: global (robust SO(3) search on "
-                        "floater-free anchors, overlap and colour scored), frames (one canonical frame per "
-                        "model, the earlier default); auto: global unless --refine off")
+    p.add_argument(
+        "--refine",
+        default=d.refine,
+        choices=["auto", "on", "off"],
+        help="nearest-neighbour ICP after the feature stage (auto: with canonical features)",
+    )
+    p.add_argument(
+        "--search",
+        default=d.search,
+        choices=["auto", "global", "frames"],
+        help="coarse initialisation without learned features: global (robust SO(3) search on "
+        "floater-free anchors, overlap and colour scored), frames (one canonical frame per "
+        "model, the earlier default); auto: global unless --refine off",
+    )
     p.add_argument("--seed", type=int, default=d.seed)
     p.add_argument("--fine-iterations", type=int, default=None)
     p.add_argument("--fine-views", type=int, default=None)
@@ -220,7 +246,9 @@ def _print_transform(result, out: str | None = None) -> None:
     t = result.transform
     m = result.metrics
     print(f"scale        {t.scale:.6g}")
-    print(f"rotation     {np.array2string(t.rotation, precision=6, suppress_small=True).replace(chr(10), chr(10) + ' ' * 13)}")
+    print(
+        f"rotation     {np.array2string(t.rotation, precision=6, suppress_small=True).replace(chr(10), chr(10) + ' ' * 13)}"
+    )
     print(f"quaternion   {np.array2string(t.quaternion(), precision=6)} (w, x, y, z)")
     print(f"translation  {np.array2string(t.translation, precision=6)}")
     print(
@@ -229,8 +257,10 @@ def _print_transform(result, out: str | None = None) -> None:
     )
     if "confidence" in m:
         verdict = "ambiguous" if m.get("ambiguous") else ("doubtful" if m.get("doubtful") else "confident")
-        print(f"confidence   {m['confidence']:.2f} ({verdict}; overlap {m.get('overlap_score', float('nan')):.3f}, "
-              f"colour agreement {m.get('colour_agreement', float('nan')):.2f})")
+        print(
+            f"confidence   {m['confidence']:.2f} ({verdict}; overlap {m.get('overlap_score', float('nan')):.3f}, "
+            f"colour agreement {m.get('colour_agreement', float('nan')):.2f})"
+        )
     print(f"time         {result.timings['total']:.2f} s")
     if out:
         print(f"result       {out}")
@@ -262,8 +292,10 @@ def doubt_warning(metrics: dict | None, out: str | None = None) -> str | None:
         offsets = [_number(a.get("rotation_offset_deg")) for a in alternatives]
         turned = ", ".join(f"{v:.0f}°" for v in offsets if v is not None)
         away = f", rotated {turned} away" if turned else ""
-        return (f"gsa: warning: ambiguous alignment: {len(alternatives) + 1} poses score{within} "
-                f"(confidence {conf}{away}){where}")
+        return (
+            f"gsa: warning: ambiguous alignment: {len(alternatives) + 1} poses score{within} "
+            f"(confidence {conf}{away}){where}"
+        )
     return f"gsa: warning: low confidence ({conf}): the alignment may be wrong{where}"
 
 
@@ -280,16 +312,25 @@ def cmd_demo(args: argparse.Namespace) -> int:
     rng = np.random.default_rng(args.seed)
     truth = random_sim3(rng)  # App. C: up to 180° per axis, up to 10× scale
     print(f"== GSA demo: a generated {args.category}, two independent samplings, a random Sim(3)")
-    source = make_object(args.category, seed=args.seed, n_gaussians=args.gaussians, sample_seed=args.seed + 1000,
-                         floaters=0.02, sh_degree=3)
-    target = make_object(args.category, seed=args.seed, n_gaussians=args.gaussians, sample_seed=args.seed,
-                         sh_degree=3).transformed(truth)
+    source = make_object(
+        args.category,
+        seed=args.seed,
+        n_gaussians=args.gaussians,
+        sample_seed=args.seed + 1000,
+        floaters=0.02,
+        sh_degree=3,
+    )
+    target = make_object(
+        args.category, seed=args.seed, n_gaussians=args.gaussians, sample_seed=args.seed, sh_degree=3
+    ).transformed(truth)
     write_ply(source, out / "source.ply")
     write_ply(target, out / "target.ply")
     print(f"source       {out / 'source.ply'} ({len(source)} Gaussians)")
     print(f"target       {out / 'target.ply'} ({len(target)} Gaussians)")
-    print(f"true Sim(3)  scale {truth.scale:.6g}, rotation {np.degrees(np.arccos(np.clip((np.trace(truth.rotation) - 1) / 2, -1, 1))):.2f}°, "
-          f"translation {np.array2string(truth.translation, precision=4)}")
+    print(
+        f"true Sim(3)  scale {truth.scale:.6g}, rotation {np.degrees(np.arccos(np.clip((np.trace(truth.rotation) - 1) / 2, -1, 1))):.2f}°, "
+        f"translation {np.array2string(truth.translation, precision=4)}"
+    )
     # Align the files as a user would, so the demo exercises the readers too.
     src_file, dst_file = read_ply(out / "source.ply"), read_ply(out / "target.ply")
     options = AlignOptions(stages=tuple(args.stages.split(",")), seed=args.seed)
@@ -314,8 +355,14 @@ def cmd_synth(args: argparse.Namespace) -> int:
     from gsa.io.ply import write_ply
     from gsa.synth import make_object, random_sim3
 
-    model = make_object(args.category, seed=args.seed, n_gaussians=args.gaussians, sample_seed=args.sample_seed,
-                        floaters=args.floaters, sh_degree=args.sh_degree)
+    model = make_object(
+        args.category,
+        seed=args.seed,
+        n_gaussians=args.gaussians,
+        sample_seed=args.sample_seed,
+        floaters=args.floaters,
+        sh_degree=args.sh_degree,
+    )
     if args.perturb:
         truth = random_sim3(np.random.default_rng(args.seed))
         model = model.transformed(truth)
@@ -377,7 +424,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--quick", action="store_true", help="small sizes, a few minutes")
     p.add_argument("--out", default="out/bench", help="folder for the JSON results")
     p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--peers", default="default", help="comma list of icp,open3d,splatreg, or default (icp,open3d), all, none")
+    p.add_argument(
+        "--peers", default="default", help="comma list of icp,open3d,splatreg, or default (icp,open3d), all, none"
+    )
     p.set_defaults(func=cmd_bench)
 
     _add_module_commands(sub)
@@ -393,13 +442,14 @@ def _add_module_commands(sub) -> None:
     add_render_parser(sub)
     add_lift_parser(sub)
     add_reconstruct_parser(sub)
-    try:
-        # service/ depends on gsa/, never the reverse: imported only here, lazily.
-        from service.cli import add_service_parsers
-    except ImportError:
-        pass
-    else:
-        add_service_parsers(sub)
+    # Verbs of other packages (the service's `serve`, `worker`, `submit`, ...) come through
+    # the "gsa.commands" entry point group: service/ depends on gsa/, never the reverse.
+    for entry in entry_points(group="gsa.commands"):
+        try:
+            add_parsers = entry.load()
+        except ImportError:  # that package's extra is not installed
+            continue
+        add_parsers(sub)
 
 
 def _use_workqueue_threads() -> None:

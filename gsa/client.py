@@ -30,9 +30,7 @@ class GSAError(Exception):
     def __init__(self, status: int, problem: dict):
         self.status = status
         self.problem = problem
-        super().__init__(
-            f"{status} {problem.get('title', '')}: {problem.get('detail', '')}".strip()
-        )
+        super().__init__(f"{status} {problem.get('title', '')}: {problem.get('detail', '')}".strip())
 
 
 class JobFailed(GSAError):
@@ -53,9 +51,7 @@ class GSAClient:
         base_url = base_url or os.environ.get("GSA_SERVER", "http://127.0.0.1:8000")
         api_key = api_key if api_key is not None else os.environ.get("GSA_API_KEY")
         headers = {"Authorization": f"Bearer {api_key}"} if api_key else {}
-        self.http = httpx.Client(
-            base_url=base_url, headers=headers, timeout=timeout, transport=transport
-        )
+        self.http = httpx.Client(base_url=base_url, headers=headers, timeout=timeout, transport=transport)
         self._etags: dict[str, tuple[str, dict]] = {}
 
     def close(self) -> None:
@@ -81,9 +77,7 @@ class GSAClient:
     def upload(self, path: str | os.PathLike) -> dict:
         p = Path(path)
         with open(p, "rb") as fh:
-            return self._check(
-                self.http.post("/v1/assets", files={"file": (p.name, fh)})
-            ).json()
+            return self._check(self.http.post("/v1/assets", files={"file": (p.name, fh)})).json()
 
     # ------------------------------------------------------------------ jobs
     def submit(
@@ -107,13 +101,8 @@ class GSAClient:
                 data["webhook_secret"] = webhook_secret
         headers = {"Idempotency-Key": idempotency_key} if idempotency_key else {}
         with ExitStack() as stack:
-            files = [
-                ("source", (Path(s).name, stack.enter_context(open(s, "rb"))))
-                for s in sources
-            ]
-            files.append(
-                ("target", (Path(target).name, stack.enter_context(open(target, "rb"))))
-            )
+            files = [("source", (Path(s).name, stack.enter_context(open(s, "rb")))) for s in sources]
+            files.append(("target", (Path(target).name, stack.enter_context(open(target, "rb")))))
             r = self.http.post("/v1/jobs", files=files, data=data, headers=headers)
         return self._check(r).json()
 
@@ -134,9 +123,7 @@ class GSAClient:
         if webhook:
             body["webhook"] = webhook
         headers = {"Idempotency-Key": idempotency_key} if idempotency_key else {}
-        return self._check(
-            self.http.post("/v1/jobs", json=body, headers=headers)
-        ).json()
+        return self._check(self.http.post("/v1/jobs", json=body, headers=headers)).json()
 
     def status(self, job_id: str) -> dict:
         """The job; polls reuse the ETag so an unchanged job costs a 304."""
@@ -152,14 +139,8 @@ class GSAClient:
             self._etags[job_id] = (r.headers["etag"], job)
         return job
 
-    def list(
-        self, state: str | None = None, limit: int = 50, cursor: str | None = None
-    ) -> dict:
-        params = {
-            k: v
-            for k, v in {"state": state, "limit": limit, "cursor": cursor}.items()
-            if v is not None
-        }
+    def list(self, state: str | None = None, limit: int = 50, cursor: str | None = None) -> dict:
+        params = {k: v for k, v in {"state": state, "limit": limit, "cursor": cursor}.items() if v is not None}
         return self._check(self.http.get("/v1/jobs", params=params)).json()
 
     def cancel(self, job_id: str) -> dict:
@@ -177,10 +158,7 @@ class GSAClient:
         last = None
         while True:
             job = self.status(job_id)
-            if (
-                on_progress
-                and (job["state"], job.get("stage"), job.get("progress")) != last
-            ):
+            if on_progress and (job["state"], job.get("stage"), job.get("progress")) != last:
                 last = (job["state"], job.get("stage"), job.get("progress"))
                 on_progress(job)
             if job["state"] in TERMINAL:
@@ -188,9 +166,7 @@ class GSAClient:
                     raise JobFailed(job)
                 return job
             if deadline is not None and time.monotonic() > deadline:
-                raise TimeoutError(
-                    f"job {job_id} still {job['state']} after {timeout} s"
-                )
+                raise TimeoutError(f"job {job_id} still {job['state']} after {timeout} s")
             time.sleep(poll)
 
     def fetch(self, job_id: str, name: str, dest: str | os.PathLike) -> Path:
@@ -200,9 +176,7 @@ class GSAClient:
         part = dest.with_name(dest.name + ".part")
         have = part.stat().st_size if part.exists() else 0
         headers = {"Range": f"bytes={have}-"} if have else {}
-        with self.http.stream(
-            "GET", f"/v1/jobs/{job_id}/artifacts/{name}", headers=headers
-        ) as r:
+        with self.http.stream("GET", f"/v1/jobs/{job_id}/artifacts/{name}", headers=headers) as r:
             if r.status_code == 416:
                 have = 0
             elif r.status_code >= 400:

@@ -38,8 +38,9 @@ def feature_settings_env(environ: Mapping[str, str] | None = None, **overrides) 
     return kw
 
 
-def sam_paths_env(encoder: str | None = None, decoder: str | None = None,
-                  environ: Mapping[str, str] | None = None) -> tuple[str | None, str | None]:
+def sam_paths_env(
+    encoder: str | None = None, decoder: str | None = None, environ: Mapping[str, str] | None = None
+) -> tuple[str | None, str | None]:
     """The SAM ONNX encoder/decoder paths: the given ones, else GSA_SAM_ENCODER / GSA_SAM_DECODER."""
     environ = os.environ if environ is None else environ
     return encoder or environ.get(SAM_ENCODER_ENV), decoder or environ.get(SAM_DECODER_ENV)

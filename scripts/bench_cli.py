@@ -80,8 +80,11 @@ def main(argv: list[str] | None = None) -> int:
                 if isinstance(value, (int, float)):
                     timings.setdefault(key, []).append(float(value))
             load = os.getloadavg()[0]
-            print(f"run {i + 1}: {wall:.3f} s (in-process total {result.get('timings', {}).get('total', float('nan')):.3f} s, "
-                  f"load {load:.1f})", flush=True)
+            print(
+                f"run {i + 1}: {wall:.3f} s (in-process total {result.get('timings', {}).get('total', float('nan')):.3f} s, "
+                f"load {load:.1f})",
+                flush=True,
+            )
 
         imports = [_timed([sys.executable, "-c", "import gsa.cli"])[0] for _ in range(args.runs)]
         bare = [_timed([sys.executable, "-c", "pass"])[0] for _ in range(args.runs)]
@@ -92,8 +95,10 @@ def main(argv: list[str] | None = None) -> int:
         print(f'python -c "import gsa.cli":             {_summary(imports)}')
         print(f'python -c "pass":                       {_summary(bare)}')
         if timings:
-            print("in-process timings (median over runs): "
-                  + ", ".join(f"{k} {statistics.median(v):.3f} s" for k, v in timings.items()))
+            print(
+                "in-process timings (median over runs): "
+                + ", ".join(f"{k} {statistics.median(v):.3f} s" for k, v in timings.items())
+            )
     finally:
         if not args.keep:
             shutil.rmtree(folder, ignore_errors=True)

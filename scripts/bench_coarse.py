@@ -34,8 +34,10 @@ def main(sizes: list[int]) -> None:
             result = align(src, tgt)
             walls.append(time.perf_counter() - t)
         rre = accuracy(result.transform, truth, src.means, tgt.means)["rre_deg"]
-        line = (f"{n:,} vs {n:,}: align() wall min {min(walls):.2f} s, median {np.median(walls):.2f} s, "
-                f"RRE {rre:.4f}°, confidence {result.metrics['confidence']:.2f}")
+        line = (
+            f"{n:,} vs {n:,}: align() wall min {min(walls):.2f} s, median {np.median(walls):.2f} s, "
+            f"RRE {rre:.4f}°, confidence {result.metrics['confidence']:.2f}"
+        )
         if open3d:
             peer_walls = []
             for _ in range(3):
@@ -43,8 +45,10 @@ def main(sizes: list[int]) -> None:
                 est = open3d[0].register(src, tgt, seed=0)
                 peer_walls.append(time.perf_counter() - t)
             peer_rre = accuracy(est, truth, src.means, tgt.means)["rre_deg"]
-            line += (f"; Open3D median {np.median(peer_walls):.2f} s (RRE {peer_rre:.2f}°), "
-                     f"ratio GSA/Open3D {np.median(walls) / np.median(peer_walls):.2f}")
+            line += (
+                f"; Open3D median {np.median(peer_walls):.2f} s (RRE {peer_rre:.2f}°), "
+                f"ratio GSA/Open3D {np.median(walls) / np.median(peer_walls):.2f}"
+            )
         print(line + f"; load {os.getloadavg()[0]:.1f}", flush=True)
 
 

@@ -231,9 +231,7 @@ def main() -> int:
 
         direct(src, tgt, tmp / "warm", outputs)  # warm imports/caches
         d_times = [direct(src, tgt, tmp / f"d{i}", outputs) for i in range(a.runs)]
-        with httpx.Client(
-            base_url=url, headers={"Authorization": f"Bearer {KEY}"}, timeout=60
-        ) as c:
+        with httpx.Client(base_url=url, headers={"Authorization": f"Bearer {KEY}"}, timeout=60) as c:
             submit_and_wait(c, src, tgt, outputs)  # warm
             runs = [submit_and_wait(c, src, tgt, outputs) for _ in range(a.runs)]
             job = runs[-1][2]
@@ -242,16 +240,14 @@ def main() -> int:
         s_times = [r[1] for r in runs]
         from datetime import datetime
 
-        ts = lambda v: datetime.fromisoformat(v.replace("Z", "+00:00")).timestamp()
+        def ts(v):
+            return datetime.fromisoformat(v.replace("Z", "+00:00")).timestamp()
+
         wait_q = [ts(r[2]["started_at"]) - ts(r[2]["created_at"]) for r in runs]
         run_t = [ts(r[2]["finished_at"]) - ts(r[2]["started_at"]) for r in runs]
         acc = [r[0] for r in runs]
-        print(
-            f"mode={a.mode} gaussians={a.gaussians} outputs={outputs} runs={a.runs} cores={os.cpu_count()}"
-        )
-        print(
-            f"direct library (read+align+write):  median {1e3 * statistics.median(d_times):7.1f} ms"
-        )
+        print(f"mode={a.mode} gaussians={a.gaussians} outputs={outputs} runs={a.runs} cores={os.cpu_count()}")
+        print(f"direct library (read+align+write):  median {1e3 * statistics.median(d_times):7.1f} ms")
         print(
             f"service submit->result:             median {1e3 * statistics.median(s_times):7.1f} ms "
             f"(p90 {1e3 * pct(s_times, 90):.1f} ms); POST accepted in median {1e3 * statistics.median(acc):.1f} ms"
@@ -264,9 +260,7 @@ def main() -> int:
             f"overhead:                            median {1e3 * (statistics.median(s_times) - statistics.median(d_times)):7.1f} ms"
         )
         for label, tag in (("200 (full body)", None), ("304 (If-None-Match)", etag)):
-            lat, errors = asyncio.run(
-                pollers(url, job["id"], a.pollers, a.seconds, tag)
-            )
+            lat, errors = asyncio.run(pollers(url, job["id"], a.pollers, a.seconds, tag))
             print(
                 f"GET /v1/jobs/{{id}} {label}, {a.pollers} concurrent pollers, {a.seconds:.0f} s: "
                 f"n={len(lat)} ({len(lat) / a.seconds:.0f} req/s) p50 {1e3 * pct(lat, 50):.1f} ms "

@@ -44,8 +44,10 @@ def main(argv=None) -> int:
     args = ap.parse_args(argv)
     torch.set_num_threads(1)
     rows = []
-    print("| pair | coarse RRE (°) | loss minimiser RRE (°) | coarse scale err (%) | minimiser scale err (%) "
-          "| loss at coarse | at minimiser | at truth | s |")
+    print(
+        "| pair | coarse RRE (°) | loss minimiser RRE (°) | coarse scale err (%) | minimiser scale err (%) "
+        "| loss at coarse | at minimiser | at truth | s |"
+    )
     print("|---|---:|---:|---:|---:|---:|---:|---:|---:|")
     for label, make in same_pairs(False, 0)[: args.pairs]:
         source, target, truth = make()
@@ -73,13 +75,26 @@ def main(argv=None) -> int:
         sol = least_squares(residual, np.zeros(7), diff_step=1e-4, x_scale=1e-3, max_nfev=40, method="lm")
         seconds = time.perf_counter() - t
         best = _around(coarse, sol.x, center, extent)
-        loss = [float(np.mean(np.abs(residual(np.zeros(7))))), float(np.mean(np.abs(residual(sol.x)))),
-                float(np.mean(np.abs(image(source, truth) - goal)))]
-        row = [rre_deg(coarse.rotation, truth.rotation), rre_deg(best.rotation, truth.rotation),
-               scale_error_pct(coarse.scale, truth.scale), scale_error_pct(best.scale, truth.scale)]
+        loss = [
+            float(np.mean(np.abs(residual(np.zeros(7))))),
+            float(np.mean(np.abs(residual(sol.x)))),
+            float(np.mean(np.abs(image(source, truth) - goal))),
+        ]
+        row = [
+            rre_deg(coarse.rotation, truth.rotation),
+            rre_deg(best.rotation, truth.rotation),
+            scale_error_pct(coarse.scale, truth.scale),
+            scale_error_pct(best.scale, truth.scale),
+        ]
         rows.append(row)
-        print(f"| {label} | " + " | ".join(f"{v:.4f}" for v in row) + " | "
-              + " | ".join(f"{v:.6f}" for v in loss) + f" | {seconds:.1f} |", flush=True)
+        print(
+            f"| {label} | "
+            + " | ".join(f"{v:.4f}" for v in row)
+            + " | "
+            + " | ".join(f"{v:.6f}" for v in loss)
+            + f" | {seconds:.1f} |",
+            flush=True,
+        )
     mean = np.mean(rows, 0)
     print("| mean | " + " | ".join(f"{v:.4f}" for v in mean) + " | | | | |")
     return 0

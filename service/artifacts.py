@@ -21,27 +21,21 @@ def content_type(name: str) -> str:
 def collect_outputs(paths: dict, prefix: str) -> list[tuple[str, Path]]:
     """write_outputs' {artifact name: path} -> (public name, file); names may hold
     one folder level ("renders/before.png"), served as artifacts/renders/before.png."""
-    clean = lambda n: "/".join(
-        re.sub(r"[^A-Za-z0-9._-]", "_", seg).lstrip("._-") or "x"
-        for seg in n.split("/")
-    )
+
+    def clean(n: str) -> str:
+        return "/".join(re.sub(r"[^A-Za-z0-9._-]", "_", seg).lstrip("._-") or "x" for seg in n.split("/"))
+
     out = []
     for name, p in sorted(paths.items()):
         p, name = Path(p), clean(name)
         if p.is_dir():
-            out += [
-                (f"{prefix}{name}/{f.name}", f)
-                for f in sorted(p.iterdir())
-                if f.is_file()
-            ]
+            out += [(f"{prefix}{name}/{f.name}", f) for f in sorted(p.iterdir()) if f.is_file()]
         else:
             out.append((prefix + name, p))
     return out
 
 
-def synchronized_renders(
-    backend: Backend, job: Job, target, transforms, work: Path, notes: list
-) -> list:
+def synchronized_renders(backend: Backend, job: Job, target, transforms, work: Path, notes: list) -> list:
     """Paper App. B: every model in the reference frame, seen from the same cameras."""
     # lazy: the renderer loads torch
     from gsa.io.ply import read_ply
@@ -49,18 +43,13 @@ def synchronized_renders(
     from gsa.sim3 import Sim3
 
     if any(ref.kind != "ply" for ref in job.sources):
-        notes.append(
-            "synchronized renders skipped: they need every source as a 3DGS model file"
-        )
+        notes.append("synchronized renders skipped: they need every source as a 3DGS model file")
         return []
     models = [target] + [
-        read_ply(work / f"source{i}.ply", max_gaussians=backend.settings.max_gaussians)
-        for i in range(len(job.sources))
+        read_ply(work / f"source{i}.ply", max_gaussians=backend.settings.max_gaussians) for i in range(len(job.sources))
     ]
     feats = all(m.features is not None for m in models)
-    paths = write_synchronized_renders(
-        models, work / "sync", transforms=[Sim3.identity(), *transforms], features=feats
-    )
+    paths = write_synchronized_renders(models, work / "sync", transforms=[Sim3.identity(), *transforms], features=feats)
     return [(f"synchronized/{Path(p).name}", Path(p)) for _, p in sorted(paths.items())]
 
 
@@ -71,7 +60,5 @@ def store_artifacts(backend: Backend, files: list[tuple[str, Path]], prefix: str
         key = f"{prefix}/{name}"
         with open(path, "rb") as fh:
             size = backend.storage.put(key, fh)
-        artifacts.append(
-            Artifact(name=name, key=key, size=size, content_type=content_type(name))
-        )
+        artifacts.append(Artifact(name=name, key=key, size=size, content_type=content_type(name)))
     return artifacts

@@ -51,9 +51,7 @@ class RQQueue:
         from rq.job import Job as RQJob
 
         try:
-            status = RQJob.fetch(ref, connection=self.q.connection).get_status(
-                refresh=False
-            )
+            status = RQJob.fetch(ref, connection=self.q.connection).get_status(refresh=False)
         except NoSuchJobError:
             return True
         return str(getattr(status, "value", status)) not in (
@@ -69,9 +67,7 @@ class RQQueue:
         self.hooks.enqueue(
             "service.webhooks.deliver_job",
             job_id,
-            retry=Retry(max=n, interval=[1, 5, 30, 120, 600][: max(n, 1)])
-            if n
-            else None,
+            retry=Retry(max=n, interval=[1, 5, 30, 120, 600][: max(n, 1)]) if n else None,
             job_timeout=60,
             result_ttl=600,
         )

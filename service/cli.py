@@ -15,9 +15,7 @@ import sys
 
 
 def add_service_parsers(subparsers) -> None:
-    p = subparsers.add_parser(
-        "serve", help="run the HTTP (and optionally gRPC) API; no Redis = embedded mode"
-    )
+    p = subparsers.add_parser("serve", help="run the HTTP (and optionally gRPC) API; no Redis = embedded mode")
     p.add_argument("--host", default="127.0.0.1")
     p.add_argument("--port", type=int, default=8000)
     p.add_argument("--grpc-port", type=int, help="also serve gRPC on this port")
@@ -46,18 +44,14 @@ def add_service_parsers(subparsers) -> None:
     p.set_defaults(func=cmd_worker)
 
     def client_args(p):
-        p.add_argument(
-            "--server", default=os.environ.get("GSA_SERVER", "http://127.0.0.1:8000")
-        )
+        p.add_argument("--server", default=os.environ.get("GSA_SERVER", "http://127.0.0.1:8000"))
         p.add_argument(
             "--api-key",
             default=os.environ.get("GSA_API_KEY"),
             help="default $GSA_API_KEY",
         )
 
-    p = subparsers.add_parser(
-        "submit", help="upload models to a server and create an alignment job"
-    )
+    p = subparsers.add_parser("submit", help="upload models to a server and create an alignment job")
     p.add_argument(
         "source",
         nargs="+",
@@ -121,11 +115,7 @@ def cmd_serve(args) -> int:
         format="%(asctime)s %(levelname)s %(name)s: %(message)s",
     )
     settings = Settings()
-    mode = (
-        "embedded (SQLite + in-process worker)"
-        if settings.embedded
-        else f"distributed (Redis {settings.redis_url})"
-    )
+    mode = "embedded (SQLite + in-process worker)" if settings.embedded else f"distributed (Redis {settings.redis_url})"
     print(
         f"gsa serve: {mode}; http://{args.host}:{args.port}",
         file=sys.stderr,
@@ -147,9 +137,7 @@ def cmd_worker(args) -> int:
     from service.worker import run_rq_worker
 
     _settings_env(args)
-    logging.basicConfig(
-        level="INFO", format="%(asctime)s %(levelname)s %(name)s: %(message)s"
-    )
+    logging.basicConfig(level="INFO", format="%(asctime)s %(levelname)s %(name)s: %(message)s")
     run_rq_worker(burst=args.burst, name=args.name)
     return 0
 

@@ -29,11 +29,7 @@ class _Hashing:
         self.head = b""
 
     def __iter__(self):
-        it = (
-            iter(lambda: self.data.read(CHUNK), b"")
-            if hasattr(self.data, "read")
-            else iter(self.data)
-        )
+        it = iter(lambda: self.data.read(CHUNK), b"") if hasattr(self.data, "read") else iter(self.data)
         for chunk in it:
             if len(self.head) < 65536:
                 self.head += chunk[: 65536 - len(self.head)]
@@ -47,9 +43,7 @@ def _local(b: Backend, key: str, tmpdir: Path) -> Path:
     return b.storage.download(key, tmpdir / "blob")
 
 
-def ingest(
-    b: Backend, owner: str, data, filename: str | None, *, expect: str | None = None
-) -> Asset:
+def ingest(b: Backend, owner: str, data, filename: str | None, *, expect: str | None = None) -> Asset:
     """Stream one upload to storage, validate it, record it. Nothing remains on failure."""
     s = b.settings
     key = new_key("uploads", filename or "upload")
@@ -61,12 +55,15 @@ def ingest(
         if size == 0:
             raise invalid_input(f"{name}: the upload is empty")
         if expect == "ply" and kind != "ply":
-            raise invalid_input(
-                f"{name}: not a PLY file (it does not start with 'ply')"
-            )
+            raise invalid_input(f"{name}: not a PLY file (it does not start with 'ply')")
         fields = dict(
-            id=new_id("ast"), owner=owner, key=key, size=size, filename=filename,
-            sha256=h.sha.hexdigest(), created_at=time.time(),
+            id=new_id("ast"),
+            owner=owner,
+            key=key,
+            size=size,
+            filename=filename,
+            sha256=h.sha.hexdigest(),
+            created_at=time.time(),
         )
         with tempfile.TemporaryDirectory() as tmp:
             path = _local(b, key, Path(tmp))
@@ -77,9 +74,7 @@ def ingest(
                 n = validate_zip(path, s, name)
                 asset = Asset(**fields, kind="images", content_type="application/zip", n_images=n)
             else:
-                raise invalid_input(
-                    f"{name}: not a 3DGS .ply or a .zip of images (unrecognised file type)"
-                )
+                raise invalid_input(f"{name}: not a 3DGS .ply or a .zip of images (unrecognised file type)")
         b.store.put_asset(asset)
         return asset
     except BaseException:
@@ -87,15 +82,11 @@ def ingest(
         raise
 
 
-def ingest_images(
-    b: Backend, owner: str, files: list[tuple[str | None, BinaryIO]], label: str
-) -> Asset:
+def ingest_images(b: Backend, owner: str, files: list[tuple[str | None, BinaryIO]], label: str) -> Asset:
     """Several image uploads -> one image-set asset (stored as a zip)."""
     s = b.settings
     if len(files) > s.max_images:
-        raise too_large(
-            f"{label}: {len(files)} images exceeds the limit of {s.max_images}"
-        )
+        raise too_large(f"{label}: {len(files)} images exceeds the limit of {s.max_images}")
     with tempfile.TemporaryFile() as tmp:
         with zipfile.ZipFile(tmp, "w", zipfile.ZIP_STORED) as zf:
             for i, (fname, fh) in enumerate(files):
@@ -108,9 +99,7 @@ def ingest_images(
                     while chunk := fh.read(CHUNK):
                         total += len(chunk)
                         if total > s.max_upload_bytes:
-                            raise too_large(
-                                f"{label}[{i}]: exceeds the limit of {s.max_upload_bytes} bytes"
-                            )
+                            raise too_large(f"{label}[{i}]: exceeds the limit of {s.max_upload_bytes} bytes")
                         out.write(chunk)
         tmp.seek(0)
         return ingest(b, owner, tmp, f"{label}.zip")
@@ -123,9 +112,7 @@ def get_asset(b: Backend, owner: str, asset_id: str) -> Asset:
     return a
 
 
-def claim(
-    b: Backend, owner: str, idempotency_key: str | None, fingerprint: str
-) -> tuple[str, Job | None]:
+def claim(b: Backend, owner: str, idempotency_key: str | None, fingerprint: str) -> tuple[str, Job | None]:
     """Reserve a job id. With an Idempotency-Key already used: the earlier job
     (same body) or 422 (different body). Returns (job_id, existing_job)."""
     job_id = new_id("job")
@@ -166,9 +153,7 @@ def discard_asset(b: Backend, asset: Asset) -> None:
     b.store.delete_asset(asset.id)
 
 
-def check_request(
-    b: Backend, n_sources: int, options: dict[str, Any], webhook: dict | None
-) -> None:
+def check_request(b: Backend, n_sources: int, options: dict[str, Any], webhook: dict | None) -> None:
     s = b.settings
     if n_sources < 1:
         raise invalid_input("at least one source model is required")
@@ -193,7 +178,10 @@ def create_job(
     idempotency_key: str | None,
 ) -> Job:
     now = time.time()
-    ref = lambda a: InputRef(asset_id=a.id, key=a.key, kind=a.kind, filename=a.filename)
+
+    def ref(a):
+        return InputRef(asset_id=a.id, key=a.key, kind=a.kind, filename=a.filename)
+
     job = Job(
         id=job_id,
         owner=owner,

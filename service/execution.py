@@ -72,9 +72,7 @@ def execute(job_id: str, backend: Backend) -> JobState | None:
     ):
         return None  # another worker claimed it, or it was cancelled meanwhile
     lost, stop = threading.Event(), threading.Event()
-    hb = threading.Thread(
-        target=heartbeat, args=(backend, job_id, token, lost, stop), daemon=True
-    )
+    hb = threading.Thread(target=heartbeat, args=(backend, job_id, token, lost, stop), daemon=True)
     hb.start()
     prog = JobProgress(backend, job, token, lost, max(len(job.sources), 1))
     art_prefix = f"jobs/{job_id}/{token}"
@@ -82,11 +80,7 @@ def execute(job_id: str, backend: Backend) -> JobState | None:
     try:
         final = _run(backend, job, token, prog, art_prefix)
     except JobCancelled:
-        final = (
-            JobState.cancelled
-            if finish_attempt(backend, job_id, token, JobState.cancelled)
-            else None
-        )
+        final = JobState.cancelled if finish_attempt(backend, job_id, token, JobState.cancelled) else None
     except (LeaseLost, JobTimeout) as exc:
         if isinstance(exc, JobTimeout):
             err = Problem(
@@ -95,27 +89,19 @@ def execute(job_id: str, backend: Backend) -> JobState | None:
                 "Job timed out",
                 f"the job ran longer than {s.job_timeout_s:.0f} s",
             ).to_dict()
-            final = (
-                JobState.failed
-                if finish_attempt(backend, job_id, token, JobState.failed, error=err)
-                else None
-            )
+            final = JobState.failed if finish_attempt(backend, job_id, token, JobState.failed, error=err) else None
     except Exception as exc:
         err = problem_for(exc)
         if err.status >= 500:
             log.exception("job %s failed", job_id)
         final = (
-            JobState.failed
-            if finish_attempt(backend, job_id, token, JobState.failed, error=err.to_dict())
-            else None
+            JobState.failed if finish_attempt(backend, job_id, token, JobState.failed, error=err.to_dict()) else None
         )
     finally:
         stop.set()
         prog.finish()
         if final != JobState.succeeded:
-            backend.storage.delete_prefix(
-                art_prefix
-            )  # no partial artifacts from a failed attempt
+            backend.storage.delete_prefix(art_prefix)  # no partial artifacts from a failed attempt
         _release_memory()
     if final is not None:
         notify_webhook(backend, job_id)
@@ -142,9 +128,7 @@ def problem_for(exc: Exception) -> Problem:
     return Problem(500, "alignment-failed", "Alignment failed", f"{type(exc).__name__}: {exc}")
 
 
-def _run(
-    backend: Backend, job: Job, token: str, prog: JobProgress, art_prefix: str
-) -> JobState | None:
+def _run(backend: Backend, job: Job, token: str, prog: JobProgress, art_prefix: str) -> JobState | None:
     # lazy: the aligner (numba kernels, ~1 s of imports) loads in the processes that run jobs
     from gsa.align.outputs import write_outputs
     from gsa.align.pipeline import AlignOptions, align
@@ -176,9 +160,7 @@ def _run(
     with tempfile.TemporaryDirectory(prefix="gsa-job-") as tmp:
         work = Path(tmp)
         prog("loading", 0.0)
-        target = load_input(
-            backend, job.target, work, "target", prog, reconstructions, recon_iterations
-        )
+        target = load_input(backend, job.target, work, "target", prog, reconstructions, recon_iterations)
         results, files, transforms = [], [], []
         multi = len(job.sources) > 1
         for i, ref in enumerate(job.sources):
@@ -201,9 +183,7 @@ def _run(
                 "source_asset_id": ref.asset_id,
                 "target_asset_id": job.target.asset_id,
             }
-            paths = write_outputs(
-                res, source, target, out_dir, outputs=outputs, extra=extra
-            )
+            paths = write_outputs(res, source, target, out_dir, outputs=outputs, extra=extra)
             d = res.to_dict()
             d["source_asset_id"] = ref.asset_id
             results.append(d)
@@ -215,18 +195,13 @@ def _run(
             prog("renders", 0.0)
             files += synchronized_renders(backend, job, target, transforms, work, notes)
         # Models reconstructed from image sets are results in their own right.
-        files += [
-            (f"reconstructed/{n}.ply", p)
-            for n, (_, p) in sorted(reconstructions.items())
-        ]
+        files += [(f"reconstructed/{n}.ply", p) for n, (_, p) in sorted(reconstructions.items())]
         prog.check(force=True)
         artifacts = store_artifacts(backend, files, art_prefix)
     result = dict(results[0]) if len(results) == 1 else {}
     result["results"] = results
     if reconstructions:
-        result["reconstructions"] = {
-            n: summ for n, (summ, _) in reconstructions.items()
-        }
+        result["reconstructions"] = {n: summ for n, (summ, _) in reconstructions.items()}
     if notes:
         result["notes"] = notes
     ok = finish_attempt(

@@ -87,10 +87,7 @@ def job_to_pb(job: Job) -> pb.Job:
         source_asset_ids=[s.asset_id for s in job.sources],
         target_asset_id=job.target.asset_id,
         options_json=json.dumps(job.options),
-        artifacts=[
-            pb.Artifact(name=a.name, size=a.size, content_type=a.content_type)
-            for a in job.artifacts
-        ],
+        artifacts=[pb.Artifact(name=a.name, size=a.size, content_type=a.content_type) for a in job.artifacts],
     )
     if job.error:
         msg.error.CopyFrom(
@@ -130,18 +127,14 @@ class AlignmentServicer(pbg.AlignmentServiceServicer):
         if owner is None:
             self._abort(
                 context,
-                Problem(
-                    401, "unauthorized", "Unauthorized", "a valid API key is required"
-                ),
+                Problem(401, "unauthorized", "Unauthorized", "a valid API key is required"),
             )
         return owner
 
     @staticmethod
     def _abort(context, p: Problem):
         context.set_trailing_metadata((("gsa-problem", json.dumps(p.to_dict())),))
-        context.abort(
-            _CODE.get(p.status, grpc.StatusCode.INTERNAL), p.detail or p.title
-        )
+        context.abort(_CODE.get(p.status, grpc.StatusCode.INTERNAL), p.detail or p.title)
 
     def _guard(self, fn, context):
         try:
@@ -157,9 +150,7 @@ class AlignmentServicer(pbg.AlignmentServiceServicer):
     def _submit(self, owner, request_iterator):
         s = self.b.settings
         header = None
-        files: dict[
-            tuple[int, int], list
-        ] = {}  # (role, index) -> [filename, tempfile, size]
+        files: dict[tuple[int, int], list] = {}  # (role, index) -> [filename, tempfile, size]
         try:
             for req in request_iterator:
                 kind = req.WhichOneof("payload")
@@ -174,9 +165,7 @@ class AlignmentServicer(pbg.AlignmentServiceServicer):
                     raise invalid_input("the first message must be a SubmitHeader")
                 c = req.chunk
                 if c.role not in (pb.ROLE_SOURCE, pb.ROLE_TARGET):
-                    raise invalid_input(
-                        "FileChunk.role must be ROLE_SOURCE or ROLE_TARGET"
-                    )
+                    raise invalid_input("FileChunk.role must be ROLE_SOURCE or ROLE_TARGET")
                 k = (c.role, c.index)
                 if k not in files:
                     if len(files) > s.max_sources + 1:
@@ -189,9 +178,7 @@ class AlignmentServicer(pbg.AlignmentServiceServicer):
                 f = files[k]
                 f[2] += len(c.data)
                 if f[2] > s.max_upload_bytes:
-                    raise too_large(
-                        f"file {f[0]!r} exceeds the limit of {s.max_upload_bytes} bytes"
-                    )
+                    raise too_large(f"file {f[0]!r} exceeds the limit of {s.max_upload_bytes} bytes")
                 f[1].write(c.data)
             if header is None:
                 raise invalid_input("no SubmitHeader received")
@@ -214,20 +201,10 @@ class AlignmentServicer(pbg.AlignmentServiceServicer):
             tgt_up = [k for k in files if k[0] == pb.ROLE_TARGET]
             n_src = len(src_up) if src_up else len(header.source_asset_ids)
             if len(tgt_up) > 1 or (not tgt_up and not header.target_asset_id):
-                raise invalid_input(
-                    "exactly one target is required (chunks or target_asset_id)"
-                )
+                raise invalid_input("exactly one target is required (chunks or target_asset_id)")
             core.check_request(self.b, n_src, options, webhook)
-            src_assets = (
-                []
-                if src_up
-                else [core.get_asset(self.b, owner, i) for i in header.source_asset_ids]
-            )
-            tgt_asset = (
-                None
-                if tgt_up
-                else core.get_asset(self.b, owner, header.target_asset_id)
-            )
+            src_assets = [] if src_up else [core.get_asset(self.b, owner, i) for i in header.source_asset_ids]
+            tgt_asset = None if tgt_up else core.get_asset(self.b, owner, header.target_asset_id)
 
             def digest(f):
                 h = hashlib.sha256()
@@ -240,10 +217,7 @@ class AlignmentServicer(pbg.AlignmentServiceServicer):
             fp = hashlib.sha256(
                 json.dumps(
                     {
-                        "files": {
-                            f"{r}:{i}": digest(v[1])
-                            for (r, i), v in sorted(files.items())
-                        },
+                        "files": {f"{r}:{i}": digest(v[1]) for (r, i), v in sorted(files.items())},
                         "sources": list(header.source_asset_ids) if not src_up else [],
                         "target": header.target_asset_id if not tgt_up else "",
                         "options": options,
@@ -263,13 +237,9 @@ class AlignmentServicer(pbg.AlignmentServiceServicer):
                     made.append(core.ingest(self.b, owner, files[k][1], files[k][0]))
                 sources = made[:] if src_up else src_assets
                 if tgt_up:
-                    tgt_asset = core.ingest(
-                        self.b, owner, files[tgt_up[0]][1], files[tgt_up[0]][0]
-                    )
+                    tgt_asset = core.ingest(self.b, owner, files[tgt_up[0]][1], files[tgt_up[0]][0])
                     made.append(tgt_asset)
-                job = core.create_job(
-                    self.b, owner, job_id, sources, tgt_asset, options, webhook, idem
-                )
+                job = core.create_job(self.b, owner, job_id, sources, tgt_asset, options, webhook, idem)
             except BaseException:
                 for a in made:
                     core.discard_asset(self.b, a)
@@ -284,15 +254,11 @@ class AlignmentServicer(pbg.AlignmentServiceServicer):
 
     def GetJob(self, request, context):
         owner = self._owner(context)
-        return self._guard(
-            lambda: job_to_pb(core.get_job(self.b, owner, request.job_id)), context
-        )
+        return self._guard(lambda: job_to_pb(core.get_job(self.b, owner, request.job_id)), context)
 
     def CancelJob(self, request, context):
         owner = self._owner(context)
-        return self._guard(
-            lambda: job_to_pb(core.cancel_job(self.b, owner, request.job_id)), context
-        )
+        return self._guard(lambda: job_to_pb(core.cancel_job(self.b, owner, request.job_id)), context)
 
     def WatchJob(self, request, context):
         owner = self._owner(context)
@@ -326,11 +292,7 @@ class AlignmentServicer(pbg.AlignmentServiceServicer):
                     f"offset {start} is past the end ({art.size} bytes)",
                 ),
             )
-        end = (
-            art.size - 1
-            if request.length <= 0
-            else min(art.size - 1, start + int(request.length) - 1)
-        )
+        end = art.size - 1 if request.length <= 0 else min(art.size - 1, start + int(request.length) - 1)
         pos = start
         for chunk in self.b.storage.open(art.key, start, end):
             yield pb.ArtifactChunk(
@@ -342,9 +304,7 @@ class AlignmentServicer(pbg.AlignmentServiceServicer):
             pos += len(chunk)
 
 
-def serve_grpc(
-    backend: Backend, port: int, host: str = "[::]", metrics=None, max_workers: int = 16
-) -> grpc.Server:
+def serve_grpc(backend: Backend, port: int, host: str = "[::]", metrics=None, max_workers: int = 16) -> grpc.Server:
     s = backend.settings
     server = grpc.server(
         futures.ThreadPoolExecutor(max_workers=max_workers),
@@ -353,9 +313,7 @@ def serve_grpc(
             ("grpc.max_send_message_length", 8 * 1024 * 1024),
         ],
     )
-    pbg.add_AlignmentServiceServicer_to_server(
-        AlignmentServicer(backend, metrics), server
-    )
+    pbg.add_AlignmentServiceServicer_to_server(AlignmentServicer(backend, metrics), server)
     hs = health.HealthServicer()
     health_pb2_grpc.add_HealthServicer_to_server(hs, server)
     hs.set("", health_pb2.HealthCheckResponse.SERVING)

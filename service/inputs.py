@@ -46,25 +46,17 @@ def validate_ply(path: Path, max_gaussians: int, display_name: str) -> int:
         with open(path, "rb") as fh:
             fmt, header_len, elements = plymod._parse_header(path, fh)
         if not elements or elements[0][0] != "vertex":
-            raise plymod.PlyError(
-                path, "the first element must be 'vertex' (the Gaussians)"
-            )
+            raise plymod.PlyError(path, "the first element must be 'vertex' (the Gaussians)")
         _, count, props = elements[0]
         if any(t == "list" for _, t in props):
-            raise plymod.PlyError(
-                path, "the vertex element has list properties; 3DGS vertices are scalar"
-            )
+            raise plymod.PlyError(path, "the vertex element has list properties; 3DGS vertices are scalar")
         plymod._sh_and_feature_layout(path, [n for n, _ in props])
         if count == 0:
             raise plymod.PlyError(path, "the file holds zero Gaussians")
         if count > max_gaussians:
-            raise too_large(
-                f"{display_name}: {count} Gaussians exceeds the limit of {max_gaussians}"
-            )
+            raise too_large(f"{display_name}: {count} Gaussians exceeds the limit of {max_gaussians}")
         if plymod.FORMATS[fmt] is None:
-            plymod.read_ply(
-                path, max_gaussians=max_gaussians
-            )  # ASCII: only a full parse can tell
+            plymod.read_ply(path, max_gaussians=max_gaussians)  # ASCII: only a full parse can tell
         else:
             itemsize = sum(np.dtype(t).itemsize for _, t in props)
             need = count * itemsize
@@ -123,9 +115,7 @@ def check_image(head: bytes, name: str, settings) -> None:
     if wh is None:
         raise invalid_input(f"{name}: cannot read the image dimensions")
     if wh[0] * wh[1] > settings.max_image_pixels:
-        raise too_large(
-            f"{name}: {wh[0]}x{wh[1]} exceeds the limit of {settings.max_image_pixels} pixels"
-        )
+        raise too_large(f"{name}: {wh[0]}x{wh[1]} exceeds the limit of {settings.max_image_pixels} pixels")
 
 
 def unsafe_member_name(name: str) -> bool:
@@ -140,22 +130,16 @@ def validate_zip(path: Path, settings, display_name: str) -> int:
     try:
         zf = zipfile.ZipFile(path)
     except (zipfile.BadZipFile, OSError) as exc:
-        raise invalid_input(
-            f"{display_name}: not a readable zip archive ({exc})"
-        ) from None
+        raise invalid_input(f"{display_name}: not a readable zip archive ({exc})") from None
     with zf:
         infos = zf.infolist()
         if len(infos) > settings.max_zip_entries:
-            raise too_large(
-                f"{display_name}: {len(infos)} entries exceeds the limit of {settings.max_zip_entries}"
-            )
+            raise too_large(f"{display_name}: {len(infos)} entries exceeds the limit of {settings.max_zip_entries}")
         total = 0
         images = 0
         for info in infos:
             if unsafe_member_name(info.filename):
-                raise invalid_input(
-                    f"{display_name}: unsafe path in archive: {info.filename!r}"
-                )
+                raise invalid_input(f"{display_name}: unsafe path in archive: {info.filename!r}")
             if info.is_dir():
                 continue
             total += info.file_size
@@ -163,24 +147,16 @@ def validate_zip(path: Path, settings, display_name: str) -> int:
                 raise too_large(
                     f"{display_name}: uncompressed size exceeds the limit of {settings.max_zip_uncompressed_bytes} bytes"
                 )
-            if info.file_size > 1024 and info.file_size > settings.max_zip_ratio * max(
-                info.compress_size, 1
-            ):
-                raise invalid_input(
-                    f"{display_name}: {info.filename!r} has a suspicious compression ratio"
-                )
+            if info.file_size > 1024 and info.file_size > settings.max_zip_ratio * max(info.compress_size, 1):
+                raise invalid_input(f"{display_name}: {info.filename!r} has a suspicious compression ratio")
             if PurePosixPath(info.filename).suffix.lower() in IMAGE_EXTS:
                 images += 1
                 with zf.open(info) as fh:  # only the first 64 KiB, for dimensions
-                    check_image(
-                        fh.read(65536), f"{display_name}:{info.filename}", settings
-                    )
+                    check_image(fh.read(65536), f"{display_name}:{info.filename}", settings)
         if images == 0:
             raise invalid_input(f"{display_name}: the archive holds no PNG/JPEG images")
         if images > settings.max_images:
-            raise too_large(
-                f"{display_name}: {images} images exceeds the limit of {settings.max_images}"
-            )
+            raise too_large(f"{display_name}: {images} images exceeds the limit of {settings.max_images}")
         return images
 
 
@@ -207,9 +183,7 @@ def safe_extract(path: Path, dest: Path, settings) -> Path:
                 while chunk := src.read(1 << 20):
                     remaining -= len(chunk)
                     if remaining < 0:  # the directory lied about the size
-                        raise invalid_input(
-                            f"{info.filename!r} is larger than its declared size"
-                        )
+                        raise invalid_input(f"{info.filename!r} is larger than its declared size")
                     dst.write(chunk)
     return dest
 
@@ -255,9 +229,7 @@ def load_input(
                 "Reconstruction failed",
                 f"{name} images: {exc}",
             ) from None
-        summary = {
-            k: v for k, v in res.summary().items() if k not in ("model", "cameras")
-        }
+        summary = {k: v for k, v in res.summary().items() if k not in ("model", "cameras")}
         reconstructions[name] = (summary, Path(res.model_path))
         return res.model
     raise invalid_input(f"unknown input kind {ref.kind!r}")

@@ -113,11 +113,7 @@ class JobProgress:
             key = stage.split(":")[1] if stage.startswith("recon:") else stage
             span = RECON_SPAN if stage.startswith("recon:") else STAGE_SPAN
             lo, hi = span.get(key, (None, None))
-            within = (
-                (lo + f * (hi - lo))
-                if lo is not None
-                else (self.overall * self.n - self.part)
-            )
+            within = (lo + f * (hi - lo)) if lo is not None else (self.overall * self.n - self.part)
             # 1.0 is kept for "succeeded"; a running job's progress stays below it.
             self.overall = min(max(self.overall, (self.part + within) / self.n), 0.999)
             self.b.store.update(
@@ -158,9 +154,7 @@ def heartbeat(
             return
 
 
-def finish_attempt(
-    backend: Backend, job_id: str, token: str, state: JobState, **fields
-) -> bool:
+def finish_attempt(backend: Backend, job_id: str, token: str, state: JobState, **fields) -> bool:
     """End this attempt in `state`; False if the attempt no longer owns the job."""
     return backend.store.update(
         job_id,
@@ -192,9 +186,7 @@ def reap(backend: Backend, *, force: bool = False) -> list[str]:
             worker=None,
         )
         if job.cancel_requested:
-            ok = backend.store.update(
-                job.id, state=JobState.cancelled, finished_at=now, **common
-            )
+            ok = backend.store.update(job.id, state=JobState.cancelled, finished_at=now, **common)
         elif job.attempts >= job.max_attempts:
             err = Problem(
                 500,
@@ -202,9 +194,7 @@ def reap(backend: Backend, *, force: bool = False) -> list[str]:
                 "Job failed",
                 f"the worker running this job was lost {job.attempts} times; giving up",
             ).to_dict()
-            ok = backend.store.update(
-                job.id, state=JobState.failed, finished_at=now, error=err, **common
-            )
+            ok = backend.store.update(job.id, state=JobState.failed, finished_at=now, error=err, **common)
         else:
             ok = backend.store.update(
                 job.id,

@@ -68,7 +68,5 @@ class Metrics:
                 10,
             ),
         )
-        self.jobs_created = Counter(
-            "gsa_jobs_created", "Jobs created", ["api"], registry=self.registry
-        )
+        self.jobs_created = Counter("gsa_jobs_created", "Jobs created", ["api"], registry=self.registry)
         self.registry.register(_StoreCollector(backend))

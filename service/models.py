@@ -9,7 +9,7 @@ from typing import Any
 from pydantic import BaseModel, Field
 
 
-class JobState(str, Enum):
+class JobState(str, Enum):  # noqa: UP042 - StrEnum would change str(member) in stored records and logs
     queued = "queued"
     running = "running"
     succeeded = "succeeded"

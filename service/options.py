@@ -48,9 +48,7 @@ def validate_options(options: dict[str, Any]) -> dict[str, Any]:
     fixed = sorted(k for k in options if server_only_option(k))
     if fixed:
         # Paths and devices are the server's business: a client path must never reach the filesystem.
-        raise invalid_input(
-            f"option(s) set by the server, not the client: {', '.join(fixed)}"
-        )
+        raise invalid_input(f"option(s) set by the server, not the client: {', '.join(fixed)}")
     known = align_option_names()
     unknown = sorted(set(options) - known - SERVICE_OPTIONS)
     if unknown:

@@ -42,9 +42,7 @@ class Problem(Exception):
 
 def not_found(what: str, ident: str) -> Problem:
     # Same answer for "missing" and "owned by someone else": never leak existence.
-    return Problem(
-        404, "not-found", f"{what} not found", f"no {what.lower()} with id {ident!r}"
-    )
+    return Problem(404, "not-found", f"{what} not found", f"no {what.lower()} with id {ident!r}")
 
 
 def invalid_input(detail: str, **extra: Any) -> Problem:

@@ -21,9 +21,7 @@ def _enc(v: Any) -> str:
     if isinstance(v, BaseModel):
         return v.model_dump_json()
     if isinstance(v, list):
-        return json.dumps(
-            [x.model_dump(mode="json") if isinstance(x, BaseModel) else x for x in v]
-        )
+        return json.dumps([x.model_dump(mode="json") if isinstance(x, BaseModel) else x for x in v])
     if isinstance(v, Enum):
         return json.dumps(v.value)
     return json.dumps(v)
@@ -106,9 +104,7 @@ class RedisJobStore:
         top = "+inf" if cursor is None else cursor[0]
         offset = 0
         while len(out) < limit:
-            batch = self.r.zrevrangebyscore(
-                key, top, "-inf", start=offset, num=200, withscores=True
-            )
+            batch = self.r.zrevrangebyscore(key, top, "-inf", start=offset, num=200, withscores=True)
             if not batch:
                 break
             offset += len(batch)
@@ -130,10 +126,7 @@ class RedisJobStore:
         return self._many(self.r.smembers(f"{self.p}state:{_enc(JobState.running)}"))
 
     def queued_ids(self):
-        return [
-            i.decode()
-            for i in self.r.smembers(f"{self.p}state:{_enc(JobState.queued)}")
-        ]
+        return [i.decode() for i in self.r.smembers(f"{self.p}state:{_enc(JobState.queued)}")]
 
     def counts(self):
         pipe = self.r.pipeline(transaction=False)

@@ -18,9 +18,7 @@ from service.leases import reap, start_reaper
 log = logging.getLogger("gsa.worker")
 
 
-def start_embedded_workers(
-    backend: Backend, stop: threading.Event
-) -> list[threading.Thread]:
+def start_embedded_workers(backend: Backend, stop: threading.Event) -> list[threading.Thread]:
     """In-process workers for embedded mode: poll the SQLite queue, run jobs."""
     reap(backend, force=True)  # jobs "running" in a previous process were lost with it
 
@@ -98,16 +96,12 @@ def run_rq_worker(burst: bool = False, name: str | None = None) -> None:
 
     backend = process_backend()
     if backend.redis is None:
-        raise SystemExit(
-            "gsa worker needs GSA_REDIS_URL (embedded mode runs workers inside `gsa serve`)"
-        )
+        raise SystemExit("gsa worker needs GSA_REDIS_URL (embedded mode runs workers inside `gsa serve`)")
     _warm_up()
     stop = threading.Event()
     start_reaper(backend, stop)
     queues = [backend.queue.hooks, backend.queue.q]  # webhooks first: they are tiny
-    w = Worker(
-        queues, connection=backend.redis, name=name or f"gsa-{uuid.uuid4().hex[:8]}"
-    )
+    w = Worker(queues, connection=backend.redis, name=name or f"gsa-{uuid.uuid4().hex[:8]}")
     try:
         w.work(burst=burst, with_scheduler=True)
     finally:

@@ -19,9 +19,7 @@ class SQLiteJobStore:
 
     def __init__(self, path: str | Path):
         Path(path).parent.mkdir(parents=True, exist_ok=True)
-        self.db = sqlite3.connect(
-            str(path), check_same_thread=False, isolation_level=None, timeout=30
-        )
+        self.db = sqlite3.connect(str(path), check_same_thread=False, isolation_level=None, timeout=30)
         self.lock = threading.RLock()
         with self.lock:
             self.db.execute("PRAGMA journal_mode=WAL")
@@ -53,9 +51,7 @@ class SQLiteJobStore:
 
     def get(self, job_id):
         with self.lock:
-            row = self.db.execute(
-                "SELECT data FROM jobs WHERE id=?", (job_id,)
-            ).fetchone()
+            row = self.db.execute("SELECT data FROM jobs WHERE id=?", (job_id,)).fetchone()
         return Job.model_validate_json(row[0]) if row else None
 
     def update(self, job_id, *, states=None, token=None, **fields):
@@ -63,21 +59,15 @@ class SQLiteJobStore:
         with self.lock:
             self.db.execute("BEGIN IMMEDIATE")
             try:
-                row = self.db.execute(
-                    "SELECT data FROM jobs WHERE id=?", (job_id,)
-                ).fetchone()
+                row = self.db.execute("SELECT data FROM jobs WHERE id=?", (job_id,)).fetchone()
                 if row is None:
                     self.db.execute("ROLLBACK")
                     return False
                 job = Job.model_validate_json(row[0])
-                if (states and job.state not in states) or (
-                    token and job.run_token != token
-                ):
+                if (states and job.state not in states) or (token and job.run_token != token):
                     self.db.execute("ROLLBACK")
                     return False
-                job = job.model_validate(
-                    {**job.model_dump(), **fields, "version": job.version + 1}
-                )
+                job = job.model_validate({**job.model_dump(), **fields, "version": job.version + 1})
                 self.db.execute(
                     "UPDATE jobs SET state=?, data=? WHERE id=?",
                     (job.state.value, job.model_dump_json(), job_id),
@@ -104,25 +94,17 @@ class SQLiteJobStore:
 
     def running(self):
         with self.lock:
-            rows = self.db.execute(
-                "SELECT data FROM jobs WHERE state='running'"
-            ).fetchall()
+            rows = self.db.execute("SELECT data FROM jobs WHERE state='running'").fetchall()
         return [Job.model_validate_json(r[0]) for r in rows]
 
     def queued_ids(self):
         with self.lock:
-            rows = self.db.execute(
-                "SELECT id FROM jobs WHERE state='queued' ORDER BY created_at"
-            ).fetchall()
+            rows = self.db.execute("SELECT id FROM jobs WHERE state='queued' ORDER BY created_at").fetchall()
         return [r[0] for r in rows]
 
     def counts(self):
         with self.lock:
-            rows = dict(
-                self.db.execute(
-                    "SELECT state, COUNT(*) FROM jobs GROUP BY state"
-                ).fetchall()
-            )
+            rows = dict(self.db.execute("SELECT state, COUNT(*) FROM jobs GROUP BY state").fetchall())
         return {s.value: int(rows.get(s.value, 0)) for s in JobState}
 
     def claim_idempotency(self, owner, key, body_hash, job_id):
@@ -134,9 +116,7 @@ class SQLiteJobStore:
             )
             if cur.rowcount == 1:
                 return None
-            row = self.db.execute(
-                "SELECT job_id, hash FROM idem WHERE k=?", (k,)
-            ).fetchone()
+            row = self.db.execute("SELECT job_id, hash FROM idem WHERE k=?", (k,)).fetchone()
         return row[0], row[1]
 
     def release_idempotency(self, owner, key):
@@ -156,9 +136,7 @@ class SQLiteJobStore:
 
     def get_asset(self, asset_id):
         with self.lock:
-            row = self.db.execute(
-                "SELECT data FROM assets WHERE id=?", (asset_id,)
-            ).fetchone()
+            row = self.db.execute("SELECT data FROM assets WHERE id=?", (asset_id,)).fetchone()
         return Asset.model_validate_json(row[0]) if row else None
 
     def record_stage(self, stage, seconds):
@@ -170,10 +148,7 @@ class SQLiteJobStore:
 
     def stage_stats(self):
         with self.lock:
-            return {
-                s: (n, secs)
-                for s, n, secs in self.db.execute("SELECT stage, n, secs FROM stages")
-            }
+            return {s: (n, secs) for s, n, secs in self.db.execute("SELECT stage, n, secs FROM stages")}
 
     def ping(self):
         try:

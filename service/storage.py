@@ -88,9 +88,7 @@ class LocalStorage:
                 for chunk in _chunks(data):
                     written += len(chunk)
                     if max_bytes is not None and written > max_bytes:
-                        raise too_large(
-                            f"upload exceeds the limit of {max_bytes} bytes"
-                        )
+                        raise too_large(f"upload exceeds the limit of {max_bytes} bytes")
                     fh.write(chunk)
             os.replace(tmp, path)
         except BaseException:
@@ -180,15 +178,11 @@ class S3Storage:
 
     def open(self, key, start=0, end=None):
         rng = f"bytes={start}-" + ("" if end is None else str(end))
-        body = self.s3.get_object(Bucket=self.bucket, Key=self._k(key), Range=rng)[
-            "Body"
-        ]
+        body = self.s3.get_object(Bucket=self.bucket, Key=self._k(key), Range=rng)["Body"]
         yield from body.iter_chunks(CHUNK)
 
     def size(self, key):
-        return int(
-            self.s3.head_object(Bucket=self.bucket, Key=self._k(key))["ContentLength"]
-        )
+        return int(self.s3.head_object(Bucket=self.bucket, Key=self._k(key))["ContentLength"])
 
     def exists(self, key):
         try:
@@ -201,9 +195,7 @@ class S3Storage:
         self.s3.delete_object(Bucket=self.bucket, Key=self._k(key))
 
     def delete_prefix(self, prefix):
-        pages = self.s3.get_paginator("list_objects_v2").paginate(
-            Bucket=self.bucket, Prefix=self.prefix + prefix
-        )
+        pages = self.s3.get_paginator("list_objects_v2").paginate(Bucket=self.bucket, Prefix=self.prefix + prefix)
         for page in pages:
             for obj in page.get("Contents", []):
                 self.s3.delete_object(Bucket=self.bucket, Key=obj["Key"])
@@ -224,7 +216,5 @@ def make_storage(settings) -> Storage:
     if settings.storage_backend == "s3":
         if not settings.s3_bucket:
             raise ValueError("GSA_S3_BUCKET is required for the s3 storage backend")
-        return S3Storage(
-            settings.s3_bucket, settings.s3_prefix, settings.s3_endpoint_url
-        )
+        return S3Storage(settings.s3_bucket, settings.s3_prefix, settings.s3_endpoint_url)
     return LocalStorage(settings.storage_root / "blobs")

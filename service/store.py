@@ -48,9 +48,7 @@ class JobStore(Protocol):
         """Jobs per state (every state present)."""
         ...
 
-    def claim_idempotency(
-        self, owner: str, key: str, body_hash: str, job_id: str
-    ) -> tuple[str, str] | None:
+    def claim_idempotency(self, owner: str, key: str, body_hash: str, job_id: str) -> tuple[str, str] | None:
         """Reserve `key` for job_id; if it was taken: (earlier job id, its body hash)."""
         ...
 

@@ -45,16 +45,8 @@ def check_url(url: str, allow_private: bool) -> None:
         raise ValueError(f"webhook host {u.hostname!r} does not resolve") from None
     for a in addrs:
         ip = ipaddress.ip_address(a)
-        if (
-            ip.is_private
-            or ip.is_loopback
-            or ip.is_link_local
-            or ip.is_reserved
-            or ip.is_multicast
-        ):
-            raise ValueError(
-                f"webhook host {u.hostname!r} resolves to a non-public address"
-            )
+        if ip.is_private or ip.is_loopback or ip.is_link_local or ip.is_reserved or ip.is_multicast:
+            raise ValueError(f"webhook host {u.hostname!r} resolves to a non-public address")
 
 
 def post_job_event(store, job_id: str, settings) -> None:
@@ -99,9 +91,7 @@ def deliver_with_retries(store, job_id: str, settings) -> bool:
             post_job_event(store, job_id, settings)
             return True
         except Exception as exc:
-            log.warning(
-                "webhook for %s failed (attempt %d): %s", job_id, attempt + 1, exc
-            )
+            log.warning("webhook for %s failed (attempt %d): %s", job_id, attempt + 1, exc)
             time.sleep(delay)
             delay = min(delay * 5, 600)
     return False

@@ -19,8 +19,14 @@ from gsa.metrics import accuracy
 from gsa.sim3 import Sim3
 from gsa.synth import make_object
 
-TABLE_COLUMNS = ["method", "mean RRE (°)", "mean scale err (%)", "success (RRE<5°)", "s / pair",
-                 "time ratio vs GSA coarse"]
+TABLE_COLUMNS = [
+    "method",
+    "mean RRE (°)",
+    "mean scale err (%)",
+    "success (RRE<5°)",
+    "s / pair",
+    "time ratio vs GSA coarse",
+]
 
 
 def _easy_pair(n=1500, seed=0):
@@ -117,6 +123,7 @@ def tiny_pairs(monkeypatch):
                 rng = np.random.default_rng(i)
                 truth = P.random_sim3(rng)
                 return model, model.transformed(truth), truth
+
             return f
 
         return [(f"{['car', 'bus'][i]}-{i}" + ("-1" if kind == "category" else ""), make(i)) for i in range(2)]
@@ -160,6 +167,7 @@ def test_protocol_table_and_json(tiny_pairs, tmp_path, capsys, name):
         assert gsa["success_rate_any_symmetric"] == gsa["success_rate"]
 
 
+@pytest.mark.slow
 def test_ablation_rows(tiny_pairs, tmp_path, capsys):
     P.run_protocols(["ablation"], quick=True, out=str(tmp_path))
     rows = {r["method"]: r for r in json.loads((tmp_path / "ablation.json").read_text())["rows"]}
@@ -169,9 +177,14 @@ def test_ablation_rows(tiny_pairs, tmp_path, capsys):
 
 
 def test_failed_peer_counts_as_failure():
-    rows = P.summarise("x", "m", [{"pair": "a", "seconds": 1.0, "rre_deg": 1.0, "scale_error_pct": 0.0,
-                                   "ate_normalized": 0.0},
-                                  {"pair": "b", "seconds": 1.0, "error": "boom", "rre_deg": float("nan")}])
+    rows = P.summarise(
+        "x",
+        "m",
+        [
+            {"pair": "a", "seconds": 1.0, "rre_deg": 1.0, "scale_error_pct": 0.0, "ate_normalized": 0.0},
+            {"pair": "b", "seconds": 1.0, "error": "boom", "rre_deg": float("nan")},
+        ],
+    )
     assert rows["failed"] == 1 and rows["success_rate"] == 0.5
 
 

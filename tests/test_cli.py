@@ -12,8 +12,9 @@ from gsa.synth import make_object, random_sim3
 
 
 def gsa(*args, cwd=None):
-    return subprocess.run([sys.executable, "-m", "gsa.cli", *map(str, args)], capture_output=True, text=True, cwd=cwd,
-                          timeout=300)
+    return subprocess.run(
+        [sys.executable, "-m", "gsa.cli", *map(str, args)], capture_output=True, text=True, cwd=cwd, timeout=300
+    )
 
 
 @pytest.fixture(scope="module")
@@ -27,8 +28,18 @@ def pair(tmp_path_factory):
 
 def test_align_writes_result_and_models(pair, tmp_path):
     src, tgt, truth = pair
-    r = gsa("align", src, tgt, "--out", tmp_path / "r.json", "--aligned-out", tmp_path / "a.ply",
-            "--merged-out", tmp_path / "m.ply", "--quiet")
+    r = gsa(
+        "align",
+        src,
+        tgt,
+        "--out",
+        tmp_path / "r.json",
+        "--aligned-out",
+        tmp_path / "a.ply",
+        "--merged-out",
+        tmp_path / "m.ply",
+        "--quiet",
+    )
     assert r.returncode == 0, r.stderr
     data = json.loads((tmp_path / "r.json").read_text())
     est = Sim3.from_matrix(np.array(data["transform"]))
@@ -56,15 +67,20 @@ def _colourless_ellipsoid(n, seed):
 
     v = np.random.default_rng(seed).normal(size=(n, 3))
     v /= np.linalg.norm(v, axis=1, keepdims=True)
-    return GaussianModel(means=v * [3.0, 2.0, 1.0], quats=np.tile([1.0, 0, 0, 0], (n, 1)),
-                         log_scales=np.full((n, 3), np.log(0.03)), opacity_logits=np.full(n, 2.0),
-                         sh=np.full((n, 1, 3), 0.5))
+    return GaussianModel(
+        means=v * [3.0, 2.0, 1.0],
+        quats=np.tile([1.0, 0, 0, 0], (n, 1)),
+        log_scales=np.full((n, 3), np.log(0.03)),
+        opacity_logits=np.full(n, 2.0),
+        sh=np.full((n, 1, 3), 0.5),
+    )
 
 
 def test_symmetric_colourless_pair_warns_once(tmp_path):
     src = write_ply(_colourless_ellipsoid(3000, 1), tmp_path / "s.ply")
-    tgt = write_ply(_colourless_ellipsoid(3000, 2).transformed(random_sim3(np.random.default_rng(1))),
-                    tmp_path / "t.ply")
+    tgt = write_ply(
+        _colourless_ellipsoid(3000, 2).transformed(random_sim3(np.random.default_rng(1))), tmp_path / "t.ply"
+    )
     r = gsa("align", src, tgt, "--out", tmp_path / "r.json", "--quiet")
     assert r.returncode == 0, r.stderr
     metrics = json.loads((tmp_path / "r.json").read_text())["metrics"]
@@ -77,8 +93,12 @@ def test_symmetric_colourless_pair_warns_once(tmp_path):
     "make_bad, message",
     [
         (lambda p: p.write_text("not a ply"), "not a PLY"),
-        (lambda p: p.write_bytes(b"ply\nformat binary_little_endian 1.0\nelement vertex 5\nproperty float x\nend_header\n"),
-         "missing properties"),
+        (
+            lambda p: p.write_bytes(
+                b"ply\nformat binary_little_endian 1.0\nelement vertex 5\nproperty float x\nend_header\n"
+            ),
+            "missing properties",
+        ),
         (lambda p: None, "cannot open"),
     ],
     ids=["garbage", "not-3dgs", "missing"],
@@ -115,17 +135,23 @@ def test_demo_prints_error_against_truth(tmp_path):
 
 
 def _doubtful(**extra):
-    metrics = {"doubtful": True, "ambiguous": True, "confidence": 0.25, "score": 0.61,
-               "alternatives": [{"rotation_offset_deg": 180.0, "score": 0.60},
-                                {"rotation_offset_deg": 90.0, "score": 0.598}]}
+    metrics = {
+        "doubtful": True,
+        "ambiguous": True,
+        "confidence": 0.25,
+        "score": 0.61,
+        "alternatives": [{"rotation_offset_deg": 180.0, "score": 0.60}, {"rotation_offset_deg": 90.0, "score": 0.598}],
+    }
     return {**metrics, **extra}
 
 
 @pytest.mark.parametrize(
     "metrics, expected",
     [
-        (_doubtful(), ["ambiguous alignment", "3 poses", "within 0.012", "confidence 0.25", "180°",
-                       '"alternatives" in r.json']),
+        (
+            _doubtful(),
+            ["ambiguous alignment", "3 poses", "within 0.012", "confidence 0.25", "180°", '"alternatives" in r.json'],
+        ),
         (_doubtful(ambiguous=False, confidence=0.32), ["low confidence (0.32)", '"alternatives" in r.json']),
         ({"doubtful": True, "confidence": 0.1}, ["low confidence (0.10)"]),
         (_doubtful(doubtful=False), None),
@@ -163,10 +189,12 @@ def test_doubtful_result_prints_one_warning_on_stderr(doubtful, capsys):
 def test_parser_does_not_import_other_verbs_modules():
     """`gsa align` start-up: building the parser loads the alignment, not OpenCV (recon),
     torch (features, renderer), the generator or the service."""
-    code = ("import sys; from gsa.cli import build_parser; build_parser()\n"
-            "heavy = [m for m in ('cv2', 'torch', 'transformers', 'gsa.synth', 'gsa.recon.images', 'fastapi', 'grpc')"
-            " if m in sys.modules]\n"
-            "assert not heavy, heavy")
+    code = (
+        "import sys; from gsa.cli import build_parser; build_parser()\n"
+        "heavy = [m for m in ('cv2', 'torch', 'transformers', 'gsa.synth', 'gsa.recon.images', 'fastapi', 'grpc')"
+        " if m in sys.modules]\n"
+        "assert not heavy, heavy"
+    )
     r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
     assert r.returncode == 0, r.stderr
 

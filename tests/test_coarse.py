@@ -156,12 +156,21 @@ def test_result_reports_ground_truth_free_quality():
 
     from gsa.align.pipeline import quality_metrics
 
-    wrong = Sim3(truth.scale, truth.rotation @ Sim3.from_quaternion(1, [0, 0, 0, 1], [0, 0, 0]).rotation,
-                 truth.translation)
+    wrong = Sim3(
+        truth.scale, truth.rotation @ Sim3.from_quaternion(1, [0, 0, 0, 1], [0, 0, 0]).rotation, truth.translation
+    )
     tgt = truth.apply(source.means)
     f = canonical_features(source)
-    bad = quality_metrics(wrong, source.means.astype(float), tgt, f, f, 0.03 * model_frame(source).radius * truth.scale,
-                          cKDTree(source.means), cKDTree(tgt))
+    bad = quality_metrics(
+        wrong,
+        source.means.astype(float),
+        tgt,
+        f,
+        f,
+        0.03 * model_frame(source).radius * truth.scale,
+        cKDTree(source.means),
+        cKDTree(tgt),
+    )
     assert bad["inlier_fraction"] < 0.6
 
 
@@ -200,7 +209,8 @@ def test_auto_stages_add_fine_only_after_the_feature_stage():
     refine off), coarse alone after the NN refinement (see AlignOptions.stages)."""
     source = make_object("car", seed=6, n_gaussians=2000, sample_seed=1)
     target = make_object("car", seed=6, n_gaussians=2000, sample_seed=2).transformed(
-        random_sim3(np.random.default_rng(3)))
+        random_sim3(np.random.default_rng(3))
+    )
     quick = dict(fine_iterations=3, fine_image_size=32, fine_views=2)
     refined = align(source, target, AlignOptions(**quick))
     assert refined.stages == ("coarse",) and refined.fine is None

@@ -60,8 +60,12 @@ def weights(tmp_path_factory):
     ckpt["sphere.weight"] = F.normalize(torch.randn(1024, 3), dim=-1)
     ckpt["prototypes.proj.weight"] = torch.randn(64, 3)
     torch.save(ckpt, d / "sphere_mapper.ckpt")
-    return {"backbone": str(d / "dinov2_tiny_pretrain.pth"), "head": str(d / "sphere_mapper.ckpt"),
-            "vit": vit, "headmod": head}
+    return {
+        "backbone": str(d / "dinov2_tiny_pretrain.pth"),
+        "head": str(d / "sphere_mapper.ckpt"),
+        "vit": vit,
+        "headmod": head,
+    }
 
 
 @pytest.fixture(scope="module")
@@ -88,8 +92,10 @@ def test_hub_backbone_round_trip_and_head_layout(weights):
 
 def test_hf_folder_matches_transformers(tmp_path):
     import transformers
-    cfg = transformers.Dinov2Config(hidden_size=64, num_hidden_layers=2, num_attention_heads=2,
-                                    intermediate_size=256, patch_size=14, image_size=518)
+
+    cfg = transformers.Dinov2Config(
+        hidden_size=64, num_hidden_layers=2, num_attention_heads=2, intermediate_size=256, patch_size=14, image_size=518
+    )
     ref = transformers.Dinov2Model(cfg).eval()
     _randomise(ref, 2)
     ref.save_pretrained(tmp_path)
@@ -126,8 +132,18 @@ def test_missing_weights_are_clear_errors(tmp_path, weights):
     # The CLI reports the same before reading the model.
     parser = argparse.ArgumentParser()
     add_lift_parser(parser.add_subparsers())
-    args = parser.parse_args(["lift", str(tmp_path / "m.ply"), "--out", str(tmp_path / "o.ply"),
-                              "--features", "spheremap", "--backbone", weights["backbone"]])
+    args = parser.parse_args(
+        [
+            "lift",
+            str(tmp_path / "m.ply"),
+            "--out",
+            str(tmp_path / "o.ply"),
+            "--features",
+            "spheremap",
+            "--backbone",
+            weights["backbone"],
+        ]
+    )
     with pytest.raises(WeightsError, match=r"features\.head"):
         args.func(args)
 
@@ -227,8 +243,12 @@ def test_floaters_lifted_to_zero_and_pruned(weights):
     rng = np.random.default_rng(0)
     d = rng.normal(size=(60, 3))
     d /= np.linalg.norm(d, axis=1, keepdims=True)
-    floaters = GaussianModel.from_colors(c + d * r * rng.uniform(1.05, 1.25, (60, 1)), rng.uniform(0, 1, (60, 3)),
-                                         scales=np.full((60, 3), r * 0.03), opacities=0.3)
+    floaters = GaussianModel.from_colors(
+        c + d * r * rng.uniform(1.05, 1.25, (60, 1)),
+        rng.uniform(0, 1, (60, 3)),
+        scales=np.full((60, 3), r * 0.03),
+        opacities=0.3,
+    )
     model = merge_models(obj, floaters)
     ext = make_extractor("spheremap", FeatureSettings(backbone=weights["backbone"], head=weights["head"]))
     lifted, _ = lift_features(model, ext, views=8, image_size=64, iterations=30)
@@ -249,8 +269,14 @@ def test_prepare_for_alignment_modes(small_model, weights):
         prepare_for_alignment(small_model, "file", s)
     own = small_model.with_features(np.full((len(small_model), 3), 0.7, np.float32))
     assert prepare_for_alignment(own, "auto", s) is own
-    s2 = FeatureSettings(extractor="spheremap", backbone=weights["backbone"], head=weights["head"],
-                         lift_views=4, lift_image_size=48, lift_iterations=3)
+    s2 = FeatureSettings(
+        extractor="spheremap",
+        backbone=weights["backbone"],
+        head=weights["head"],
+        lift_views=4,
+        lift_image_size=48,
+        lift_iterations=3,
+    )
     reports = []
     out = prepare_for_alignment(small_model, "auto", s2, reports=reports)
     assert reports and reports[0].extractor == "spheremap" and out.features.shape[1] == 3
@@ -264,9 +290,25 @@ def test_lift_command_writes_semantic_ply(tmp_path, capsys):
     write_ply(model, tmp_path / "m.ply")
     parser = argparse.ArgumentParser()
     add_lift_parser(parser.add_subparsers())
-    args = parser.parse_args(["lift", str(tmp_path / "m.ply"), "--out", str(tmp_path / "lifted.ply"),
-                              "--features", "canonical", "--views", "4", "--size", "48", "--iterations", "5",
-                              "--report", str(tmp_path / "r.json"), "--quiet"])
+    args = parser.parse_args(
+        [
+            "lift",
+            str(tmp_path / "m.ply"),
+            "--out",
+            str(tmp_path / "lifted.ply"),
+            "--features",
+            "canonical",
+            "--views",
+            "4",
+            "--size",
+            "48",
+            "--iterations",
+            "5",
+            "--report",
+            str(tmp_path / "r.json"),
+            "--quiet",
+        ]
+    )
     assert args.func(args) == 0
     header = (tmp_path / "lifted.ply").read_bytes()[:4000]
     assert b"semantic_0" in header and b"semantic_2" in header and b"semantic_3" not in header
@@ -295,8 +337,13 @@ def test_prepare_pair_resolves_modes_for_the_pipeline(small_model, weights):
 
 
 def test_settings_from_environment():
-    env = {"GSA_FEATURES_EXTRACTOR": "dinov2", "GSA_FEATURES_BACKBONE": "/w/dinov2", "GSA_LIFT_VIEWS": "7",
-           "GSA_PRUNE_THRESHOLD": "0.2", "GSA_FEATURES_HEAD": ""}
+    env = {
+        "GSA_FEATURES_EXTRACTOR": "dinov2",
+        "GSA_FEATURES_BACKBONE": "/w/dinov2",
+        "GSA_LIFT_VIEWS": "7",
+        "GSA_PRUNE_THRESHOLD": "0.2",
+        "GSA_FEATURES_HEAD": "",
+    }
     s = FeatureSettings(**feature_settings_env(env, lift_views=9, head=None))
     assert (s.extractor, s.backbone, s.head, s.lift_views, s.prune_threshold) == ("dinov2", "/w/dinov2", None, 9, 0.2)
     assert sam_paths_env("enc.onnx", None, {"GSA_SAM_DECODER": "dec.onnx"}) == ("enc.onnx", "dec.onnx")
@@ -308,5 +355,6 @@ def test_library_reads_no_environment(monkeypatch, small_model):
 
     monkeypatch.setenv("GSA_FEATURES_EXTRACTOR", "dinov2")
     assert not _needs_extractor(AlignOptions(), small_model, small_model.with_features(None))
-    assert _needs_extractor(AlignOptions(feature_settings=FeatureSettings(extractor="dinov2")), small_model,
-                            small_model.with_features(None))
+    assert _needs_extractor(
+        AlignOptions(feature_settings=FeatureSettings(extractor="dinov2")), small_model, small_model.with_features(None)
+    )

@@ -13,8 +13,11 @@ GT = Sim3(1.3, Rotation.from_euler("xyz", [40, -70, 120], degrees=True).as_matri
 
 def _errors(est: Sim3):
     cos = (np.trace(est.rotation @ GT.rotation.T) - 1) / 2
-    return (np.degrees(np.arccos(np.clip(cos, -1, 1))), abs(est.scale / GT.scale - 1),
-            float(np.linalg.norm(est.translation - GT.translation)))
+    return (
+        np.degrees(np.arccos(np.clip(cos, -1, 1))),
+        abs(est.scale / GT.scale - 1),
+        float(np.linalg.norm(est.translation - GT.translation)),
+    )
 
 
 @pytest.fixture(scope="module")
@@ -24,8 +27,9 @@ def pair():
 
 
 def _init():
-    pert = Sim3(1.05, Rotation.from_rotvec(np.radians(5) * np.array([0.6, 0.8, 0.0])).as_matrix(),
-                np.array([0.06, -0.05, 0.04]))
+    pert = Sim3(
+        1.05, Rotation.from_rotvec(np.radians(5) * np.array([0.6, 0.8, 0.0])).as_matrix(), np.array([0.06, -0.05, 0.04])
+    )
     return pert @ GT
 
 
@@ -53,8 +57,13 @@ def test_colour_ablation_runs_and_improves(pair):
 def test_progress_callback_and_cancellation(pair):
     src, tgt = pair
     calls = []
-    fine_align(src, tgt, _init(), FineOptions(iterations=4, image_size=32, views=2),
-               progress=lambda stage, frac: calls.append((stage, frac)))
+    fine_align(
+        src,
+        tgt,
+        _init(),
+        FineOptions(iterations=4, image_size=32, views=2),
+        progress=lambda stage, frac: calls.append((stage, frac)),
+    )
     assert [c[0] for c in calls] == ["fine"] * 4
     assert np.allclose([c[1] for c in calls], [0.25, 0.5, 0.75, 1.0])
 

@@ -97,8 +97,18 @@ def _bad(tmp_path, data: bytes):
         (lambda b: b.replace(b"element vertex 100", b"element vertex 99999999999"), "exceeds the limit"),
         (lambda b: b.replace(b"property float f_rest_44\n", b""), "f_rest"),
     ],
-    ids=["not-ply", "truncated", "count-too-small", "count-too-large", "zero", "misnamed", "no-end", "format",
-         "absurd-count", "sh-layout"],
+    ids=[
+        "not-ply",
+        "truncated",
+        "count-too-small",
+        "count-too-large",
+        "zero",
+        "misnamed",
+        "no-end",
+        "format",
+        "absurd-count",
+        "sh-layout",
+    ],
 )
 def test_bad_files_get_one_clear_error(tmp_path, car_model, mutate, message):
     data = write_ply(car_model.subset(np.arange(100)), tmp_path / "good.ply").read_bytes()

@@ -22,7 +22,6 @@ def test_align_from_the_package_recovers_a_transform():
 
 def test_align_is_the_same_callable_whatever_was_imported_first():
     import gsa.align.pipeline  # noqa: F401 - binds the subpackage onto `gsa` first
-
     from gsa import align
     from gsa.align import align as pipeline_align
 

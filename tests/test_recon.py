@@ -10,7 +10,6 @@ import cv2
 import numpy as np
 import pytest
 
-
 from gsa.io.ply import read_ply  # noqa: E402
 from gsa.recon.images import ImageSetError, load_image_set  # noqa: E402
 from gsa.recon.masks import compute_masks, grabcut_mask, key_mask  # noqa: E402
@@ -95,16 +94,27 @@ def rendered(tmp_path_factory):
 
 @pytest.fixture(scope="module")
 def recon(rendered, tmp_path_factory):
-    from gsa.recon.pipeline import reconstruct
-    from gsa.recon.train import PRESETS
     from dataclasses import replace
 
-    cfg = replace(PRESETS["cpu"], iterations=60, resolution=64, densify_from=20, densify_until=50,
-                  densify_every=15, init_points=1500, feature_start=0.5, holdout_every=8)
+    from gsa.recon.pipeline import reconstruct
+    from gsa.recon.train import PRESETS
+
+    cfg = replace(
+        PRESETS["cpu"],
+        iterations=60,
+        resolution=64,
+        densify_from=20,
+        densify_until=50,
+        densify_every=15,
+        init_points=1500,
+        feature_start=0.5,
+        holdout_every=8,
+    )
     out = tmp_path_factory.mktemp("out")
     return reconstruct(rendered.directory, out, preset=cfg)
 
 
+@pytest.mark.slow
 def test_sfm_registers_and_matches_true_cameras(rendered, recon):
     sfm = recon.sfm
     assert sfm.n_registered >= 20, sfm.unregistered
@@ -128,6 +138,7 @@ def test_too_few_register(tmp_path):
         run_sfm(s, tmp_path / "w")
 
 
+@pytest.mark.slow
 def test_mapping_retries_until_every_view_registers(rendered, tmp_path):
     from gsa.recon.sfm import run_sfm
 
@@ -144,8 +155,9 @@ def test_mapping_retries_until_every_view_registers(rendered, tmp_path):
 
 def test_masks_separate_object(rendered):
     cams = rendered.cameras[:3]
-    imgs = np.stack([cv2.cvtColor(cv2.imread(str(rendered.directory / n)), cv2.COLOR_BGR2RGB) / 255.0
-                     for n in rendered.names[:3]]).astype(np.float32)
+    imgs = np.stack(
+        [cv2.cvtColor(cv2.imread(str(rendered.directory / n)), cv2.COLOR_BGR2RGB) / 255.0 for n in rendered.names[:3]]
+    ).astype(np.float32)
     alpha = render_model(rendered.model, cams, features=False, depth=False, backend="cpu").alpha[..., 0].numpy()
     truth = alpha > 0.5
     iou = lambda a, b: (a & b).sum() / (a | b).sum()  # noqa: E731

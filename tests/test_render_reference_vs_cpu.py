@@ -34,8 +34,20 @@ def _render_and_grads(scene, cams, backend, dtype=torch.float64, **kw):
     ts = {k: torch.tensor(scene[k], dtype=dtype, requires_grad=True) for k in KEYS}
     bg = torch.tensor([0.2, 0.3, 0.4], dtype=dtype, requires_grad=True)
     vm = torch.tensor(cams.viewmats, dtype=dtype, requires_grad=True)
-    out = rasterize(ts["means"], ts["quats"], ts["log_scales"], ts["opacity_logits"], ts["sh"], ts["features"],
-                    cams, background=bg, feature_background=(0.1, -0.2, 0.0), backend=backend, viewmats=vm, **kw)
+    out = rasterize(
+        ts["means"],
+        ts["quats"],
+        ts["log_scales"],
+        ts["opacity_logits"],
+        ts["sh"],
+        ts["features"],
+        cams,
+        background=bg,
+        feature_background=(0.1, -0.2, 0.0),
+        backend=backend,
+        viewmats=vm,
+        **kw,
+    )
     imgs = [out.colors, out.features, out.alpha, out.depth]
     rng = np.random.default_rng(7)
     loss = sum((im * torch.tensor(rng.normal(size=im.shape), dtype=dtype)).sum() for im in imgs)
@@ -82,18 +94,24 @@ def test_cpu_gradients_match_finite_differences():
     cams = orbit_cameras(np.zeros(3), 3.0, 2, width=14, height=12, fov=60, seed=4)
     colors = np.random.default_rng(5).uniform(size=(8, 3))
     vm0 = torch.tensor(cams.viewmats)
-    w = [torch.tensor(np.random.default_rng(9).normal(size=s)) for s in
-         [(2, 12, 14, 3), (2, 12, 14, 2), (2, 12, 14, 1), (2, 12, 14, 1)]]
+    w = [
+        torch.tensor(np.random.default_rng(9).normal(size=s))
+        for s in [(2, 12, 14, 3), (2, 12, 14, 2), (2, 12, 14, 1), (2, 12, 14, 1)]
+    ]
 
     def f(means, quats, log_scales, logits, cols, feats, vm_delta):
         vm = vm0 + torch.nn.functional.pad(vm_delta, (0, 0, 0, 1))
-        out = rasterize(means, quats, log_scales, logits, cols, feats, cams, background=(0.3, 0.1, 0.2),
-                        backend="cpu", viewmats=vm)
+        out = rasterize(
+            means, quats, log_scales, logits, cols, feats, cams, background=(0.3, 0.1, 0.2), backend="cpu", viewmats=vm
+        )
         return sum((im * wi).sum() for im, wi in zip((out.colors, out.features, out.alpha, out.depth), w))
 
     inputs = [torch.tensor(scene[k], requires_grad=True) for k in ("means", "quats", "log_scales", "opacity_logits")]
-    inputs += [torch.tensor(colors, requires_grad=True), torch.tensor(scene["features"], requires_grad=True),
-               torch.zeros(2, 3, 4, dtype=torch.float64, requires_grad=True)]
+    inputs += [
+        torch.tensor(colors, requires_grad=True),
+        torch.tensor(scene["features"], requires_grad=True),
+        torch.zeros(2, 3, 4, dtype=torch.float64, requires_grad=True),
+    ]
     assert torch.autograd.gradcheck(f, inputs, eps=1e-6, atol=1e-5, rtol=1e-4)
 
 
@@ -104,34 +122,53 @@ def test_sim3_gradient_through_cameras_equals_through_model():
     r0 = torch.tensor(Rotation.from_euler("xyz", [20, -35, 50], degrees=True).as_matrix())
 
     def params():
-        return (torch.tensor([0.1, -0.2, 0.05], dtype=torch.float64, requires_grad=True),
-                torch.tensor(0.2, dtype=torch.float64, requires_grad=True),
-                torch.tensor([0.1, 0.2, -0.1], dtype=torch.float64, requires_grad=True))
+        return (
+            torch.tensor([0.1, -0.2, 0.05], dtype=torch.float64, requires_grad=True),
+            torch.tensor(0.2, dtype=torch.float64, requires_grad=True),
+            torch.tensor([0.1, 0.2, -0.1], dtype=torch.float64, requires_grad=True),
+        )
 
     def transform(omega, log_s, t):
         k = torch.zeros(3, 3, dtype=torch.float64)
-        k = k.index_put((torch.tensor([2, 1, 0, 2, 1, 0]), torch.tensor([1, 2, 2, 0, 0, 1])),
-                        torch.stack([omega[0], -omega[0], omega[1], -omega[1], omega[2], -omega[2]]))
+        k = k.index_put(
+            (torch.tensor([2, 1, 0, 2, 1, 0]), torch.tensor([1, 2, 2, 0, 0, 1])),
+            torch.stack([omega[0], -omega[0], omega[1], -omega[1], omega[2], -omega[2]]),
+        )
         return torch.linalg.matrix_exp(k) @ r0, torch.exp(log_s), t
 
     def quat_of(rot):
         # rotation matrix -> wxyz (rot is far from 180°)
         w = torch.sqrt(1 + rot[0, 0] + rot[1, 1] + rot[2, 2]) / 2
-        return torch.stack([w, (rot[2, 1] - rot[1, 2]) / (4 * w), (rot[0, 2] - rot[2, 0]) / (4 * w),
-                            (rot[1, 0] - rot[0, 1]) / (4 * w)])
+        return torch.stack(
+            [w, (rot[2, 1] - rot[1, 2]) / (4 * w), (rot[0, 2] - rot[2, 0]) / (4 * w), (rot[1, 0] - rot[0, 1]) / (4 * w)]
+        )
 
     def qmul(a, b):
         aw, ax, ay, az = a.unbind(-1)
         bw, bx, by, bz = b.unbind(-1)
-        return torch.stack([aw * bw - ax * bx - ay * by - az * bz, aw * bx + ax * bw + ay * bz - az * by,
-                            aw * by - ax * bz + ay * bw + az * bx, aw * bz + ax * by - ay * bx + az * bw], -1)
+        return torch.stack(
+            [
+                aw * bw - ax * bx - ay * by - az * bz,
+                aw * bx + ax * bw + ay * bz - az * by,
+                aw * by - ax * bz + ay * bw + az * bx,
+                aw * bz + ax * by - ay * bx + az * bw,
+            ],
+            -1,
+        )
 
     p1 = params()
     rot, s, t = transform(*p1)
     m = torch.tensor(scene["means"])
-    out1 = rasterize(s * m @ rot.T + t, qmul(quat_of(rot)[None], torch.tensor(scene["quats"])),
-                     torch.tensor(scene["log_scales"]) + torch.log(s), scene["opacity_logits"],
-                     torch.tensor(scene["sh"]), torch.tensor(scene["features"]), cams, backend="cpu")
+    out1 = rasterize(
+        s * m @ rot.T + t,
+        qmul(quat_of(rot)[None], torch.tensor(scene["quats"])),
+        torch.tensor(scene["log_scales"]) + torch.log(s),
+        scene["opacity_logits"],
+        torch.tensor(scene["sh"]),
+        torch.tensor(scene["features"]),
+        cams,
+        backend="cpu",
+    )
     (out1.features.sum() + out1.colors.sum()).backward()
 
     p2 = params()
@@ -139,9 +176,17 @@ def test_sim3_gradient_through_cameras_equals_through_model():
     tm = torch.eye(4, dtype=torch.float64)
     tm = torch.cat([torch.cat([s * rot, t[:, None]], 1), tm[3:]], 0)
     vm = torch.tensor(cams.viewmats) @ tm
-    out2 = rasterize(torch.tensor(scene["means"]), scene["quats"], torch.tensor(scene["log_scales"]),
-                     scene["opacity_logits"], torch.tensor(scene["sh"]), torch.tensor(scene["features"]), cams,
-                     backend="cpu", viewmats=vm)
+    out2 = rasterize(
+        torch.tensor(scene["means"]),
+        scene["quats"],
+        torch.tensor(scene["log_scales"]),
+        scene["opacity_logits"],
+        torch.tensor(scene["sh"]),
+        torch.tensor(scene["features"]),
+        cams,
+        backend="cpu",
+        viewmats=vm,
+    )
     (out2.features.sum() + out2.colors.sum()).backward()
     np.testing.assert_allclose(out2.features.detach().numpy(), out1.features.detach().numpy(), atol=1e-9)
     for a, b in zip(p1, p2):
@@ -154,9 +199,22 @@ def test_result_does_not_depend_on_tile_size():
     cams = _cams(2, 37, 29)
     ts = [torch.tensor(scene[k], dtype=torch.float64) for k in KEYS]
     cov = covariance_3d(ts[1], ts[2])
-    outs = [render_gaussians(ts[0], cov, torch.sigmoid(ts[3]), torch.tensor(cams.viewmats),
-                             torch.tensor(cams.intrinsics), cams.width, cams.height, sh=ts[4], features=ts[5],
-                             backend="cpu", tile=tile) for tile in (8, 16, 32)]
+    outs = [
+        render_gaussians(
+            ts[0],
+            cov,
+            torch.sigmoid(ts[3]),
+            torch.tensor(cams.viewmats),
+            torch.tensor(cams.intrinsics),
+            cams.width,
+            cams.height,
+            sh=ts[4],
+            features=ts[5],
+            backend="cpu",
+            tile=tile,
+        )
+        for tile in (8, 16, 32)
+    ]
     for o in outs[1:]:
         np.testing.assert_allclose(o.colors.numpy(), outs[0].colors.numpy(), atol=1e-12)
         np.testing.assert_allclose(o.alpha.numpy(), outs[0].alpha.numpy(), atol=1e-12)
@@ -170,8 +228,9 @@ def test_orbit_cameras_look_at_center_opencv_convention():
     np.testing.assert_allclose(p[:, :2], 0, atol=1e-9)  # centre on the optical axis
     assert (p[:, 2] > 0).all()  # in front (z forward)
     # a single Gaussian at the centre lands in the middle of every image
-    model = GaussianModel.from_colors(np.array([[1.0, 2.0, 3.0]]), np.array([[1.0, 0.0, 0.0]]),
-                                      scales=np.full((1, 3), 0.05))
+    model = GaussianModel.from_colors(
+        np.array([[1.0, 2.0, 3.0]]), np.array([[1.0, 0.0, 0.0]]), scales=np.full((1, 3), 0.05)
+    )
     out = render_model(model, cams, features=False, background=(0, 0, 0), backend="cpu")
     a = out.alpha[..., 0].numpy()
     for img in a:
@@ -183,14 +242,38 @@ def test_bad_input_raises_value_error():
     scene = _scene(5, 0, seed=1)
     cams = _cams(1, 16, 16)
     with pytest.raises(ValueError):
-        rasterize(np.zeros((0, 3)), np.zeros((0, 4)), np.zeros((0, 3)), np.zeros(0), np.zeros((0, 1, 3)), None,
-                  cams, backend="cpu")
+        rasterize(
+            np.zeros((0, 3)),
+            np.zeros((0, 4)),
+            np.zeros((0, 3)),
+            np.zeros(0),
+            np.zeros((0, 1, 3)),
+            None,
+            cams,
+            backend="cpu",
+        )
     with pytest.raises(ValueError):
-        rasterize(scene["means"], scene["quats"], scene["log_scales"], scene["opacity_logits"], scene["sh"],
-                  np.zeros((4, 3)), cams, backend="cpu")
+        rasterize(
+            scene["means"],
+            scene["quats"],
+            scene["log_scales"],
+            scene["opacity_logits"],
+            scene["sh"],
+            np.zeros((4, 3)),
+            cams,
+            backend="cpu",
+        )
     with pytest.raises(ValueError):
-        rasterize(scene["means"], scene["quats"], scene["log_scales"], scene["opacity_logits"], scene["sh"],
-                  None, cams, backend="nope")
+        rasterize(
+            scene["means"],
+            scene["quats"],
+            scene["log_scales"],
+            scene["opacity_logits"],
+            scene["sh"],
+            None,
+            cams,
+            backend="nope",
+        )
     with pytest.raises(ValueError):
         Cameras(np.eye(4)[None], -1.0, 1.0, 0, 0, 8, 8)
 

@@ -22,7 +22,7 @@ def test_alignment_renders_show_the_change(tmp_path):
     assert before.shape == after.shape and before.shape[0] == 64
     w = 64
     # after alignment the source panel equals the target panel; before it does not
-    src_a, tgt_a = after[:, :w].astype(float), after[:, w + 4:2 * w + 4].astype(float)
+    src_a, tgt_a = after[:, :w].astype(float), after[:, w + 4 : 2 * w + 4].astype(float)
     src_b = before[:, :w].astype(float)
     assert np.abs(src_a - tgt_a).mean() < 2.0
     assert np.abs(src_b - tgt_a).mean() > 5.0
@@ -34,8 +34,9 @@ def test_model_views_and_synchronized(tmp_path):
     assert len([k for k in paths if k.startswith("view_")]) == 6 and paths["contact_sheet"].exists()
     img = cv2.imread(str(paths["view_0"]))
     assert img.shape == (48, 48, 3) and img.min() < 200  # something was drawn on white
-    sync = write_synchronized_renders([m, m], tmp_path / "s", [Sim3.identity(), Sim3.identity()], views=2,
-                                      size=32, features=True)
+    sync = write_synchronized_renders(
+        [m, m], tmp_path / "s", [Sim3.identity(), Sim3.identity()], views=2, size=32, features=True
+    )
     assert sync["synchronized"].exists() and sync["synchronized_features"].exists()
     with pytest.raises(ValueError):
         render_model_views(m.with_features(None), tmp_path / "x", views=1, features=True)
@@ -46,8 +47,21 @@ def test_render_command(tmp_path, capsys):
     ply = write_ply(m, tmp_path / "m.ply")
     parser = argparse.ArgumentParser()
     add_render_parser(parser.add_subparsers())
-    args = parser.parse_args(["render", str(ply), "--out", str(tmp_path / "out"), "--views", "2", "--features",
-                              "--size", "40", "--backend", "cpu"])
+    args = parser.parse_args(
+        [
+            "render",
+            str(ply),
+            "--out",
+            str(tmp_path / "out"),
+            "--views",
+            "2",
+            "--features",
+            "--size",
+            "40",
+            "--backend",
+            "cpu",
+        ]
+    )
     assert args.func(args) == 0
     assert (tmp_path / "out" / "view_1_features.png").exists()
     assert "contact_sheet.png" in capsys.readouterr().out

@@ -206,8 +206,15 @@ def test_deform(car):
 
 
 def _rec(rre, doubtful, confidence=0.5, error=False):
-    r = {"pair": "p", "seconds": 1.0, "rre_deg": rre, "scale_error_pct": 0.0, "ate_normalized": 0.0,
-         "doubtful": doubtful, "confidence": confidence}
+    r = {
+        "pair": "p",
+        "seconds": 1.0,
+        "rre_deg": rre,
+        "scale_error_pct": 0.0,
+        "ate_normalized": 0.0,
+        "doubtful": doubtful,
+        "confidence": confidence,
+    }
     if error:
         r["error"] = "boom"
         r["rre_deg"] = float("nan")
@@ -216,8 +223,12 @@ def _rec(rre, doubtful, confidence=0.5, error=False):
 
 def test_calibration_numbers():
     records = [
-        _rec(1.0, False), _rec(2.0, False), _rec(90.0, False),  # unflagged: 2 of 3 succeed
-        _rec(120.0, True), _rec(170.0, True), _rec(0.5, True),  # flagged: 2 failures, 1 success
+        _rec(1.0, False),
+        _rec(2.0, False),
+        _rec(90.0, False),  # unflagged: 2 of 3 succeed
+        _rec(120.0, True),
+        _rec(170.0, True),
+        _rec(0.5, True),  # flagged: 2 failures, 1 success
         _rec(0.0, True, error=True),  # an error is a flagged failure
     ]
     row = P.summarise("symmetric", P.GSA_COARSE, records)
@@ -231,8 +242,9 @@ def test_calibration_numbers():
     assert "Confidence calibration" in text and "4/7 flagged doubtful (57%)" in text
     assert "unflagged: 3, 67% succeed" in text and "failures: 4, 75% flagged" in text
     # peers' records carry no flag: no calibration fields, no line
-    peer = P.summarise("symmetric", "plain ICP", [{k: v for k, v in r.items() if k not in ("doubtful", "confidence")}
-                                                  for r in records])
+    peer = P.summarise(
+        "symmetric", "plain ICP", [{k: v for k, v in r.items() if k not in ("doubtful", "confidence")} for r in records]
+    )
     assert "flagged_rate" not in peer
     P.add_time_ratio([peer])
     assert "Confidence calibration" not in P.format_table("symmetric", [peer])
@@ -249,8 +261,11 @@ def test_calibration_numbers():
 
 
 def test_symmetric_success_column():
-    recs = [dict(_rec(150.0, False), rre_any_symmetric_deg=1.0), dict(_rec(1.0, False), rre_any_symmetric_deg=1.0),
-            dict(_rec(40.0, False), rre_any_symmetric_deg=40.0)]
+    recs = [
+        dict(_rec(150.0, False), rre_any_symmetric_deg=1.0),
+        dict(_rec(1.0, False), rre_any_symmetric_deg=1.0),
+        dict(_rec(40.0, False), rre_any_symmetric_deg=40.0),
+    ]
     row = P.summarise("symmetric", P.GSA_COARSE, recs)
     P.add_time_ratio([row])
     assert row["success_rate"] == pytest.approx(1 / 3) and row["success_rate_any_symmetric"] == pytest.approx(2 / 3)
@@ -267,10 +282,13 @@ class _FakeResult:
         self.timings = {}
 
 
-@pytest.mark.parametrize("metrics, expected", [
-    ({"confidence": 0.2, "ambiguous": True, "doubtful": True}, (0.2, True)),
-    ({}, (None, False)),  # align() without confidence reporting
-])
+@pytest.mark.parametrize(
+    "metrics, expected",
+    [
+        ({"confidence": 0.2, "ambiguous": True, "doubtful": True}, (0.2, True)),
+        ({}, (None, False)),  # align() without confidence reporting
+    ],
+)
 def test_gsa_runner_carries_confidence(monkeypatch, metrics, expected):
     monkeypatch.setattr(P, "align", lambda source, target, options: _FakeResult(metrics))
     est, _, fields = P.gsa_runner(False)(None, None)[P.GSA_COARSE]
@@ -280,19 +298,27 @@ def test_gsa_runner_carries_confidence(monkeypatch, metrics, expected):
 def test_protocol_records_carry_flags(monkeypatch, tmp_path, capsys):
     """evaluate() puts the runner's extra fields into the records, the judge's too,
     and run_protocols ends with the calibration line."""
+
     def pairs(quick, seed):
         def make(i):
             def f():
                 src = make_symmetric_object(i, 400, sample_seed=1)
                 truth = P.random_sim3(np.random.default_rng(i))
                 return src, make_symmetric_object(i, 400, sample_seed=2).transformed(truth), truth
+
             return f
+
         return [(f"{symmetric_spec(i)[0]}-k{symmetric_spec(i)[1]}-{i}", make(i)) for i in range(2)]
 
     def runner(source, target):
         k = source.metadata["symmetry_order"]
-        return {P.GSA_COARSE: (Sim3(1.0, axis_rotation((0, 0, 1), 2 * np.pi / k), np.zeros(3)), 0.1,
-                               {"confidence": 0.9, "doubtful": False})}
+        return {
+            P.GSA_COARSE: (
+                Sim3(1.0, axis_rotation((0, 0, 1), 2 * np.pi / k), np.zeros(3)),
+                0.1,
+                {"confidence": 0.9, "doubtful": False},
+            )
+        }
 
     monkeypatch.setattr(P, "symmetric_pairs", pairs)
     monkeypatch.setattr(P, "default_runners", lambda seed, peers, quick: [runner])

@@ -15,7 +15,7 @@ import importlib
 import sys
 import types
 
-_LAZY = {name: "gsa.align.pipeline" for name in ("align", "AlignOptions", "AlignmentResult", "AlignmentError")}
+_LAZY = dict.fromkeys(("align", "AlignOptions", "AlignmentResult", "AlignmentError"), "gsa.align.pipeline")
 __all__ = list(_LAZY)
 
 

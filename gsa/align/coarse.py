@@ -82,7 +82,9 @@ def find_candidates(
     tree = target_tree if target_tree is not None else cKDTree(np.asarray(target_features, np.float64))
     k = int(min(max_candidates + 1, len(target_features)))
     dist, idx = tree.query(
-        np.asarray(source_features, np.float64), k=k, distance_upper_bound=tau_f,
+        np.asarray(source_features, np.float64),
+        k=k,
+        distance_upper_bound=tau_f,
         workers=query_workers(len(source_features), workers),
     )
     dist = dist.reshape(len(source_features), k)
@@ -223,7 +225,9 @@ def icp_refine(
     history: list[dict] = []
     budget = opts.max_iterations
     while budget > 0:
-        _, table = target_tree.query(transform.apply(p), k=min(neighbours, len(q)), workers=query_workers(len(p), opts.workers))
+        _, table = target_tree.query(
+            transform.apply(p), k=min(neighbours, len(q)), workers=query_workers(len(p), opts.workers)
+        )
         table = np.ascontiguousarray(table.reshape(len(p), -1), np.int64)
 
         def match(x: np.ndarray, table: np.ndarray = table) -> tuple[np.ndarray, np.ndarray]:

@@ -16,8 +16,8 @@ The target's renders are computed once; the best-loss parameters are kept.
 from __future__ import annotations
 
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Callable
 
 import numpy as np
 import torch
@@ -73,9 +73,15 @@ class FineResult:
         return self.loss_history[0] if self.loss_history else float("nan")
 
     def to_dict(self) -> dict:
-        return {"transform": self.transform.to_dict(), "initial_transform": self.initial_transform.to_dict(),
-                "loss_history": list(self.loss_history), "best_loss": self.best_loss,
-                "best_iteration": self.best_iteration, "views": len(self.cameras), "timing": dict(self.timing)}
+        return {
+            "transform": self.transform.to_dict(),
+            "initial_transform": self.initial_transform.to_dict(),
+            "loss_history": list(self.loss_history),
+            "best_loss": self.best_loss,
+            "best_iteration": self.best_iteration,
+            "views": len(self.cameras),
+            "timing": dict(self.timing),
+        }
 
 
 def _signal(model: GaussianModel, on: str) -> tuple[np.ndarray | None, np.ndarray | None]:
@@ -114,8 +120,14 @@ def _so3_exp(omega: torch.Tensor) -> torch.Tensor:
     return torch.linalg.matrix_exp(k)
 
 
-def fine_align(source: GaussianModel, target: GaussianModel, init: Sim3, options: FineOptions | None = None,
-               cameras: Cameras | None = None, progress: Callable[[str, float], None] | None = None) -> FineResult:
+def fine_align(
+    source: GaussianModel,
+    target: GaussianModel,
+    init: Sim3,
+    options: FineOptions | None = None,
+    cameras: Cameras | None = None,
+    progress: Callable[[str, float], None] | None = None,
+) -> FineResult:
     """Refine `init` (source -> target) by multi-view feature (or colour) consistency.
 
     cameras: the target's training cameras if known (any image size; `options.views` evenly
@@ -142,8 +154,7 @@ def fine_align(source: GaussianModel, target: GaussianModel, init: Sim3, options
     torch_threads = torch.get_num_threads()
     torch.set_num_threads(1)
     try:
-        return _fine_align(source, target, init, options, cams, render, feat_s, sh_s, feat_t, sh_t, progress,
-                           t_start)
+        return _fine_align(source, target, init, options, cams, render, feat_s, sh_s, feat_t, sh_t, progress, t_start)
     finally:
         torch.set_num_threads(torch_threads)
 
@@ -157,17 +168,27 @@ def _fine_align(source, target, init, options, cams, render, feat_s, sh_s, feat_
     with torch.no_grad():
         vm_t = torch.as_tensor(cams.viewmats, dtype=torch.float32)
         intr = torch.as_tensor(cams.intrinsics, dtype=torch.float32)
-        tgt = render_gaussians(torch.as_tensor(target.means), _covariance(target, render["backend"]),
-                               torch.sigmoid(torch.as_tensor(target.opacity_logits)), vm_t, intr, cams.width,
-                               cams.height, sh=None if sh_t is None else torch.as_tensor(sh_t),
-                               features=None if feat_t is None else torch.as_tensor(feat_t), **render)
+        tgt = render_gaussians(
+            torch.as_tensor(target.means),
+            _covariance(target, render["backend"]),
+            torch.sigmoid(torch.as_tensor(target.opacity_logits)),
+            vm_t,
+            intr,
+            cams.width,
+            cams.height,
+            sh=None if sh_t is None else torch.as_tensor(sh_t),
+            features=None if feat_t is None else torch.as_tensor(feat_t),
+            **render,
+        )
         img_t = tgt.features if feat_t is not None else tgt.colors
         fg_t = tgt.alpha[..., 0] > options.alpha_threshold
         means_s = torch.as_tensor(source.means)
         cov_s = _covariance(source, render["backend"])
         op_s = torch.sigmoid(torch.as_tensor(source.opacity_logits))
-        sig_s = dict(sh=None if sh_s is None else torch.as_tensor(sh_s),
-                     features=None if feat_s is None else torch.as_tensor(feat_s))
+        sig_s = dict(
+            sh=None if sh_s is None else torch.as_tensor(sh_s),
+            features=None if feat_s is None else torch.as_tensor(feat_s),
+        )
 
     center = torch.as_tensor(target.means.astype(np.float64).mean(0))
     extent = float(np.percentile(np.linalg.norm(target.means - target.means.mean(0), axis=1), 90)) or 1.0
@@ -222,6 +243,10 @@ def _fine_align(source, target, init, options, cams, render, feat_s, sh_s, feat_
         transform = Sim3(float(sc.detach()), rot.detach().numpy(), tr.detach().numpy())
         best_loss, best_it = history[-1], len(history) - 1
     t_end = time.perf_counter()
-    timing = {"total_s": t_end - t_start, "setup_s": t_loop - t_start, "loop_s": t_end - t_loop,
-              "per_iteration_s": (t_end - t_loop) / max(1, options.iterations)}
+    timing = {
+        "total_s": t_end - t_start,
+        "setup_s": t_loop - t_start,
+        "loop_s": t_end - t_loop,
+        "per_iteration_s": (t_end - t_loop) / max(1, options.iterations),
+    }
     return FineResult(transform, init, history, best_loss, best_it, cams, timing)

@@ -379,8 +379,13 @@ class _Pair:
         src, dst = self.anchors()
         _report(progress, "hypotheses", 0.0)
         options = robust.SearchOptions(rotations=self.opts.search_rotations, seed=self.opts.seed)
-        result = robust.global_search(src, dst, robust.frame_relabellings(self.src_frame, self.dst_frame), options,
-                                      widen_if=lambda first: robust.verdict(first.best, first)["doubtful"])
+        result = robust.global_search(
+            src,
+            dst,
+            robust.frame_relabellings(self.src_frame, self.dst_frame),
+            options,
+            widen_if=lambda first: robust.verdict(first.best, first)["doubtful"],
+        )
         _report(progress, "hypotheses", 1.0)
         return result
 
@@ -396,9 +401,14 @@ class _Pair:
         q = dst_tree.data[_subsample(self.rng, dst_tree.n, half)]
         transform, history = robust.refine(p, q, src_tree, dst_tree, init, self.opts.refine_iterations)
         _report(progress, "coarse", 1.0)
-        return CoarseResult(transform=transform, iterations=len(history), converged=len(history) < self.opts.refine_iterations,
-                            history=history, matched=history[-1]["matched"] if history else 0,
-                            seconds=time.perf_counter() - t0)
+        return CoarseResult(
+            transform=transform,
+            iterations=len(history),
+            converged=len(history) < self.opts.refine_iterations,
+            history=history,
+            matched=history[-1]["matched"] if history else 0,
+            seconds=time.perf_counter() - t0,
+        )
 
     def judge(self, transform: Sim3, search: robust.SearchResult | None) -> dict:
         """Confidence in [0, 1], ambiguity and the alternative poses (GT-free)."""
@@ -467,8 +477,11 @@ class _Pair:
                 rev_d = _reverse_distances(res.transform, self.dst_pts[rev_sub], self.src_tree)
                 tau = opts.hypothesis_truncation * self.dst_frame.radius
                 closeness = 1.0 - 0.5 * (np.minimum(fwd_d, tau).mean() + np.minimum(rev_d, tau).mean()) / tau
-                entry.update(score=float(closeness), inliers_forward=float(np.mean(fwd_d <= self.threshold)),
-                             inliers_reverse=float(np.mean(rev_d <= self.threshold)))
+                entry.update(
+                    score=float(closeness),
+                    inliers_forward=float(np.mean(fwd_d <= self.threshold)),
+                    inliers_reverse=float(np.mean(rev_d <= self.threshold)),
+                )
                 hyp.init = res.transform
             except AlignmentError as exc:
                 entry["error"] = str(exc)
@@ -501,8 +514,13 @@ class _Pair:
             # nearest neighbours and several times cheaper.
             rows = _subsample(self.rng, len(self.source), opts.refine_points)
             refined = icp_refine(
-                self.src_pts[rows], self.dst_pts, self.dst_tree, coarse.transform,
-                opts.coarse_options(opts.refine_iterations), self.weights_at(rows), progress,
+                self.src_pts[rows],
+                self.dst_pts,
+                self.dst_tree,
+                coarse.transform,
+                opts.coarse_options(opts.refine_iterations),
+                self.weights_at(rows),
+                progress,
             )
             coarse.transform = refined.transform
             coarse.history += refined.history
@@ -543,8 +561,15 @@ class _Pair:
     def quality(self, transform: Sim3, best: _Hypothesis) -> dict:
         rows = _subsample(self.rng, len(self.source), self.opts.max_points)
         metrics = quality_metrics(
-            transform, self.src_pts[rows], self.dst_pts, self.source_features(best.frame, rows), self.dst_feat,
-            self.threshold, self.src_tree, self.dst_tree, _subsample(self.rng, len(self.target), self.opts.max_points),
+            transform,
+            self.src_pts[rows],
+            self.dst_pts,
+            self.source_features(best.frame, rows),
+            self.dst_feat,
+            self.threshold,
+            self.src_tree,
+            self.dst_tree,
+            _subsample(self.rng, len(self.target), self.opts.max_points),
         )
         metrics["inlier_threshold"] = self.threshold
         return metrics
@@ -556,9 +581,7 @@ def _subsample(rng: np.random.Generator, n: int, k: int) -> np.ndarray:
 
 def _reverse_distances(transform: Sim3, target_points: np.ndarray, source_tree: cKDTree) -> np.ndarray:
     """Distance from each target point to the nearest mapped source point, in target units."""
-    d, _ = source_tree.query(
-        transform.inverse().apply(target_points), k=1, workers=query_workers(len(target_points))
-    )
+    d, _ = source_tree.query(transform.inverse().apply(target_points), k=1, workers=query_workers(len(target_points)))
     return d * transform.scale
 
 

@@ -53,19 +53,23 @@ def main(argv=None) -> int:
         src, tgt = src.subset(rng.permutation(len(src))), tgt.subset(rng.permutation(len(tgt)))
     gt = Sim3(1.3, Rotation.from_euler("xyz", [40, -70, 120], degrees=True).as_matrix(), np.array([0.5, -0.2, 0.3]))
     tgt = tgt.transformed(gt)
-    pert = Sim3(1.03, Rotation.from_rotvec(np.radians(3.0) * np.array([0.6, 0.8, 0.0])).as_matrix(),
-                np.array([0.02, -0.02, 0.01]))
+    pert = Sim3(
+        1.03,
+        Rotation.from_rotvec(np.radians(3.0) * np.array([0.6, 0.8, 0.0])).as_matrix(),
+        np.array([0.02, -0.02, 0.01]),
+    )
     init = pert @ gt
 
     def rre(t: Sim3) -> float:
         return float(np.degrees(np.arccos(np.clip((np.trace(t.rotation @ gt.rotation.T) - 1) / 2, -1, 1))))
 
-    print(f"models: {len(src)} + {len(tgt)} Gaussians, {args.views} views at {args.size}x{args.size}, "
-          f"{args.iterations} iterations; {numba.get_num_threads()} numba threads, "
-          f"{torch.get_num_threads()} torch threads")
+    print(
+        f"models: {len(src)} + {len(tgt)} Gaussians, {args.views} views at {args.size}x{args.size}, "
+        f"{args.iterations} iterations; {numba.get_num_threads()} numba threads, "
+        f"{torch.get_num_threads()} torch threads"
+    )
     t = time.perf_counter()
-    fine_align(src, tgt, init, FineOptions(iterations=1, views=args.views, image_size=args.size,
-                                           backend=args.backend))
+    fine_align(src, tgt, init, FineOptions(iterations=1, views=args.views, image_size=args.size, backend=args.backend))
     print(f"warm-up (kernel load/compile, 1 iteration): {time.perf_counter() - t:.2f} s")
     opts = FineOptions(iterations=args.iterations, views=args.views, image_size=args.size, backend=args.backend)
     walls = []
@@ -79,14 +83,20 @@ def main(argv=None) -> int:
             load = open("/proc/loadavg").read().split()[0]
         except OSError:
             load = "?"
-        print(f"run {rep + 1}: {wall:.2f} s wall (setup incl. target renders {res.timing['setup_s']:.2f} s, "
-              f"{res.timing['per_iteration_s'] * 1000:.1f} ms/iteration), process CPU {cpu:.2f} s, load {load}")
+        print(
+            f"run {rep + 1}: {wall:.2f} s wall (setup incl. target renders {res.timing['setup_s']:.2f} s, "
+            f"{res.timing['per_iteration_s'] * 1000:.1f} ms/iteration), process CPU {cpu:.2f} s, load {load}"
+        )
     best, median = min(walls), float(np.median(walls))
-    print(f"fine stage wall time: min {best:.2f} s, median {median:.2f} s over {len(walls)} runs -> "
-          f"{'OK' if median <= 5.0 else 'ABOVE'} the 5 s target (median)")
-    print(f"RRE {rre(init):.3f} -> {rre(res.transform):.3f} deg; scale error {abs(init.scale / gt.scale - 1):.4f} -> "
-          f"{abs(res.transform.scale / gt.scale - 1):.4f}; loss {res.loss_history[0]:.5f} -> {res.best_loss:.5f} "
-          f"(best at iteration {res.best_iteration})")
+    print(
+        f"fine stage wall time: min {best:.2f} s, median {median:.2f} s over {len(walls)} runs -> "
+        f"{'OK' if median <= 5.0 else 'ABOVE'} the 5 s target (median)"
+    )
+    print(
+        f"RRE {rre(init):.3f} -> {rre(res.transform):.3f} deg; scale error {abs(init.scale / gt.scale - 1):.4f} -> "
+        f"{abs(res.transform.scale / gt.scale - 1):.4f}; loss {res.loss_history[0]:.5f} -> {res.best_loss:.5f} "
+        f"(best at iteration {res.best_iteration})"
+    )
     return 0
 
 

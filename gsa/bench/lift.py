@@ -22,8 +22,15 @@ import time
 import numpy as np
 
 
-def bench_lift_time(n: int = 50_000, category: str = "car", views: int = 24, image_size: int = 128,
-                    iterations: int = 150, backend: str = "cpu", seed: int = 0) -> dict:
+def bench_lift_time(
+    n: int = 50_000,
+    category: str = "car",
+    views: int = 24,
+    image_size: int = 128,
+    iterations: int = 150,
+    backend: str = "cpu",
+    seed: int = 0,
+) -> dict:
     """Time lift_features with the canonical extractor on an n-Gaussian generated model."""
     import torch
 
@@ -33,24 +40,39 @@ def bench_lift_time(n: int = 50_000, category: str = "car", views: int = 24, ima
 
     model = make_object(category, seed=seed, n_gaussians=n)
     # Warm the renderer's compiled kernels (numba cache load / JIT) outside the timing.
-    lift_features(make_object(category, seed=seed, n_gaussians=500), CanonicalExtractor(backend), views=2,
-                  image_size=32, iterations=1, backend=backend)
+    lift_features(
+        make_object(category, seed=seed, n_gaussians=500),
+        CanonicalExtractor(backend),
+        views=2,
+        image_size=32,
+        iterations=1,
+        backend=backend,
+    )
     t0 = time.perf_counter()
-    res = lift_features_full(model, CanonicalExtractor(backend), views=views, image_size=image_size,
-                             iterations=iterations, backend=backend)
+    res = lift_features_full(
+        model, CanonicalExtractor(backend), views=views, image_size=image_size, iterations=iterations, backend=backend
+    )
     total = time.perf_counter() - t0
     r = res.report
     # Recovery check as in the tests: ||lifted - canonical|| per Gaussian seen by >= 0.5 px of blend weight.
     err = np.linalg.norm(res.model.features - canonical_features(model), axis=1)
     seen = res.visibility >= 0.5
     return {
-        "gaussians": n, "views": views, "image_size": image_size, "iterations": iterations,
-        "batch_views": 4, "backend": backend, "torch_threads": torch.get_num_threads(),
+        "gaussians": n,
+        "views": views,
+        "image_size": image_size,
+        "iterations": iterations,
+        "batch_views": 4,
+        "backend": backend,
+        "torch_threads": torch.get_num_threads(),
         "cpu": platform.processor() or platform.machine(),
-        "total_seconds": round(total, 2), "render_views_seconds": round(r.render_seconds, 2),
-        "extract_seconds": round(r.extract_seconds, 2), "optimise_seconds": round(r.optimise_seconds, 2),
+        "total_seconds": round(total, 2),
+        "render_views_seconds": round(r.render_seconds, 2),
+        "extract_seconds": round(r.extract_seconds, 2),
+        "optimise_seconds": round(r.optimise_seconds, 2),
         "seconds_per_iteration": round(r.seconds_per_iteration, 3),
-        "initial_loss": round(r.initial_loss, 5), "final_loss": round(r.final_loss, 5),
+        "initial_loss": round(r.initial_loss, 5),
+        "final_loss": round(r.final_loss, 5),
         "visible": r.visible,
         "mean_feature_error_visible": round(float(err[seen].mean()), 4),
         "mean_feature_error_all": round(float(err.mean()), 4),
@@ -70,9 +92,18 @@ def _plain_icp(source, target):
     return icp_refine(p, q, cKDTree(q), init, CoarseOptions(max_iterations=100)).transform
 
 
-def feature_choice_rows(categories=None, per_category: int = 1, n: int = 5000, seed: int = 0,
-                        lift_views: int = 12, lift_size: int = 96, lift_iterations: int = 40,
-                        backend: str = "cpu", protocol: str = "dup", log=print) -> list[dict]:
+def feature_choice_rows(
+    categories=None,
+    per_category: int = 1,
+    n: int = 5000,
+    seed: int = 0,
+    lift_views: int = 12,
+    lift_size: int = 96,
+    lift_iterations: int = 40,
+    backend: str = "cpu",
+    protocol: str = "dup",
+    log=print,
+) -> list[dict]:
     """One row per feature choice over pairs of the generated categories. protocol "dup": a
     model and its copy under a random Sim(3) (≤180° per axis, ≤10x scale); "same": two
     independent samplings (with 2% floaters) under the authors' perturbation. Rows carry mean and
@@ -94,8 +125,9 @@ def feature_choice_rows(categories=None, per_category: int = 1, n: int = 5000, s
             else:  # "same": two independent samplings with floaters, the authors' perturbation
                 truth = paper_perturbation(rng)
                 src = make_object(cat, seed=200 + i, n_gaussians=n, sample_seed=1000 + i, floaters=0.02)
-                dst = make_object(cat, seed=200 + i, n_gaussians=int(n * 1.2), sample_seed=2000 + i,
-                                  floaters=0.02).transformed(truth)
+                dst = make_object(
+                    cat, seed=200 + i, n_gaussians=int(n * 1.2), sample_seed=2000 + i, floaters=0.02
+                ).transformed(truth)
             label = f"{cat}-{i}"
             for name in records:
                 t0 = time.perf_counter()
@@ -114,9 +146,18 @@ def feature_choice_rows(categories=None, per_category: int = 1, n: int = 5000, s
     rows = []
     for name, recs in records.items():
         rre = np.array([r["rre_deg"] for r in recs])
-        rows.append({"protocol": protocol, "features": name, "pairs": len(recs), "mean_rre_deg": float(rre.mean()),
-                     "median_rre_deg": float(np.median(rre)), "success_rate": float(np.mean(rre < 5.0)),
-                     "seconds_per_pair": float(np.mean([r["seconds"] for r in recs])), "records": recs})
+        rows.append(
+            {
+                "protocol": protocol,
+                "features": name,
+                "pairs": len(recs),
+                "mean_rre_deg": float(rre.mean()),
+                "median_rre_deg": float(np.median(rre)),
+                "success_rate": float(np.mean(rre < 5.0)),
+                "seconds_per_pair": float(np.mean([r["seconds"] for r in recs])),
+                "records": recs,
+            }
+        )
     return rows
 
 
@@ -134,17 +175,31 @@ def main(argv=None) -> int:
     ap.add_argument("--protocol", default="dup", choices=["dup", "same"])
     args = ap.parse_args(argv)
     if not args.rows_only:
-        print(json.dumps(bench_lift_time(args.gaussians, views=args.views, image_size=args.size,
-                                         iterations=args.iterations, backend=args.backend), indent=2), flush=True)
+        print(
+            json.dumps(
+                bench_lift_time(
+                    args.gaussians,
+                    views=args.views,
+                    image_size=args.size,
+                    iterations=args.iterations,
+                    backend=args.backend,
+                ),
+                indent=2,
+            ),
+            flush=True,
+        )
     if args.feature_rows or args.rows_only:
-        rows = feature_choice_rows(per_category=args.per_category, n=args.rows_gaussians, backend=args.backend,
-                                   protocol=args.protocol)
+        rows = feature_choice_rows(
+            per_category=args.per_category, n=args.rows_gaussians, backend=args.backend, protocol=args.protocol
+        )
         print(f"protocol {args.protocol}")
         print("| features | pairs | mean RRE (deg) | median RRE (deg) | success (<5 deg) | s/pair |")
         print("|---|---|---|---|---|---|")
         for r in rows:
-            print(f"| {r['features']} | {r['pairs']} | {r['mean_rre_deg']:.2f} | {r['median_rre_deg']:.2f} | "
-                  f"{r['success_rate']:.2f} | {r['seconds_per_pair']:.1f} |")
+            print(
+                f"| {r['features']} | {r['pairs']} | {r['mean_rre_deg']:.2f} | {r['median_rre_deg']:.2f} | "
+                f"{r['success_rate']:.2f} | {r['seconds_per_pair']:.1f} |"
+            )
     return 0
 
 

@@ -137,20 +137,32 @@ class Open3DFPFH(Peer):
             down = pc.voxel_down_sample(self.voxel)
             for cloud in (pc, down):
                 cloud.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=2 * self.voxel, max_nn=30))
-            fpfh = reg.compute_fpfh_feature(down, o3d.geometry.KDTreeSearchParamHybrid(radius=5 * self.voxel, max_nn=100))
+            fpfh = reg.compute_fpfh_feature(
+                down, o3d.geometry.KDTreeSearchParamHybrid(radius=5 * self.voxel, max_nn=100)
+            )
             return pc, down, fpfh
 
         src_pc, src_down, src_fpfh = prepare((src - cs) / rs)
         dst_pc, dst_down, dst_fpfh = prepare((dst - cd) / rd)
         distance = 1.5 * self.voxel
         ransac = reg.registration_ransac_based_on_feature_matching(
-            src_down, dst_down, src_fpfh, dst_fpfh, True, distance,
-            reg.TransformationEstimationPointToPoint(False), 3,
+            src_down,
+            dst_down,
+            src_fpfh,
+            dst_fpfh,
+            True,
+            distance,
+            reg.TransformationEstimationPointToPoint(False),
+            3,
             [reg.CorrespondenceCheckerBasedOnEdgeLength(0.9), reg.CorrespondenceCheckerBasedOnDistance(distance)],
             reg.RANSACConvergenceCriteria(self.ransac_iterations, self.ransac_confidence),
         )
         icp = reg.registration_icp(
-            src_pc, dst_pc, 0.4 * self.voxel, ransac.transformation, reg.TransformationEstimationPointToPlane(),
+            src_pc,
+            dst_pc,
+            0.4 * self.voxel,
+            ransac.transformation,
+            reg.TransformationEstimationPointToPlane(),
             reg.ICPConvergenceCriteria(max_iteration=60),
         )
         m = np.asarray(icp.transformation, np.float64)
@@ -200,8 +212,13 @@ class SplatReg(Peer):
                 return model
             return model.subset(np.sort(rng.choice(len(model), self.max_points, replace=False)))
 
-        result = register(_to_splatreg(sample(target), Gaussians), _to_splatreg(sample(source), Gaussians),
-                          transform="sim3", quality=self.quality, init=self.init)
+        result = register(
+            _to_splatreg(sample(target), Gaussians),
+            _to_splatreg(sample(source), Gaussians),
+            transform="sim3",
+            quality=self.quality,
+            init=self.init,
+        )
         # result.T maps source into target: [[s R, t], [0, 1]].
         return Sim3.from_matrix(result.T.detach().cpu().double().numpy())
 

@@ -72,8 +72,10 @@ GSA_FINE = "GSA coarse+fine"
 # The paper's pipeline: feature-guided ICP (Alg. 3) alone, then the fine stage.
 GSA_PAPER_COARSE = "GSA feature-stage coarse (paper Alg. 3, no NN refinement)"
 GSA_PAPER_FINE = "GSA feature-stage coarse + fine"
-NOISE_NOTE = ("Timings: 2 shared CPU cores, other jobs running; seconds are noisy "
-              "(compare ratios measured in one run, not absolute values across runs).")
+NOISE_NOTE = (
+    "Timings: 2 shared CPU cores, other jobs running; seconds are noisy "
+    "(compare ratios measured in one run, not absolute values across runs)."
+)
 
 Pair = tuple[str, Callable[[], tuple]]  # (label, make() -> (source, target, truth))
 # (source, target) -> {method: (Sim3 | Exception, seconds[, extra fields for the record])}
@@ -104,12 +106,13 @@ def gsa_runner(fine: bool, labels: tuple[str, str] = (GSA_COARSE, GSA_FINE), **o
         total = time.perf_counter() - t0
         # The confidence of the whole result (both rows: one align() call); None/False
         # when align() does not report one.
-        flags = {"confidence": _float_or_none(result.metrics.get("confidence")),
-                 "ambiguous": bool(result.metrics.get("ambiguous", False)),
-                 "doubtful": bool(result.metrics.get("doubtful", False)),
-                 # what the confidence is made of, kept for calibration
-                 **{k: _float_or_none(result.metrics.get(k)) for k in ("margin", "overlap_score", "score",
-                                                                        "colour_weight")}}
+        flags = {
+            "confidence": _float_or_none(result.metrics.get("confidence")),
+            "ambiguous": bool(result.metrics.get("ambiguous", False)),
+            "doubtful": bool(result.metrics.get("doubtful", False)),
+            # what the confidence is made of, kept for calibration
+            **{k: _float_or_none(result.metrics.get(k)) for k in ("margin", "overlap_score", "score", "colour_weight")},
+        }
         out = {coarse_label: (result.coarse.transform, total - result.timings.get("fine", 0.0), flags)}
         if fine:
             out[fine_label] = (result.transform, total, dict(flags))
@@ -145,8 +148,14 @@ def default_runners(seed: int, peers: list[str] | None, quick: bool) -> list[Run
 # ---------------------------------------------------------------- evaluation
 
 
-def evaluate(name: str, pairs: list[Pair], runners: list[Runner], extra: Callable[[str], dict] | None = None,
-             out: Path | None = None, judge: Callable[[Sim3, Sim3, object, object], dict] | None = None) -> list[dict]:
+def evaluate(
+    name: str,
+    pairs: list[Pair],
+    runners: list[Runner],
+    extra: Callable[[str], dict] | None = None,
+    out: Path | None = None,
+    judge: Callable[[Sim3, Sim3, object, object], dict] | None = None,
+) -> list[dict]:
     """Every runner on every pair (generated once, in turn); one row per method.
     With `out`, the rows so far are saved after each pair (as NAME.partial.json),
     so a run cut short still leaves its numbers. `judge(estimate, truth, source,
@@ -164,8 +173,13 @@ def evaluate(name: str, pairs: list[Pair], runners: list[Runner], extra: Callabl
                     if judge is not None:
                         rec.update(judge(est, truth, source, target))
                 else:
-                    rec.update(error=f"{type(est).__name__}: {est}", rre_deg=float("nan"),
-                               scale_error_pct=float("nan"), ate=float("nan"), ate_normalized=float("nan"))
+                    rec.update(
+                        error=f"{type(est).__name__}: {est}",
+                        rre_deg=float("nan"),
+                        scale_error_pct=float("nan"),
+                        ate=float("nan"),
+                        ate_normalized=float("nan"),
+                    )
                 records.setdefault(method, []).append(rec)
         print(f"  {name}: {label} done ({done}/{len(pairs)})", file=sys.stderr, flush=True)
         if out is not None and done < len(pairs):
@@ -316,8 +330,9 @@ def _robust_sizes(quick: bool) -> tuple[int, int, int]:
     return (ROBUST_COUNT[0], *ROBUST_SIZES[0]) if quick else (ROBUST_COUNT[1], *ROBUST_SIZES[1])
 
 
-def _variant_pairs(quick: bool, seed: int, tag: int, base: int,
-                   vary: Callable[[object, np.random.Generator, str], object]) -> list[Pair]:
+def _variant_pairs(
+    quick: bool, seed: int, tag: int, base: int, vary: Callable[[object, np.random.Generator, str], object]
+) -> list[Pair]:
     """Pairs over the 6 categories in turn: two independent samplings of one
     instance, each passed through vary(model, rng, 'source' | 'target') with its
     own generator, the target then moved by a random Sim(3)."""
@@ -400,8 +415,9 @@ def protocol_same(quick: bool, seed: int, out: Path, peers: list[str] | None = N
     if FINE_ROWS:
         # What the fine stage adds to the paper's coarse stage (the default pipeline's NN
         # refinement already ends below the fine loss's floor on this protocol).
-        runners.insert(1, gsa_runner(True, (GSA_PAPER_COARSE, GSA_PAPER_FINE), refine="off",
-                                     **(QUICK_FINE if quick else {})))
+        runners.insert(
+            1, gsa_runner(True, (GSA_PAPER_COARSE, GSA_PAPER_FINE), refine="off", **(QUICK_FINE if quick else {}))
+        )
     rows = evaluate("same", same_pairs(quick, seed), runners, out=out)
     _save(out, "same", rows)
     return rows
@@ -435,8 +451,14 @@ protocol_deform = _capture_protocol("deform")
 
 
 def protocol_symmetric(quick: bool, seed: int, out: Path, peers: list[str] | None = None) -> list[dict]:
-    rows = evaluate("symmetric", symmetric_pairs(quick, seed), default_runners(seed, peers, quick),
-                    _symmetric_fields, out=out, judge=symmetric_judge)
+    rows = evaluate(
+        "symmetric",
+        symmetric_pairs(quick, seed),
+        default_runners(seed, peers, quick),
+        _symmetric_fields,
+        out=out,
+        judge=symmetric_judge,
+    )
     _save(out, "symmetric", rows)
     return rows
 
@@ -486,8 +508,15 @@ def _fine_from(source, target, coarse_result, cameras, on: str, views: int, seed
         source = source.with_features(canonical_features(source.means.astype(np.float64), coarse_result.source_frame))
         target = target.with_features(canonical_features(target.means.astype(np.float64), coarse_result.target_frame))
     defaults = AlignOptions(**(QUICK_FINE if quick else {}))
-    opts = FineOptions(iterations=defaults.fine_iterations, lr=defaults.fine_lr, views=views,
-                       image_size=defaults.fine_image_size, loss=defaults.fine_loss, on=on, seed=seed)
+    opts = FineOptions(
+        iterations=defaults.fine_iterations,
+        lr=defaults.fine_lr,
+        views=views,
+        image_size=defaults.fine_image_size,
+        loss=defaults.fine_loss,
+        on=on,
+        seed=seed,
+    )
     return fine_align(source, target, coarse_result.coarse.transform, opts, cameras=cameras).transform
 
 
@@ -507,7 +536,9 @@ def ablation_runner(seed: int, quick: bool = False) -> Runner:
         init = Sim3(s, np.eye(3), df.center - s * sf.center)
         dst = target.means.astype(np.float64)
         rows = np.random.default_rng(seed).permutation(len(source))[:20_000]
-        res = icp_refine(source.means.astype(np.float64)[rows], dst, cKDTree(dst), init, CoarseOptions(max_iterations=200))
+        res = icp_refine(
+            source.means.astype(np.float64)[rows], dst, cKDTree(dst), init, CoarseOptions(max_iterations=200)
+        )
         out["features off (plain ICP, centroid/RMS start)"] = (res.transform, time.perf_counter() - t0)
 
         if not FINE_ROWS:
@@ -520,7 +551,12 @@ def ablation_runner(seed: int, quick: bool = False) -> Runner:
             ("coarse 3 + fine, 3 similar views", similar_cameras(target, 3, image_size=size, seed=seed), "features", 3),
             ("coarse 3 + fine, 3 diverse views", cameras_around(target.means, 3, size, seed=seed), "features", 3),
             ("coarse 3 + fine, 30 views", cameras_around(target.means, 30, size, seed=seed), "features", 30),
-            ("coarse 3 + fine on colours, 3 diverse views", cameras_around(target.means, 3, size, seed=seed), "colors", 3),
+            (
+                "coarse 3 + fine on colours, 3 diverse views",
+                cameras_around(target.means, 3, size, seed=seed),
+                "colors",
+                3,
+            ),
         ]
         for label, cams, on, views in variants:
             t0 = time.perf_counter()
@@ -585,8 +621,11 @@ def _speed_child(n: int, seed: int, stage: str, quick: bool = False) -> dict:
         lift_features(small_t, CanonicalExtractor("cpu"), views=2, image_size=32, iterations=1, backend="cpu")
         views, size, iters = (6, 64, 20) if quick else (24, 128, 150)  # lifting's own defaults when full
         row.update(views=views, image_size=size, iterations=iters)
-        fn = lambda: lift_features(target, CanonicalExtractor("cpu"), views=views, image_size=size,  # noqa: E731
-                                   iterations=iters, backend="cpu")
+
+        def fn():
+            return lift_features(
+                target, CanonicalExtractor("cpu"), views=views, image_size=size, iterations=iters, backend="cpu"
+            )
     else:
         raise ValueError(stage)
     peak_before = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
@@ -624,9 +663,14 @@ def protocol_speed(quick: bool, seed: int, out: Path, peers: list[str] | None = 
     rows = []
     for n, stage in itertools.product(sizes, speed_stages()):
         proc = subprocess.run(
-            [sys.executable, "-c", "import json; from gsa.bench.protocols import _speed_child; "
-             f"print(json.dumps(_speed_child({n}, {seed}, {stage!r}, {quick})))"],
-            capture_output=True, text=True,
+            [
+                sys.executable,
+                "-c",
+                "import json; from gsa.bench.protocols import _speed_child; "
+                f"print(json.dumps(_speed_child({n}, {seed}, {stage!r}, {quick})))",
+            ],
+            capture_output=True,
+            text=True,
         )
         if proc.returncode != 0:
             tail = (proc.stderr.strip().splitlines() or ["?"])[-1]
@@ -636,8 +680,11 @@ def protocol_speed(quick: bool, seed: int, out: Path, peers: list[str] | None = 
         row = json.loads(proc.stdout.strip().splitlines()[-1])
         row["protocol"] = "speed"
         rows.append(row)
-        print(f"  {n} Gaussians, {stage}: {row['seconds']:.2f} s, peak RSS {row['peak_rss_mb']:.0f} MB",
-              file=sys.stderr, flush=True)
+        print(
+            f"  {n} Gaussians, {stage}: {row['seconds']:.2f} s, peak RSS {row['peak_rss_mb']:.0f} MB",
+            file=sys.stderr,
+            flush=True,
+        )
     _save(out, "speed", rows)
     return rows
 
@@ -663,15 +710,27 @@ def _io_child(n: int) -> dict:
         loaded = read_ply(path)
         read_s = time.perf_counter() - t0
         peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
-        return {"gaussians": len(loaded), "file_mb": size_mb, "write_seconds": write_s, "read_seconds": read_s,
-                "rss_growth_mb": _rss_now_mb() - base, "peak_rss_mb": peak}
+        return {
+            "gaussians": len(loaded),
+            "file_mb": size_mb,
+            "write_seconds": write_s,
+            "read_seconds": read_s,
+            "rss_growth_mb": _rss_now_mb() - base,
+            "peak_rss_mb": peak,
+        }
 
 
 def protocol_io(quick: bool, seed: int, out: Path, peers: list[str] | None = None) -> list[dict]:
     n = 200_000 if quick else 1_000_000
     proc = subprocess.run(
-        [sys.executable, "-c", f"import json; from gsa.bench.protocols import _io_child; print(json.dumps(_io_child({n})))"],
-        capture_output=True, text=True, check=True,
+        [
+            sys.executable,
+            "-c",
+            f"import json; from gsa.bench.protocols import _io_child; print(json.dumps(_io_child({n})))",
+        ],
+        capture_output=True,
+        text=True,
+        check=True,
     )
     rows = [json.loads(proc.stdout.strip().splitlines()[-1]) | {"protocol": "io"}]
     _save(out, "io", rows)
@@ -697,8 +756,12 @@ PROTOCOLS = {
 
 def _save(out: Path, name: str, rows: list[dict]) -> None:
     out.mkdir(parents=True, exist_ok=True)
-    meta = {"date": date.today().isoformat(), "machine": f"{platform.machine()}, {os.cpu_count()} CPU cores",
-            "python": platform.python_version(), "note": NOISE_NOTE}
+    meta = {
+        "date": date.today().isoformat(),
+        "machine": f"{platform.machine()}, {os.cpu_count()} CPU cores",
+        "python": platform.python_version(),
+        "note": NOISE_NOTE,
+    }
     (out / f"{name}.json").write_text(json.dumps({"meta": meta, "rows": rows}, indent=2, default=str))
 
 
@@ -708,15 +771,21 @@ def _f(x: float, digits: int) -> str:
 
 def format_table(name: str, rows: list[dict]) -> str:
     if name == "io":
-        lines = ["| Gaussians (SH degree 3) | file (MB) | write (s) | read (s) | RSS growth after read (MB) |",
-                 "|---:|---:|---:|---:|---:|"]
+        lines = [
+            "| Gaussians (SH degree 3) | file (MB) | write (s) | read (s) | RSS growth after read (MB) |",
+            "|---:|---:|---:|---:|---:|",
+        ]
         for r in rows:
-            lines.append(f"| {r['gaussians']:,} | {r['file_mb']:.0f} | {r['write_seconds']:.2f} | "
-                         f"{r['read_seconds']:.2f} | {r['rss_growth_mb']:.0f} |")
+            lines.append(
+                f"| {r['gaussians']:,} | {r['file_mb']:.0f} | {r['write_seconds']:.2f} | "
+                f"{r['read_seconds']:.2f} | {r['rss_growth_mb']:.0f} |"
+            )
         return "\n".join(lines)
     if name == "speed":
-        lines = ["| Gaussians (each model) | stage | s | peak RSS (MB) | stage's own peak (MB) | note |",
-                 "|---:|---|---:|---:|---:|---|"]
+        lines = [
+            "| Gaussians (each model) | stage | s | peak RSS (MB) | stage's own peak (MB) | note |",
+            "|---:|---|---:|---:|---:|---|",
+        ]
         for r in rows:
             if "error" in r:
                 lines.append(f"| {r['gaussians']:,} | {r['stage']} | — | — | — | failed: {r['error'][:60]} |")
@@ -724,27 +793,37 @@ def format_table(name: str, rows: list[dict]) -> str:
             note = ", ".join(f"{k} {r[k]}" for k in ("views", "image_size", "iterations") if k in r)
             if "rre_deg" in r:
                 note = f"RRE {r['rre_deg']:.3f}°"
-            lines.append(f"| {r['gaussians']:,} | {r['stage']} | {r['seconds']:.2f} | {r['peak_rss_mb']:.0f} | "
-                         f"{r['stage_peak_mb']:.0f} | {note} |")
+            lines.append(
+                f"| {r['gaussians']:,} | {r['stage']} | {r['seconds']:.2f} | {r['peak_rss_mb']:.0f} | "
+                f"{r['stage_peak_mb']:.0f} | {note} |"
+            )
         return "\n".join(lines)
     if name in ("category", "ablation"):
         cats = [c for c in CATEGORIES if any(c in r.get("per_category_mean_rre_deg", {}) for r in rows)]
         head = "method" if name == "category" else "configuration"
         ratio = "time ratio vs GSA coarse" if name == "category" else "time ratio vs default coarse"
-        lines = [f"| {head} | " + " | ".join(f"{c} RRE (°)" for c in cats)
-                 + f" | mean RRE (°) | success (RRE<5°) | s / pair | {ratio} |",
-                 "|---|" + "---:|" * (len(cats) + 4)]
+        lines = [
+            f"| {head} | "
+            + " | ".join(f"{c} RRE (°)" for c in cats)
+            + f" | mean RRE (°) | success (RRE<5°) | s / pair | {ratio} |",
+            "|---|" + "---:|" * (len(cats) + 4),
+        ]
         for r in rows:
             per = r["per_category_mean_rre_deg"]
-            lines.append(f"| {r['method']} | " + " | ".join(_f(per.get(c, float('nan')), 2) for c in cats)
-                         + f" | {_f(r['mean_rre_deg'], 2)} | {r['success_rate'] * 100:.0f}% | "
-                           f"{r['seconds_per_pair']:.2f} | {_f(r['time_ratio_vs_gsa_coarse'], 2)} |")
+            lines.append(
+                f"| {r['method']} | "
+                + " | ".join(_f(per.get(c, float("nan")), 2) for c in cats)
+                + f" | {_f(r['mean_rre_deg'], 2)} | {r['success_rate'] * 100:.0f}% | "
+                f"{r['seconds_per_pair']:.2f} | {_f(r['time_ratio_vs_gsa_coarse'], 2)} |"
+            )
         return "\n".join(lines + _calibration_lines(rows))
     symmetric = any("success_rate_any_symmetric" in r for r in rows)
     sym_head, sym_rule = (" success, any symmetric pose (RRE<5°) |", "---:|") if symmetric else ("", "")
-    lines = ["| method | pairs | mean RRE (°) | median RRE (°) | mean scale err (%) | mean ATE / diag | "
-             "success (RRE<5°) |" + sym_head + " s / pair | time ratio vs GSA coarse |",
-             "|---|---:|---:|---:|---:|---:|---:|" + sym_rule + "---:|---:|"]
+    lines = [
+        "| method | pairs | mean RRE (°) | median RRE (°) | mean scale err (%) | mean ATE / diag | "
+        "success (RRE<5°) |" + sym_head + " s / pair | time ratio vs GSA coarse |",
+        "|---|---:|---:|---:|---:|---:|---:|" + sym_rule + "---:|---:|",
+    ]
     for r in rows:
         failed = f" ({r['failed']} failed)" if r.get("failed") else ""
         sym = f" {_pct(r.get('success_rate_any_symmetric'))} |" if symmetric else ""
@@ -761,9 +840,11 @@ def _pct(x: float | None) -> str:
 
 
 def _calibration_text(c: dict) -> str:
-    text = (f"{c['flagged']}/{c['flag_results']} flagged doubtful ({_pct(c['flagged_rate'])}); "
-            f"unflagged: {c['unflagged']}, {_pct(c['unflagged_success_rate'])} succeed; "
-            f"failures: {c['failures']}, {_pct(c['failures_flagged_rate'])} flagged")
+    text = (
+        f"{c['flagged']}/{c['flag_results']} flagged doubtful ({_pct(c['flagged_rate'])}); "
+        f"unflagged: {c['unflagged']}, {_pct(c['unflagged_success_rate'])} succeed; "
+        f"failures: {c['failures']}, {_pct(c['failures_flagged_rate'])} flagged"
+    )
     if not c.get("confidence_reported"):
         text += " (align() reported no confidence)"
     return text
@@ -774,7 +855,9 @@ def _calibration_lines(rows: list[dict]) -> list[str]:
     cal = [r for r in rows if "flagged_rate" in r]
     if not cal:
         return []
-    return ["", "Confidence calibration (success = RRE < 5°):"] + [f"- {r['method']}: {_calibration_text(r)}" for r in cal]
+    return ["", "Confidence calibration (success = RRE < 5°):"] + [
+        f"- {r['method']}: {_calibration_text(r)}" for r in cal
+    ]
 
 
 def calibration_summary(results: dict[str, list[dict]], method: str = GSA_COARSE) -> str | None:
@@ -784,18 +867,23 @@ def calibration_summary(results: dict[str, list[dict]], method: str = GSA_COARSE
     c = calibration(records)
     if not c:
         return None
-    return (f"Confidence calibration, {method}, over {', '.join(names)}: {c['flag_results']} results; "
-            + _calibration_text(c))
+    return (
+        f"Confidence calibration, {method}, over {', '.join(names)}: {c['flag_results']} results; "
+        + _calibration_text(c)
+    )
 
 
-def run_protocols(names: list[str], quick: bool = False, out: str = "out/bench", seed: int = 0,
-                  peers: list[str] | None = None) -> int:
+def run_protocols(
+    names: list[str], quick: bool = False, out: str = "out/bench", seed: int = 0, peers: list[str] | None = None
+) -> int:
     unknown = [n for n in names if n not in PROTOCOLS]
     if unknown:
         raise ValueError(f"unknown protocol(s) {', '.join(unknown)}; choose from {', '.join(PROTOCOLS)}")
     out_dir = Path(out)
-    print(f"GSA benchmarks — {date.today().isoformat()}, {platform.machine()}, {os.cpu_count()} CPU cores"
-          f"{' (quick)' if quick else ''}\n{NOISE_NOTE}")
+    print(
+        f"GSA benchmarks — {date.today().isoformat()}, {platform.machine()}, {os.cpu_count()} CPU cores"
+        f"{' (quick)' if quick else ''}\n{NOISE_NOTE}"
+    )
     start = time.perf_counter()
     results = {}
     for name in names:

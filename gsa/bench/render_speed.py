@@ -35,8 +35,10 @@ def _scene(n: int):
 
 def _fwd_bwd(model, cams, backend: str, index=None) -> float:
     sel = slice(None) if index is None else index
-    ts = [torch.tensor(a[sel], requires_grad=True) for a in
-          (model.means, model.quats, model.log_scales, model.opacity_logits, model.sh, model.features)]
+    ts = [
+        torch.tensor(a[sel], requires_grad=True)
+        for a in (model.means, model.quats, model.log_scales, model.opacity_logits, model.sh, model.features)
+    ]
     from gsa.render import rasterize
 
     t = time.perf_counter()
@@ -59,9 +61,11 @@ def main(argv=None) -> int:
 
     model = _scene(args.gaussians)
     cams = cameras_around(model.means, 1, args.size, seed=3)
-    print(f"scene: {len(model)} Gaussians, SH degree {model.sh_degree}, {model.feature_dim}-D features; "
-          f"{args.size}x{args.size}, 1 camera; torch {torch.__version__}, "
-          f"{torch.get_num_threads()} torch threads, {numba.get_num_threads()} numba threads")
+    print(
+        f"scene: {len(model)} Gaussians, SH degree {model.sh_degree}, {model.feature_dim}-D features; "
+        f"{args.size}x{args.size}, 1 camera; torch {torch.__version__}, "
+        f"{torch.get_num_threads()} torch threads, {numba.get_num_threads()} numba threads"
+    )
     t = time.perf_counter()
     _fwd_bwd(model, cams, "cpu")  # warm-up: loads (or compiles) the numba kernels
     print(f"cpu backend warm-up (kernel load/compile): {time.perf_counter() - t:.2f} s")
@@ -69,9 +73,11 @@ def main(argv=None) -> int:
     cpu = sorted(_fwd_bwd(model, cams, "cpu") for _ in range(args.repeats))
     cpu_time = (time.process_time() - cpu0) / args.repeats
     cpu_med = cpu[len(cpu) // 2]
-    print(f"cpu backend forward+backward: median {cpu_med * 1000:.1f} ms, min {cpu[0] * 1000:.1f} ms "
-          f"over {args.repeats} runs; process CPU time {cpu_time * 1000:.1f} ms per run; "
-          f"1-min load average {open('/proc/loadavg').read().split()[0]}")
+    print(
+        f"cpu backend forward+backward: median {cpu_med * 1000:.1f} ms, min {cpu[0] * 1000:.1f} ms "
+        f"over {args.repeats} runs; process CPU time {cpu_time * 1000:.1f} ms per run; "
+        f"1-min load average {open('/proc/loadavg').read().split()[0]}"
+    )
 
     rng = np.random.default_rng(0)
     ref = []
@@ -80,13 +86,17 @@ def main(argv=None) -> int:
         _fwd_bwd(model, cams, "reference", idx)
         times = sorted(_fwd_bwd(model, cams, "reference", idx) for _ in range(2))
         ref.append((n_sub, times[0]))
-        print(f"reference (dense torch) forward+backward, {n_sub} Gaussians at {args.size}x{args.size}: "
-              f"{times[0] * 1000:.0f} ms")
+        print(
+            f"reference (dense torch) forward+backward, {n_sub} Gaussians at {args.size}x{args.size}: "
+            f"{times[0] * 1000:.0f} ms"
+        )
     (n1, t1), (n2, t2) = ref
     per_g = max((t2 - t1) / (n2 - n1), t2 / n2 * 0.5)
     ref_full = t1 + per_g * (len(model) - n1)
-    print(f"reference extrapolated linearly to {len(model)} Gaussians (NOT measured at full size: dense "
-          f"intermediates would need ~{len(model) * args.size ** 2 * 4 * 20 / 1e12:.1f} TB): {ref_full:.1f} s")
+    print(
+        f"reference extrapolated linearly to {len(model)} Gaussians (NOT measured at full size: dense "
+        f"intermediates would need ~{len(model) * args.size**2 * 4 * 20 / 1e12:.1f} TB): {ref_full:.1f} s"
+    )
     ratio = ref_full / cpu_med
     print(f"speed-up cpu vs reference: {ratio:.0f}x (target >= 50x) -> {'OK' if ratio >= 50 else 'BELOW TARGET'}")
     return 0

@@ -18,8 +18,16 @@ from gsa.features.settings import FeatureSettings
 from gsa.features.vit import WeightsError, load_backbone, load_sphere_head, to_input
 from gsa.render import render_model
 
-__all__ = ["FeatureExtractor", "FeatureSettings", "SphereMapExtractor", "Dinov2PCAExtractor",
-           "CanonicalExtractor", "EXTRACTORS", "make_extractor", "WeightsError"]
+__all__ = [
+    "FeatureExtractor",
+    "FeatureSettings",
+    "SphereMapExtractor",
+    "Dinov2PCAExtractor",
+    "CanonicalExtractor",
+    "EXTRACTORS",
+    "make_extractor",
+    "WeightsError",
+]
 
 # Setting names as they appear in errors, the CLI (--backbone/--head) and the environment.
 BACKBONE_SETTING = "features.backbone (--backbone, GSA_FEATURES_BACKBONE)"
@@ -72,8 +80,7 @@ class SphereMapExtractor(FeatureExtractor):
 
     name = "spheremap"
 
-    def __init__(self, backbone: torch.nn.Module, head: torch.nn.Module, input_size: int = 518,
-                 batch_size: int = 4):
+    def __init__(self, backbone: torch.nn.Module, head: torch.nn.Module, input_size: int = 518, batch_size: int = 4):
         self.backbone, self.head = backbone.eval(), head.eval()
         self.input_size, self.batch_size = input_size, batch_size
 
@@ -88,7 +95,7 @@ class SphereMapExtractor(FeatureExtractor):
         """(C,H,W,3) -> (C,h,w,3) unit vectors per patch."""
         out = []
         for i in range(0, len(images), self.batch_size):
-            pre, _ = self.backbone(to_input(images[i:i + self.batch_size], self.input_size))
+            pre, _ = self.backbone(to_input(images[i : i + self.batch_size], self.input_size))
             out.append(F.normalize(self.head(pre.flatten(1, 2)), dim=-1).reshape(*pre.shape[:3], 3))
         return torch.cat(out)
 
@@ -119,8 +126,10 @@ class Dinov2PCAExtractor(FeatureExtractor):
 
     @torch.no_grad()
     def tokens(self, images: np.ndarray) -> torch.Tensor:
-        out = [self.backbone(to_input(images[i:i + self.batch_size], self.input_size))[1]
-               for i in range(0, len(images), self.batch_size)]
+        out = [
+            self.backbone(to_input(images[i : i + self.batch_size], self.input_size))[1]
+            for i in range(0, len(images), self.batch_size)
+        ]
         return torch.cat(out)
 
     def fit(self, tokens: torch.Tensor) -> None:
@@ -163,15 +172,23 @@ class CanonicalExtractor(FeatureExtractor):
         self.backend = backend
 
     def extract(self, image, mask) -> np.ndarray:
-        raise ValueError("the canonical extractor renders the model's own 3-D features; "
-                         "call extract_views(images, masks, model=..., cameras=...)")
+        raise ValueError(
+            "the canonical extractor renders the model's own 3-D features; "
+            "call extract_views(images, masks, model=..., cameras=...)"
+        )
 
     def extract_views(self, images, masks, *, model=None, cameras=None) -> np.ndarray:
         if model is None or cameras is None:
             raise ValueError("the canonical extractor needs model= and cameras=")
         feats = canonical_features(model)
-        out = render_model(model.with_features(feats), cameras, features=True, depth=False,
-                           backend=self.backend, feature_background=np.zeros(3))
+        out = render_model(
+            model.with_features(feats),
+            cameras,
+            features=True,
+            depth=False,
+            backend=self.backend,
+            feature_background=np.zeros(3),
+        )
         return out.features.numpy().astype(np.float32)
 
 
@@ -199,4 +216,3 @@ def weights_configured(name: str, settings: FeatureSettings) -> bool:
     if name == "spheremap":
         return bool(settings.backbone) and bool(settings.head)
     return False
-

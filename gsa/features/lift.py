@@ -64,8 +64,18 @@ class LiftResult:
 
 def _render_features(model: GaussianModel, feats: torch.Tensor, cameras, backend: str) -> torch.Tensor:
     """(C,H,W,D) features rendered with fixed geometry; gradients flow to `feats` only."""
-    out = rasterize(model.means, model.quats, model.log_scales, model.opacity_logits, None, feats, cameras,
-                    depth=False, backend=backend, feature_background=np.zeros(feats.shape[1]))
+    out = rasterize(
+        model.means,
+        model.quats,
+        model.log_scales,
+        model.opacity_logits,
+        None,
+        feats,
+        cameras,
+        depth=False,
+        backend=backend,
+        feature_background=np.zeros(feats.shape[1]),
+    )
     return out.features
 
 
@@ -127,7 +137,9 @@ def lift_features_full(
         acc += grad.double()
     visibility = acc[:, 3].numpy()
     seen = visibility >= MIN_VISIBLE_WEIGHT
-    init = torch.where(acc[:, 3:] > 1e-12, acc[:, :3] / acc[:, 3:].clamp_min(1e-12), torch.zeros(n, 3, dtype=torch.float64))
+    init = torch.where(
+        acc[:, 3:] > 1e-12, acc[:, :3] / acc[:, 3:].clamp_min(1e-12), torch.zeros(n, 3, dtype=torch.float64)
+    )
     feats = init.float().clone().requires_grad_(True)
     report_progress("lift", 0.0)
 
@@ -167,23 +179,42 @@ def lift_features_full(
         _, nn_idx = cKDTree(model.means[seen]).query(model.means[~seen], k=1)
         lifted[~seen] = lifted[seen][nn_idx]
     report = LiftReport(
-        extractor=extractor.name, gaussians=n, views=views, image_size=image_size, iterations=iterations,
-        visible=int(seen.sum()), filled_from_neighbours=filled, initial_loss=initial, final_loss=final,
-        loss_curve=curve, render_seconds=t1 - t0, extract_seconds=t2 - t1, optimise_seconds=t4 - t3,
-        seconds_per_iteration=(t4 - t3) / max(iterations, 1), total_seconds=time.perf_counter() - t0,
+        extractor=extractor.name,
+        gaussians=n,
+        views=views,
+        image_size=image_size,
+        iterations=iterations,
+        visible=int(seen.sum()),
+        filled_from_neighbours=filled,
+        initial_loss=initial,
+        final_loss=final,
+        loss_curve=curve,
+        render_seconds=t1 - t0,
+        extract_seconds=t2 - t1,
+        optimise_seconds=t4 - t3,
+        seconds_per_iteration=(t4 - t3) / max(iterations, 1),
+        total_seconds=time.perf_counter() - t0,
     )
     out_model = model.with_features(lifted)
     out_model.metadata["features"] = f"lifted:{extractor.name}"
     return LiftResult(out_model, report, targets, masks, cams, visibility)
 
 
-def lift_features(model: GaussianModel, extractor: FeatureExtractor, views: int = 24, image_size: int = 128,
-                  iterations: int = 150, lr: float = 0.02, progress: Progress | None = None,
-                  **kwargs) -> tuple[GaussianModel, LiftReport]:
+def lift_features(
+    model: GaussianModel,
+    extractor: FeatureExtractor,
+    views: int = 24,
+    image_size: int = 128,
+    iterations: int = 150,
+    lr: float = 0.02,
+    progress: Progress | None = None,
+    **kwargs,
+) -> tuple[GaussianModel, LiftReport]:
     """(model with features (N,3) in [0,1], LiftReport). Keyword extras: batch_views, seed,
     backend, background (see lift_features_full)."""
-    res = lift_features_full(model, extractor, views=views, image_size=image_size, iterations=iterations,
-                             lr=lr, progress=progress, **kwargs)
+    res = lift_features_full(
+        model, extractor, views=views, image_size=image_size, iterations=iterations, lr=lr, progress=progress, **kwargs
+    )
     return res.model, res.report
 
 

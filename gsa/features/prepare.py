@@ -24,16 +24,36 @@ from gsa.features.extractors import (
 from gsa.features.lift import LiftReport, lift_features, lift_features_full, prune_background
 from gsa.model import GaussianModel, ModelError
 
-__all__ = ["ALIGN_FEATURE_MODES", "EXTRACTORS", "CanonicalExtractor", "Dinov2PCAExtractor", "FeatureExtractor",
-           "FeatureSettings", "LiftReport", "SphereMapExtractor", "WeightsError", "lift_features",
-           "lift_features_full", "make_extractor", "prepare_for_alignment", "prepare_pair", "prune_background"]
+__all__ = [
+    "ALIGN_FEATURE_MODES",
+    "EXTRACTORS",
+    "CanonicalExtractor",
+    "Dinov2PCAExtractor",
+    "FeatureExtractor",
+    "FeatureSettings",
+    "LiftReport",
+    "SphereMapExtractor",
+    "WeightsError",
+    "lift_features",
+    "lift_features_full",
+    "make_extractor",
+    "prepare_for_alignment",
+    "prepare_pair",
+    "prune_background",
+]
 
 ALIGN_FEATURE_MODES = ("auto", "file", "canonical", "spheremap", "dinov2")
 
 
-def prepare_for_alignment(model: GaussianModel, mode: str = "auto", settings: FeatureSettings | None = None, *,
-                          extractor: FeatureExtractor | None = None, progress=None,
-                          reports: list | None = None) -> GaussianModel:
+def prepare_for_alignment(
+    model: GaussianModel,
+    mode: str = "auto",
+    settings: FeatureSettings | None = None,
+    *,
+    extractor: FeatureExtractor | None = None,
+    progress=None,
+    reports: list | None = None,
+) -> GaussianModel:
     """A copy of `model` that carries the features `mode` asks for.
 
     file:      the model's own features (error if it has none);
@@ -51,18 +71,27 @@ def prepare_for_alignment(model: GaussianModel, mode: str = "auto", settings: Fe
     mode = resolve_mode(mode, settings, model)
     if mode == "file":
         if model.features is None:
-            raise ModelError("--features file: the model has no semantic_* features "
-                             "(use auto, canonical, spheremap or dinov2, or `gsa lift` it first)")
+            raise ModelError(
+                "--features file: the model has no semantic_* features "
+                "(use auto, canonical, spheremap or dinov2, or `gsa lift` it first)"
+            )
         return model
     if mode == "canonical":
         out = model.with_features(canonical_features(model))
         out.metadata["features"] = "canonical"
         return out
     ext = extractor if extractor is not None else make_extractor(mode, settings)
-    lifted, report = lift_features(model, ext, views=settings.lift_views, image_size=settings.lift_image_size,
-                                   iterations=settings.lift_iterations, lr=settings.lift_lr,
-                                   batch_views=settings.lift_batch_views, backend=settings.backend,
-                                   progress=progress)
+    lifted, report = lift_features(
+        model,
+        ext,
+        views=settings.lift_views,
+        image_size=settings.lift_image_size,
+        iterations=settings.lift_iterations,
+        lr=settings.lift_lr,
+        batch_views=settings.lift_batch_views,
+        backend=settings.backend,
+        progress=progress,
+    )
     if reports is not None:
         reports.append(report)
     if settings.prune_threshold > 0:
@@ -86,9 +115,13 @@ def resolve_mode(mode: str, settings: FeatureSettings, *models: GaussianModel) -
     return "canonical"
 
 
-def prepare_pair(source: GaussianModel, target: GaussianModel, mode: str = "auto",
-                 settings: FeatureSettings | None = None, progress=None
-                 ) -> tuple[GaussianModel, GaussianModel, str, list[LiftReport]]:
+def prepare_pair(
+    source: GaussianModel,
+    target: GaussianModel,
+    mode: str = "auto",
+    settings: FeatureSettings | None = None,
+    progress=None,
+) -> tuple[GaussianModel, GaussianModel, str, list[LiftReport]]:
     """What `gsa align --features MODE` should run before `gsa.align.align`.
 
     Returns (source, target, pipeline_mode, lift_reports): pipeline_mode is the
@@ -107,8 +140,20 @@ def prepare_pair(source: GaussianModel, target: GaussianModel, mode: str = "auto
         return source, target, mode, []
     extractor = make_extractor(mode, settings)
     reports: list[LiftReport] = []
-    src = prepare_for_alignment(source, mode, settings, extractor=extractor, reports=reports,
-                                progress=None if progress is None else (lambda st, f: progress(f"lift source {st}", f)))
-    dst = prepare_for_alignment(target, mode, settings, extractor=extractor, reports=reports,
-                                progress=None if progress is None else (lambda st, f: progress(f"lift target {st}", f)))
+    src = prepare_for_alignment(
+        source,
+        mode,
+        settings,
+        extractor=extractor,
+        reports=reports,
+        progress=None if progress is None else (lambda st, f: progress(f"lift source {st}", f)),
+    )
+    dst = prepare_for_alignment(
+        target,
+        mode,
+        settings,
+        extractor=extractor,
+        reports=reports,
+        progress=None if progress is None else (lambda st, f: progress(f"lift target {st}", f)),
+    )
     return src, dst, "file", reports

@@ -97,8 +97,15 @@ class _LayerScale(nn.Module):
 class Block(nn.Module):
     """Pre-norm transformer block; `layerscale` False gives the timm/DINO-v1 block of the head."""
 
-    def __init__(self, dim: int, heads: int, mlp_ratio: float = 4.0, qkv_bias: bool = True,
-                 eps: float = 1e-6, layerscale: bool = True):
+    def __init__(
+        self,
+        dim: int,
+        heads: int,
+        mlp_ratio: float = 4.0,
+        qkv_bias: bool = True,
+        eps: float = 1e-6,
+        layerscale: bool = True,
+    ):
         super().__init__()
         self.norm1 = nn.LayerNorm(dim, eps=eps)
         self.attn = _Attention(dim, heads, qkv_bias)
@@ -130,10 +137,12 @@ class DinoV2(nn.Module):
         self.cls_token = nn.Parameter(torch.zeros(1, 1, d))
         self.pos_embed = nn.Parameter(torch.zeros(1, 1 + cfg.pos_grid**2, d))
         self.mask_token = nn.Parameter(torch.zeros(1, d))  # unused at inference; kept so hub dicts load strictly
-        self.register_tokens = nn.Parameter(torch.zeros(1, cfg.num_register_tokens, d)) \
-            if cfg.num_register_tokens else None
-        self.blocks = nn.ModuleList(Block(d, cfg.num_heads, cfg.mlp_ratio, True, cfg.layer_norm_eps, cfg.layerscale)
-                                    for _ in range(cfg.depth))
+        self.register_tokens = (
+            nn.Parameter(torch.zeros(1, cfg.num_register_tokens, d)) if cfg.num_register_tokens else None
+        )
+        self.blocks = nn.ModuleList(
+            Block(d, cfg.num_heads, cfg.mlp_ratio, True, cfg.layer_norm_eps, cfg.layerscale) for _ in range(cfg.depth)
+        )
         self.norm = nn.LayerNorm(d, eps=cfg.layer_norm_eps)
 
     @property
@@ -182,8 +191,14 @@ def sphere_mapper_head(embed_dim: int = 768, hidden: int | None = None, heads: i
 
 
 # ----------------------------------------------------------------- file reading
-_ST_DTYPES = {"F32": torch.float32, "F16": torch.float16, "BF16": torch.bfloat16, "F64": torch.float64,
-              "I64": torch.int64, "I32": torch.int32}
+_ST_DTYPES = {
+    "F32": torch.float32,
+    "F16": torch.float16,
+    "BF16": torch.bfloat16,
+    "F64": torch.float64,
+    "I64": torch.int64,
+    "I32": torch.int32,
+}
 
 
 def read_safetensors(path: str | Path) -> dict[str, torch.Tensor]:
@@ -192,7 +207,7 @@ def read_safetensors(path: str | Path) -> dict[str, torch.Tensor]:
     path = Path(path)
     raw = path.read_bytes()
     (n,) = struct.unpack("<Q", raw[:8])
-    header = json.loads(raw[8:8 + n])
+    header = json.loads(raw[8 : 8 + n])
     base = 8 + n
     out = {}
     for name, info in header.items():
@@ -202,7 +217,7 @@ def read_safetensors(path: str | Path) -> dict[str, torch.Tensor]:
         if dtype is None:
             raise WeightsError(f"{path}: tensor {name} has unsupported dtype {info['dtype']}")
         start, end = info["data_offsets"]
-        buf = bytearray(raw[base + start:base + end])
+        buf = bytearray(raw[base + start : base + end])
         t = torch.frombuffer(buf, dtype=dtype) if buf else torch.empty(0, dtype=dtype)
         out[name] = t.reshape(info["shape"]).clone()
     return out
@@ -226,8 +241,9 @@ def _require(path, setting: str) -> Path:
         raise WeightsError(f"{setting} is not set: give the local path of the weights (nothing is downloaded)")
     p = Path(path).expanduser()
     if not p.exists():
-        raise WeightsError(f"{setting}: {p} does not exist (weights are never downloaded; "
-                           f"put the file there or point {setting} at it)")
+        raise WeightsError(
+            f"{setting}: {p} does not exist (weights are never downloaded; put the file there or point {setting} at it)"
+        )
     return p
 
 
@@ -240,9 +256,16 @@ def _config_from_hub(sd: dict) -> VitConfig:
     regs = sd["register_tokens"].shape[1] if "register_tokens" in sd else 0
     hidden = sd["blocks.0.mlp.fc1.weight"].shape[0]
     # All published DINOv2 models use 64-d heads.
-    return VitConfig(embed_dim=d, depth=depth, num_heads=max(1, d // 64), patch_size=patch,
-                     mlp_ratio=hidden / d, num_register_tokens=regs, pos_grid=grid,
-                     layerscale="blocks.0.ls1.gamma" in sd)
+    return VitConfig(
+        embed_dim=d,
+        depth=depth,
+        num_heads=max(1, d // 64),
+        patch_size=patch,
+        mlp_ratio=hidden / d,
+        num_register_tokens=regs,
+        pos_grid=grid,
+        layerscale="blocks.0.ls1.gamma" in sd,
+    )
 
 
 def hf_to_hub(sd: dict) -> dict:
@@ -268,7 +291,9 @@ def hf_to_hub(sd: dict) -> dict:
         # Published checkpoints name q,k,v `attention.attention.{query,key,value}` and the output
         # `attention.output.dense`; transformers >= 5 modules name them `attention.{q,k,v,o}_proj`.
         legacy = s + "attention.attention.query.weight" in sd
-        qkv = [s + (f"attention.attention.{n}" if legacy else f"attention.{n[0]}_proj") for n in ("query", "key", "value")]
+        qkv = [
+            s + (f"attention.attention.{n}" if legacy else f"attention.{n[0]}_proj") for n in ("query", "key", "value")
+        ]
         o = s + ("attention.output.dense" if legacy else "attention.o_proj")
         for part in ("weight", "bias"):
             out[t + f"attn.qkv.{part}"] = torch.cat([sd[f"{n}.{part}"] for n in qkv])
@@ -297,8 +322,10 @@ def load_backbone(path, setting: str = "backbone") -> DinoV2:
         files = [p / "model.safetensors", p / "pytorch_model.bin"]
         found = next((f for f in files if f.exists()), None)
         if found is None:
-            raise WeightsError(f"{setting}: {p} is a folder but holds neither model.safetensors "
-                               "nor pytorch_model.bin (expected a Hugging Face Dinov2 folder)")
+            raise WeightsError(
+                f"{setting}: {p} is a folder but holds neither model.safetensors "
+                "nor pytorch_model.bin (expected a Hugging Face Dinov2 folder)"
+            )
         sd = read_safetensors(found) if found.suffix == ".safetensors" else _torch_load(found, setting)
         if (p / "config.json").exists():
             conf = json.loads((p / "config.json").read_text())
@@ -319,8 +346,9 @@ def load_backbone(path, setting: str = "backbone") -> DinoV2:
     sd.setdefault("mask_token", torch.zeros(1, cfg.embed_dim))
     missing, unexpected = model.load_state_dict(sd, strict=False)
     if missing or unexpected:
-        raise WeightsError(f"{setting}: {p} does not match a DINOv2 ViT: missing {missing[:5]}, "
-                           f"unexpected {unexpected[:5]}")
+        raise WeightsError(
+            f"{setting}: {p} does not match a DINOv2 ViT: missing {missing[:5]}, unexpected {unexpected[:5]}"
+        )
     return model.eval().requires_grad_(False)
 
 
@@ -333,10 +361,12 @@ def load_sphere_head(path, embed_dim: int | None = None, setting: str = "head") 
         raise WeightsError(f"{setting}: {p} is a folder; expected the head checkpoint file")
     sd = _torch_load(p, setting)
     if any(k.startswith("sphere_mapper.") for k in sd):
-        sd = {k[len("sphere_mapper."):]: v for k, v in sd.items() if k.startswith("sphere_mapper.")}
+        sd = {k[len("sphere_mapper.") :]: v for k, v in sd.items() if k.startswith("sphere_mapper.")}
     if "0.weight" not in sd or "3.weight" not in sd:
-        raise WeightsError(f"{setting}: {p} holds no sphere_mapper weights (expected keys "
-                           "sphere_mapper.0.weight ... sphere_mapper.3.bias)")
+        raise WeightsError(
+            f"{setting}: {p} holds no sphere_mapper weights (expected keys "
+            "sphere_mapper.0.weight ... sphere_mapper.3.bias)"
+        )
     hidden, d = sd["0.weight"].shape
     if embed_dim is not None and d != embed_dim:
         raise WeightsError(f"{setting}: head expects {d}-d tokens but the backbone gives {embed_dim}")

@@ -40,8 +40,9 @@ class PlyError(ValueError):
         super().__init__(f"{self.path}: {problem}")
 
 
-def _parse_header(path: Path, fh, comments: list[str] | None = None
-                  ) -> tuple[str, int, list[tuple[str, int, list[tuple[str, str]]]]]:
+def _parse_header(
+    path: Path, fh, comments: list[str] | None = None
+) -> tuple[str, int, list[tuple[str, int, list[tuple[str, str]]]]]:
     head = fh.read(MAX_HEADER_BYTES)
     if not head.startswith(b"ply"):
         raise PlyError(path, "not a PLY file (it does not start with 'ply')")
@@ -59,7 +60,7 @@ def _parse_header(path: Path, fh, comments: list[str] | None = None
         tok = line.split()
         if not tok or tok[0] in ("comment", "obj_info"):
             if comments is not None and tok and tok[0] == "comment":
-                comments.append(line[len("comment"):].strip())
+                comments.append(line[len("comment") :].strip())
             continue
         if tok[0] == "format":
             if len(tok) != 3 or tok[1] not in FORMATS:
@@ -139,8 +140,7 @@ def read_ply(path: str | os.PathLike, *, max_gaussians: int = DEFAULT_MAX_GAUSSI
         if body < need:
             raise PlyError(
                 path,
-                f"truncated: the header declares {count} Gaussians ({need} bytes) "
-                f"but only {body} bytes of data follow",
+                f"truncated: the header declares {count} Gaussians ({need} bytes) but only {body} bytes of data follow",
             )
         if body > need and len(elements) == 1:
             raise PlyError(
@@ -209,7 +209,8 @@ def _read_ascii(path: Path, header_len: int, count: int, nprops: int) -> np.ndar
     need = count * nprops
     if values.size < need:
         raise PlyError(
-            path, f"truncated: the header declares {count} Gaussians but the ASCII body holds "
+            path,
+            f"truncated: the header declares {count} Gaussians but the ASCII body holds "
             f"only {values.size // nprops} complete rows",
         )
     return values[:need].reshape(count, nprops)

@@ -23,11 +23,18 @@ def _measure(name, syn, res) -> dict:
 
     idx = [syn.names.index(n) for n in res.sfm.names]
     err, t = centre_error(res.sfm.cameras, syn.cameras[idx])
-    row = {"set": name, "views": len(syn.names), "registered": res.n_registered,
-           "centre_error_pct_of_radius": 100 * err / syn.radius,
-           "psnr_heldout_db": res.train.psnr_heldout, "psnr_heldout_masked_db": res.train.psnr_heldout_masked,
-           "gaussians": len(res.model), "wall_s": res.timings["total"],
-           "sfm_s": res.timings["sfm"], "train_s": res.timings["train"]}
+    row = {
+        "set": name,
+        "views": len(syn.names),
+        "registered": res.n_registered,
+        "centre_error_pct_of_radius": 100 * err / syn.radius,
+        "psnr_heldout_db": res.train.psnr_heldout,
+        "psnr_heldout_masked_db": res.train.psnr_heldout_masked,
+        "gaussians": len(res.model),
+        "wall_s": res.timings["total"],
+        "sfm_s": res.timings["sfm"],
+        "train_s": res.timings["train"],
+    }
     print(json.dumps(row), flush=True)
     return row, t
 
@@ -60,18 +67,22 @@ def main(argv=None) -> int:
     out = {"A": row_a}
     if not args.skip_align:
         rig = random_sim3(np.random.default_rng(args.seed + 100), scale_range=(0.5, 2.0), translation=2.0)
-        syn_b = render_image_set(root / "b", model=model, n_views=args.views, size=args.size,
-                                 orbit_seed=args.seed + 1, rig=rig)
+        syn_b = render_image_set(
+            root / "b", model=model, n_views=args.views, size=args.size, orbit_seed=args.seed + 1, rig=rig
+        )
         res_b = reconstruct(syn_b.directory, root / "b_out", preset=args.preset, iterations=args.iterations)
         row_b, t_b = _measure("B", syn_b, res_b)
         gt = t_b.inverse().compose(rig.compose(t_a))
         for feats in ("auto", "canonical"):
             t = time.perf_counter()
             r = align(res_a.model, res_b.model, AlignOptions(features=feats))
-            row = {"align_features": r.features, "requested": feats,
-                   "rre_deg": rre_deg(r.transform.rotation, gt.rotation),
-                   "scale_error_pct": scale_error_pct(r.transform.scale, gt.scale),
-                   "align_s": time.perf_counter() - t}
+            row = {
+                "align_features": r.features,
+                "requested": feats,
+                "rre_deg": rre_deg(r.transform.rotation, gt.rotation),
+                "scale_error_pct": scale_error_pct(r.transform.scale, gt.scale),
+                "align_s": time.perf_counter() - t,
+            }
             print(json.dumps(row), flush=True)
             out[f"align_{feats}"] = row
         out["B"] = row_b

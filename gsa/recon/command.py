@@ -8,12 +8,19 @@ import sys
 
 
 def add_reconstruct_parser(subparsers) -> argparse.ArgumentParser:
-    p = subparsers.add_parser("reconstruct", help="build a feature-augmented 3DGS model from an image set",
-                              description="SfM (pycolmap) -> masks -> feature-augmented 3DGS training.")
+    p = subparsers.add_parser(
+        "reconstruct",
+        help="build a feature-augmented 3DGS model from an image set",
+        description="SfM (pycolmap) -> masks -> feature-augmented 3DGS training.",
+    )
     p.add_argument("images", help="directory of images or a .zip archive")
     p.add_argument("--out", required=True, help="output directory (model.ply, cameras.json, report.json, ...)")
-    p.add_argument("--preset", choices=("cpu", "gpu"), default="cpu",
-                   help="cpu: 128 px, 600 iterations (minutes on 2 cores); gpu: full resolution, 7000 iterations")
+    p.add_argument(
+        "--preset",
+        choices=("cpu", "gpu"),
+        default="cpu",
+        help="cpu: 128 px, 600 iterations (minutes on 2 cores); gpu: full resolution, 7000 iterations",
+    )
     p.add_argument("--iterations", type=int, default=None, help="override the preset's iteration count")
     p.add_argument("--masks", choices=("auto", "key", "grabcut", "sam", "none"), default="auto")
     p.add_argument("--matching", choices=("exhaustive", "sequential"), default="exhaustive")
@@ -34,9 +41,18 @@ def run_reconstruct(args) -> int:
 
     sam_encoder, sam_decoder = sam_paths_env(args.sam_encoder, args.sam_decoder)
     try:
-        res = reconstruct(args.images, args.out, preset=args.preset, features=args.features, progress=progress,
-                          masks=args.masks, matching=args.matching, iterations=args.iterations,
-                          sam_encoder=sam_encoder, sam_decoder=sam_decoder)
+        res = reconstruct(
+            args.images,
+            args.out,
+            preset=args.preset,
+            features=args.features,
+            progress=progress,
+            masks=args.masks,
+            matching=args.matching,
+            iterations=args.iterations,
+            sam_encoder=sam_encoder,
+            sam_decoder=sam_decoder,
+        )
     except (ImageSetError, SfMError, MaskError) as exc:
         print(f"\nerror: {exc}", file=sys.stderr)
         return 2

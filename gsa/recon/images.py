@@ -78,8 +78,9 @@ def write_rgb(path: str | os.PathLike, rgb: np.ndarray) -> None:
         raise OSError(f"could not write {path}")
 
 
-def check_zip(path: Path, *, max_entries: int = MAX_ZIP_ENTRIES, max_bytes: int = MAX_ZIP_BYTES,
-              max_ratio: float = MAX_ZIP_RATIO) -> list[zipfile.ZipInfo]:
+def check_zip(
+    path: Path, *, max_entries: int = MAX_ZIP_ENTRIES, max_bytes: int = MAX_ZIP_BYTES, max_ratio: float = MAX_ZIP_RATIO
+) -> list[zipfile.ZipInfo]:
     """Validate a zip archive without extracting it; returns its file entries."""
     try:
         zf = zipfile.ZipFile(path)
@@ -105,8 +106,10 @@ def check_zip(path: Path, *, max_entries: int = MAX_ZIP_ENTRIES, max_bytes: int 
         if total > max_bytes:
             raise ImageSetError(f"{path.name}: uncompressed size exceeds {max_bytes} bytes")
         if info.file_size > 1024 * 1024 and info.file_size > max_ratio * max(info.compress_size, 1):
-            raise ImageSetError(f"{path.name}: entry {name!r} has a suspicious compression ratio "
-                                f"({info.file_size}/{info.compress_size})")
+            raise ImageSetError(
+                f"{path.name}: entry {name!r} has a suspicious compression ratio "
+                f"({info.file_size}/{info.compress_size})"
+            )
         files.append(info)
     return files
 
@@ -115,8 +118,9 @@ def _is_hidden(name: str) -> bool:
     return any(p.startswith(".") or p == "__MACOSX" for p in PurePosixPath(name).parts)
 
 
-def load_image_set(path: str | os.PathLike, *, min_images: int = MIN_IMAGES,
-                   max_pixels: int = MAX_IMAGE_PIXELS) -> ImageSet:
+def load_image_set(
+    path: str | os.PathLike, *, min_images: int = MIN_IMAGES, max_pixels: int = MAX_IMAGE_PIXELS
+) -> ImageSet:
     """Open a directory (flat; sub-directories are ignored) or a .zip of images.
 
     Every non-hidden file must be an image: a stray non-image file is an error,
@@ -147,8 +151,10 @@ def load_image_set(path: str | os.PathLike, *, min_images: int = MIN_IMAGES,
     names = sorted(p.name for p in directory.iterdir() if p.is_file() and not _is_hidden(p.name))
     bad = [n for n in names if Path(n).suffix.lower() not in IMAGE_SUFFIXES]
     if bad:
-        raise ImageSetError(f"not image files (by extension): {', '.join(bad[:5])}"
-                            + (f" and {len(bad) - 5} more" if len(bad) > 5 else ""))
+        raise ImageSetError(
+            f"not image files (by extension): {', '.join(bad[:5])}"
+            + (f" and {len(bad) - 5} more" if len(bad) > 5 else "")
+        )
     if len(names) < min_images:
         raise ImageSetError(f"{len(names)} image(s) found in {path.name}; at least {min_images} are needed")
     sizes: dict[tuple[int, int], list[str]] = {}
@@ -164,5 +170,5 @@ def load_image_set(path: str | os.PathLike, *, min_images: int = MIN_IMAGES,
     if len(sizes) > 1:
         desc = "; ".join(f"{w}x{h}: {len(v)} (e.g. {v[0]})" for (w, h), v in sizes.items())
         raise ImageSetError(f"images have mixed sizes ({desc}); all images must share one size")
-    (w, h), = sizes.keys()
+    ((w, h),) = sizes.keys()
     return ImageSet(directory, names, w, h, tmp)

@@ -29,8 +29,14 @@ class MaskError(RuntimeError):
 
 def border_pixels(image: np.ndarray, width: int = 4) -> np.ndarray:
     """(M, 3) pixels from a `width`-pixel frame around (H, W, 3) image."""
-    return np.concatenate([image[:width].reshape(-1, 3), image[-width:].reshape(-1, 3),
-                           image[:, :width].reshape(-1, 3), image[:, -width:].reshape(-1, 3)])
+    return np.concatenate(
+        [
+            image[:width].reshape(-1, 3),
+            image[-width:].reshape(-1, 3),
+            image[:, :width].reshape(-1, 3),
+            image[:, -width:].reshape(-1, 3),
+        ]
+    )
 
 
 def border_is_uniform(image: np.ndarray, tol: float = 0.03) -> bool:
@@ -56,7 +62,7 @@ def _clean(mask: np.ndarray, min_fraction: float = 0.02) -> np.ndarray:
     n, lab = cv2.connectedComponents(inv, connectivity=4)
     edge = np.unique(np.concatenate([lab[0], lab[-1], lab[:, 0], lab[:, -1]]))
     holes = (inv == 1) & ~np.isin(lab, edge)
-    return (m.astype(bool) | holes)
+    return m.astype(bool) | holes
 
 
 def key_mask(image: np.ndarray, threshold: float = 0.06) -> np.ndarray:
@@ -66,8 +72,9 @@ def key_mask(image: np.ndarray, threshold: float = 0.06) -> np.ndarray:
     return _clean(d > threshold)
 
 
-def grabcut_mask(image: np.ndarray, points2d: np.ndarray | None = None, border: int = 4,
-                 iterations: int = 5) -> np.ndarray:
+def grabcut_mask(
+    image: np.ndarray, points2d: np.ndarray | None = None, border: int = 4, iterations: int = 5
+) -> np.ndarray:
     """(H, W) bool GrabCut mask. points2d (K, 2) pixel x, y of object points (e.g. the
     SfM points seen in this image): their disks are definite foreground and their
     dilated convex hull probable foreground; the border strip is definite background."""
@@ -87,7 +94,7 @@ def grabcut_mask(image: np.ndarray, points2d: np.ndarray | None = None, border: 
         for x, y in p:
             cv2.circle(gc, (int(x), int(y)), 1, cv2.GC_FGD, -1)
     else:  # no seeds: assume an object-centric frame
-        gc[h // 4: 3 * h // 4, w // 4: 3 * w // 4] = cv2.GC_PR_FGD
+        gc[h // 4 : 3 * h // 4, w // 4 : 3 * w // 4] = cv2.GC_PR_FGD
     gc[:border], gc[-border:], gc[:, :border], gc[:, -border:] = (cv2.GC_BGD,) * 4
     img8 = (np.clip(image, 0, 1) * 255).astype(np.uint8)[..., ::-1].copy()
     bgd, fgd = np.zeros((1, 65), np.float64), np.zeros((1, 65), np.float64)
@@ -108,9 +115,11 @@ class SamOnnxMasker:
 
     def __init__(self, encoder_path: str | None = None, decoder_path: str | None = None):
         if not encoder_path or not decoder_path:
-            raise MaskError("the SAM mask backend needs local ONNX files: pass sam_encoder/sam_decoder "
-                            "(gsa reconstruct: --sam-encoder/--sam-decoder or GSA_SAM_ENCODER and "
-                            "GSA_SAM_DECODER; nothing is downloaded)")
+            raise MaskError(
+                "the SAM mask backend needs local ONNX files: pass sam_encoder/sam_decoder "
+                "(gsa reconstruct: --sam-encoder/--sam-decoder or GSA_SAM_ENCODER and "
+                "GSA_SAM_DECODER; nothing is downloaded)"
+            )
         for p in (encoder_path, decoder_path):
             if not Path(p).is_file():
                 raise MaskError(f"SAM checkpoint not found: {p}")
@@ -135,10 +144,17 @@ class SamOnnxMasker:
             pts = pts[np.linspace(0, len(pts) - 1, 16).astype(int)]
         coords = np.concatenate([pts, np.zeros((1, 2), np.float32)])[None] * s
         labels = np.concatenate([np.ones(len(pts), np.float32), -np.ones(1, np.float32)])[None]
-        masks = self.decoder.run(None, {
-            "image_embeddings": emb, "point_coords": coords.astype(np.float32), "point_labels": labels,
-            "mask_input": np.zeros((1, 1, 256, 256), np.float32), "has_mask_input": np.zeros(1, np.float32),
-            "orig_im_size": np.array([h, w], np.float32)})[0]
+        masks = self.decoder.run(
+            None,
+            {
+                "image_embeddings": emb,
+                "point_coords": coords.astype(np.float32),
+                "point_labels": labels,
+                "mask_input": np.zeros((1, 1, 256, 256), np.float32),
+                "has_mask_input": np.zeros(1, np.float32),
+                "orig_im_size": np.array([h, w], np.float32),
+            },
+        )[0]
         return _clean(masks[0, 0] > 0.0)
 
 
@@ -151,8 +167,13 @@ def project_points(points: np.ndarray, viewmat: np.ndarray, fx, fy, cx, cy, widt
     return uv[inside] - 0.5  # pixel centres at i + 0.5 -> array index coordinates
 
 
-def compute_masks(images: np.ndarray, method: str = "auto", cameras=None, points: np.ndarray | None = None,
-                  sam: SamOnnxMasker | None = None) -> tuple[np.ndarray, list[str]]:
+def compute_masks(
+    images: np.ndarray,
+    method: str = "auto",
+    cameras=None,
+    points: np.ndarray | None = None,
+    sam: SamOnnxMasker | None = None,
+) -> tuple[np.ndarray, list[str]]:
     """(C, H, W, 3) images -> (C, H, W) bool masks and the method used per image.
 
     cameras (gsa.render.Cameras) and points (P, 3) seed GrabCut/SAM with projected SfM points.
@@ -168,8 +189,16 @@ def compute_masks(images: np.ndarray, method: str = "auto", cameras=None, points
             m = "key" if border_is_uniform(img) else "grabcut"
         pts = None
         if cameras is not None and points is not None and len(points):
-            pts = project_points(points, cameras.viewmats[i], cameras.fx[i], cameras.fy[i], cameras.cx[i],
-                                 cameras.cy[i], cameras.width, cameras.height)
+            pts = project_points(
+                points,
+                cameras.viewmats[i],
+                cameras.fx[i],
+                cameras.fy[i],
+                cameras.cx[i],
+                cameras.cy[i],
+                cameras.width,
+                cameras.height,
+            )
         if m == "none":
             mask = np.ones(img.shape[:2], bool)
         elif m == "key":

@@ -48,21 +48,36 @@ class ReconstructionResult:
 
     def summary(self) -> dict:
         return {
-            "images": self.sfm.n_images, "registered": self.sfm.n_registered,
-            "unregistered": self.sfm.unregistered, "mapping_attempts": self.sfm.mapping_attempts,
+            "images": self.sfm.n_images,
+            "registered": self.sfm.n_registered,
+            "unregistered": self.sfm.unregistered,
+            "mapping_attempts": self.sfm.mapping_attempts,
             "sfm_points": int(len(self.sfm.points)),
-            "gaussians": len(self.model), "feature_dim": self.model.feature_dim,
-            "psnr_heldout_db": self.train.psnr_heldout, "psnr_heldout_masked_db": self.train.psnr_heldout_masked,
-            "heldout_views": self.train.heldout, "masks": sorted(set(self.mask_methods)),
-            "model": str(self.model_path), "cameras": str(self.cameras_path),
+            "gaussians": len(self.model),
+            "feature_dim": self.model.feature_dim,
+            "psnr_heldout_db": self.train.psnr_heldout,
+            "psnr_heldout_masked_db": self.train.psnr_heldout_masked,
+            "heldout_views": self.train.heldout,
+            "masks": sorted(set(self.mask_methods)),
+            "model": str(self.model_path),
+            "cameras": str(self.cameras_path),
             "timings_s": self.timings,
         }
 
 
-def reconstruct(images_path: str | Path, out_dir: str | Path, preset: str | TrainConfig = "cpu",
-                features: str | np.ndarray = "canonical", progress: Progress | None = None, *,
-                masks: str = "auto", matching: str = "exhaustive", iterations: int | None = None,
-                sam_encoder: str | None = None, sam_decoder: str | None = None) -> ReconstructionResult:
+def reconstruct(
+    images_path: str | Path,
+    out_dir: str | Path,
+    preset: str | TrainConfig = "cpu",
+    features: str | np.ndarray = "canonical",
+    progress: Progress | None = None,
+    *,
+    masks: str = "auto",
+    matching: str = "exhaustive",
+    iterations: int | None = None,
+    sam_encoder: str | None = None,
+    sam_decoder: str | None = None,
+) -> ReconstructionResult:
     """Reconstruct a feature-augmented 3DGS model from a directory or zip of images.
 
     preset: "cpu" | "gpu" or a TrainConfig; features: "canonical" (weight-free, lifted after
@@ -109,8 +124,17 @@ def reconstruct(images_path: str | Path, out_dir: str | Path, preset: str | Trai
     if isinstance(features, np.ndarray):
         features = features[order]
     t = time.perf_counter()
-    tr = train_gaussians(imgs, mk, sfm.cameras, sfm.points, sfm.colors, cfg, names=sfm.names, features=features,
-                         progress=lambda s, f: report(s, f))
+    tr = train_gaussians(
+        imgs,
+        mk,
+        sfm.cameras,
+        sfm.points,
+        sfm.colors,
+        cfg,
+        names=sfm.names,
+        features=features,
+        progress=lambda s, f: report(s, f),
+    )
     timings["train"] = time.perf_counter() - t
 
     model_path = write_ply(tr.model, out / "model.ply")

@@ -71,9 +71,19 @@ def _mapping_options(pycolmap, seed: int):
     return opts
 
 
-def run_sfm(images: ImageSet, work_dir: str | Path, *, matching: str = "exhaustive",
-            min_registered: int | float = 0.5, max_features: int = 8192, peak_threshold: float = 0.002, progress: Progress | None = None,
-            seed: int = 0, verbose: bool = False, mapping_attempts: int = 3) -> SfMResult:
+def run_sfm(
+    images: ImageSet,
+    work_dir: str | Path,
+    *,
+    matching: str = "exhaustive",
+    min_registered: int | float = 0.5,
+    max_features: int = 8192,
+    peak_threshold: float = 0.002,
+    progress: Progress | None = None,
+    seed: int = 0,
+    verbose: bool = False,
+    mapping_attempts: int = 3,
+) -> SfMResult:
     """Run SIFT + matching + incremental mapping; keep the largest model.
 
     matching: "exhaustive" (best for <~100 unordered images) or "sequential" (video order).
@@ -105,9 +115,15 @@ def run_sfm(images: ImageSet, work_dir: str | Path, *, matching: str = "exhausti
     # first octave find enough keypoints on a few-hundred-pixel object.
     ext.sift.peak_threshold = peak_threshold
     ext.sift.first_octave = -1
-    pycolmap.extract_features(db, images.directory, image_names=list(images.names),
-                              camera_mode=pycolmap.CameraMode.SINGLE, reader_options=reader,
-                              extraction_options=ext, device=pycolmap.Device.cpu)
+    pycolmap.extract_features(
+        db,
+        images.directory,
+        image_names=list(images.names),
+        camera_mode=pycolmap.CameraMode.SINGLE,
+        reader_options=reader,
+        extraction_options=ext,
+        device=pycolmap.Device.cpu,
+    )
     timings["features"] = time.perf_counter() - t
 
     t = time.perf_counter()
@@ -133,8 +149,9 @@ def run_sfm(images: ImageSet, work_dir: str | Path, *, matching: str = "exhausti
     for attempt in range(mapping_attempts):
         attempt_dir = sparse / f"attempt{attempt}"
         attempt_dir.mkdir()
-        recs = pycolmap.incremental_mapping(db, images.directory, attempt_dir,
-                                            options=_mapping_options(pycolmap, seed + attempt))
+        recs = pycolmap.incremental_mapping(
+            db, images.directory, attempt_dir, options=_mapping_options(pycolmap, seed + attempt)
+        )
         if recs:
             best = max(recs.values(), key=lambda r: r.num_reg_images())
             if rec is None or best.num_reg_images() > rec.num_reg_images():
@@ -145,13 +162,17 @@ def run_sfm(images: ImageSet, work_dir: str | Path, *, matching: str = "exhausti
     need = int(np.ceil(min_registered * len(images))) if isinstance(min_registered, float) else int(min_registered)
     need = max(need, 2)
     if rec is None:
-        raise SfMError(f"0 of {len(images)} images registered (no initial pair with enough matches); "
-                       f"the set needs more overlap or texture")
+        raise SfMError(
+            f"0 of {len(images)} images registered (no initial pair with enough matches); "
+            f"the set needs more overlap or texture"
+        )
     result = _from_reconstruction(rec, images, timings)
     result.mapping_attempts = attempt + 1
     if result.n_registered < need:
-        raise SfMError(f"only {result.n_registered} of {len(images)} images registered (need {need}); "
-                       f"unregistered: {', '.join(result.unregistered[:10])}")
+        raise SfMError(
+            f"only {result.n_registered} of {len(images)} images registered (need {need}); "
+            f"unregistered: {', '.join(result.unregistered[:10])}"
+        )
     out = sparse / "model"
     out.mkdir(exist_ok=True)
     rec.write_text(str(out))  # COLMAP text model: cameras.txt, images.txt, points3D.txt
@@ -187,7 +208,7 @@ def _from_reconstruction(rec, images: ImageSet, timings: dict) -> SfMResult:
     return SfMResult(cams, names, pts, cols, np.asarray(errs, np.float64), len(images), unregistered, timings)
 
 
-def centre_error(est: Cameras, true: Cameras) -> tuple[float, "object"]:
+def centre_error(est: Cameras, true: Cameras) -> tuple[float, object]:
     """Fit a Sim(3) taking estimated camera centres onto true ones; returns (RMS residual in
     true units, the Sim3). est and true must list the same images in the same order."""
     a, b = est.centers(), true.centers()

@@ -44,13 +44,18 @@ def _value_noise(points: np.ndarray, freq: float, seed: int) -> np.ndarray:
     for dx in (0, 1):
         for dy in (0, 1):
             for dz in (0, 1):
-                w = (f[:, 0] if dx else 1 - f[:, 0]) * (f[:, 1] if dy else 1 - f[:, 1]) * (f[:, 2] if dz else 1 - f[:, 2])
+                w = (
+                    (f[:, 0] if dx else 1 - f[:, 0])
+                    * (f[:, 1] if dy else 1 - f[:, 1])
+                    * (f[:, 2] if dz else 1 - f[:, 2])
+                )
                 out += w * lattice[(i0[:, 0] + dx) % 64, (i0[:, 1] + dy) % 64, (i0[:, 2] + dz) % 64]
     return out
 
 
-def textured_object(category: str = "car", seed: int = 0, n_gaussians: int = 60_000,
-                    contrast: float = 0.7, n_spots: int = 3000) -> GaussianModel:
+def textured_object(
+    category: str = "car", seed: int = 0, n_gaussians: int = 60_000, contrast: float = 0.7, n_spots: int = 3000
+) -> GaussianModel:
     """A gsa.synth object whose colours carry a 3D noise texture plus random coloured
     spots of varied size (blob-like marks give SIFT distinctive keypoints)."""
     from scipy.spatial import cKDTree
@@ -74,10 +79,21 @@ def textured_object(category: str = "car", seed: int = 0, n_gaussians: int = 60_
     return GaussianModel(model.means, model.quats, model.log_scales, model.opacity_logits, sh, None)
 
 
-def render_image_set(out_dir: str | Path, *, category: str = "car", seed: int = 0, n_views: int = 30,
-                     size: int = 256, fov: float = 45.0, rig: Sim3 | None = None, orbit_seed: int = 0,
-                     background=(1.0, 1.0, 1.0), n_gaussians: int = 60_000, elevation_range=(5.0, 65.0),
-                     model: GaussianModel | None = None) -> SyntheticSet:
+def render_image_set(
+    out_dir: str | Path,
+    *,
+    category: str = "car",
+    seed: int = 0,
+    n_views: int = 30,
+    size: int = 256,
+    fov: float = 45.0,
+    rig: Sim3 | None = None,
+    orbit_seed: int = 0,
+    background=(1.0, 1.0, 1.0),
+    n_gaussians: int = 60_000,
+    elevation_range=(5.0, 65.0),
+    model: GaussianModel | None = None,
+) -> SyntheticSet:
     """Render `n_views` PNGs of a textured object into out_dir/images and write out_dir/cameras_true.json.
 
     Cameras orbit the object (directions spread by a golden-angle spiral between the
@@ -104,8 +120,7 @@ def render_image_set(out_dir: str | Path, *, category: str = "car", seed: int = 
     cams = Cameras(views, f, f, size / 2, size / 2, size, size)
     names = []
     for k in range(0, n_views, 8):  # chunks bound memory at larger sizes
-        out = render_model(model, cams[k:k + 8], features=False, background=background, depth=False,
-                           backend="cpu")
+        out = render_model(model, cams[k : k + 8], features=False, background=background, depth=False, backend="cpu")
         for j, img in enumerate(out.colors.numpy()):
             name = f"view_{k + j:03d}.png"
             write_rgb(img_dir / name, img)
@@ -119,8 +134,19 @@ def render_image_set(out_dir: str | Path, *, category: str = "car", seed: int = 
 
 
 def _write_true_cameras(path: Path, names: list[str], cams: Cameras) -> None:
-    data = {"width": cams.width, "height": cams.height,
-            "images": [{"name": n, "viewmat": cams.viewmats[i].tolist(),
-                        "fx": float(cams.fx[i]), "fy": float(cams.fy[i]),
-                        "cx": float(cams.cx[i]), "cy": float(cams.cy[i])} for i, n in enumerate(names)]}
+    data = {
+        "width": cams.width,
+        "height": cams.height,
+        "images": [
+            {
+                "name": n,
+                "viewmat": cams.viewmats[i].tolist(),
+                "fx": float(cams.fx[i]),
+                "fy": float(cams.fy[i]),
+                "cx": float(cams.cx[i]),
+                "cy": float(cams.cy[i]),
+            }
+            for i, n in enumerate(names)
+        ],
+    }
     path.write_text(json.dumps(data))

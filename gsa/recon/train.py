@@ -80,13 +80,31 @@ PRESETS = {
     # Sized for CPU-only training (30 views in minutes): 128 px, 1000 iterations and faster
     # position/colour learning; fewer iterations cost held-out PSNR, more buy little for their
     # time (docs/benchmarks.md, reconstruction).
-    "cpu": TrainConfig(iterations=1000, resolution=128, lr_means=1.6e-3, lr_means_final=1.6e-5, lr_sh_dc=1e-2,
-                       lr_features=1e-2, densify_from=100, densify_until=750, densify_every=100,
-                       max_gaussians=30_000),
+    "cpu": TrainConfig(
+        iterations=1000,
+        resolution=128,
+        lr_means=1.6e-3,
+        lr_means_final=1.6e-5,
+        lr_sh_dc=1e-2,
+        lr_features=1e-2,
+        densify_from=100,
+        densify_until=750,
+        densify_every=100,
+        max_gaussians=30_000,
+    ),
     # The authors' build: 7000 iterations, full resolution, SH degree 3, feature lr 1e-3.
-    "gpu": TrainConfig(iterations=7000, resolution=100_000, sh_degree=3, densify_from=500, densify_until=5000,
-                       densify_every=100, max_gaussians=1_000_000, opacity_reset_every=3000, init_points=0,
-                       feature_start=0.3),
+    "gpu": TrainConfig(
+        iterations=7000,
+        resolution=100_000,
+        sh_degree=3,
+        densify_from=500,
+        densify_until=5000,
+        densify_every=100,
+        max_gaussians=1_000_000,
+        opacity_reset_every=3000,
+        init_points=0,
+        feature_start=0.3,
+    ),
 }
 
 
@@ -104,7 +122,7 @@ class TrainResult:
 # ----------------------------------------------------------------------------- losses
 def _gauss_window(size: int = 11, sigma: float = 1.5) -> torch.Tensor:
     x = torch.arange(size, dtype=torch.float32) - size // 2
-    g = torch.exp(-x**2 / (2 * sigma**2))
+    g = torch.exp(-(x**2) / (2 * sigma**2))
     g = g / g.sum()
     return g[:, None] * g[None, :]
 
@@ -149,7 +167,7 @@ class _Adam:
         self.params, self.lrs, self.betas, self.eps = params, dict(lrs), betas, eps
         self.m = {k: torch.zeros_like(v) for k, v in params.items()}
         self.v = {k: torch.zeros_like(v) for k, v in params.items()}
-        self.t = {k: 0 for k in params}
+        self.t = dict.fromkeys(params, 0)
 
     @torch.no_grad()
     def step(self, names) -> None:
@@ -203,11 +221,18 @@ def init_from_points(points: np.ndarray, colors: np.ndarray, n_target: int, seed
         d, _ = cKDTree(pts).query(pts, k=4)
         nn = np.maximum(d[:, 1:].mean(1), 1e-7)
     n = len(pts)
-    return {"means": pts, "quats": np.tile([1.0, 0, 0, 0], (n, 1)), "log_scales": np.log(nn)[:, None].repeat(3, 1),
-            "opacity": np.full(n, math.log(0.1 / 0.9)), "colors": cols}
+    return {
+        "means": pts,
+        "quats": np.tile([1.0, 0, 0, 0], (n, 1)),
+        "log_scales": np.log(nn)[:, None].repeat(3, 1),
+        "opacity": np.full(n, math.log(0.1 / 0.9)),
+        "colors": cols,
+    }
 
 
-def filter_points_by_masks(points: np.ndarray, cameras: Cameras, masks: np.ndarray, min_ratio: float = 0.6) -> np.ndarray:
+def filter_points_by_masks(
+    points: np.ndarray, cameras: Cameras, masks: np.ndarray, min_ratio: float = 0.6
+) -> np.ndarray:
     """Bool (P,): points that project inside the object mask in at least min_ratio of the
     views that see them (drops background/table points before initialisation)."""
     h, w = masks.shape[1:]
@@ -235,10 +260,19 @@ def resize_images(images: np.ndarray, width: int, height: int, interp=None) -> n
 
 
 # ----------------------------------------------------------------------------- training
-def train_gaussians(images: np.ndarray, masks: np.ndarray, cameras: Cameras, points: np.ndarray,
-                    point_colors: np.ndarray, config: TrainConfig | str = "cpu", *, names: list[str] | None = None,
-                    features: str | np.ndarray = "canonical", progress: Progress | None = None,
-                    log_every: int = 10) -> TrainResult:
+def train_gaussians(
+    images: np.ndarray,
+    masks: np.ndarray,
+    cameras: Cameras,
+    points: np.ndarray,
+    point_colors: np.ndarray,
+    config: TrainConfig | str = "cpu",
+    *,
+    names: list[str] | None = None,
+    features: str | np.ndarray = "canonical",
+    progress: Progress | None = None,
+    log_every: int = 10,
+) -> TrainResult:
     """Train a feature-augmented 3DGS model.
 
     images: (C, H, W, 3) float in [0, 1] (unmasked; masks are applied here, Alg. 1);
@@ -263,7 +297,9 @@ def train_gaussians(images: np.ndarray, masks: np.ndarray, cameras: Cameras, poi
     msk = resize_images(masks.astype(np.float32), w, h, cv2.INTER_LINEAR) > 0.5
     bg = np.asarray(cfg.background, np.float32)
     imgs = np.where(msk[..., None], imgs, bg)  # masked images (Alg. 1)
-    held = [i for i in range(c_all) if cfg.holdout_every and c_all >= 2 * cfg.holdout_every and i % cfg.holdout_every == 0]
+    held = [
+        i for i in range(c_all) if cfg.holdout_every and c_all >= 2 * cfg.holdout_every and i % cfg.holdout_every == 0
+    ]
     train_ids = [i for i in range(c_all) if i not in held]
     target = torch.from_numpy(imgs)
 
@@ -277,9 +313,15 @@ def train_gaussians(images: np.ndarray, masks: np.ndarray, cameras: Cameras, poi
     sh0 = np.zeros((len(init["means"]), k_sh, 3))
     sh0[:, 0] = _rgb_to_sh0(init["colors"])
     tt = lambda a: torch.tensor(np.asarray(a), dtype=torch.float32, requires_grad=True)  # noqa: E731
-    P = {"means": tt(init["means"]), "quats": tt(init["quats"]), "log_scales": tt(init["log_scales"]),
-         "opacity": tt(init["opacity"]), "sh_dc": tt(sh0[:, :1]), "sh_rest": tt(sh0[:, 1:]),
-         "features": None}
+    P = {
+        "means": tt(init["means"]),
+        "quats": tt(init["quats"]),
+        "log_scales": tt(init["log_scales"]),
+        "opacity": tt(init["opacity"]),
+        "sh_dc": tt(sh0[:, :1]),
+        "sh_rest": tt(sh0[:, 1:]),
+        "features": None,
+    }
     feat_dim = 0
     feat_maps = None
     if isinstance(features, np.ndarray):
@@ -287,12 +329,20 @@ def train_gaussians(images: np.ndarray, masks: np.ndarray, cameras: Cameras, poi
         feat_dim = feat_maps.shape[-1]
     elif features not in ("canonical", "none"):
         raise ValueError(f"features must be 'canonical', 'none' or an array of maps, got {features!r}")
-    feature_from = 0 if feat_maps is not None else (int(cfg.feature_start * cfg.iterations)
-                                                    if features == "canonical" else None)
+    feature_from = (
+        0 if feat_maps is not None else (int(cfg.feature_start * cfg.iterations) if features == "canonical" else None)
+    )
     if feat_dim:
         P["features"] = tt(np.full((len(init["means"]), feat_dim), 0.5))
-    lrs = {"means": cfg.lr_means * extent, "quats": cfg.lr_quats, "log_scales": cfg.lr_scales,
-           "opacity": cfg.lr_opacity, "sh_dc": cfg.lr_sh_dc, "sh_rest": cfg.lr_sh_dc / 20, "features": cfg.lr_features}
+    lrs = {
+        "means": cfg.lr_means * extent,
+        "quats": cfg.lr_quats,
+        "log_scales": cfg.lr_scales,
+        "opacity": cfg.lr_opacity,
+        "sh_dc": cfg.lr_sh_dc,
+        "sh_rest": cfg.lr_sh_dc / 20,
+        "features": cfg.lr_features,
+    }
     params = {k: v for k, v in P.items() if v is not None}
     opt = _Adam(params, {k: lrs[k] for k in params})
     geo_names = ["means", "quats", "log_scales", "opacity", "sh_dc", "sh_rest"]
@@ -318,8 +368,18 @@ def train_gaussians(images: np.ndarray, masks: np.ndarray, cameras: Cameras, poi
         i = int(train_ids[rng.integers(len(train_ids))])
         p = opt.params
         # 1) colour + geometry on L_rgb
-        out = rasterize(p["means"], p["quats"], p["log_scales"], p["opacity"], sh_tensor(), None, cams[i],
-                        background=bg_t, depth=False, backend=cfg.backend)
+        out = rasterize(
+            p["means"],
+            p["quats"],
+            p["log_scales"],
+            p["opacity"],
+            sh_tensor(),
+            None,
+            cams[i],
+            background=bg_t,
+            depth=False,
+            backend=cfg.backend,
+        )
         l_rgb = rgb_loss(out.colors[0], target[i], cfg.ssim_weight)
         l_rgb.backward()
         with torch.no_grad():
@@ -337,15 +397,30 @@ def train_gaussians(images: np.ndarray, masks: np.ndarray, cameras: Cameras, poi
         # 2) features with geometry fixed, on λ_f·L_f
         l_f = torch.zeros(())
         if feat_maps is not None and "features" in opt.params:
-            out_f = rasterize(p["means"].detach(), p["quats"].detach(), p["log_scales"].detach(),
-                              p["opacity"].detach(), None, opt.params["features"], cams[i], depth=False,
-                              backend=cfg.backend)
+            out_f = rasterize(
+                p["means"].detach(),
+                p["quats"].detach(),
+                p["log_scales"].detach(),
+                p["opacity"].detach(),
+                None,
+                opt.params["features"],
+                cams[i],
+                depth=False,
+                backend=cfg.backend,
+            )
             l_f = (out_f.features[0] - feat_maps[i]).abs().mean()
             (cfg.lambda_f * l_f).backward()
             opt.step(["features"])
         if it % log_every == 0 or it == cfg.iterations - 1:
-            curve.append({"iteration": it, "loss": l_rgb.item() + cfg.lambda_f * l_f.item(), "rgb": l_rgb.item(),
-                          "feat": l_f.item(), "n": int(len(opt.params["means"]))})
+            curve.append(
+                {
+                    "iteration": it,
+                    "loss": l_rgb.item() + cfg.lambda_f * l_f.item(),
+                    "rgb": l_rgb.item(),
+                    "feat": l_f.item(),
+                    "n": int(len(opt.params["means"])),
+                }
+            )
             report("train", it / cfg.iterations)
         # density control
         if cfg.densify_from <= it < cfg.densify_until and it > 0 and it % cfg.densify_every == 0:
@@ -369,8 +444,15 @@ def train_gaussians(images: np.ndarray, masks: np.ndarray, cameras: Cameras, poi
         pred = r.colors[0].numpy()
         ps.append(psnr(pred, imgs[i]))
         psm.append(psnr(pred, imgs[i], msk[i]))
-    return TrainResult(model, curve, [names[i] for i in held], float(np.mean(ps)) if ps else None,
-                       float(np.mean(psm)) if psm else None, time.perf_counter() - t_start, asdict(cfg))
+    return TrainResult(
+        model,
+        curve,
+        [names[i] for i in held],
+        float(np.mean(ps)) if ps else None,
+        float(np.mean(psm)) if psm else None,
+        time.perf_counter() - t_start,
+        asdict(cfg),
+    )
 
 
 def _prepare_feature_maps(maps: np.ndarray, masks: np.ndarray, w: int, h: int) -> torch.Tensor:
@@ -391,8 +473,17 @@ def _canonical_feature_maps(params, sh_tensor, cams: Cameras, masks: np.ndarray,
     f = canonical_features(model)
     maps = []
     for i in range(len(cams)):
-        out = rasterize(model.means, model.quats, model.log_scales, model.opacity_logits, None, f, cams[i],
-                        depth=False, backend=backend)
+        out = rasterize(
+            model.means,
+            model.quats,
+            model.log_scales,
+            model.opacity_logits,
+            None,
+            f,
+            cams[i],
+            depth=False,
+            backend=backend,
+        )
         maps.append(out.features[0].numpy())
     maps = np.stack(maps)
     return torch.from_numpy(np.where(masks[..., None], maps, 0.0).astype(np.float32))
@@ -402,9 +493,14 @@ def _to_model(p, sh) -> GaussianModel:
     q = p["quats"].detach().numpy()
     q = q / np.maximum(np.linalg.norm(q, axis=1, keepdims=True), 1e-12)
     feats = p.get("features")
-    return GaussianModel(p["means"].detach().numpy(), q, p["log_scales"].detach().numpy(),
-                         p["opacity"].detach().numpy(), sh.detach().numpy(),
-                         None if feats is None else feats.detach().numpy())
+    return GaussianModel(
+        p["means"].detach().numpy(),
+        q,
+        p["log_scales"].detach().numpy(),
+        p["opacity"].detach().numpy(),
+        sh.detach().numpy(),
+        None if feats is None else feats.detach().numpy(),
+    )
 
 
 @torch.no_grad()
@@ -463,7 +559,17 @@ def _densify_and_prune(opt: _Adam, avg_grad, cfg: TrainConfig, extent: float, rn
 
 def _quat_to_rot(q: torch.Tensor) -> torch.Tensor:
     w, x, y, z = q.unbind(-1)
-    return torch.stack([
-        1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
-        2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
-        2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], -1).reshape(q.shape[:-1] + (3, 3))
+    return torch.stack(
+        [
+            1 - 2 * (y * y + z * z),
+            2 * (x * y - w * z),
+            2 * (x * z + w * y),
+            2 * (x * y + w * z),
+            1 - 2 * (x * x + z * z),
+            2 * (y * z - w * x),
+            2 * (x * z - w * y),
+            2 * (y * z + w * x),
+            1 - 2 * (x * x + y * y),
+        ],
+        -1,
+    ).reshape(q.shape[:-1] + (3, 3))

@@ -13,14 +13,24 @@ import importlib
 
 from gsa.render.cameras import Cameras, cameras_around, look_at, orbit_cameras
 
-_LAZY = {
-    name: "gsa.render.rasterizer"
-    for name in (
-        "BACKENDS", "RenderOutput", "available_backends", "camera_tensors", "covariance", "cuda_available",
-        "rasterize", "render_gaussians", "render_model", "resolve_backend", "colors_from_sh", "covariance_3d",
+_LAZY = dict.fromkeys(
+    (
+        "BACKENDS",
+        "RenderOutput",
+        "available_backends",
+        "camera_tensors",
+        "covariance",
+        "cuda_available",
+        "rasterize",
+        "render_gaussians",
+        "render_model",
+        "resolve_backend",
+        "colors_from_sh",
+        "covariance_3d",
         "project",
-    )
-}
+    ),
+    "gsa.render.rasterizer",
+)
 _LAZY["locality_order"] = "gsa.render.cpu"
 
 __all__ = ["Cameras", "cameras_around", "look_at", "orbit_cameras", *sorted(_LAZY)]

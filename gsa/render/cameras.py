@@ -56,8 +56,9 @@ class Cameras:
 
     def __getitem__(self, index) -> Cameras:
         idx = np.atleast_1d(np.arange(len(self))[index])
-        return Cameras(self.viewmats[idx], self.fx[idx], self.fy[idx], self.cx[idx], self.cy[idx],
-                       self.width, self.height)
+        return Cameras(
+            self.viewmats[idx], self.fx[idx], self.fy[idx], self.cx[idx], self.cy[idx], self.width, self.height
+        )
 
     @property
     def intrinsics(self) -> np.ndarray:
@@ -83,8 +84,7 @@ class Cameras:
 
     def for_transformed_model(self, sim3: Sim3) -> Cameras:
         """Cameras that see the untransformed model G as these cameras see sim3·G."""
-        return Cameras(self.viewmats @ sim3.matrix()[None], self.fx, self.fy, self.cx, self.cy,
-                       self.width, self.height)
+        return Cameras(self.viewmats @ sim3.matrix()[None], self.fx, self.fy, self.cx, self.cy, self.width, self.height)
 
     @classmethod
     def concat(cls, items: list[Cameras]) -> Cameras:
@@ -93,9 +93,15 @@ class Cameras:
         w, h = items[0].width, items[0].height
         if any(c.width != w or c.height != h for c in items):
             raise ValueError("all cameras in a batch must share one image size")
-        return cls(np.concatenate([c.viewmats for c in items]), np.concatenate([c.fx for c in items]),
-                   np.concatenate([c.fy for c in items]), np.concatenate([c.cx for c in items]),
-                   np.concatenate([c.cy for c in items]), w, h)
+        return cls(
+            np.concatenate([c.viewmats for c in items]),
+            np.concatenate([c.fx for c in items]),
+            np.concatenate([c.fy for c in items]),
+            np.concatenate([c.cx for c in items]),
+            np.concatenate([c.cy for c in items]),
+            w,
+            h,
+        )
 
 
 def look_at(eye: np.ndarray, target: np.ndarray, up=(0.0, 0.0, 1.0)) -> np.ndarray:
@@ -168,8 +174,15 @@ def orbit_cameras(
     return Cameras(views, f, f, width / 2, height / 2, width, height)
 
 
-def cameras_around(means: np.ndarray, n: int, width: int = 128, height: int | None = None,
-                   fov: float = 50.0, seed: int | None = 0, margin: float = 1.15) -> Cameras:
+def cameras_around(
+    means: np.ndarray,
+    n: int,
+    width: int = 128,
+    height: int | None = None,
+    fov: float = 50.0,
+    seed: int | None = 0,
+    margin: float = 1.15,
+) -> Cameras:
     """Orbit cameras framing a point cloud: centre = centroid, radius so that the
     bounding sphere (robust 99th-percentile extent) fits the field of view."""
     means = np.asarray(means, np.float64)
@@ -185,16 +198,26 @@ def cameras_around(means: np.ndarray, n: int, width: int = 128, height: int | No
 def cameras_json(cameras: Cameras, names: list[str]) -> dict:
     """COLMAP-compatible camera description: PINHOLE params and per-image qvec (w,x,y,z
     cam_from_world) / tvec, plus the 4x4 world-to-camera matrix for convenience."""
-    out = {"camera_model": "PINHOLE", "convention": "OpenCV world-to-camera (COLMAP cam_from_world)",
-           "width": cameras.width, "height": cameras.height, "images": []}
+    out = {
+        "camera_model": "PINHOLE",
+        "convention": "OpenCV world-to-camera (COLMAP cam_from_world)",
+        "width": cameras.width,
+        "height": cameras.height,
+        "images": [],
+    }
     for i, n in enumerate(names):
         m = cameras.viewmats[i]
-        out["images"].append({
-            "image_id": i + 1, "name": n, "camera_id": 1,
-            "params": [float(cameras.fx[i]), float(cameras.fy[i]), float(cameras.cx[i]), float(cameras.cy[i])],
-            "qvec": [float(v) for v in rotation_to_quat(m[:3, :3])], "tvec": [float(v) for v in m[:3, 3]],
-            "world_to_camera": m.tolist(),
-        })
+        out["images"].append(
+            {
+                "image_id": i + 1,
+                "name": n,
+                "camera_id": 1,
+                "params": [float(cameras.fx[i]), float(cameras.fy[i]), float(cameras.cx[i]), float(cameras.cy[i])],
+                "qvec": [float(v) for v in rotation_to_quat(m[:3, :3])],
+                "tvec": [float(v) for v in m[:3, 3]],
+                "world_to_camera": m.tolist(),
+            }
+        )
     return out
 
 
@@ -211,10 +234,15 @@ def read_cameras_json(path: str | Path) -> tuple[Cameras, list[str]]:
     try:
         data = json.loads(path.read_text())
         images = data["images"]
-        cams = Cameras(np.array([im["world_to_camera"] for im in images], np.float64),
-                       [im["params"][0] for im in images], [im["params"][1] for im in images],
-                       [im["params"][2] for im in images], [im["params"][3] for im in images],
-                       data["width"], data["height"])
+        cams = Cameras(
+            np.array([im["world_to_camera"] for im in images], np.float64),
+            [im["params"][0] for im in images],
+            [im["params"][1] for im in images],
+            [im["params"][2] for im in images],
+            [im["params"][3] for im in images],
+            data["width"],
+            data["height"],
+        )
         return cams, [str(im["name"]) for im in images]
     except (OSError, ValueError, KeyError, IndexError, TypeError) as exc:
         raise ValueError(f"{path}: not a cameras.json written by gsa reconstruct ({exc})") from None

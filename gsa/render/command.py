@@ -10,8 +10,11 @@ def add_render_parser(subparsers) -> None:
     p.add_argument("model", help="3DGS PLY file")
     p.add_argument("--out", required=True, help="output folder for PNGs")
     p.add_argument("--views", type=int, default=8, help="number of orbit views (default 8)")
-    p.add_argument("--features", action="store_true",
-                   help="also render feature maps (the model's semantic_* features, else canonical features)")
+    p.add_argument(
+        "--features",
+        action="store_true",
+        help="also render feature maps (the model's semantic_* features, else canonical features)",
+    )
     p.add_argument("--size", type=int, default=256, help="image width and height in pixels (default 256)")
     p.add_argument("--backend", default="auto", choices=["auto", "cpu", "cuda"], help="rasterizer backend")
     p.add_argument("--seed", type=int, default=0, help="seed for the orbit camera placement")
@@ -30,7 +33,8 @@ def cmd_render(args) -> int:
         from gsa.canonical import canonical_features
 
         model = model.with_features(canonical_features(model))
-    paths = render_model_views(model, args.out, views=args.views, features=args.features, size=args.size,
-                               backend=args.backend, seed=args.seed)
+    paths = render_model_views(
+        model, args.out, views=args.views, features=args.features, size=args.size, backend=args.backend, seed=args.seed
+    )
     print(json.dumps({"renders": sorted(str(p) for p in paths.values())}, indent=2))
     return 0

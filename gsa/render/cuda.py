@@ -18,8 +18,22 @@ from gsa.render.output import split_channels
 from gsa.render.projection import colors_from_sh
 
 
-def render_gsplat(means, cov3d, opacities, viewmats, intrinsics, width: int, height: int, *, colors=None, sh=None,
-                  features=None, background=None, feature_background=None, depth: bool = False):
+def render_gsplat(
+    means,
+    cov3d,
+    opacities,
+    viewmats,
+    intrinsics,
+    width: int,
+    height: int,
+    *,
+    colors=None,
+    sh=None,
+    features=None,
+    background=None,
+    feature_background=None,
+    depth: bool = False,
+):
     """Same contract as gsa.render.render_gaussians; tensors are moved to CUDA (differentiably)."""
     import gsplat  # optional dependency: only this backend needs it
 
@@ -40,8 +54,11 @@ def render_gsplat(means, cov3d, opacities, viewmats, intrinsics, width: int, hei
     if features is not None:
         d = features.shape[1]
         chans.append(features.to(dev, dtype)[None].expand(c_count, n, d))
-        bgs.append(torch.as_tensor(feature_background if feature_background is not None else [0.0] * d,
-                                   dtype=dtype, device=dev).reshape(d))
+        bgs.append(
+            torch.as_tensor(
+                feature_background if feature_background is not None else [0.0] * d, dtype=dtype, device=dev
+            ).reshape(d)
+        )
     if depth:
         z = torch.einsum("cj,nj->cn", viewmats[:, 2, :3], means) + viewmats[:, 2, 3:4]
         chans.append(z[..., None])
@@ -52,8 +69,21 @@ def render_gsplat(means, cov3d, opacities, viewmats, intrinsics, width: int, hei
     chan = torch.cat(chans, -1).contiguous()
     bg = torch.cat(bgs)[None].expand(c_count, -1).contiguous()
     out, alpha, _meta = gsplat.rasterization(
-        means, None, None, opacities, chan, viewmats, ks, width, height,
-        near_plane=0.01, eps2d=0.3, sh_degree=None, packed=False, backgrounds=bg, render_mode="RGB",
+        means,
+        None,
+        None,
+        opacities,
+        chan,
+        viewmats,
+        ks,
+        width,
+        height,
+        near_plane=0.01,
+        eps2d=0.3,
+        sh_degree=None,
+        packed=False,
+        backgrounds=bg,
+        render_mode="RGB",
         covars=cov3d,
     )
     return split_channels(out, alpha, colors is not None, None if features is None else features.shape[1], depth)

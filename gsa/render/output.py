@@ -18,8 +18,9 @@ class RenderOutput:
     depth: torch.Tensor | None
 
 
-def split_channels(out: torch.Tensor, alpha: torch.Tensor, has_colors: bool, feature_dim: int | None,
-                   depth: bool) -> RenderOutput:
+def split_channels(
+    out: torch.Tensor, alpha: torch.Tensor, has_colors: bool, feature_dim: int | None, depth: bool
+) -> RenderOutput:
     """Unstack composited channels [colour(3) | features(D) | depth·alpha(1)] (C,H,W,·):
     every backend composites them as one stack."""
     i = 0
@@ -27,8 +28,8 @@ def split_channels(out: torch.Tensor, alpha: torch.Tensor, has_colors: bool, fea
     if has_colors:
         col, i = out[..., 0:3], 3
     if feature_dim is not None:
-        feat, i = out[..., i:i + feature_dim], i + feature_dim
+        feat, i = out[..., i : i + feature_dim], i + feature_dim
     if depth:
-        acc = out[..., i:i + 1]
+        acc = out[..., i : i + 1]
         dep = torch.where(alpha > 1e-6, acc / alpha.clamp_min(1e-6), torch.zeros_like(acc))
     return RenderOutput(col, feat, alpha, dep)

@@ -15,19 +15,35 @@ from gsa.render.constants import EPS2D, NEAR
 SH_C0 = 0.28209479177387814
 SH_C1 = 0.4886025119029199
 SH_C2 = (1.0925484305920792, -1.0925484305920792, 0.31539156525252005, -1.0925484305920792, 0.5462742152960396)
-SH_C3 = (-0.5900435899266435, 2.890611442640554, -0.4570457994644658, 0.3731763325901154,
-         -0.4570457994644658, 1.445305721320277, -0.5900435899266435)
+SH_C3 = (
+    -0.5900435899266435,
+    2.890611442640554,
+    -0.4570457994644658,
+    0.3731763325901154,
+    -0.4570457994644658,
+    1.445305721320277,
+    -0.5900435899266435,
+)
 
 
 def quats_to_rotmat(quats: torch.Tensor) -> torch.Tensor:
     """(N, 4) w,x,y,z (any norm) -> (N, 3, 3)."""
     q = quats / quats.norm(dim=-1, keepdim=True).clamp_min(1e-12)
     w, x, y, z = q.unbind(-1)
-    return torch.stack([
-        1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
-        2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
-        2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y),
-    ], -1).reshape(-1, 3, 3)
+    return torch.stack(
+        [
+            1 - 2 * (y * y + z * z),
+            2 * (x * y - w * z),
+            2 * (x * z + w * y),
+            2 * (x * y + w * z),
+            1 - 2 * (x * x + z * z),
+            2 * (y * z - w * x),
+            2 * (x * z - w * y),
+            2 * (y * z + w * x),
+            1 - 2 * (x * x + y * y),
+        ],
+        -1,
+    ).reshape(-1, 3, 3)
 
 
 def covariance_3d(quats: torch.Tensor, log_scales: torch.Tensor) -> torch.Tensor:
@@ -45,15 +61,25 @@ def eval_sh(sh: torch.Tensor, dirs: torch.Tensor) -> torch.Tensor:
         res = res - SH_C1 * y * sh[:, 1] + SH_C1 * z * sh[:, 2] - SH_C1 * x * sh[:, 3]
         if k > 4:
             xx, yy, zz, xy, yz, xz = x * x, y * y, z * z, x * y, y * z, x * z
-            res = (res + SH_C2[0] * xy * sh[:, 4] + SH_C2[1] * yz * sh[:, 5]
-                   + SH_C2[2] * (2 * zz - xx - yy) * sh[:, 6] + SH_C2[3] * xz * sh[:, 7]
-                   + SH_C2[4] * (xx - yy) * sh[:, 8])
+            res = (
+                res
+                + SH_C2[0] * xy * sh[:, 4]
+                + SH_C2[1] * yz * sh[:, 5]
+                + SH_C2[2] * (2 * zz - xx - yy) * sh[:, 6]
+                + SH_C2[3] * xz * sh[:, 7]
+                + SH_C2[4] * (xx - yy) * sh[:, 8]
+            )
             if k > 9:
-                res = (res + SH_C3[0] * y * (3 * xx - yy) * sh[:, 9] + SH_C3[1] * xy * z * sh[:, 10]
-                       + SH_C3[2] * y * (4 * zz - xx - yy) * sh[:, 11]
-                       + SH_C3[3] * z * (2 * zz - 3 * xx - 3 * yy) * sh[:, 12]
-                       + SH_C3[4] * x * (4 * zz - xx - yy) * sh[:, 13]
-                       + SH_C3[5] * z * (xx - yy) * sh[:, 14] + SH_C3[6] * x * (xx - 3 * yy) * sh[:, 15])
+                res = (
+                    res
+                    + SH_C3[0] * y * (3 * xx - yy) * sh[:, 9]
+                    + SH_C3[1] * xy * z * sh[:, 10]
+                    + SH_C3[2] * y * (4 * zz - xx - yy) * sh[:, 11]
+                    + SH_C3[3] * z * (2 * zz - 3 * xx - 3 * yy) * sh[:, 12]
+                    + SH_C3[4] * x * (4 * zz - xx - yy) * sh[:, 13]
+                    + SH_C3[5] * z * (xx - yy) * sh[:, 14]
+                    + SH_C3[6] * x * (xx - 3 * yy) * sh[:, 15]
+                )
     return torch.clamp_min(res + 0.5, 0.0)
 
 
@@ -72,8 +98,15 @@ def colors_from_sh(sh: torch.Tensor, means: torch.Tensor, viewmats: torch.Tensor
     return eval_sh(sh, dirs)
 
 
-def project(means: torch.Tensor, cov3d: torch.Tensor, viewmats: torch.Tensor, intrinsics: torch.Tensor,
-            width: int, height: int, near: float = NEAR):
+def project(
+    means: torch.Tensor,
+    cov3d: torch.Tensor,
+    viewmats: torch.Tensor,
+    intrinsics: torch.Tensor,
+    width: int,
+    height: int,
+    near: float = NEAR,
+):
     """Project N Gaussians into C cameras.
 
     means (N, 3), cov3d (N, 3, 3), viewmats (C, 4, 4), intrinsics (C, 4) = fx, fy, cx, cy.
@@ -86,7 +119,7 @@ def project(means: torch.Tensor, cov3d: torch.Tensor, viewmats: torch.Tensor, in
     x, y, z = p.unbind(-1)
     valid = z > near
     zs = torch.where(valid, z, torch.ones_like(z))  # keeps culled entries finite
-    fx, fy, cx, cy = (intrinsics[:, i:i + 1] for i in range(4))
+    fx, fy, cx, cy = (intrinsics[:, i : i + 1] for i in range(4))
     # Clamp the Jacobian's evaluation point like 3DGS/gsplat so far off-screen
     # Gaussians do not produce huge, unstable footprints.
     tan_x, tan_y = 0.5 * width / fx, 0.5 * height / fy

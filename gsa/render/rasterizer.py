@@ -19,8 +19,17 @@ from gsa.render.output import RenderOutput, split_channels
 from gsa.render.projection import colors_from_sh, covariance_3d, project
 from gsa.render.reference import composite_reference
 
-__all__ = ["Cameras", "RenderOutput", "cameras_around", "look_at", "orbit_cameras", "rasterize",
-           "render_gaussians", "render_model", "available_backends"]
+__all__ = [
+    "Cameras",
+    "RenderOutput",
+    "cameras_around",
+    "look_at",
+    "orbit_cameras",
+    "rasterize",
+    "render_gaussians",
+    "render_model",
+    "available_backends",
+]
 
 BACKENDS = ("auto", "cpu", "cuda", "reference")
 
@@ -56,9 +65,24 @@ def _as_tensor(x, dtype=None) -> torch.Tensor:
     return torch.as_tensor(np.asarray(x), dtype=dtype or torch.float32)
 
 
-def render_gaussians(means, cov3d, opacities, viewmats, intrinsics, width: int, height: int, *,
-                     colors=None, sh=None, features=None, background=None, feature_background=None,
-                     depth: bool = False, backend: str = "auto", tile: int = 16) -> RenderOutput:
+def render_gaussians(
+    means,
+    cov3d,
+    opacities,
+    viewmats,
+    intrinsics,
+    width: int,
+    height: int,
+    *,
+    colors=None,
+    sh=None,
+    features=None,
+    background=None,
+    feature_background=None,
+    depth: bool = False,
+    backend: str = "auto",
+    tile: int = 16,
+) -> RenderOutput:
     """Render N Gaussians given as means (N,3), cov3d (N,3,3), opacities (N,) in (0,1).
 
     viewmats (C,4,4) world-to-camera (rigid or similarity), intrinsics (C,4) fx, fy, cx, cy.
@@ -74,15 +98,29 @@ def render_gaussians(means, cov3d, opacities, viewmats, intrinsics, width: int, 
     if n == 0:
         raise ValueError("cannot render an empty set of Gaussians")
     if means.shape != (n, 3) or cov3d.shape != (n, 3, 3) or opacities.shape != (n,):
-        raise ValueError(f"shape mismatch: means {tuple(means.shape)}, cov3d {tuple(cov3d.shape)}, "
-                         f"opacities {tuple(opacities.shape)}")
+        raise ValueError(
+            f"shape mismatch: means {tuple(means.shape)}, cov3d {tuple(cov3d.shape)}, "
+            f"opacities {tuple(opacities.shape)}"
+        )
     if features is not None and (features.ndim != 2 or features.shape[0] != n):
         raise ValueError(f"features must be (N, D) with N={n}, got {tuple(features.shape)}")
     c_count = viewmats.shape[0]
     if backend == "cuda":
-        return render_gsplat(means, cov3d, opacities, viewmats, intrinsics, width, height, colors=colors, sh=sh,
-                             features=features, background=background, feature_background=feature_background,
-                             depth=depth)
+        return render_gsplat(
+            means,
+            cov3d,
+            opacities,
+            viewmats,
+            intrinsics,
+            width,
+            height,
+            colors=colors,
+            sh=sh,
+            features=features,
+            background=background,
+            feature_background=feature_background,
+            depth=depth,
+        )
     dtype = means.dtype
     if backend == "cpu":
         # gsa.render.cpu is imported by the functions that use it: it loads numba and sets its
@@ -105,8 +143,7 @@ def render_gaussians(means, cov3d, opacities, viewmats, intrinsics, width: int, 
     if features is not None:
         d = features.shape[1]
         chans.append(features[None].expand(c_count, n, d))
-        bgs.append(_as_tensor(feature_background if feature_background is not None else np.zeros(d), dtype)
-                   .reshape(d))
+        bgs.append(_as_tensor(feature_background if feature_background is not None else np.zeros(d), dtype).reshape(d))
     if depth:
         chans.append(z[..., None])
         bgs.append(torch.zeros(1, dtype=dtype))
@@ -140,9 +177,21 @@ def camera_tensors(cameras: Cameras, dtype=torch.float32) -> tuple[torch.Tensor,
     return (torch.as_tensor(cameras.viewmats, dtype=dtype), torch.as_tensor(cameras.intrinsics, dtype=dtype))
 
 
-def rasterize(means, quats, log_scales, opacity_logits, colors_or_sh, features=None, cameras: Cameras = None, *,
-              background=(0.0, 0.0, 0.0), feature_background=None, depth: bool = True, backend: str = "auto",
-              viewmats=None) -> RenderOutput:
+def rasterize(
+    means,
+    quats,
+    log_scales,
+    opacity_logits,
+    colors_or_sh,
+    features=None,
+    cameras: Cameras = None,
+    *,
+    background=(0.0, 0.0, 0.0),
+    feature_background=None,
+    depth: bool = True,
+    backend: str = "auto",
+    viewmats=None,
+) -> RenderOutput:
     """Render Gaussians from C cameras.
 
     means (N,3), quats (N,4) w,x,y,z, log_scales (N,3), opacity_logits (N,), colors_or_sh: (N,3)
@@ -170,21 +219,53 @@ def rasterize(means, quats, log_scales, opacity_logits, colors_or_sh, features=N
         else:
             colors = c
     feats = None if features is None else _as_tensor(features, dtype)
-    return render_gaussians(means, cov3d, torch.sigmoid(opacity_logits.reshape(-1)), vm, intr, cameras.width,
-                            cameras.height, colors=colors, sh=sh, features=feats, background=background,
-                            feature_background=feature_background, depth=depth, backend=backend)
+    return render_gaussians(
+        means,
+        cov3d,
+        torch.sigmoid(opacity_logits.reshape(-1)),
+        vm,
+        intr,
+        cameras.width,
+        cameras.height,
+        colors=colors,
+        sh=sh,
+        features=feats,
+        background=background,
+        feature_background=feature_background,
+        depth=depth,
+        backend=backend,
+    )
 
 
-def render_model(model, cameras: Cameras, *, features: bool = True, background=(1.0, 1.0, 1.0),
-                 feature_background=None, depth: bool = True, backend: str = "auto", sim3=None) -> RenderOutput:
+def render_model(
+    model,
+    cameras: Cameras,
+    *,
+    features: bool = True,
+    background=(1.0, 1.0, 1.0),
+    feature_background=None,
+    depth: bool = True,
+    backend: str = "auto",
+    sim3=None,
+) -> RenderOutput:
     """Render a GaussianModel (optionally as sim3·model, by moving the cameras) without gradients."""
     if len(model) == 0:
         raise ValueError("cannot render an empty model")
     if sim3 is not None:
         cameras = cameras.for_transformed_model(sim3)
     with torch.no_grad():
-        out = rasterize(model.means, model.quats, model.log_scales, model.opacity_logits, model.sh,
-                        model.features if features else None, cameras, background=background,
-                        feature_background=feature_background, depth=depth, backend=backend)
+        out = rasterize(
+            model.means,
+            model.quats,
+            model.log_scales,
+            model.opacity_logits,
+            model.sh,
+            model.features if features else None,
+            cameras,
+            background=background,
+            feature_background=feature_background,
+            depth=depth,
+            backend=backend,
+        )
     cpu = lambda t: None if t is None else t.cpu()  # noqa: E731  (gsplat renders live on the GPU)
     return RenderOutput(cpu(out.colors), cpu(out.features), cpu(out.alpha), cpu(out.depth))

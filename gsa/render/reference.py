@@ -21,8 +21,9 @@ def composite_reference(means2d, conics, opacities, chans, depths, valid, backgr
     valid (C,N) bool, background (F,) -> out (C,H,W,F), alpha (C,H,W,1)."""
     c_count, n, f = chans.shape
     dtype = chans.dtype
-    ys, xs = torch.meshgrid(torch.arange(height, dtype=dtype) + 0.5, torch.arange(width, dtype=dtype) + 0.5,
-                            indexing="ij")
+    ys, xs = torch.meshgrid(
+        torch.arange(height, dtype=dtype) + 0.5, torch.arange(width, dtype=dtype) + 0.5, indexing="ij"
+    )
     px, py = xs.reshape(-1), ys.reshape(-1)
     outs, alphas = [], []
     for c in range(c_count):

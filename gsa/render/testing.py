@@ -22,7 +22,7 @@ def blob_object(n: int, seed: int = 0, sh_degree: int = 0, feature_dim: int = 3)
     # asymmetric bumps so no rotation maps the shape onto itself
     r = 1.0 + 0.25 * np.sin(3 * d[:, 0] + 1.0) * np.cos(2 * d[:, 1]) + 0.15 * d[:, 2] ** 3 + 0.1 * d[:, 0]
     means = d * r[:, None] * np.array([1.0, 0.7, 0.5])
-    area = 4 * np.pi * 0.75 ** 2
+    area = 4 * np.pi * 0.75**2
     s = np.sqrt(area / n) * 0.9
     scales = np.stack([np.full(n, s), np.full(n, s), np.full(n, s * 0.2)], 1) * rng.uniform(0.7, 1.3, (n, 1))
     # orient the thin axis along the radial direction
@@ -39,8 +39,9 @@ def blob_object(n: int, seed: int = 0, sh_degree: int = 0, feature_dim: int = 3)
     if feature_dim:
         w = np.random.default_rng(1234).normal(size=(3, feature_dim))
         feats = 0.5 + 0.5 * np.tanh(means @ w)
-    model = GaussianModel.from_colors(means, colors, quats=quats, scales=scales, opacities=0.8,
-                                      sh_degree=sh_degree, features=feats)
+    model = GaussianModel.from_colors(
+        means, colors, quats=quats, scales=scales, opacities=0.8, sh_degree=sh_degree, features=feats
+    )
     if sh_degree > 0:
         model.sh[:, 1:, :] = rng.normal(scale=0.05, size=model.sh[:, 1:, :].shape)
     return model

@@ -99,9 +99,17 @@ def _overlay(src: np.ndarray, tgt: np.ndarray, src_alpha: np.ndarray, tgt_alpha:
     return out * (1 - a_s) + tint_s * a_s
 
 
-def write_alignment_renders(source: GaussianModel, target: GaussianModel, transform_before: Sim3,
-                            transform_after: Sim3, out_dir: str | Path, n_novel: int = 3, size: int = 256,
-                            cameras: Cameras | None = None, backend: str = "auto") -> dict[str, Path]:
+def write_alignment_renders(
+    source: GaussianModel,
+    target: GaussianModel,
+    transform_before: Sim3,
+    transform_after: Sim3,
+    out_dir: str | Path,
+    n_novel: int = 3,
+    size: int = 256,
+    cameras: Cameras | None = None,
+    backend: str = "auto",
+) -> dict[str, Path]:
     """Before/after renders of source (mapped by each transform) against the target.
 
     Views: `cameras` (e.g. the fine stage's, re-rendered at `size`) followed by
@@ -124,13 +132,15 @@ def write_alignment_renders(source: GaussianModel, target: GaussianModel, transf
     if not cams:
         raise ValueError("no views to render: pass cameras or n_novel > 0")
     cams = Cameras.concat(cams)
-    with_features = source.features is not None and target.features is not None \
-        and source.feature_dim == target.feature_dim
+    with_features = (
+        source.features is not None and target.features is not None and source.feature_dim == target.feature_dim
+    )
     tgt = render_model(target, cams, features=with_features, background=WHITE, backend=backend)
     renders = {}
     for phase, transform in (("before", transform_before), ("after", transform_after)):
-        renders[phase] = render_model(source, cams, features=with_features, background=WHITE, backend=backend,
-                                      sim3=transform)
+        renders[phase] = render_model(
+            source, cams, features=with_features, background=WHITE, backend=backend, sim3=transform
+        )
     paths: dict[str, Path] = {}
     ta = tgt.alpha[..., 0].numpy()
     for k in range(len(cams)):
@@ -142,15 +152,25 @@ def write_alignment_renders(source: GaussianModel, target: GaussianModel, transf
             img = _hstack([sc, tc, _overlay(sc, tc, sa, ta[k])])
             paths[f"{phase}_{k}"] = write_png(out / f"{phase}_{k}.png", img)
             if with_features:
-                feature_rows.append(_hstack([features_to_rgb(r.features[k].numpy(), sa),
-                                             features_to_rgb(tgt.features[k].numpy(), ta[k])]))
+                feature_rows.append(
+                    _hstack(
+                        [features_to_rgb(r.features[k].numpy(), sa), features_to_rgb(tgt.features[k].numpy(), ta[k])]
+                    )
+                )
         if feature_rows:
             paths[f"features_{k}"] = write_png(out / f"features_{k}.png", _vstack(feature_rows))
     return paths
 
 
-def render_model_views(model: GaussianModel, out_dir: str | Path, views: int = 8, features: bool = False,
-                       size: int = 256, backend: str = "auto", seed: int = 0) -> dict[str, Path]:
+def render_model_views(
+    model: GaussianModel,
+    out_dir: str | Path,
+    views: int = 8,
+    features: bool = False,
+    size: int = 256,
+    backend: str = "auto",
+    seed: int = 0,
+) -> dict[str, Path]:
     """Orbit renders of one model: view_k.png (colour), view_k_features.png (if `features`),
     and contact_sheet.png with all of them."""
     if features and model.features is None:
@@ -170,14 +190,21 @@ def render_model_views(model: GaussianModel, out_dir: str | Path, views: int = 8
             tile.append(fimg)
         tiles.append(_vstack(tile))
     per_row = min(4, len(tiles))
-    rows = [_hstack(tiles[i:i + per_row]) for i in range(0, len(tiles), per_row)]
+    rows = [_hstack(tiles[i : i + per_row]) for i in range(0, len(tiles), per_row)]
     paths["contact_sheet"] = write_png(out / "contact_sheet.png", _vstack(rows))
     return paths
 
 
-def write_synchronized_renders(models: list[GaussianModel], out_dir: str | Path,
-                               transforms: list[Sim3] | None = None, views: int = 4, size: int = 256,
-                               features: bool = False, backend: str = "auto", seed: int = 0) -> dict[str, Path]:
+def write_synchronized_renders(
+    models: list[GaussianModel],
+    out_dir: str | Path,
+    transforms: list[Sim3] | None = None,
+    views: int = 4,
+    size: int = 256,
+    features: bool = False,
+    backend: str = "auto",
+    seed: int = 0,
+) -> dict[str, Path]:
     """Several (aligned) models rendered from the same shared cameras (paper App. B).
 
     transforms[i] maps models[i] into the shared frame (identity if omitted). Writes
@@ -190,15 +217,15 @@ def write_synchronized_renders(models: list[GaussianModel], out_dir: str | Path,
     if len(transforms) != len(models):
         raise ValueError("need one transform per model")
     cams = _cameras_for([t.apply(m.means) for m, t in zip(models, transforms)], views, size, seed)
-    use_feat = features and all(m.features is not None for m in models) \
-        and len({m.feature_dim for m in models}) == 1
+    use_feat = features and all(m.features is not None for m in models) and len({m.feature_dim for m in models}) == 1
     rows, frows = [], []
     for m, t in zip(models, transforms):
         r = render_model(m, cams, features=use_feat, background=WHITE, backend=backend, sim3=t)
         rows.append(_hstack([r.colors[k].numpy() for k in range(len(cams))]))
         if use_feat:
-            frows.append(_hstack([features_to_rgb(r.features[k].numpy(), r.alpha[k, ..., 0].numpy())
-                                  for k in range(len(cams))]))
+            frows.append(
+                _hstack([features_to_rgb(r.features[k].numpy(), r.alpha[k, ..., 0].numpy()) for k in range(len(cams))])
+            )
     out = Path(out_dir)
     paths = {"synchronized": write_png(out / "synchronized.png", _vstack(rows))}
     if frows:

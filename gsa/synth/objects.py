@@ -31,7 +31,9 @@ def _car(rng):
     paint = _color(rng)
     parts: list[Primitive] = [
         Box((0, 0, body_z), (length / 2, width / 2, height / 2), paint),
-        Box((cabin_x, 0, body_z + height / 2 + 0.25), (cabin_len / 2, width * 0.42, 0.25), _color(rng, (0.2, 0.25, 0.3))),
+        Box(
+            (cabin_x, 0, body_z + height / 2 + 0.25), (cabin_len / 2, width * 0.42, 0.25), _color(rng, (0.2, 0.25, 0.3))
+        ),
         Box((length / 2 - 0.05, 0, body_z + 0.05), (0.06, width * 0.35, 0.1), _color(rng, (0.9, 0.9, 0.8), 0.05)),
     ]
     for x in (length * 0.32, -length * 0.32):
@@ -81,8 +83,18 @@ def _boat(rng):
     return [
         Box((-length * 0.1, 0, 0), (length * 0.4, width / 2, depth / 2), hull),
         Ellipsoid((length * 0.3, 0, 0), (length * 0.25, width / 2, depth / 2), hull),
-        Box((-length * 0.15, 0, depth / 2 + 0.5), (length * rng.uniform(0.12, 0.2), width * 0.35, 0.5), _color(rng, (0.9, 0.9, 0.9), 0.08)),
-        Cylinder((length * 0.05, 0, depth / 2 + rng.uniform(1.5, 2.5)), (0, 0, 1), 0.06, rng.uniform(3, 5), _color(rng, (0.4, 0.3, 0.2))),
+        Box(
+            (-length * 0.15, 0, depth / 2 + 0.5),
+            (length * rng.uniform(0.12, 0.2), width * 0.35, 0.5),
+            _color(rng, (0.9, 0.9, 0.9), 0.08),
+        ),
+        Cylinder(
+            (length * 0.05, 0, depth / 2 + rng.uniform(1.5, 2.5)),
+            (0, 0, 1),
+            0.06,
+            rng.uniform(3, 5),
+            _color(rng, (0.4, 0.3, 0.2)),
+        ),
     ]
 
 
@@ -110,7 +122,9 @@ def _motorcycle(rng):
         Cylinder((-wheelbase / 2, 0, wheel_r), (0, 1, 0), wheel_r * 1.05, 0.16, tyre),
         Ellipsoid((0.1, 0, wheel_r * 2.0), (wheelbase * 0.3, 0.18, 0.16), paint),
         Box((-0.3, 0, wheel_r * 2.3), (0.25, 0.14, 0.05), _color(rng, (0.1, 0.1, 0.1), 0.05)),
-        Cylinder((wheelbase * 0.42, 0, wheel_r * 1.6), (0.4, 0, 1), 0.035, wheel_r * 1.8, _color(rng, (0.7, 0.7, 0.7), 0.05)),
+        Cylinder(
+            (wheelbase * 0.42, 0, wheel_r * 1.6), (0.4, 0, 1), 0.035, wheel_r * 1.8, _color(rng, (0.7, 0.7, 0.7), 0.05)
+        ),
         Cylinder((wheelbase * 0.5, 0, wheel_r * 2.6), (0, 1, 0), 0.025, 0.7, _color(rng, (0.7, 0.7, 0.7), 0.05)),
         Box((-0.15, 0, wheel_r * 1.3), (0.2, 0.12, 0.12), _color(rng, (0.5, 0.5, 0.5), 0.05)),
     ]
@@ -197,7 +211,9 @@ def make_object(
         pad = 0.1 * (hi - lo)
         means = np.concatenate([means, rng.uniform(lo - pad, hi + pad, (n_floaters, 3))])
         colors = np.concatenate([colors, rng.uniform(0, 1, (n_floaters, 3))])
-        scales = np.concatenate([scales, np.full((n_floaters, 3), spacing * 0.5) * rng.uniform(0.5, 1.5, (n_floaters, 1))])
+        scales = np.concatenate(
+            [scales, np.full((n_floaters, 3), spacing * 0.5) * rng.uniform(0.5, 1.5, (n_floaters, 1))]
+        )
         quats = np.concatenate([quats, normalize_quats(rng.normal(size=(n_floaters, 4)))])
         opac = np.concatenate([opac, rng.uniform(0.02, 0.2, n_floaters)])
     # Centre by the instance's shape, not by the sample, so independent samplings

@@ -31,7 +31,9 @@ def _unit(v: np.ndarray) -> np.ndarray:
 # ---------------------------------------------------------------- partial capture
 
 
-def cut_by_plane(model: GaussianModel, rng: np.random.Generator, keep: tuple[float, float] = (0.6, 0.8)) -> GaussianModel:
+def cut_by_plane(
+    model: GaussianModel, rng: np.random.Generator, keep: tuple[float, float] = (0.6, 0.8)
+) -> GaussianModel:
     """The model with the Gaussians on one side of a random plane removed.
 
     The plane's unit normal n is uniformly random; its offset is the quantile of
@@ -70,8 +72,13 @@ def _bright_colors(rng: np.random.Generator, n: int, min_luminance: float = 0.5)
     return rgb + lift[:, None] * (1 - rgb)
 
 
-def add_floaters(model: GaussianModel, rng: np.random.Generator, fraction: float = 0.2,
-                 opacity: tuple[float, float] = (0.1, 0.3), box_scale: float = 1.5) -> GaussianModel:
+def add_floaters(
+    model: GaussianModel,
+    rng: np.random.Generator,
+    fraction: float = 0.2,
+    opacity: tuple[float, float] = (0.1, 0.3),
+    box_scale: float = 1.5,
+) -> GaussianModel:
     """The model plus round(fraction·len(model)) floaters, appended at the end.
 
     Floaters are uniform over the model's axis-aligned bounding box scaled by
@@ -102,8 +109,9 @@ def add_floaters(model: GaussianModel, rng: np.random.Generator, fraction: float
     quats = normalize_quats(rng.normal(size=(n, 4)))
     opac = rng.uniform(opacity[0], opacity[1], n)
     features = None if model.features is None else model.features[rng.integers(0, len(model), n)]
-    floaters = GaussianModel.from_colors(pos, colors, quats=quats, scales=scales, opacities=opac,
-                                         sh_degree=model.sh_degree, features=features)
+    floaters = GaussianModel.from_colors(
+        pos, colors, quats=quats, scales=scales, opacities=opac, sh_degree=model.sh_degree, features=features
+    )
     out = merge_models(model, floaters)
     out.metadata = meta
     return out
@@ -150,8 +158,9 @@ def _symmetric_parts(seed: int) -> tuple[str, int, list[Primitive], float, np.nd
         bevel_h = height * rng.uniform(0.12, 0.25)
         top_r = r * rng.uniform(0.45, 0.75)
         body = RegularPrism((0, 0, 0), z, r, height, k, tuple(main), caps=(True, False))
-        lid = RegularPrism((0, 0, 0.5 * (height + bevel_h)), z, r, bevel_h, k, tuple(main * 0.85),
-                           top_radius=top_r, caps=(False, True))
+        lid = RegularPrism(
+            (0, 0, 0.5 * (height + bevel_h)), z, r, bevel_h, k, tuple(main * 0.85), top_radius=top_r, caps=(False, True)
+        )
         parts = [body, lid]
         mark_angle = _axis_angle_world(body, body.face_angle(0))
     elif family == "wheel":
@@ -195,8 +204,9 @@ def _symmetric_parts(seed: int) -> tuple[str, int, list[Primitive], float, np.nd
     return family, k, parts, mark_angle, marker
 
 
-def make_symmetric_object(seed: int = 0, n_gaussians: int = 20_000, sample_seed: int | None = None,
-                          sh_degree: int = 0) -> GaussianModel:
+def make_symmetric_object(
+    seed: int = 0, n_gaussians: int = 20_000, sample_seed: int | None = None, sh_degree: int = 0
+) -> GaussianModel:
     """A 3DGS model of an object with k-fold rotational symmetry (k = 4..8)
     about the z axis through the origin.
 
@@ -249,9 +259,16 @@ def make_symmetric_object(seed: int = 0, n_gaussians: int = 20_000, sample_seed:
     model = GaussianModel.from_colors(means, colors, quats=quats, scales=scales, opacities=opac, sh_degree=sh_degree)
     if sh_degree > 0:
         model.sh[:, 1:, :] = rng.normal(0, 0.05, model.sh[:, 1:, :].shape)
-    model.metadata.update(category=f"symmetric-{family}", family=family, seed=seed, sample_seed=sample_seed,
-                          symmetry_axis=[0.0, 0.0, 1.0], symmetry_center=[0.0, 0.0, 0.0], symmetry_order=k,
-                          mark_angle=float(mark_angle))
+    model.metadata.update(
+        category=f"symmetric-{family}",
+        family=family,
+        seed=seed,
+        sample_seed=sample_seed,
+        symmetry_axis=[0.0, 0.0, 1.0],
+        symmetry_center=[0.0, 0.0, 0.0],
+        symmetry_order=k,
+        mark_angle=float(mark_angle),
+    )
     return model
 
 
@@ -266,8 +283,9 @@ def symmetry_rotations(model: GaussianModel) -> list[np.ndarray]:
 # ---------------------------------------------------------------- deformation
 
 
-def deform(model: GaussianModel, rng: np.random.Generator, stretch: float = 0.25, taper: float = 0.2,
-           bend: float = 0.15) -> GaussianModel:
+def deform(
+    model: GaussianModel, rng: np.random.Generator, stretch: float = 0.25, taper: float = 0.2, bend: float = 0.15
+) -> GaussianModel:
     """A smoothly deformed copy, as a proxy for another instance of the category.
 
     About the centroid c of the means, in order:

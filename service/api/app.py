@@ -33,9 +33,7 @@ def create_app(
 ) -> FastAPI:
     settings = settings or get_settings()
     if not settings.api_keys and not settings.auth_disabled:
-        log.warning(
-            "no API keys configured (GSA_API_KEYS) and auth not disabled: every request will get 401"
-        )
+        log.warning("no API keys configured (GSA_API_KEYS) and auth not disabled: every request will get 401")
 
     @asynccontextmanager
     async def lifespan(app: FastAPI):
@@ -75,11 +73,7 @@ def create_app(
 
     def cap(path: str) -> int:
         if path == "/v1/assets":
-            return (
-                per_file * 2 + (1 << 20)
-                if s.max_images <= 2
-                else per_file * s.max_images + (1 << 20)
-            )
+            return per_file * 2 + (1 << 20) if s.max_images <= 2 else per_file * s.max_images + (1 << 20)
         if path == "/v1/jobs":
             return per_file * (s.max_sources + 1 + 2 * s.max_images) + (1 << 20)
         return 1 << 20

@@ -32,9 +32,7 @@ async def upload_asset(request: Request, response: Response, owner: Owner, b: B)
         if not files:
             raise invalid_input("multipart field 'file' is required")
         if len(files) == 1:
-            asset = await run_in_threadpool(
-                core.ingest, b, owner, files[0].file, files[0].filename
-            )
+            asset = await run_in_threadpool(core.ingest, b, owner, files[0].file, files[0].filename)
         else:
             asset = await run_in_threadpool(
                 core.ingest_images,

@@ -15,9 +15,7 @@ from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
 from service.backend import Backend
 from service.problems import Problem
 
-bearer = HTTPBearer(
-    auto_error=False, description="API key: `Authorization: Bearer <key>`"
-)
+bearer = HTTPBearer(auto_error=False, description="API key: `Authorization: Bearer <key>`")
 
 
 def get_backend(request: Request) -> Backend:
@@ -50,9 +48,7 @@ async def require_owner(
             401,
             "unauthorized",
             "Unauthorized",
-            "a valid API key is required: Authorization: Bearer <key>"
-            if creds is None
-            else "the API key is not valid",
+            "a valid API key is required: Authorization: Bearer <key>" if creds is None else "the API key is not valid",
         )
         p.headers["WWW-Authenticate"] = 'Bearer realm="gsa"'
         raise p

@@ -36,9 +36,7 @@ def _sha_file(fh) -> str:
 
 
 def _fingerprint(obj) -> str:
-    return hashlib.sha256(
-        json.dumps(obj, sort_keys=True, separators=(",", ":")).encode()
-    ).hexdigest()
+    return hashlib.sha256(json.dumps(obj, sort_keys=True, separators=(",", ":")).encode()).hexdigest()
 
 
 def _job_response(job, created: bool) -> JSONResponse:
@@ -71,11 +69,7 @@ async def create_job(
         try:
             spec = JobCreate.model_validate_json(await request.body())
         except ValueError as exc:
-            errs = (
-                exc.errors()
-                if hasattr(exc, "errors")
-                else [{"loc": ("body",), "msg": str(exc), "type": "json"}]
-            )
+            errs = exc.errors() if hasattr(exc, "errors") else [{"loc": ("body",), "msg": str(exc), "type": "json"}]
             raise RequestValidationError(errs) from None
         ids = spec.sources or ([spec.source] if spec.source else [])
         if spec.source and spec.sources:
@@ -96,9 +90,7 @@ async def create_job(
         job_id, existing = core.claim(b, owner, idempotency_key, fp)
         if existing is not None:
             return _job_response(existing, False)
-        job = core.create_job(
-            b, owner, job_id, sources, target, options, webhook, idempotency_key
-        )
+        job = core.create_job(b, owner, job_id, sources, target, options, webhook, idempotency_key)
         request.app.state.metrics.jobs_created.labels("http").inc()
         return _job_response(job, True)
     if not ctype.startswith("multipart/form-data"):
@@ -109,18 +101,14 @@ async def create_job(
             "send application/json (asset ids) or multipart/form-data (uploads)",
         )
     s = b.settings
-    form = await parse_multipart(
-        request, s.max_upload_bytes, max_files=2 * s.max_images + s.max_sources + 1
-    )
+    form = await parse_multipart(request, s.max_upload_bytes, max_files=2 * s.max_images + s.max_sources + 1)
     try:
         return await _create_from_form(request, form, owner, b, idempotency_key)
     finally:
         form.close()
 
 
-async def _create_from_form(
-    request: Request, form: Form, owner: str, b: Backend, idem: str | None
-):
+async def _create_from_form(request: Request, form: Form, owner: str, b: Backend, idem: str | None):
     unknown = set(form.files) - {"source", "target", "source_images", "target_images"}
     unknown |= set(form.fields) - {"options", "webhook_url", "webhook_secret"}
     if unknown:
@@ -131,22 +119,16 @@ async def _create_from_form(
         form.files.get("target_images", []),
     )
     if len(tgt_files) + bool(tgt_imgs) != 1:
-        raise invalid_input(
-            "exactly one target is required: a 'target' file or 'target_images'"
-        )
+        raise invalid_input("exactly one target is required: a 'target' file or 'target_images'")
     try:
-        options = AlignOptionsIn.model_validate_json(
-            form.field("options") or "{}"
-        ).to_dict()
+        options = AlignOptionsIn.model_validate_json(form.field("options") or "{}").to_dict()
     except ValueError as exc:
-        raise invalid_input(
-            f"'options' is not a valid options JSON object: {exc}"
-        ) from None
+        raise invalid_input(f"'options' is not a valid options JSON object: {exc}") from None
     webhook = None
     if form.field("webhook_url"):
-        webhook = WebhookIn(
-            url=form.field("webhook_url"), secret=form.field("webhook_secret")
-        ).model_dump(exclude_none=True)
+        webhook = WebhookIn(url=form.field("webhook_url"), secret=form.field("webhook_secret")).model_dump(
+            exclude_none=True
+        )
     n_sources = len(src_files) + bool(src_imgs)
     core.check_request(b, n_sources, options, webhook)
     digests = {k: [_sha_file(p.file) for p in v] for k, v in form.files.items()}
@@ -157,9 +139,7 @@ async def _create_from_form(
     made = []
     try:
         for p in src_files:
-            made.append(
-                await run_in_threadpool(core.ingest, b, owner, p.file, p.filename)
-            )
+            made.append(await run_in_threadpool(core.ingest, b, owner, p.file, p.filename))
         if src_imgs:
             made.append(
                 await run_in_threadpool(
@@ -172,9 +152,7 @@ async def _create_from_form(
             )
         sources = list(made)
         if tgt_files:
-            target = await run_in_threadpool(
-                core.ingest, b, owner, tgt_files[0].file, tgt_files[0].filename
-            )
+            target = await run_in_threadpool(core.ingest, b, owner, tgt_files[0].file, tgt_files[0].filename)
         else:
             target = await run_in_threadpool(
                 core.ingest_images,
@@ -232,11 +210,7 @@ async def get_job(
 
 
 def _encode_cursor(job) -> str:
-    return (
-        base64.urlsafe_b64encode(json.dumps([job.created_at, job.id]).encode())
-        .decode()
-        .rstrip("=")
-    )
+    return base64.urlsafe_b64encode(json.dumps([job.created_at, job.id]).encode()).decode().rstrip("=")
 
 
 def _decode_cursor(c: str) -> tuple[float, str]:
@@ -261,9 +235,7 @@ async def list_jobs(
     limit: Annotated[int, Query(ge=1, le=200)] = 50,
     cursor: str | None = None,
 ):
-    jobs = b.store.list(
-        owner, state, limit + 1, _decode_cursor(cursor) if cursor else None
-    )
+    jobs = b.store.list(owner, state, limit + 1, _decode_cursor(cursor) if cursor else None)
     more = len(jobs) > limit
     jobs = jobs[:limit]
     return JobList(

@@ -34,10 +34,7 @@ def install_error_handlers(app: FastAPI) -> None:
 
     @app.exception_handler(RequestValidationError)
     async def _validation(request: Request, exc: RequestValidationError):
-        errors = [
-            {"loc": list(e.get("loc", ())), "msg": e.get("msg"), "type": e.get("type")}
-            for e in exc.errors()
-        ]
+        errors = [{"loc": list(e.get("loc", ())), "msg": e.get("msg"), "type": e.get("type")} for e in exc.errors()]
         p = Problem(
             422,
             "validation-error",
@@ -67,9 +64,7 @@ def install_error_handlers(app: FastAPI) -> None:
     @app.exception_handler(Exception)
     async def _unhandled(request: Request, exc: Exception):
         log.exception("unhandled error on %s %s", request.method, request.url.path)
-        return problem_response(
-            Problem(500, "internal-error", "Internal server error"), request
-        )
+        return problem_response(Problem(500, "internal-error", "Internal server error"), request)
 
 
 def _title(status: int) -> str:
@@ -94,9 +89,7 @@ class BodyLimit:
         headers = dict(scope.get("headers") or [])
         cl = headers.get(b"content-length")
         if cl is not None and cl.isdigit() and int(cl) > cap:
-            return await _send_problem(
-                scope, send, too_large(f"request body exceeds the limit of {cap} bytes")
-            )
+            return await _send_problem(scope, send, too_large(f"request body exceeds the limit of {cap} bytes"))
         seen = 0
         started = False
 
@@ -164,6 +157,4 @@ class RequestMetrics:
             route = scope.get("route")
             path = getattr(route, "path", "unmatched")
             self.metrics.requests.labels(scope["method"], path, str(status[0])).inc()
-            self.metrics.latency.labels(scope["method"], path).observe(
-                time.perf_counter() - t0
-            )
+            self.metrics.latency.labels(scope["method"], path).observe(time.perf_counter() - t0)

@@ -46,9 +46,7 @@ JOB_BODY = {
     "requestBody": {
         "required": True,
         "content": {
-            "application/json": {
-                "schema": {"$ref": "#/components/schemas/JobCreate"}
-            },
+            "application/json": {"schema": {"$ref": "#/components/schemas/JobCreate"}},
             "multipart/form-data": {
                 "schema": {
                     "type": "object",

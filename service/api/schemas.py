@@ -28,18 +28,12 @@ class AlignOptionsIn(BaseModel):
 
     model_config = ConfigDict(extra="allow")
     stages: list[str] | None = Field(None, examples=[["coarse", "fine"]])
-    features: str | None = Field(
-        None, description="feature backend: auto | canonical | spheremap | dinov2"
-    )
+    features: str | None = Field(None, description="feature backend: auto | canonical | spheremap | dinov2")
     tau_f: float | None = Field(None, gt=0, description="feature-match threshold τ_f")
     coarse_iterations: int | None = Field(None, ge=1, le=1000)
     seed: int | None = None
-    renders: bool | None = Field(
-        None, description="produce before/after renders (default true)"
-    )
-    outputs: list[OutputName] | None = Field(
-        None, description="artifacts wanted (default: all)"
-    )
+    renders: bool | None = Field(None, description="produce before/after renders (default true)")
+    outputs: list[OutputName] | None = Field(None, description="artifacts wanted (default: all)")
     recon_iterations: int | None = Field(
         None,
         ge=10,
@@ -52,12 +46,8 @@ class AlignOptionsIn(BaseModel):
 
 
 class WebhookIn(BaseModel):
-    url: str = Field(
-        description="called with POST {job_id, state, ...} when the job reaches a final state"
-    )
-    secret: str | None = Field(
-        None, description="HMAC-SHA256 key for X-GSA-Signature (else the server's)"
-    )
+    url: str = Field(description="called with POST {job_id, state, ...} when the job reaches a final state")
+    secret: str | None = Field(None, description="HMAC-SHA256 key for X-GSA-Signature (else the server's)")
 
 
 class JobCreate(BaseModel):
@@ -65,9 +55,7 @@ class JobCreate(BaseModel):
 
     model_config = ConfigDict(extra="forbid")
     source: str | None = Field(None, description="source asset id (pair job)")
-    sources: list[str] | None = Field(
-        None, description="N source asset ids aligned to one target (multi-model)"
-    )
+    sources: list[str] | None = Field(None, description="N source asset ids aligned to one target (multi-model)")
     target: str = Field(description="target (reference) asset id")
     options: AlignOptionsIn = Field(default_factory=AlignOptionsIn)
     webhook: WebhookIn | None = None
@@ -106,7 +94,9 @@ class JobOut(BaseModel):
 
     @classmethod
     def from_job(cls, job: Job) -> JobOut:
-        ts = lambda t: None if t is None else datetime.fromtimestamp(t, UTC)
+        def ts(t):
+            return None if t is None else datetime.fromtimestamp(t, UTC)
+
         base = f"/v1/jobs/{job.id}"
         return cls(
             id=job.id,
@@ -140,9 +130,7 @@ class JobOut(BaseModel):
 
 class JobList(BaseModel):
     items: list[JobOut]
-    next_cursor: str | None = Field(
-        None, description="pass as ?cursor= for the next page; null at the end"
-    )
+    next_cursor: str | None = Field(None, description="pass as ?cursor= for the next page; null at the end")
 
 
 class AssetOut(BaseModel):

@@ -51,9 +51,7 @@ def _disposition(value: str) -> tuple[str | None, str | None]:
     return m.get_param("name", header="content-disposition"), m.get_filename()
 
 
-async def parse_multipart(
-    request: Request, max_file_bytes: int, max_files: int
-) -> Form:
+async def parse_multipart(request: Request, max_file_bytes: int, max_files: int) -> Form:
     ctype = request.headers.get("content-type", "")
     m = Message()
     m["content-type"] = ctype
@@ -83,9 +81,7 @@ async def parse_multipart(
         st["hval"] += data[start:end]
 
     def on_header_end():
-        st["headers"][st["hname"].decode("latin-1").lower()] = st["hval"].decode(
-            "latin-1"
-        )
+        st["headers"][st["hname"].decode("latin-1").lower()] = st["hval"].decode("latin-1")
         st["hname"], st["hval"] = b"", b""
 
     def on_headers_finished():
@@ -114,15 +110,11 @@ async def parse_multipart(
             p = st["part"]
             p.size += n
             if p.size > max_file_bytes:
-                raise too_large(
-                    f"file {p.filename!r} exceeds the limit of {max_file_bytes} bytes"
-                )
+                raise too_large(f"file {p.filename!r} exceeds the limit of {max_file_bytes} bytes")
             p.file.write(data[start:end])
         else:
             if len(st["buf"]) + n > MAX_FIELD_BYTES:
-                raise too_large(
-                    f"form field {st['name']!r} exceeds {MAX_FIELD_BYTES} bytes"
-                )
+                raise too_large(f"form field {st['name']!r} exceeds {MAX_FIELD_BYTES} bytes")
             st["buf"] += data[start:end]
 
     def on_part_end():

@@ -58,7 +58,5 @@ def generate(out_dir: Path) -> list[Path]:
 
 
 if __name__ == "__main__":
-    for p in generate(
-        Path(sys.argv[1]) if len(sys.argv) > 1 else Path(__file__).parent
-    ):
+    for p in generate(Path(sys.argv[1]) if len(sys.argv) > 1 else Path(__file__).parent):
         print(p)

@@ -126,9 +126,7 @@ def service_env(tmp: Path, **extra) -> dict:
     return env
 
 
-def start_api(
-    tmp: Path, env: dict, grpc: bool = False, name="api"
-) -> tuple[Proc, str, int | None]:
+def start_api(tmp: Path, env: dict, grpc: bool = False, name="api") -> tuple[Proc, str, int | None]:
     port = free_port()
     gport = free_port() if grpc else None
     args = [
@@ -266,9 +264,7 @@ def http(stack):
         yield c
 
 
-def submit_pair(
-    c: httpx.Client, pair, options=None, headers=None, **data
-) -> httpx.Response:
+def submit_pair(c: httpx.Client, pair, options=None, headers=None, **data) -> httpx.Response:
     with open(pair["source"], "rb") as s, open(pair["target"], "rb") as t:
         return c.post(
             "/v1/jobs",
@@ -314,20 +310,14 @@ def library_result(pair, options: dict):
     from gsa.align.pipeline import AlignOptions, align
     from gsa.io.ply import read_ply
 
-    return align(
-        read_ply(pair["source"]), read_ply(pair["target"]), AlignOptions(**options)
-    )
+    return align(read_ply(pair["source"]), read_ply(pair["target"]), AlignOptions(**options))
 
 
 def assert_problem(r: httpx.Response, status: int, kind: str | None = None) -> dict:
     assert r.status_code == status, r.text
     assert r.headers["content-type"].startswith("application/problem+json"), r.headers
     body = r.json()
-    assert (
-        body["status"] == status
-        and body["title"]
-        and body["type"].startswith("https://")
-    )
+    assert body["status"] == status and body["title"] and body["type"].startswith("https://")
     if kind:
         assert body["type"].endswith("/" + kind), body
     return body

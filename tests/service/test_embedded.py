@@ -7,8 +7,11 @@ import json
 import subprocess
 
 import httpx
+import pytest
 
 from tests.service.conftest import ALICE, PY, ROOT, service_env, start_api, submit_slow_job, wait_job
+
+pytestmark = pytest.mark.slow  # starts servers and worker processes
 
 
 def _cli(env, url, *args):
@@ -48,10 +51,7 @@ def test_embedded_restart_keeps_jobs_and_cli(tmp_path, pair):
         r = _cli(env, url, "fetch", first["id"], "--out", str(tmp_path / "got"))
         assert r.returncode == 0, r.stderr
         assert (tmp_path / "got" / "aligned.ply").stat().st_size > 0
-        assert (
-            json.loads((tmp_path / "got" / "result.json").read_text())["job_id"]
-            == first["id"]
-        )
+        assert json.loads((tmp_path / "got" / "result.json").read_text())["job_id"] == first["id"]
         r = _cli(env, url, "status", "job_nope")
         assert r.returncode == 1 and "404" in r.stderr
 
@@ -72,10 +72,7 @@ def test_embedded_restart_keeps_jobs_and_cli(tmp_path, pair):
         api, url, _ = start_api(tmp_path, env, name="embedded2")
         with httpx.Client(base_url=url, headers=ALICE, timeout=60) as http:
             old = http.get(f"/v1/jobs/{first['id']}").json()
-            assert (
-                old["state"] == "succeeded"
-                and old["result"]["transform"] == first["result"]["transform"]
-            )
+            assert old["state"] == "succeeded" and old["result"]["transform"] == first["result"]["transform"]
             assert (
                 http.get(f"/v1/jobs/{first['id']}/artifacts/aligned.ply").content
                 == (tmp_path / "got" / "aligned.ply").read_bytes()

@@ -26,9 +26,9 @@ def test_generated_code_in_sync(tmp_path):
 
     generate(tmp_path)
     for name in FILES:
-        assert (tmp_path / name).read_text() == (
-            ROOT / "service" / "grpc_gen" / name
-        ).read_text(), f"{name} is stale: run python -m service.grpc_gen.generate"
+        assert (tmp_path / name).read_text() == (ROOT / "service" / "grpc_gen" / name).read_text(), (
+            f"{name} is stale: run python -m service.grpc_gen.generate"
+        )
 
 
 @pytest.fixture
@@ -41,17 +41,11 @@ def stub(stack):
 def _chunks(path: Path, role, index, size=64 * 1024):
     data = path.read_bytes()
     for i in range(0, len(data), size):
-        yield pb.SubmitRequest(
-            chunk=pb.FileChunk(
-                role=role, index=index, filename=path.name, data=data[i : i + size]
-            )
-        )
+        yield pb.SubmitRequest(chunk=pb.FileChunk(role=role, index=index, filename=path.name, data=data[i : i + size]))
 
 
 def _submit(pair, idem=""):
-    yield pb.SubmitRequest(
-        header=pb.SubmitHeader(options_json=json.dumps(OPTS), idempotency_key=idem)
-    )
+    yield pb.SubmitRequest(header=pb.SubmitHeader(options_json=json.dumps(OPTS), idempotency_key=idem))
     yield from _chunks(pair["source"], pb.ROLE_SOURCE, 0)
     yield from _chunks(pair["target"], pb.ROLE_TARGET, 0)
 
@@ -74,9 +68,7 @@ def test_grpc_end_to_end_and_visible_over_http(stub, stack, pair):
         atol=1e-9,
     )
     np.testing.assert_allclose(final.transform.scale, ref.transform.scale, atol=1e-9)
-    np.testing.assert_allclose(
-        final.transform.quaternion, ref.transform.quaternion(), atol=1e-9
-    )
+    np.testing.assert_allclose(final.transform.quaternion, ref.transform.quaternion(), atol=1e-9)
     # the GT-free judgement travels with the transform
     assert final.transform.confidence == pytest.approx(ref.metrics["confidence"])
     assert final.transform.doubtful == ref.metrics["doubtful"]
@@ -86,20 +78,11 @@ def test_grpc_end_to_end_and_visible_over_http(stub, stack, pair):
     with httpx.Client(base_url=stack["url"], headers=ALICE) as http:
         hj = http.get(f"/v1/jobs/{job.id}").json()
         assert hj["state"] == "succeeded"
-        np.testing.assert_allclose(
-            hj["result"]["transform"], ref.transform.matrix(), atol=1e-9
-        )
+        np.testing.assert_allclose(hj["result"]["transform"], ref.transform.matrix(), atol=1e-9)
         over_http = http.get(f"/v1/jobs/{job.id}/artifacts/aligned.ply").content
-    chunks = list(
-        s.GetArtifact(
-            pb.ArtifactRequest(job_id=job.id, name="aligned.ply"), metadata=AUTH
-        )
-    )
+    chunks = list(s.GetArtifact(pb.ArtifactRequest(job_id=job.id, name="aligned.ply"), metadata=AUTH))
     assert b"".join(c.data for c in chunks) == over_http
-    assert (
-        chunks[0].total_size == len(over_http)
-        and chunks[0].content_type == "application/x-ply"
-    )
+    assert chunks[0].total_size == len(over_http) and chunks[0].content_type == "application/x-ply"
     part = list(
         s.GetArtifact(
             pb.ArtifactRequest(job_id=job.id, name="aligned.ply", offset=5, length=20),
@@ -108,10 +91,7 @@ def test_grpc_end_to_end_and_visible_over_http(stub, stack, pair):
     )
     assert b"".join(c.data for c in part) == over_http[5:25]
 
-    assert (
-        s.GetJob(pb.JobRef(job_id=job.id), metadata=AUTH).state
-        == pb.JOB_STATE_SUCCEEDED
-    )
+    assert s.GetJob(pb.JobRef(job_id=job.id), metadata=AUTH).state == pb.JOB_STATE_SUCCEEDED
     with pytest.raises(grpc.RpcError) as e:
         s.CancelJob(pb.JobRef(job_id=job.id), metadata=AUTH)
     assert e.value.code() == grpc.StatusCode.FAILED_PRECONDITION
@@ -123,20 +103,10 @@ def test_grpc_http_job_visible_and_asset_ids(stub, stack, pair):
         ids = []
         for k in ("source", "target"):
             with open(pair[k], "rb") as fh:
-                ids.append(
-                    http.post("/v1/assets", files={"file": (k + ".ply", fh)}).json()[
-                        "id"
-                    ]
-                )
-        hjob = http.post(
-            "/v1/jobs", json={"source": ids[0], "target": ids[1], "options": OPTS}
-        ).json()
-    final = list(s.WatchJob(pb.JobRef(job_id=hjob["id"]), metadata=AUTH, timeout=60))[
-        -1
-    ]
-    assert final.state == pb.JOB_STATE_SUCCEEDED and list(final.source_asset_ids) == [
-        ids[0]
-    ]
+                ids.append(http.post("/v1/assets", files={"file": (k + ".ply", fh)}).json()["id"])
+        hjob = http.post("/v1/jobs", json={"source": ids[0], "target": ids[1], "options": OPTS}).json()
+    final = list(s.WatchJob(pb.JobRef(job_id=hjob["id"]), metadata=AUTH, timeout=60))[-1]
+    assert final.state == pb.JOB_STATE_SUCCEEDED and list(final.source_asset_ids) == [ids[0]]
 
     def by_ids(idem):
         yield pb.SubmitRequest(
@@ -156,9 +126,7 @@ def test_grpc_http_job_visible_and_asset_ids(stub, stack, pair):
 def test_grpc_errors(stub, pair):
     s, _ = stub
     with pytest.raises(grpc.RpcError) as e:
-        s.GetJob(
-            pb.JobRef(job_id="job_x"), metadata=(("authorization", "Bearer wrong"),)
-        )
+        s.GetJob(pb.JobRef(job_id="job_x"), metadata=(("authorization", "Bearer wrong"),))
     assert e.value.code() == grpc.StatusCode.UNAUTHENTICATED
     with pytest.raises(grpc.RpcError) as e:
         s.GetJob(pb.JobRef(job_id="job_x"), metadata=AUTH)
@@ -168,9 +136,7 @@ def test_grpc_errors(stub, pair):
 
     def not_ply():
         yield pb.SubmitRequest(header=pb.SubmitHeader())
-        yield pb.SubmitRequest(
-            chunk=pb.FileChunk(role=pb.ROLE_SOURCE, data=b"garbage" * 100)
-        )
+        yield pb.SubmitRequest(chunk=pb.FileChunk(role=pb.ROLE_SOURCE, data=b"garbage" * 100))
         yield from _chunks(pair["target"], pb.ROLE_TARGET, 0)
 
     with pytest.raises(grpc.RpcError) as e:
@@ -189,10 +155,6 @@ def test_health_and_reflection(stub):
         == health_pb2.HealthCheckResponse.SERVING
     )
     r = reflection_pb2_grpc.ServerReflectionStub(ch)
-    resp = next(
-        r.ServerReflectionInfo(
-            iter([reflection_pb2.ServerReflectionRequest(list_services="")])
-        )
-    )
+    resp = next(r.ServerReflectionInfo(iter([reflection_pb2.ServerReflectionRequest(list_services="")])))
     names = {s.name for s in resp.list_services_response.service}
     assert {"gsa.v1.AlignmentService", "grpc.health.v1.Health"} <= names

@@ -30,9 +30,7 @@ OPTS = {**ALIGN, "outputs": ["result", "aligned", "merged"]}
 
 
 def test_pair_job_end_to_end_matches_library(http, pair, tmp_path):
-    r = submit_pair(
-        http, pair, ALIGN
-    )  # default outputs: result, aligned, merged, renders
+    r = submit_pair(http, pair, ALIGN)  # default outputs: result, aligned, merged, renders
     assert r.status_code == 202, r.text
     job = r.json()
     assert r.headers["location"] == f"/v1/jobs/{job['id']}"
@@ -43,27 +41,19 @@ def test_pair_job_end_to_end_matches_library(http, pair, tmp_path):
 
     ref = library_result(pair, ALIGN)
     res = done["result"]
-    np.testing.assert_allclose(
-        np.array(res["transform"]), ref.transform.matrix(), atol=1e-9
-    )
+    np.testing.assert_allclose(np.array(res["transform"]), ref.transform.matrix(), atol=1e-9)
     np.testing.assert_allclose(res["scale"], ref.transform.scale, atol=1e-9)
     np.testing.assert_allclose(res["quaternion"], ref.transform.quaternion(), atol=1e-9)
     # and it is the right answer, not just the same one
-    np.testing.assert_allclose(
-        np.array(res["transform"]), pair["gt"].matrix(), atol=1e-3
-    )
+    np.testing.assert_allclose(np.array(res["transform"]), pair["gt"].matrix(), atol=1e-3)
 
     names = {a["name"] for a in done["artifacts"]}
     assert {"aligned.ply", "merged.ply", "result.json"} <= names
     pngs = [a for a in done["artifacts"] if a["name"].startswith("renders/")]
-    assert pngs and all(a["content_type"] == "image/png" for a in pngs), done[
-        "artifacts"
-    ]
+    assert pngs and all(a["content_type"] == "image/png" for a in pngs), done["artifacts"]
     for a in done["artifacts"]:
         d = http.get(a["href"])
-        assert d.status_code == 200 and d.headers["content-type"].startswith(
-            a["content_type"]
-        )
+        assert d.status_code == 200 and d.headers["content-type"].startswith(a["content_type"])
         assert len(d.content) == a["size"]
         if a["content_type"] == "image/png":
             assert d.content.startswith(b"\x89PNG")
@@ -74,9 +64,7 @@ def test_pair_job_end_to_end_matches_library(http, pair, tmp_path):
     expect = read_ply(pair["source"]).transformed(ref.transform)
     np.testing.assert_allclose(aligned.means, expect.means, atol=1e-5)
     rj = json.loads((tmp_path / "result.json").read_text())
-    np.testing.assert_allclose(
-        np.array(rj["transform"]), ref.transform.matrix(), atol=1e-9
-    )
+    np.testing.assert_allclose(np.array(rj["transform"]), ref.transform.matrix(), atol=1e-9)
 
 
 def test_assets_then_json_job_and_multi_model(http, pair):
@@ -91,9 +79,7 @@ def test_assets_then_json_job_and_multi_model(http, pair):
         assert http.get(r.headers["location"]).json()["id"] == a["id"]
         ids[k] = a["id"]
     # another key cannot see it
-    assert_problem(
-        http.get(f"/v1/assets/{ids['source']}", headers=BOB), 404, "not-found"
-    )
+    assert_problem(http.get(f"/v1/assets/{ids['source']}", headers=BOB), 404, "not-found")
 
     r = http.post(
         "/v1/jobs",
@@ -124,15 +110,8 @@ def test_assets_then_json_job_and_multi_model(http, pair):
     assert any(n.startswith("s0/renders/") for n in renders)
     assert any(n.startswith("s1/renders/") for n in renders)
     png = http.get(f"/v1/jobs/{done['id']}/artifacts/synchronized/synchronized.png")
-    assert png.headers["content-type"] == "image/png" and png.content.startswith(
-        b"\x89PNG"
-    )
-    assert (
-        http.get(f"/v1/jobs/{done['id']}/artifacts/s1/result.json").json()[
-            "source_asset_id"
-        ]
-        == ids["source2"]
-    )
+    assert png.headers["content-type"] == "image/png" and png.content.startswith(b"\x89PNG")
+    assert http.get(f"/v1/jobs/{done['id']}/artifacts/s1/result.json").json()["source_asset_id"] == ids["source2"]
 
 
 def test_idempotency_key(http, pair):
@@ -141,9 +120,7 @@ def test_idempotency_key(http, pair):
     assert r1.status_code == r2.status_code == 202
     assert r1.json()["id"] == r2.json()["id"]
     assert r2.headers.get("idempotent-replayed") == "true"
-    r3 = submit_pair(
-        http, pair, {**OPTS, "seed": 1}, headers={"Idempotency-Key": "k-123"}
-    )
+    r3 = submit_pair(http, pair, {**OPTS, "seed": 1}, headers={"Idempotency-Key": "k-123"})
     assert_problem(r3, 422, "idempotency-key-reused")
     # keys are per owner: bob's identical request makes his own job
     r4 = submit_pair(http, pair, OPTS, headers={**BOB, "Idempotency-Key": "k-123"})
@@ -156,12 +133,7 @@ def test_etag_304_range_206_and_list(http, pair):
     etag = r.headers["etag"]
     r304 = http.get(f"/v1/jobs/{job['id']}", headers={"If-None-Match": etag})
     assert r304.status_code == 304 and r304.content == b""
-    assert (
-        http.get(
-            f"/v1/jobs/{job['id']}", headers={"If-None-Match": '"other"'}
-        ).status_code
-        == 200
-    )
+    assert http.get(f"/v1/jobs/{job['id']}", headers={"If-None-Match": '"other"'}).status_code == 200
 
     url = f"/v1/jobs/{job['id']}/artifacts/aligned.ply"
     full = http.get(url).content
@@ -179,30 +151,19 @@ def test_etag_304_range_206_and_list(http, pair):
         submit_pair(http, pair, OPTS)
     page1 = http.get("/v1/jobs", params={"limit": 2}).json()
     assert len(page1["items"]) == 2 and page1["next_cursor"]
-    page2 = http.get(
-        "/v1/jobs", params={"limit": 2, "cursor": page1["next_cursor"]}
-    ).json()
+    page2 = http.get("/v1/jobs", params={"limit": 2, "cursor": page1["next_cursor"]}).json()
     seen = [j["id"] for j in page1["items"] + page2["items"]]
     assert len(seen) == len(set(seen))
     created = [j["created_at"] for j in page1["items"] + page2["items"]]
     assert created == sorted(created, reverse=True)
-    ok = http.get("/v1/jobs", params={"state": "succeeded", "limit": 200}).json()[
-        "items"
-    ]
+    ok = http.get("/v1/jobs", params={"state": "succeeded", "limit": 200}).json()["items"]
     assert ok and all(j["state"] == "succeeded" for j in ok)
-    assert all(
-        j["id"] not in {x["id"] for x in ok}
-        for j in http.get("/v1/jobs", headers=BOB).json()["items"]
-    )
-    assert_problem(
-        http.get("/v1/jobs", params={"state": "bogus"}), 422, "validation-error"
-    )
+    assert all(j["id"] not in {x["id"] for x in ok} for j in http.get("/v1/jobs", headers=BOB).json()["items"])
+    assert_problem(http.get("/v1/jobs", params={"state": "bogus"}), 422, "validation-error")
 
 
 def _blob_count(stack) -> int:
-    root = (
-        stack["tmp"] / "data" / "blobs" / "uploads"
-    )  # artifacts of earlier jobs may still land in jobs/
+    root = stack["tmp"] / "data" / "blobs" / "uploads"  # artifacts of earlier jobs may still land in jobs/
     return sum(1 for p in root.rglob("*") if p.is_file()) if root.exists() else 0
 
 
@@ -217,9 +178,10 @@ def _png(w=8, h=8) -> bytes:
     import zlib
 
     raw = b"".join(b"\x00" + b"\x80" * (3 * w) for _ in range(h))
-    chunk = lambda t, d: (
-        struct.pack(">I", len(d)) + t + d + struct.pack(">I", zlib.crc32(t + d))
-    )
+
+    def chunk(t, d):
+        return struct.pack(">I", len(d)) + t + d + struct.pack(">I", zlib.crc32(t + d))
+
     return (
         b"\x89PNG\r\n\x1a\n"
         + chunk(b"IHDR", struct.pack(">IIBBBBB", w, h, 8, 2, 0, 0, 0))
@@ -234,9 +196,7 @@ def test_bad_inputs_get_problems_and_leave_nothing(http, stack, pair):
     tgt = ("target.ply", pair["target"].read_bytes())
 
     def post(src_name, src_bytes):
-        return http.post(
-            "/v1/jobs", files=[("source", (src_name, src_bytes)), ("target", tgt)]
-        )
+        return http.post("/v1/jobs", files=[("source", (src_name, src_bytes)), ("target", tgt)])
 
     b = assert_problem(post("x.ply", b"hello, not a ply" * 10), 422, "invalid-input")
     assert "not" in b["detail"]
@@ -284,15 +244,11 @@ def test_bad_inputs_get_problems_and_leave_nothing(http, stack, pair):
     buf = io.BytesIO()
     with zipfile.ZipFile(buf, "w") as zf:
         zf.writestr("/abs.png", _png())
-    assert_problem(
-        http.post("/v1/assets", files={"file": ("imgs.zip", buf.getvalue())}), 422
-    )
+    assert_problem(http.post("/v1/assets", files={"file": ("imgs.zip", buf.getvalue())}), 422)
     buf = io.BytesIO()
     with zipfile.ZipFile(buf, "w", zipfile.ZIP_DEFLATED) as zf:  # a small bomb
         zf.writestr("a.png", _png()[:33] + b"\0" * 5_000_000)
-    b = assert_problem(
-        http.post("/v1/assets", files={"file": ("bomb.zip", buf.getvalue())}), 422
-    )
+    b = assert_problem(http.post("/v1/assets", files={"file": ("bomb.zip", buf.getvalue())}), 422)
     assert "ratio" in b["detail"]
 
     assert_problem(http.get("/v1/jobs/job_doesnotexist"), 404, "not-found")
@@ -302,9 +258,7 @@ def test_bad_inputs_get_problems_and_leave_nothing(http, stack, pair):
     assert r.headers["www-authenticate"].startswith("Bearer")
     assert_problem(httpx.get(stack["url"] + "/v1/jobs"), 401)
     assert_problem(httpx.post(stack["url"] + "/v1/jobs", content=b"x"), 401)
-    assert_problem(
-        http.post("/v1/jobs", json={"target": "a", "bogus": 1}), 422, "validation-error"
-    )
+    assert_problem(http.post("/v1/jobs", json={"target": "a", "bogus": 1}), 422, "validation-error")
     assert_problem(
         http.post(
             "/v1/jobs",
@@ -313,16 +267,10 @@ def test_bad_inputs_get_problems_and_leave_nothing(http, stack, pair):
         ),
         422,
     )
-    assert_problem(
-        http.post("/v1/jobs", json={"source": "ast_x", "target": "ast_y"}), 404
-    )
-    b = assert_problem(
-        submit_pair(http, pair, {"no_such_option": 1}), 422, "invalid-input"
-    )
+    assert_problem(http.post("/v1/jobs", json={"source": "ast_x", "target": "ast_y"}), 404)
+    b = assert_problem(submit_pair(http, pair, {"no_such_option": 1}), 422, "invalid-input")
     assert "no_such_option" in b["detail"]
-    b = assert_problem(
-        submit_pair(http, pair, {"dinov2_weights": "/etc/passwd"}), 422, "invalid-input"
-    )
+    b = assert_problem(submit_pair(http, pair, {"dinov2_weights": "/etc/passwd"}), 422, "invalid-input")
     assert "set by the server" in b["detail"]
     assert_problem(http.get("/nowhere"), 404)
 
@@ -355,14 +303,8 @@ def test_cancel_running_job_and_finished_job(http, pair):
     c = http.post(f"/v1/jobs/{jid}:cancel")
     assert c.status_code == 202 and c.json()["cancel_requested"] is True
     done = wait_job(http, jid, timeout=30)
-    assert (
-        done["state"] == "cancelled"
-        and done["artifacts"] == []
-        and done["result"] is None
-    )
-    assert (
-        http.post(f"/v1/jobs/{jid}:cancel").json()["state"] == "cancelled"
-    )  # idempotent
+    assert done["state"] == "cancelled" and done["artifacts"] == [] and done["result"] is None
+    assert http.post(f"/v1/jobs/{jid}:cancel").json()["state"] == "cancelled"  # idempotent
 
     ok = wait_job(http, submit_pair(http, pair, OPTS).json()["id"])
     assert_problem(http.post(f"/v1/jobs/{ok['id']}:cancel"), 409, "job-finished")
@@ -392,9 +334,7 @@ def test_webhook_signed_and_retried(http, pair):
     threading.Thread(target=srv.serve_forever, daemon=True).start()
     try:
         url = f"http://127.0.0.1:{srv.server_port}/hook"
-        job = submit_pair(
-            http, pair, OPTS, webhook_url=url, webhook_secret="s3cret"
-        ).json()
+        job = submit_pair(http, pair, OPTS, webhook_url=url, webhook_secret="s3cret").json()
         wait_job(http, job["id"])
         from tests.service.conftest import wait_until
 
@@ -402,9 +342,7 @@ def test_webhook_signed_and_retried(http, pair):
         headers, body = _Hook.got[0]
         payload = json.loads(body)
         assert payload["job_id"] == job["id"] and payload["state"] == "succeeded"
-        mac = hmac.new(
-            b"s3cret", headers["X-GSA-Timestamp"].encode() + b"." + body, hashlib.sha256
-        ).hexdigest()
+        mac = hmac.new(b"s3cret", headers["X-GSA-Timestamp"].encode() + b"." + body, hashlib.sha256).hexdigest()
         assert headers["X-GSA-Signature"] == "sha256=" + mac
     finally:
         srv.shutdown()
@@ -420,17 +358,13 @@ def test_image_set_job(http, pair):
     assert r.status_code == 201, r.text
     assert r.json()["kind"] == "images" and r.json()["n_images"] == 3
     # individual images in one upload become one image set
-    r2 = http.post(
-        "/v1/assets", files=[("file", (f"{i}.png", _png())) for i in range(2)]
-    )
+    r2 = http.post("/v1/assets", files=[("file", (f"{i}.png", _png())) for i in range(2)])
     assert r2.status_code == 201 and r2.json()["n_images"] == 2
     with open(pair["target"], "rb") as fh:
         tgt = http.post("/v1/assets", files={"file": ("t.ply", fh)}).json()["id"]
     job = wait_job(
         http,
-        http.post("/v1/jobs", json={"source": r.json()["id"], "target": tgt}).json()[
-            "id"
-        ],
+        http.post("/v1/jobs", json={"source": r.json()["id"], "target": tgt}).json()["id"],
     )
     # Three flat grey 16x12 pictures: the real pipeline runs (images loaded,
     # pycolmap features and matching) and its mapper cannot register them; the
@@ -453,11 +387,7 @@ def test_ops_endpoints_and_openapi(stack, http):
     assert ready["status"] == "ready" and all(ready["checks"].values())
     assert_problem(httpx.get(stack["url"] + "/metrics"), 401)
     m = http.get("/metrics").text
-    assert (
-        'gsa_jobs{state="succeeded"}' in m
-        and "gsa_queue_depth" in m
-        and "gsa_http_requests_total" in m
-    )
+    assert 'gsa_jobs{state="succeeded"}' in m and "gsa_queue_depth" in m and "gsa_http_requests_total" in m
     assert "gsa_stage_duration_seconds_count" in m
     spec = httpx.get(stack["url"] + "/openapi.json").json()
     paths = spec["paths"]
@@ -475,17 +405,9 @@ def test_ops_endpoints_and_openapi(stack, http):
         assert p in paths, p
     body = paths["/v1/jobs"]["post"]["requestBody"]["content"]
     assert {"application/json", "multipart/form-data"} <= set(body)
-    assert (
-        body["application/json"]["schema"]["$ref"].split("/")[-1]
-        in spec["components"]["schemas"]
-    )
-    assert (
-        "application/problem+json"
-        in paths["/v1/jobs/{job_id}"]["get"]["responses"]["404"]["content"]
-    )
-    assert (
-        "multipart/form-data" in paths["/v1/assets"]["post"]["requestBody"]["content"]
-    )
+    assert body["application/json"]["schema"]["$ref"].split("/")[-1] in spec["components"]["schemas"]
+    assert "application/problem+json" in paths["/v1/jobs/{job_id}"]["get"]["responses"]["404"]["content"]
+    assert "multipart/form-data" in paths["/v1/assets"]["post"]["requestBody"]["content"]
     assert httpx.get(stack["url"] + "/docs").status_code == 200
 
 
@@ -502,20 +424,12 @@ def test_python_client_resumes_downloads(stack, pair, tmp_path):
 
     with GSAClient(stack["url"], api_key="key-alice") as c:
         job = c.submit(pair["source"], pair["target"], OPTS, idempotency_key="client-1")
-        assert (
-            c.submit(pair["source"], pair["target"], OPTS, idempotency_key="client-1")[
-                "id"
-            ]
-            == job["id"]
-        )
+        assert c.submit(pair["source"], pair["target"], OPTS, idempotency_key="client-1")["id"] == job["id"]
         job = c.wait(job["id"], timeout=60, poll=0.05)
         full = c.fetch(job["id"], "aligned.ply", tmp_path / "full.ply").read_bytes()
         # an interrupted earlier download: the client asks only for the rest (Range)
         (tmp_path / "resumed.ply.part").write_bytes(full[:1000])
-        assert (
-            c.fetch(job["id"], "aligned.ply", tmp_path / "resumed.ply").read_bytes()
-            == full
-        )
+        assert c.fetch(job["id"], "aligned.ply", tmp_path / "resumed.ply").read_bytes() == full
         assert [j["id"] for j in c.list(limit=200)["items"]].count(job["id"]) == 1
         with pytest.raises(GSAError) as e:
             c.status("job_missing")

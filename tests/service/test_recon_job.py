@@ -7,6 +7,10 @@ import json
 import time
 import zipfile
 
+import pytest
+
+pytestmark = pytest.mark.slow  # starts servers and worker processes
+
 
 def test_image_set_pair_job(tmp_path):
     from fastapi.testclient import TestClient
@@ -30,17 +34,15 @@ def test_image_set_pair_job(tmp_path):
             "/v1/jobs",
             headers=headers,
             files=[("source", ("src.zip", a)), ("target", ("tgt.zip", b))],
-            data={
-                "options": json.dumps(
-                    {"recon_iterations": 60, "outputs": ["result", "aligned"]}
-                )
-            },
+            data={"options": json.dumps({"recon_iterations": 60, "outputs": ["result", "aligned"]})},
         )
         assert r.status_code == 202, r.text
         deadline = time.monotonic() + 600
-        while (job := c.get(r.headers["location"], headers=headers).json())[
-            "state"
-        ] not in ("succeeded", "failed", "cancelled"):
+        while (job := c.get(r.headers["location"], headers=headers).json())["state"] not in (
+            "succeeded",
+            "failed",
+            "cancelled",
+        ):
             assert time.monotonic() < deadline
             time.sleep(0.5)
         assert job["state"] == "succeeded", job["error"]

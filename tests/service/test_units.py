@@ -57,9 +57,7 @@ def test_local_storage_keys_and_limits(tmp_path):
 def _job(jid, owner="o", t=None):
     ref = InputRef(asset_id="a", key="uploads/x/y", kind="ply")
     t = t or time.time()
-    return Job(
-        id=jid, owner=owner, created_at=t, updated_at=t, sources=[ref], target=ref
-    )
+    return Job(id=jid, owner=owner, created_at=t, updated_at=t, sources=[ref], target=ref)
 
 
 def test_both_stores_implement_the_store_protocol():
@@ -79,12 +77,8 @@ def test_sqlite_store_cas_persistence_and_pages(tmp_path):
     st = SQLiteJobStore(db)
     for i in range(5):
         st.create(_job(f"j{i}", t=1000.0 + (i // 2)))  # ties in created_at
-    assert st.update(
-        "j0", states={JobState.queued}, state=JobState.running, run_token="t1"
-    )
-    assert not st.update(
-        "j0", states={JobState.queued}, state=JobState.running, run_token="t2"
-    )
+    assert st.update("j0", states={JobState.queued}, state=JobState.running, run_token="t1")
+    assert not st.update("j0", states={JobState.queued}, state=JobState.running, run_token="t2")
     assert not st.update("j0", token="other", progress=0.5)
     assert st.update("j0", token="t1", progress=0.5)
     assert st.claim_idempotency("o", "k", "h1", "j0") is None
@@ -116,9 +110,7 @@ def test_redis_store_matches_sqlite_semantics(redis_url):
     st = RedisJobStore(r)
     for i in range(5):
         st.create(_job(f"j{i}", t=1000.0 + (i // 2)))
-    assert st.update(
-        "j0", states={JobState.queued}, state=JobState.running, run_token="t1"
-    )
+    assert st.update("j0", states={JobState.queued}, state=JobState.running, run_token="t1")
     assert not st.update("j0", states={JobState.queued}, state=JobState.running)
     assert not st.update("j0", token="nope", progress=0.3)
     assert st.counts()["running"] == 1 and st.counts()["queued"] == 4
@@ -180,9 +172,7 @@ def test_zip_limits(tmp_path):
         return p
 
     s = Settings(max_zip_entries=3, max_images=2, max_image_pixels=100)
-    assert (
-        validate_zip(make([("a.png", _png(8, 8)), ("b.png", _png(8, 8))]), s, "z") == 2
-    )
+    assert validate_zip(make([("a.png", _png(8, 8)), ("b.png", _png(8, 8))]), s, "z") == 2
     for entries, status in (
         ([(f"{i}.png", _png(2, 2)) for i in range(4)], 413),  # entries
         ([(f"{i}.png", _png(2, 2)) for i in range(3)], 413),  # images
@@ -211,9 +201,7 @@ def test_webhook_signature_and_ssrf():
     check_url("http://127.0.0.1:9/", allow_private=True)
 
 
-@pytest.mark.skipif(
-    shutil.which("docker-compose") is None, reason="docker-compose not installed"
-)
+@pytest.mark.skipif(shutil.which("docker-compose") is None, reason="docker-compose not installed")
 def test_compose_file_valid():
     for args in ([], ["--profile", "gpu"]):
         r = subprocess.run(
@@ -282,9 +270,7 @@ def test_readyz_reports_unreachable_redis(tmp_path):
     )
     with TestClient(create_app(s)) as c:
         r = c.get("/readyz")
-        assert r.status_code == 503 and r.headers["content-type"].startswith(
-            "application/problem+json"
-        )
+        assert r.status_code == 503 and r.headers["content-type"].startswith("application/problem+json")
         assert r.json()["checks"] == {"store": False, "storage": True}
         assert c.get("/healthz").status_code == 200
 
@@ -319,16 +305,11 @@ def test_cancel_queued_and_job_timeout_in_process(tmp_path, pair):
         jid = submit()
         r = c.post(f"/v1/jobs/{jid}:cancel", headers=H)
         assert r.status_code == 202 and r.json()["state"] == "cancelled"
-        assert (
-            execute(jid, backend) is None
-        )  # a worker that dequeues it later leaves it alone
+        assert execute(jid, backend) is None  # a worker that dequeues it later leaves it alone
         assert c.get(f"/v1/jobs/{jid}", headers=H).json()["state"] == "cancelled"
 
         jid = submit()
         assert execute(jid, backend) == JobState.failed
         job = c.get(f"/v1/jobs/{jid}", headers=H).json()
-        assert (
-            job["error"]["type"].endswith("/job-timeout")
-            and job["error"]["status"] == 504
-        )
+        assert job["error"]["type"].endswith("/job-timeout") and job["error"]["status"] == 504
         assert job["artifacts"] == [] and job["attempts"] == 1

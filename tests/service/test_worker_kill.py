@@ -5,6 +5,7 @@ from __future__ import annotations
 import time
 
 import httpx
+import pytest
 
 from tests.service.conftest import (
     ALICE,
@@ -15,11 +16,11 @@ from tests.service.conftest import (
     wait_job,
 )
 
+pytestmark = pytest.mark.slow  # starts servers and worker processes
+
 
 def test_sigkilled_worker_job_finishes_elsewhere(tmp_path, redis_url, pair):
-    env = service_env(
-        tmp_path, GSA_REDIS_URL=redis_url + "/1", GSA_QUEUE_NAME="killtest"
-    )
+    env = service_env(tmp_path, GSA_REDIS_URL=redis_url + "/1", GSA_QUEUE_NAME="killtest")
     api, url, _ = start_api(tmp_path, env, name="api-kill")
     victim = start_worker(tmp_path, env, name="victim")
     rescuer = None
@@ -29,22 +30,16 @@ def test_sigkilled_worker_job_finishes_elsewhere(tmp_path, redis_url, pair):
             running = wait_job(http, job["id"], states=("running",), timeout=60)
             assert running["attempts"] == 1
             horses = victim.kill_tree()  # SIGKILL the worker and its forked work horse
-            assert victim.p.returncode == -9 and horses, (
-                "the job should be running in a work horse"
-            )
+            assert victim.p.returncode == -9 and horses, "the job should be running in a work horse"
             # nobody is running it now; the job must not stay "running" forever
             rescuer = start_worker(tmp_path, env, name="rescuer")
             done = wait_job(http, job["id"], timeout=120)
             assert done["state"] == "succeeded", (done, rescuer.tail())
             assert done["attempts"] == 2
             assert len(done["result"]["results"]) == 4
-            assert {a["name"] for a in done["artifacts"]} == {
-                f"s{i}/result.json" for i in range(4)
-            }
+            assert {a["name"] for a in done["artifacts"]} == {f"s{i}/result.json" for i in range(4)}
             # only the successful attempt's artifacts exist in storage
-            attempts_dirs = list(
-                (tmp_path / "data" / "blobs" / "jobs" / job["id"]).iterdir()
-            )
+            attempts_dirs = list((tmp_path / "data" / "blobs" / "jobs" / job["id"]).iterdir())
             assert len(attempts_dirs) == 1
     finally:
         for p in (victim, rescuer, api):
@@ -94,10 +89,7 @@ def test_lost_job_is_failed_when_attempts_are_spent(tmp_path):
         )
     )
     assert sorted(reap(b)) == ["j1", "j2"]
-    assert (
-        b.store.get("j1").state == JobState.queued
-        and b.store.get("j1").run_token is None
-    )
+    assert b.store.get("j1").state == JobState.queued and b.store.get("j1").run_token is None
     j2 = b.store.get("j2")
     assert j2.state == JobState.failed and j2.error["type"].endswith("/worker-lost")
     assert b.store.get("j3").state == JobState.running  # lease still valid

@@ -37,9 +37,9 @@ def srgb_to_lab(rgb: np.ndarray) -> np.ndarray:
     """sRGB in [0, 1] -> CIELAB (D65): distances approximate perceived differences."""
     c = np.clip(np.asarray(rgb, np.float64), 0.0, 1.0)
     lin = np.where(c <= 0.04045, c / 12.92, ((c + 0.055) / 1.055) ** 2.4)
-    m = np.array([[0.4124564, 0.3575761, 0.1804375],
-                  [0.2126729, 0.7151522, 0.0721750],
-                  [0.0193339, 0.1191920, 0.9503041]])
+    m = np.array(
+        [[0.4124564, 0.3575761, 0.1804375], [0.2126729, 0.7151522, 0.0721750], [0.0193339, 0.1191920, 0.9503041]]
+    )
     xyz = lin @ m.T / np.array([0.95047, 1.0, 1.08883])
     f = np.where(xyz > (6 / 29) ** 3, np.cbrt(xyz), xyz / (3 * (6 / 29) ** 2) + 4 / 29)
     return np.stack([116 * f[:, 1] - 16, 500 * (f[:, 0] - f[:, 1]), 200 * (f[:, 1] - f[:, 2])], axis=1)
@@ -145,8 +145,9 @@ def colour_weight(src: Anchors, dst: Anchors) -> float:
     colour the other also has, both ways, mapped from [0.5, 0.9] to [0, 1]."""
     d1, _ = cKDTree(dst.lab).query(src.lab, k=1)
     d2, _ = cKDTree(src.lab).query(dst.lab, k=1)
-    shared = 0.5 * (np.average(d1 <= SHARED_DELTA_E, weights=src.weights)
-                    + np.average(d2 <= SHARED_DELTA_E, weights=dst.weights))
+    shared = 0.5 * (
+        np.average(d1 <= SHARED_DELTA_E, weights=src.weights) + np.average(d2 <= SHARED_DELTA_E, weights=dst.weights)
+    )
     return float(np.clip((shared - 0.5) / 0.4, 0.0, 1.0))
 
 

@@ -24,9 +24,21 @@ from gsa.geometry import super_fibonacci_rotations
 Capture = Callable[[np.ndarray, np.ndarray, np.ndarray, tuple[float, ...]], tuple[np.ndarray, np.ndarray]]
 
 
-def placed_starts(src: Anchors, dst: Anchors, rng: np.random.Generator, *, rotations: int, points: int, step: float,
-                  truncation: float, scales: tuple[float, ...], count: int, min_deg: float, capture: Capture,
-                  capture_steps: tuple[float, ...]) -> list[tuple[np.ndarray, float, np.ndarray]]:
+def placed_starts(
+    src: Anchors,
+    dst: Anchors,
+    rng: np.random.Generator,
+    *,
+    rotations: int,
+    points: int,
+    step: float,
+    truncation: float,
+    scales: tuple[float, ...],
+    count: int,
+    min_deg: float,
+    capture: Capture,
+    capture_steps: tuple[float, ...],
+) -> list[tuple[np.ndarray, float, np.ndarray]]:
     """(rotation, scale, mapped source centre) of the `count` best placements whose
     rotations are min_deg apart. rotations: coarse grid size; points: anchors per side
     scored per placement; step: lattice step and truncation: loose score distance, both
@@ -46,8 +58,26 @@ def placed_starts(src: Anchors, dst: Anchors, rng: np.random.Generator, *, rotat
     d = NearestGrid(dst.points, cell, dst.radius)
     r = NearestGrid(src.points, cell * src.radius / dst.radius, src.radius)
     best = np.zeros((len(coarse), 5))
-    _place_poses(coarse, scale_trials, centres, p, q, src.center, d.nearest_flat, d.lo, 1.0 / d.cell, d.shape,
-                 dst.points, r.nearest_flat, r.lo, 1.0 / r.cell, r.shape, src.points, truncation * dst.radius, best)
+    _place_poses(
+        coarse,
+        scale_trials,
+        centres,
+        p,
+        q,
+        src.center,
+        d.nearest_flat,
+        d.lo,
+        1.0 / d.cell,
+        d.shape,
+        dst.points,
+        r.nearest_flat,
+        r.lo,
+        1.0 / r.cell,
+        r.shape,
+        src.points,
+        truncation * dst.radius,
+        best,
+    )
     top = _distinct_rows(np.argsort(-best[:, 0]), coarse, count, min_deg)
     scale, t = capture(coarse[top], best[top, 1], best[top, 2:], capture_steps)
     return [(coarse[i], float(scale[k]), t[k]) for k, i in enumerate(top)]
@@ -66,8 +96,26 @@ def _distinct_rows(order: np.ndarray, rotations: np.ndarray, count: int, min_deg
 
 
 @numba.njit(parallel=True, cache=True)
-def _place_poses(rot, scales, centres, p, q, c_s, dst_nearest, dst_lo, dst_inv_cell, dst_shape, dst_pts,
-                 src_nearest, src_lo, src_inv_cell, src_shape, src_pts, tau, best):  # pragma: no cover - compiled
+def _place_poses(
+    rot,
+    scales,
+    centres,
+    p,
+    q,
+    c_s,
+    dst_nearest,
+    dst_lo,
+    dst_inv_cell,
+    dst_shape,
+    dst_pts,
+    src_nearest,
+    src_lo,
+    src_inv_cell,
+    src_shape,
+    src_pts,
+    tau,
+    best,
+):  # pragma: no cover - compiled
     """For each rotation k, the (score, scale, centre) maximising the truncated
     closeness both ways over all scales × centres, written to best[k]. p: source
     samples less the source centre c_s; q: target samples."""

@@ -66,8 +66,15 @@ def frame_relabellings(src: CanonicalFrame, dst: CanonicalFrame) -> list[tuple[s
     return [(relabelling_label(g), dst.axes.T @ g @ src.axes) for g in SIGNED_PERMUTATIONS]
 
 
-def refine(source_points: np.ndarray, target_points: np.ndarray, source_tree: cKDTree, target_tree: cKDTree,
-           init: Sim3, iterations: int = 40, neighbours: int = 6) -> tuple[Sim3, list[dict]]:
+def refine(
+    source_points: np.ndarray,
+    target_points: np.ndarray,
+    source_tree: cKDTree,
+    target_tree: cKDTree,
+    init: Sim3,
+    iterations: int = 40,
+    neighbours: int = 6,
+) -> tuple[Sim3, list[dict]]:
     """Full-resolution trimmed ICP on correspondences from both directions.
 
     `source_points`/`target_points` are samples (rows of the trees' points are
@@ -111,9 +118,16 @@ def refine(source_points: np.ndarray, target_points: np.ndarray, source_tree: cK
                 return transform, history
             step = new @ transform.inverse()
             angle = rotation_distance_deg(step.rotation, np.eye(3))
-            history.append({"stage": "refine", "iteration": it, "matched": int(keep.sum()),
-                            "rms_residual": float(np.sqrt(np.mean(d[keep] ** 2))),
-                            "delta_rotation_deg": angle, "scale": new.scale})
+            history.append(
+                {
+                    "stage": "refine",
+                    "iteration": it,
+                    "matched": int(keep.sum()),
+                    "rms_residual": float(np.sqrt(np.mean(d[keep] ** 2))),
+                    "delta_rotation_deg": angle,
+                    "scale": new.scale,
+                }
+            )
             transform = new
             # Steps below these sit in the sampling noise of the correspondences.
             if angle < 2e-3 and abs(np.log(step.scale)) < 2e-5:

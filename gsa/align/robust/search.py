@@ -45,8 +45,13 @@ class Candidate:
     overlap: float = 0.0  # fraction of anchors (both ways) with a partner within COLOUR_PAIR_DISTANCE
 
     def to_dict(self, reference: Sim3 | None = None) -> dict:
-        out = {"origin": self.origin, "score": self.score, "geometry": self.geometry, "colour": self.colour,
-               "overlap": self.overlap}
+        out = {
+            "origin": self.origin,
+            "score": self.score,
+            "geometry": self.geometry,
+            "colour": self.colour,
+            "overlap": self.overlap,
+        }
         if reference is not None:
             out["rotation_offset_deg"] = rotation_offset_deg(self.transform, reference)
             out["scale_ratio"] = self.transform.scale / reference.scale
@@ -100,9 +105,13 @@ class SearchResult:
         return bool(self.rivals)
 
 
-def global_search(src: Anchors, dst: Anchors, frame_rotations: list[tuple[str, np.ndarray]] | None = None,
-                  options: SearchOptions | None = None,
-                  widen_if: Callable[[SearchResult], bool] | None = None) -> SearchResult:
+def global_search(
+    src: Anchors,
+    dst: Anchors,
+    frame_rotations: list[tuple[str, np.ndarray]] | None = None,
+    options: SearchOptions | None = None,
+    widen_if: Callable[[SearchResult], bool] | None = None,
+) -> SearchResult:
     """Search SO(3) for the Sim(3) mapping `src` anchors onto `dst` anchors. If
     widen_if(result) holds (the pipeline: the answer is doubtful), placements that do
     not trust centroids join the candidates (gsa.align.robust.placement) and the best
@@ -139,10 +148,12 @@ def global_search(src: Anchors, dst: Anchors, frame_rotations: list[tuple[str, n
     # Refine the best distinct rotations, and the best frame relabelling (exact on clean copies).
     frames = np.arange(opts.rotations, len(rotations))
     first = [int(frames[np.argmax(score[frames])])] if len(frames) else []
-    chosen = _distinct(np.concatenate([first, np.argsort(-score)]).astype(int), rotations, opts.refine_top,
-                       DISTINCT_DEG)
-    starts = [(origins[i], Sim3(float(scale[i]), rotations[i], t[i] - scale[i] * rotations[i] @ src.center))
-              for i in chosen]
+    chosen = _distinct(
+        np.concatenate([first, np.argsort(-score)]).astype(int), rotations, opts.refine_top, DISTINCT_DEG
+    )
+    starts = [
+        (origins[i], Sim3(float(scale[i]), rotations[i], t[i] - scale[i] * rotations[i] @ src.center)) for i in chosen
+    ]
     refined = _refine_starts(src, dst, starts, w_colour, rng, opts)
     result = decide(_dedupe(refined), w_colour)
     if widen_if is None or not widen_if(result):
@@ -151,19 +162,37 @@ def global_search(src: Anchors, dst: Anchors, frame_rotations: list[tuple[str, n
     # overlap converges slowly), so each runs to convergence rather than being halved.
     src_rows = _sample(rng, len(src), opts.refine_points)
     dst_rows = _sample(rng, len(dst), opts.refine_points)
-    for r, s_, t_ in placed_starts(src, dst, rng, rotations=opts.place_rotations, points=opts.place_points,
-                                   step=opts.place_step, truncation=opts.place_truncation, scales=opts.place_scales,
-                                   count=opts.place_top, min_deg=DISTINCT_DEG, capture=scorer.capture,
-                                   capture_steps=opts.capture_steps[-3:]):
+    for r, s_, t_ in placed_starts(
+        src,
+        dst,
+        rng,
+        rotations=opts.place_rotations,
+        points=opts.place_points,
+        step=opts.place_step,
+        truncation=opts.place_truncation,
+        scales=opts.place_scales,
+        count=opts.place_top,
+        min_deg=DISTINCT_DEG,
+        capture=scorer.capture,
+        capture_steps=opts.capture_steps[-3:],
+    ):
         init = Sim3(s_, r, t_ - s_ * r @ src.center)
-        transform = bidirectional_icp(src, dst, init, src_rows, dst_rows,
-                                      opts.early_iterations + opts.refine_iterations, w_colour)
+        transform = bidirectional_icp(
+            src, dst, init, src_rows, dst_rows, opts.early_iterations + opts.refine_iterations, w_colour
+        )
         refined.append(score_pose(src, dst, transform, "placed", w_colour))
     return decide(_dedupe(refined), w_colour)
 
 
-def _try_offsets(scorer: _GridScorer, rotations: np.ndarray, scale: np.ndarray, t: np.ndarray, score: np.ndarray,
-                 top: list[int], opts: SearchOptions) -> None:
+def _try_offsets(
+    scorer: _GridScorer,
+    rotations: np.ndarray,
+    scale: np.ndarray,
+    t: np.ndarray,
+    score: np.ndarray,
+    top: list[int],
+    opts: SearchOptions,
+) -> None:
     """The most promising rotations also try a grid of translation offsets and scale
     factors around their estimate, then two capture steps (the capture can settle on
     the wrong stretch of a long part). Updates scale, t and score in place where better."""
@@ -172,8 +201,9 @@ def _try_offsets(scorer: _GridScorer, rotations: np.ndarray, scale: np.ndarray, 
     g = np.arange(-opts.translation_reach, opts.translation_reach + 1) * step
     offsets = np.stack(np.meshgrid(g, g, g, indexing="ij"), -1).reshape(-1, 3)
     factors = np.asarray(opts.scale_factors)
-    k_rot, k_off, k_fac = (k.ravel() for k in np.meshgrid(top, np.arange(len(offsets)), np.arange(len(factors)),
-                                                          indexing="ij"))
+    k_rot, k_off, k_fac = (
+        k.ravel() for k in np.meshgrid(top, np.arange(len(offsets)), np.arange(len(factors)), indexing="ij")
+    )
     # Scaling about the mapped centre of the sampled anchors keeps a scale change from shifting them.
     arm = rotations[k_rot] @ (scorer.src_mean - src.center)
     trial_scale = scale[k_rot] * factors[k_fac]
@@ -188,14 +218,27 @@ def _try_offsets(scorer: _GridScorer, rotations: np.ndarray, scale: np.ndarray, 
     score[top] = np.maximum(score[top], new_score)
 
 
-def _refine_starts(src: Anchors, dst: Anchors, starts: list[tuple[str, Sim3]], w_colour: float,
-                   rng: np.random.Generator, opts: SearchOptions) -> list[Candidate]:
+def _refine_starts(
+    src: Anchors,
+    dst: Anchors,
+    starts: list[tuple[str, Sim3]],
+    w_colour: float,
+    rng: np.random.Generator,
+    opts: SearchOptions,
+) -> list[Candidate]:
     """Successive halving: every start gets a few ICP iterations, the leaders the rest."""
     src_rows = _sample(rng, len(src), opts.refine_points)
     dst_rows = _sample(rng, len(dst), opts.refine_points)
-    early = [score_pose(src, dst, bidirectional_icp(src, dst, init, src_rows, dst_rows, opts.early_iterations,
-                                                    w_colour), origin, w_colour)
-             for origin, init in starts]
+    early = [
+        score_pose(
+            src,
+            dst,
+            bidirectional_icp(src, dst, init, src_rows, dst_rows, opts.early_iterations, w_colour),
+            origin,
+            w_colour,
+        )
+        for origin, init in starts
+    ]
     early.sort(key=lambda c: -c.score)
     refined: list[Candidate] = []
     for k, c in enumerate(early):
@@ -225,8 +268,17 @@ class _GridScorer:
     """Pose scoring on anchor samples through the nearest-anchor grids, many poses
     at once in compiled loops (no (poses × points) temporaries)."""
 
-    def __init__(self, src: Anchors, dst: Anchors, dst_grid: NearestGrid, src_grid: NearestGrid,
-                 rng: np.random.Generator, points: int, tau: float, w_colour: float):
+    def __init__(
+        self,
+        src: Anchors,
+        dst: Anchors,
+        dst_grid: NearestGrid,
+        src_grid: NearestGrid,
+        rng: np.random.Generator,
+        points: int,
+        tau: float,
+        w_colour: float,
+    ):
         self.src, self.dst, self.dst_grid, self.src_grid = src, dst, dst_grid, src_grid
         p_rows, q_rows = _sample(rng, len(src), points), _sample(rng, len(dst), points)
         self.ps, self.qs = src.points[p_rows], dst.points[q_rows]
@@ -252,22 +304,48 @@ class _GridScorer:
         lin = scale[:, None, None] * rotations
         off = t - np.einsum("rij,j->ri", lin, self.src.center)
         g = self.dst_grid
-        fwd = _score_poses(np.ascontiguousarray(lin), np.ascontiguousarray(off), np.ones(len(scale)), self.ps,
-                           self.p_lab, g.nearest_flat, g.lo, 1.0 / g.cell, g.shape, self.dst.points, self.dst.lab,
-                           self.tau, self.w_colour)
+        fwd = _score_poses(
+            np.ascontiguousarray(lin),
+            np.ascontiguousarray(off),
+            np.ones(len(scale)),
+            self.ps,
+            self.p_lab,
+            g.nearest_flat,
+            g.lo,
+            1.0 / g.cell,
+            g.shape,
+            self.dst.points,
+            self.dst.lab,
+            self.tau,
+            self.w_colour,
+        )
         # Reverse: x_s = Rᵀ (q − t) / s + c_s, distances back in target units (× s).
         inv = np.transpose(rotations, (0, 2, 1)) / scale[:, None, None]
         inv_off = self.src.center - np.einsum("rij,rj->ri", inv, t)
         g = self.src_grid
-        rev = _score_poses(np.ascontiguousarray(inv), np.ascontiguousarray(inv_off), scale.astype(np.float64),
-                           self.qs, self.q_lab, g.nearest_flat, g.lo, 1.0 / g.cell, g.shape, self.src.points,
-                           self.src.lab, self.tau, self.w_colour)
+        rev = _score_poses(
+            np.ascontiguousarray(inv),
+            np.ascontiguousarray(inv_off),
+            scale.astype(np.float64),
+            self.qs,
+            self.q_lab,
+            g.nearest_flat,
+            g.lo,
+            1.0 / g.cell,
+            g.shape,
+            self.src.points,
+            self.src.lab,
+            self.tau,
+            self.w_colour,
+        )
         both = 0.5 * (fwd + rev)  # (poses, 2): coloured, geometric
         return both.mean(axis=1) if blend else both[:, 0]
 
 
 @numba.njit(parallel=True, cache=True)
-def _score_poses(lin, off, dist_scale, pts, lab, nearest, lo, inv_cell, shape, other, other_lab, tau, w):  # pragma: no cover
+def _score_poses(
+    lin, off, dist_scale, pts, lab, nearest, lo, inv_cell, shape, other, other_lab, tau, w
+):  # pragma: no cover
     """Per pose k, the mean over `pts` mapped by x -> lin[k] x + off[k] of _pair_scores
     (column 0) and of the truncated closeness alone (column 1)."""
     n_pose, n_pt = lin.shape[0], pts.shape[0]
@@ -290,8 +368,11 @@ def _score_poses(lin, off, dist_scale, pts, lab, nearest, lo, inv_cell, shape, o
             c = 1.0 - d / tau
             geometric += c
             if w > 0:
-                de2 = (lab[i, 0] - other_lab[j, 0]) ** 2 + (lab[i, 1] - other_lab[j, 1]) ** 2 \
+                de2 = (
+                    (lab[i, 0] - other_lab[j, 0]) ** 2
+                    + (lab[i, 1] - other_lab[j, 1]) ** 2
                     + (lab[i, 2] - other_lab[j, 2]) ** 2
+                )
                 c *= 1.0 - 2.0 * w * (1.0 - np.exp(-de2 * inv_2s2))
             total += c
         out[k, 0] = total / n_pt
@@ -353,8 +434,16 @@ def _pair_scores(d: np.ndarray, lab_a: np.ndarray, lab_b: np.ndarray, tau: float
     return closeness * (1.0 - 2.0 * w_colour * (1.0 - np.exp(-0.5 * de2 / COLOUR_SIGMA**2)))
 
 
-def bidirectional_icp(src: Anchors, dst: Anchors, init: Sim3, src_rows: np.ndarray, dst_rows: np.ndarray,
-                      iterations: int, w_colour: float = 0.0, trim: float = 4.0) -> Sim3:
+def bidirectional_icp(
+    src: Anchors,
+    dst: Anchors,
+    init: Sim3,
+    src_rows: np.ndarray,
+    dst_rows: np.ndarray,
+    iterations: int,
+    w_colour: float = 0.0,
+    trim: float = 4.0,
+) -> Sim3:
     """Robust ICP with Horn's symmetric scale on correspondences from both
     directions: a source anchor's nearest target anchor, and a target anchor's
     nearest mapped source anchor. One direction alone lets a partial model's
@@ -391,8 +480,9 @@ def bidirectional_icp(src: Anchors, dst: Anchors, init: Sim3, src_rows: np.ndarr
         cut = trim * max(float(np.median(d)), 1e-12 * dst.radius)
         weight = np.clip(1.0 - (d / cut) ** 2, 0.0, None) ** 2
         if w_colour > 0:
-            de2 = np.concatenate([np.sum((src.lab[src_rows] - dst.lab[j]) ** 2, 1),
-                                  np.sum((dst.lab[dst_rows] - src.lab[i]) ** 2, 1)])
+            de2 = np.concatenate(
+                [np.sum((src.lab[src_rows] - dst.lab[j]) ** 2, 1), np.sum((dst.lab[dst_rows] - src.lab[i]) ** 2, 1)]
+            )
             colour = (1.0 - w_colour) + w_colour * np.exp(-0.5 * de2 / COLOUR_SIGMA**2)
             weight = weight * colour
         keep = weight > 1e-6
@@ -403,8 +493,11 @@ def bidirectional_icp(src: Anchors, dst: Anchors, init: Sim3, src_rows: np.ndarr
         step = new @ transform.inverse()
         transform = new
         # Anchors are a summary: the full-resolution refinement does the last digits.
-        if rotation_distance_deg(step.rotation, np.eye(3)) < 0.01 and abs(np.log(step.scale)) < 1e-4 and \
-                np.linalg.norm(step.translation) < 1e-4 * dst.radius:
+        if (
+            rotation_distance_deg(step.rotation, np.eye(3)) < 0.01
+            and abs(np.log(step.scale)) < 1e-4
+            and np.linalg.norm(step.translation) < 1e-4 * dst.radius
+        ):
             break
     return transform
 
@@ -419,13 +512,18 @@ def score_pose(src: Anchors, dst: Anchors, transform: Sim3, origin: str = "", w_
     def both(fwd: np.ndarray, rev: np.ndarray) -> float:
         return float(0.5 * (np.average(fwd, weights=src.weights) + np.average(rev, weights=dst.weights)))
 
-    score = both(_pair_scores(d_f, src.lab, dst.lab[j], tau, w_colour),
-                 _pair_scores(d_r, dst.lab, src.lab[i], tau, w_colour))
+    score = both(
+        _pair_scores(d_f, src.lab, dst.lab[j], tau, w_colour), _pair_scores(d_r, dst.lab, src.lab[i], tau, w_colour)
+    )
     geometry = both(1 - np.minimum(d_f, tau) / tau, 1 - np.minimum(d_r, tau) / tau)
     near = COLOUR_PAIR_DISTANCE * dst.radius
     pair_f, pair_r = d_f <= near, d_r <= near
-    de = np.concatenate([np.linalg.norm(src.lab[pair_f] - dst.lab[j[pair_f]], axis=1),
-                         np.linalg.norm(dst.lab[pair_r] - src.lab[i[pair_r]], axis=1)])
+    de = np.concatenate(
+        [
+            np.linalg.norm(src.lab[pair_f] - dst.lab[j[pair_f]], axis=1),
+            np.linalg.norm(dst.lab[pair_r] - src.lab[i[pair_r]], axis=1),
+        ]
+    )
     colour = float(np.mean(np.exp(-0.5 * (de / COLOUR_SIGMA) ** 2))) if len(de) else 0.0
     overlap = float(0.5 * (pair_f.mean() + pair_r.mean()))
     return Candidate(transform, origin, score, geometry, colour, overlap)
@@ -436,8 +534,11 @@ def _dedupe(cands: list[Candidate]) -> list[Candidate]:
     cands = sorted(cands, key=lambda c: -c.score)
     out: list[Candidate] = []
     for c in cands:
-        if all(rotation_offset_deg(c.transform, o.transform) > DISTINCT_DEG
-               or abs(np.log(c.transform.scale / o.transform.scale)) > 0.2 for o in out):
+        if all(
+            rotation_offset_deg(c.transform, o.transform) > DISTINCT_DEG
+            or abs(np.log(c.transform.scale / o.transform.scale)) > 0.2
+            for o in out
+        ):
             out.append(c)
     return out
 

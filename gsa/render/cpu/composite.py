@@ -258,23 +258,45 @@ class _CompositeCPU(torch.autograd.Function):
         g_out = _np(g_out, dt) if g_out is not None else np.zeros((c_count, height, width, f), dt)
         g_alpha = _np(g_alpha[..., 0], dt) if g_alpha is not None else np.zeros((c_count, height, width), dt)
         want_chans = bool(ctx.needs_input_grad[3])
-        g_pair, g_ch = _backward(recs, ids, ch, bg, offsets, t_final, n_contrib, g_out, g_alpha, width, height, tile,
-                                 want_chans)
+        g_pair, g_ch = _backward(
+            recs, ids, ch, bg, offsets, t_final, n_contrib, g_out, g_alpha, width, height, tile, want_chans
+        )
         nt = ((width + tile - 1) // tile) * ((height + tile - 1) // tile)
         r_xy, r_con, r_op, r_ch = _reduce(g_pair, g_ch, offsets, ids, c_count, n, nt, max(1, numba.get_num_threads()))
         # background gradient: d out / d bg = T_final
         g_bg = np.einsum("chw,chwf->f", t_final, g_out)
         as_t = lambda a: torch.from_numpy(a).to(ctx.torch_dtype)  # noqa: E731
-        return (as_t(r_xy), as_t(r_con), as_t(r_op), as_t(r_ch) if want_chans else None, None, None, None,
-                as_t(g_bg),
-                None, None, None)
+        return (
+            as_t(r_xy),
+            as_t(r_con),
+            as_t(r_op),
+            as_t(r_ch) if want_chans else None,
+            None,
+            None,
+            None,
+            as_t(g_bg),
+            None,
+            None,
+            None,
+        )
 
 
-def composite_cpu(means2d, conics, opacities, chans, cov_diag, depths, valid, background, width: int, height: int,
-                  tile: int = TILE):
+def composite_cpu(
+    means2d, conics, opacities, chans, cov_diag, depths, valid, background, width: int, height: int, tile: int = TILE
+):
     """Same contract as reference.composite_reference (plus cov_diag (C,N,2) for footprints):
     -> out (C,H,W,F), alpha (C,H,W,1), differentiable w.r.t. means2d, conics, opacities, chans, background."""
     chans = chans.contiguous()
-    return _CompositeCPU.apply(means2d.contiguous(), conics.contiguous(), opacities.contiguous(), chans,
-                               cov_diag, depths, valid, background.to(chans.dtype), int(width), int(height),
-                               int(tile))
+    return _CompositeCPU.apply(
+        means2d.contiguous(),
+        conics.contiguous(),
+        opacities.contiguous(),
+        chans,
+        cov_diag,
+        depths,
+        valid,
+        background.to(chans.dtype),
+        int(width),
+        int(height),
+        int(tile),
+    )

@@ -68,12 +68,36 @@ def _cov_bwd(quats, log_scales, g_cov):
         nrm = max(math.sqrt(q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3]), 1e-12)
         w, x, y, z = q[0] / nrm, q[1] / nrm, q[2] / nrm, q[3] / nrm
         gw = 2 * (-z * gr[0, 1] + y * gr[0, 2] + z * gr[1, 0] - x * gr[1, 2] - y * gr[2, 0] + x * gr[2, 1])
-        gx = 2 * (y * gr[0, 1] + z * gr[0, 2] + y * gr[1, 0] - 2 * x * gr[1, 1] - w * gr[1, 2] + z * gr[2, 0]
-                  + w * gr[2, 1] - 2 * x * gr[2, 2])
-        gy = 2 * (-2 * y * gr[0, 0] + x * gr[0, 1] + w * gr[0, 2] + x * gr[1, 0] + z * gr[1, 2] - w * gr[2, 0]
-                  + z * gr[2, 1] - 2 * y * gr[2, 2])
-        gz = 2 * (-2 * z * gr[0, 0] - w * gr[0, 1] + x * gr[0, 2] + w * gr[1, 0] - 2 * z * gr[1, 1] + y * gr[1, 2]
-                  + x * gr[2, 0] + y * gr[2, 1])
+        gx = 2 * (
+            y * gr[0, 1]
+            + z * gr[0, 2]
+            + y * gr[1, 0]
+            - 2 * x * gr[1, 1]
+            - w * gr[1, 2]
+            + z * gr[2, 0]
+            + w * gr[2, 1]
+            - 2 * x * gr[2, 2]
+        )
+        gy = 2 * (
+            -2 * y * gr[0, 0]
+            + x * gr[0, 1]
+            + w * gr[0, 2]
+            + x * gr[1, 0]
+            + z * gr[1, 2]
+            - w * gr[2, 0]
+            + z * gr[2, 1]
+            - 2 * y * gr[2, 2]
+        )
+        gz = 2 * (
+            -2 * z * gr[0, 0]
+            - w * gr[0, 1]
+            + x * gr[0, 2]
+            + w * gr[1, 0]
+            - 2 * z * gr[1, 1]
+            + y * gr[1, 2]
+            + x * gr[2, 0]
+            + y * gr[2, 1]
+        )
         dot = w * gw + x * gx + y * gy + z * gz
         g_q[i, 0] = (gw - w * dot) / nrm
         g_q[i, 1] = (gx - x * dot) / nrm

@@ -201,8 +201,9 @@ class _ProjectCPU(torch.autograd.Function):
         g_con = z2((c_count, n, 3)) if g_con is None else _np(g_con, dt)
         g_depth = z2((c_count, n)) if g_depth is None else _np(g_depth, dt)
         want_geom = bool(ctx.needs_input_grad[0] or ctx.needs_input_grad[1])
-        g_view, g_means, g_cov = _project_bwd(means, cov, view, intr, width, height, con, valid, g_m2d, g_con,
-                                              g_depth, want_geom)
+        g_view, g_means, g_cov = _project_bwd(
+            means, cov, view, intr, width, height, con, valid, g_m2d, g_con, g_depth, want_geom
+        )
         t = lambda a: torch.from_numpy(a).to(ctx.dtype)  # noqa: E731
         if not want_geom:
             return None, None, t(g_view), None, None, None
