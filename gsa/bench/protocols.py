@@ -27,59 +27,119 @@ GSA rows carry align()'s `confidence` and `doubtful` (metrics) per pair; tables
 then add how well the flag tracks failure (flagged rate, success among the
 unflagged, share of failures flagged), and `run_protocols` ends with that
 calibration over all protocols run, for the GSA coarse row.
+
+Modules: gsa.bench.records (evaluation loop, summary rows, JSON), gsa.bench.pairs,
+gsa.bench.ablation, gsa.bench.speed (speed and io, measured in child processes) and
+gsa.bench.tables (markdown); this one holds the GSA and peer runners, the protocol
+registry and run_protocols, and re-exports the names of those modules.
 """
 
 from __future__ import annotations
 
-import itertools
-import json
 import os
 import platform
-import resource
-import subprocess
 import sys
 import time
-from collections.abc import Callable
 from datetime import date
 from pathlib import Path
 
-import numpy as np
-from scipy.spatial import cKDTree
-
-from gsa.align.coarse import CoarseOptions, icp_refine
 from gsa.align.pipeline import AlignOptions, align
+from gsa.bench import speed as _speed
+from gsa.bench.ablation import ABLATION_COARSE, ABLATION_REFERENCE, FINE_BASE, ablation_runner, similar_cameras
+from gsa.bench.pairs import (
+    ROBUST_COUNT,
+    ROBUST_SIZES,
+    category_of,
+    category_pairs,
+    deform_pairs,
+    dup_pairs,
+    noisy_pairs,
+    partial_pairs,
+    same_pairs,
+    symmetric_fields,
+    symmetric_judge,
+    symmetric_pairs,
+)
 from gsa.bench.peers import Peer, available_peers
-from gsa.canonical import canonical_features, model_frame
-from gsa.metrics import accuracy, rre_deg
-from gsa.render.cameras import cameras_around
-from gsa.sim3 import Sim3
-from gsa.synth import (
-    CATEGORIES,
-    add_floaters,
-    cut_by_plane,
-    deform,
-    make_object,
-    make_symmetric_object,
-    paper_perturbation,
-    random_sim3,
-    symmetric_spec,
-    symmetry_rotations,
+from gsa.bench.records import (
+    GSA_COARSE,
+    GSA_FINE,
+    GSA_PAPER_COARSE,
+    GSA_PAPER_FINE,
+    NOISE_NOTE,
+    QUICK_FINE,
+    SUCCESS_RRE_DEG,
+    Pair,
+    Runner,
+    add_time_ratio,
+    calibration,
+    evaluate,
+    per_category,
+    save_rows,
+    summarise,
 )
+from gsa.bench.speed import io_child, protocol_io, rss_now_mb, speed_child, speed_stages
+from gsa.bench.tables import calibration_summary, format_table
+from gsa.synth import random_sim3
 
-SUCCESS_RRE_DEG = 5.0
-GSA_COARSE = "GSA coarse"
-GSA_FINE = "GSA coarse+fine"
-# The paper's pipeline: feature-guided ICP (Alg. 3) alone, then the fine stage.
-GSA_PAPER_COARSE = "GSA feature-stage coarse (paper Alg. 3, no NN refinement)"
-GSA_PAPER_FINE = "GSA feature-stage coarse + fine"
-NOISE_NOTE = (
-    "Timings: 2 shared CPU cores, other jobs running; seconds are noisy "
-    "(compare ratios measured in one run, not absolute values across runs)."
-)
-
-Pair = tuple[str, Callable[[], tuple]]  # (label, make() -> (source, target, truth))
-# (source, target) -> {method: (Sim3 | Exception, seconds[, extra fields for the record])}
-Runner = Callable[[object, object], dict]
+__all__ = [
+    "ABLATION_COARSE",
+    "ABLATION_REFERENCE",
+    "FINE_BASE",
+    "FINE_ROWS",
+    "GSA_COARSE",
+    "GSA_FINE",
+    "GSA_PAPER_COARSE",
+    "GSA_PAPER_FINE",
+    "NOISE_NOTE",
+    "PROTOCOLS",
+    "QUICK_FINE",
+    "ROBUST_COUNT",
+    "ROBUST_SIZES",
+    "SUCCESS_RRE_DEG",
+    "Pair",
+    "Runner",
+    "ablation_runner",
+    "add_time_ratio",
+    "align",
+    "calibration",
+    "calibration_summary",
+    "category_of",
+    "category_pairs",
+    "default_runners",
+    "deform_pairs",
+    "dup_pairs",
+    "evaluate",
+    "format_table",
+    "gsa_runner",
+    "io_child",
+    "noisy_pairs",
+    "partial_pairs",
+    "peer_runner",
+    "per_category",
+    "protocol_ablation",
+    "protocol_category",
+    "protocol_deform",
+    "protocol_dup",
+    "protocol_io",
+    "protocol_noisy",
+    "protocol_partial",
+    "protocol_same",
+    "protocol_speed",
+    "protocol_symmetric",
+    "random_sim3",
+    "rss_now_mb",
+    "run_protocols",
+    "same_pairs",
+    "save_rows",
+    "similar_cameras",
+    "speed_child",
+    "speed_stages",
+    "summarise",
+    "symmetric_fields",
+    "symmetric_judge",
+    "symmetric_pairs",
+]
 
 
 # Rows that run the fine stage (it renders, so they dominate a protocol's time). Always on in
@@ -88,10 +148,6 @@ FINE_ROWS = True
 
 
 # ---------------------------------------------------------------- runners
-
-
-# --quick keeps the fine stage but makes it cheap enough for a smoke run.
-QUICK_FINE = dict(fine_iterations=10, fine_image_size=64, fine_views=3)
 
 
 def gsa_runner(fine: bool, labels: tuple[str, str] = (GSA_COARSE, GSA_FINE), **options) -> Runner:
@@ -145,268 +201,12 @@ def default_runners(seed: int, peers: list[str] | None, quick: bool) -> list[Run
     return runners
 
 
-# ---------------------------------------------------------------- evaluation
-
-
-def evaluate(
-    name: str,
-    pairs: list[Pair],
-    runners: list[Runner],
-    extra: Callable[[str], dict] | None = None,
-    out: Path | None = None,
-    judge: Callable[[Sim3, Sim3, object, object], dict] | None = None,
-) -> list[dict]:
-    """Every runner on every pair (generated once, in turn); one row per method.
-    With `out`, the rows so far are saved after each pair (as NAME.partial.json),
-    so a run cut short still leaves its numbers. `judge(estimate, truth, source,
-    target)` adds fields to the record of each successful estimate."""
-    records: dict[str, list[dict]] = {}
-    for done, (label, make) in enumerate(pairs, 1):
-        source, target, truth = make()
-        for run in runners:
-            for method, (est, seconds, *fields) in run(source, target).items():
-                rec = {"pair": label, "seconds": seconds, **(extra(label) if extra else {})}
-                if fields:
-                    rec.update(fields[0])
-                if isinstance(est, Sim3):
-                    rec.update(accuracy(est, truth, source.means, target.means))
-                    if judge is not None:
-                        rec.update(judge(est, truth, source, target))
-                else:
-                    rec.update(
-                        error=f"{type(est).__name__}: {est}",
-                        rre_deg=float("nan"),
-                        scale_error_pct=float("nan"),
-                        ate=float("nan"),
-                        ate_normalized=float("nan"),
-                    )
-                records.setdefault(method, []).append(rec)
-        print(f"  {name}: {label} done ({done}/{len(pairs)})", file=sys.stderr, flush=True)
-        if out is not None and done < len(pairs):
-            partial = [summarise(name, method, recs) for method, recs in records.items()]
-            add_time_ratio(partial)
-            _save(out, f"{name}.partial", partial)
-    rows = [summarise(name, method, recs) for method, recs in records.items()]
-    add_time_ratio(rows)
-    if out is not None:
-        (out / f"{name}.partial.json").unlink(missing_ok=True)
-    return rows
-
-
-def summarise(protocol: str, method: str, records: list[dict]) -> dict:
-    ok = [r for r in records if "error" not in r]
-    rre = np.array([r["rre_deg"] for r in ok]) if ok else np.array([np.nan])
-
-    def mean(key):
-        return float(np.mean([r[key] for r in ok])) if ok else float("nan")
-
-    row = {
-        "protocol": protocol,
-        "method": method,
-        "pairs": len(records),
-        "failed": len(records) - len(ok),
-        "mean_rre_deg": float(rre.mean()),
-        "median_rre_deg": float(np.median(rre)),
-        "mean_scale_error_pct": mean("scale_error_pct"),
-        "mean_ate_normalized": mean("ate_normalized"),
-        # A failed pair is not a success.
-        "success_rate": float(np.sum(rre < SUCCESS_RRE_DEG) / len(records)),
-        "seconds_per_pair": float(np.mean([r["seconds"] for r in records])),
-        "records": records,
-    }
-    if any("category" in r for r in records):
-        row["per_category_mean_rre_deg"] = _per_category(records)
-    if any("rre_any_symmetric_deg" in r for r in records):
-        any_rre = np.array([r.get("rre_any_symmetric_deg", np.nan) for r in records], np.float64)
-        row["mean_rre_any_symmetric_deg"] = float(np.nanmean(any_rre)) if np.isfinite(any_rre).any() else float("nan")
-        row["success_rate_any_symmetric"] = float(np.sum(any_rre < SUCCESS_RRE_DEG) / len(records))
-    row.update(calibration(records))
-    return row
-
-
-def _is_success(rec: dict) -> bool:
-    return "error" not in rec and bool(rec.get("rre_deg", np.nan) < SUCCESS_RRE_DEG)
-
-
-def calibration(records: list[dict]) -> dict:
-    """How well the `doubtful` flag (align()'s metrics, GSA rows only) tracks
-    failure (RRE ≥ 5° or an error), over the records that carry it; {} if none do.
-    flagged_rate: share flagged; unflagged_success_rate: share of the unflagged
-    that succeeded; failures_flagged_rate: share of the failures that were
-    flagged (NaN where the denominator is empty)."""
-    recs = [r for r in records if "doubtful" in r]
-    if not recs:
-        return {}
-    flagged = np.array([bool(r["doubtful"]) for r in recs])
-    success = np.array([_is_success(r) for r in recs])
-    unflagged, failures = success[~flagged], flagged[~success]
-    conf = [r["confidence"] for r in recs if r.get("confidence") is not None]
-    return {
-        "flag_results": len(recs),
-        "flagged": int(flagged.sum()),
-        "flagged_rate": float(flagged.mean()),
-        "unflagged": len(unflagged),
-        "unflagged_success_rate": float(unflagged.mean()) if len(unflagged) else float("nan"),
-        "failures": len(failures),
-        "failures_flagged_rate": float(failures.mean()) if len(failures) else float("nan"),
-        "confidence_reported": len(conf),
-        "mean_confidence": float(np.mean(conf)) if conf else float("nan"),
-    }
-
-
-def add_time_ratio(rows: list[dict], reference: str = GSA_COARSE) -> None:
-    ref = next((r["seconds_per_pair"] for r in rows if r["method"] == reference), None)
-    for r in rows:
-        r["time_ratio_vs_gsa_coarse"] = r["seconds_per_pair"] / ref if ref else float("nan")
-
-
-# ---------------------------------------------------------------- pairs
-
-
-def dup_pairs(quick: bool, seed: int) -> list[Pair]:
-    per_category = 1 if quick else 5
-    n = 3000 if quick else 30_000
-    pairs = []
-    for cat, i in itertools.product(CATEGORIES, range(per_category)):
-
-        def make(cat=cat, i=i):
-            rng = np.random.default_rng([seed, i, CATEGORIES.index(cat)])
-            model = make_object(cat, seed=100 + i, n_gaussians=n, sh_degree=1)
-            truth = random_sim3(rng)
-            return model, model.transformed(truth), truth
-
-        pairs.append((f"{cat}-{i}", make))
-    return pairs
-
-
-def same_pairs(quick: bool, seed: int) -> list[Pair]:
-    count = 6 if quick else 15
-    n_src, n_dst = (2500, 3000) if quick else (25_000, 35_000)
-    pairs = []
-    for i in range(count):
-        cat = CATEGORIES[i % len(CATEGORIES)]
-
-        def make(cat=cat, i=i):
-            rng = np.random.default_rng([seed, 77, i])
-            truth = paper_perturbation(rng)
-            source = make_object(cat, seed=200 + i, n_gaussians=n_src, sample_seed=1000 + i, floaters=0.02)
-            target = make_object(cat, seed=200 + i, n_gaussians=n_dst, sample_seed=2000 + i, floaters=0.02)
-            return source, target.transformed(truth), truth
-
-        pairs.append((f"{cat}-{i}", make))
-    return pairs
-
-
-def category_pairs(quick: bool, seed: int, instances: int | None = None) -> list[Pair]:
-    """All C(instances, 2) pairs of each category; the source is instance a, the
-    target instance b under a random Sim(3). Labels are 'category-a-b'."""
-    instances = instances or (2 if quick else 5)
-    n = 2000 if quick else 15_000
-    pairs = []
-    for cat in CATEGORIES:
-        for a, b in itertools.combinations(range(instances), 2):
-
-            def make(cat=cat, a=a, b=b):
-                rng = np.random.default_rng([seed, 55, a, b, CATEGORIES.index(cat)])
-                truth = random_sim3(rng)
-                source = make_object(cat, seed=300 + a, n_gaussians=n)
-                target = make_object(cat, seed=300 + b, n_gaussians=n).transformed(truth)
-                return source, target, truth
-
-            pairs.append((f"{cat}-{a}-{b}", make))
-    return pairs
-
-
-def _category_of(label: str) -> dict:
-    return {"category": label.split("-")[0]}
-
-
-# Robustness pairs: source/target sizes (the target is the bigger capture).
-ROBUST_COUNT = (6, 30)  # (quick, full)
-ROBUST_SIZES = ((3000, 3000), (20_000, 30_000))
-
-
-def _robust_sizes(quick: bool) -> tuple[int, int, int]:
-    return (ROBUST_COUNT[0], *ROBUST_SIZES[0]) if quick else (ROBUST_COUNT[1], *ROBUST_SIZES[1])
-
-
-def _variant_pairs(
-    quick: bool, seed: int, tag: int, base: int, vary: Callable[[object, np.random.Generator, str], object]
-) -> list[Pair]:
-    """Pairs over the 6 categories in turn: two independent samplings of one
-    instance, each passed through vary(model, rng, 'source' | 'target') with its
-    own generator, the target then moved by a random Sim(3)."""
-    count, n_src, n_dst = _robust_sizes(quick)
-    pairs = []
-    for i in range(count):
-        cat = CATEGORIES[i % len(CATEGORIES)]
-
-        def make(cat=cat, i=i):
-            rng = np.random.default_rng([seed, tag, i])
-            truth = random_sim3(rng)
-            src_rng, dst_rng = (np.random.default_rng([seed, tag, i, side]) for side in (1, 2))
-            source = make_object(cat, seed=base + i, n_gaussians=n_src, sample_seed=10 * base + i)
-            target = make_object(cat, seed=base + i, n_gaussians=n_dst, sample_seed=20 * base + i)
-            return vary(source, src_rng, "source"), vary(target, dst_rng, "target").transformed(truth), truth
-
-        pairs.append((f"{cat}-{i}", make))
-    return pairs
-
-
-def partial_pairs(quick: bool, seed: int) -> list[Pair]:
-    """Each model cut by its own random plane (60–80 % kept)."""
-    return _variant_pairs(quick, seed, 91, 400, lambda m, rng, side: cut_by_plane(m, rng, keep=(0.6, 0.8)))
-
-
-def noisy_pairs(quick: bool, seed: int) -> list[Pair]:
-    """Each model with 20 % floaters (of its own Gaussian count)."""
-    return _variant_pairs(quick, seed, 92, 500, lambda m, rng, side: add_floaters(m, rng, fraction=0.2))
-
-
-def deform_pairs(quick: bool, seed: int) -> list[Pair]:
-    """Source: the instance; target: a deformed sampling of it (stretch, taper, bend)."""
-    return _variant_pairs(quick, seed, 93, 600, lambda m, rng, side: deform(m, rng) if side == "target" else m)
-
-
-def symmetric_pairs(quick: bool, seed: int) -> list[Pair]:
-    """Symmetric instances (families cycling prism, wheel, bottle); labels 'family-kK-i'."""
-    count, n_src, n_dst = _robust_sizes(quick)
-    pairs = []
-    for i in range(count):
-        family, k = symmetric_spec(700 + i)
-
-        def make(i=i):
-            rng = np.random.default_rng([seed, 94, i])
-            truth = random_sim3(rng)
-            source = make_symmetric_object(700 + i, n_src, sample_seed=7000 + i)
-            target = make_symmetric_object(700 + i, n_dst, sample_seed=14_000 + i)
-            return source, target.transformed(truth), truth
-
-        pairs.append((f"{family}-k{k}-{i}", make))
-    return pairs
-
-
-def _symmetric_fields(label: str) -> dict:
-    parts = label.split("-")
-    if len(parts) == 3 and parts[1][:1] == "k" and parts[1][1:].isdigit():
-        return {"family": parts[0], "symmetry_order": int(parts[1][1:])}
-    return {}
-
-
-def symmetric_judge(est: Sim3, truth: Sim3, source, target) -> dict:
-    """RRE against the nearest of the k poses the geometry cannot tell apart:
-    truth ∘ (rotation by 2πj/k about the symmetry axis, in source coordinates)."""
-    errors = [rre_deg(est.rotation, truth.rotation @ rot) for rot in symmetry_rotations(source)]
-    j = int(np.argmin(errors))
-    return {"rre_any_symmetric_deg": float(errors[j]), "symmetric_pose": j}
-
-
 # ---------------------------------------------------------------- protocols
 
 
 def protocol_dup(quick: bool, seed: int, out: Path, peers: list[str] | None = None) -> list[dict]:
     rows = evaluate("dup", dup_pairs(quick, seed), default_runners(seed, peers, quick), out=out)
-    _save(out, "dup", rows)
+    save_rows(out, "dup", rows)
     return rows
 
 
@@ -419,15 +219,15 @@ def protocol_same(quick: bool, seed: int, out: Path, peers: list[str] | None = N
             1, gsa_runner(True, (GSA_PAPER_COARSE, GSA_PAPER_FINE), refine="off", **(QUICK_FINE if quick else {}))
         )
     rows = evaluate("same", same_pairs(quick, seed), runners, out=out)
-    _save(out, "same", rows)
+    save_rows(out, "same", rows)
     return rows
 
 
 def protocol_category(quick: bool, seed: int, out: Path, peers: list[str] | None = None) -> list[dict]:
-    rows = evaluate("category", category_pairs(quick, seed), default_runners(seed, peers, quick), _category_of, out=out)
+    rows = evaluate("category", category_pairs(quick, seed), default_runners(seed, peers, quick), category_of, out=out)
     for row in rows:
-        row["per_category_mean_rre_deg"] = _per_category(row["records"])
-    _save(out, "category", rows)
+        row["per_category_mean_rre_deg"] = per_category(row["records"])
+    save_rows(out, "category", rows)
     return rows
 
 
@@ -437,8 +237,8 @@ def _capture_protocol(name: str):
 
     def protocol(quick: bool, seed: int, out: Path, peers: list[str] | None = None) -> list[dict]:
         pairs = globals()[f"{name}_pairs"](quick, seed)
-        rows = evaluate(name, pairs, default_runners(seed, peers, quick), _category_of, out=out)
-        _save(out, name, rows)
+        rows = evaluate(name, pairs, default_runners(seed, peers, quick), category_of, out=out)
+        save_rows(out, name, rows)
         return rows
 
     protocol.__name__ = f"protocol_{name}"
@@ -455,119 +255,12 @@ def protocol_symmetric(quick: bool, seed: int, out: Path, peers: list[str] | Non
         "symmetric",
         symmetric_pairs(quick, seed),
         default_runners(seed, peers, quick),
-        _symmetric_fields,
+        symmetric_fields,
         out=out,
         judge=symmetric_judge,
     )
-    _save(out, "symmetric", rows)
+    save_rows(out, "symmetric", rows)
     return rows
-
-
-def _per_category(records: list[dict]) -> dict:
-    out = {}
-    for cat in CATEGORIES:
-        rre = [r["rre_deg"] for r in records if r.get("category") == cat]
-        if rre:
-            out[cat] = float(np.mean(rre))
-    return out
-
-
-# ---------------------------------------------------------------- ablation
-
-
-ABLATION_COARSE = [
-    # refine="off": the feature stage (Alg. 3) alone, as the paper's rows; our
-    # default pipeline follows it with nearest-neighbour refinement (last row).
-    # hypothesis_iterations too: each frame hypothesis is first run that many
-    # feature-stage iterations on a subsample, which would otherwise hide the count.
-    ("coarse, 1 iteration", dict(coarse_iterations=1, hypothesis_iterations=1, refine="off")),
-    ("coarse, 3 iterations", dict(coarse_iterations=3, hypothesis_iterations=3, refine="off")),
-    ("coarse, until convergence", dict(coarse_iterations=200, refine="off")),
-    (ABLATION_REFERENCE := "coarse (default: feature stage + NN refinement)", dict()),
-]
-# the paper's "coarse 3 iterations + fine"
-FINE_BASE = dict(coarse_iterations=3, hypothesis_iterations=3, refine="off")
-
-
-def similar_cameras(target, n: int = 3, pool: int = 60, image_size: int = 128, seed: int = 0):
-    """n mutually close orbit cameras: the first of a dense orbit and its n-1 nearest."""
-    cams = cameras_around(target.means, pool, image_size, seed=seed)
-    centers = cams.centers() - target.means.astype(np.float64).mean(0)
-    dirs = centers / np.linalg.norm(centers, axis=1, keepdims=True)
-    order = np.argsort(-(dirs @ dirs[0]))[:n]
-    return cams[np.sort(order)]
-
-
-def _fine_from(source, target, coarse_result, cameras, on: str, views: int, seed: int, quick: bool = False) -> Sim3:
-    """The pipeline's fine stage (gsa.align.pipeline._Pair.fine) from a given coarse
-    result with an explicit camera set: canonical features from the frames the
-    coarse stage chose, as align() builds them."""
-    from gsa.align.fine import FineOptions, fine_align  # lazy: loads torch and the renderer
-
-    if coarse_result.features == "canonical":
-        source = source.with_features(canonical_features(source.means.astype(np.float64), coarse_result.source_frame))
-        target = target.with_features(canonical_features(target.means.astype(np.float64), coarse_result.target_frame))
-    defaults = AlignOptions(**(QUICK_FINE if quick else {}))
-    opts = FineOptions(
-        iterations=defaults.fine_iterations,
-        lr=defaults.fine_lr,
-        views=views,
-        image_size=defaults.fine_image_size,
-        loss=defaults.fine_loss,
-        on=on,
-        seed=seed,
-    )
-    return fine_align(source, target, coarse_result.coarse.transform, opts, cameras=cameras).transform
-
-
-def ablation_runner(seed: int, quick: bool = False) -> Runner:
-    def run(source, target):
-        out = {}
-        for label, opts in ABLATION_COARSE:
-            t0 = time.perf_counter()
-            res = align(source, target, AlignOptions(**opts))
-            out[label] = (res.transform, time.perf_counter() - t0)
-
-        # Features off: our closed-form ICP on spatial nearest neighbours only,
-        # from the authors' centroid start plus the RMS-radius scale ratio.
-        t0 = time.perf_counter()
-        sf, df = model_frame(source), model_frame(target)
-        s = df.radius / sf.radius
-        init = Sim3(s, np.eye(3), df.center - s * sf.center)
-        dst = target.means.astype(np.float64)
-        rows = np.random.default_rng(seed).permutation(len(source))[:20_000]
-        res = icp_refine(
-            source.means.astype(np.float64)[rows], dst, cKDTree(dst), init, CoarseOptions(max_iterations=200)
-        )
-        out["features off (plain ICP, centroid/RMS start)"] = (res.transform, time.perf_counter() - t0)
-
-        if not FINE_ROWS:
-            return out
-        t0 = time.perf_counter()
-        base = align(source, target, AlignOptions(**FINE_BASE))
-        coarse_s = time.perf_counter() - t0
-        size = AlignOptions(**(QUICK_FINE if quick else {})).fine_image_size
-        variants = [
-            ("coarse 3 + fine, 3 similar views", similar_cameras(target, 3, image_size=size, seed=seed), "features", 3),
-            ("coarse 3 + fine, 3 diverse views", cameras_around(target.means, 3, size, seed=seed), "features", 3),
-            ("coarse 3 + fine, 30 views", cameras_around(target.means, 30, size, seed=seed), "features", 30),
-            (
-                "coarse 3 + fine on colours, 3 diverse views",
-                cameras_around(target.means, 3, size, seed=seed),
-                "colors",
-                3,
-            ),
-        ]
-        for label, cams, on, views in variants:
-            t0 = time.perf_counter()
-            try:
-                est = _fine_from(source, target, base, cams, on, views, seed, quick)
-            except Exception as exc:
-                est = exc
-            out[label] = (est, coarse_s + time.perf_counter() - t0)
-        return out
-
-    return run
 
 
 def protocol_ablation(quick: bool, seed: int, out: Path, peers: list[str] | None = None) -> list[dict]:
@@ -576,165 +269,16 @@ def protocol_ablation(quick: bool, seed: int, out: Path, peers: list[str] | None
     pairs = category_pairs(quick, seed, instances=2 if quick else 3)
     if not FINE_ROWS:
         print("note: fine-stage rows off; fine-stage ablation rows skipped")
-    rows = evaluate("ablation", pairs, [ablation_runner(seed, quick)], _category_of, out=out)
+    rows = evaluate("ablation", pairs, [ablation_runner(seed, quick, FINE_ROWS)], category_of, out=out)
     add_time_ratio(rows, ABLATION_REFERENCE)  # no "GSA coarse" row here: ratio vs the default pipeline
     for row in rows:
-        row["per_category_mean_rre_deg"] = _per_category(row["records"])
-    _save(out, "ablation", rows)
+        row["per_category_mean_rre_deg"] = per_category(row["records"])
+    save_rows(out, "ablation", rows)
     return rows
-
-
-# ---------------------------------------------------------------- speed
-
-
-def _speed_child(n: int, seed: int, stage: str, quick: bool = False) -> dict:
-    """One (size, stage) in a fresh process so peak RSS belongs to it alone."""
-    truth = random_sim3(np.random.default_rng(seed))
-    source = make_object("car", seed=1, n_gaussians=n, sample_seed=1, floaters=0.02)
-    target = make_object("car", seed=1, n_gaussians=n, sample_seed=2).transformed(truth)
-    small_s, small_t = source.subset(np.arange(2000)), target.subset(np.arange(2000))
-    row = {"gaussians": n, "stage": stage}
-    if stage == "coarse":
-        align(small_s, small_t)  # compile kernels outside the timing
-        fn = lambda: align(source, target)  # noqa: E731
-    elif stage == "fine":
-        align(small_s, small_t, AlignOptions(stages=("coarse", "fine"), fine_iterations=1))
-        coarse = align(source, target)
-        from gsa.align.fine import FineOptions, fine_align  # lazy: torch, only this stage's child process
-
-        src = source.with_features(canonical_features(source.means.astype(np.float64), coarse.source_frame))
-        dst = target.with_features(canonical_features(target.means.astype(np.float64), coarse.target_frame))
-        d = AlignOptions(**(QUICK_FINE if quick else {}))
-        opts = FineOptions(iterations=d.fine_iterations, lr=d.fine_lr, views=d.fine_views, image_size=d.fine_image_size)
-        row.update(views=d.fine_views, image_size=d.fine_image_size, iterations=d.fine_iterations)
-        fn = lambda: fine_align(src, dst, coarse.transform, opts)  # noqa: E731
-    elif stage == "render":
-        from gsa.render import render_model  # lazy: torch, only this stage's child process
-
-        cams = cameras_around(target.means, 1, 256)
-        render_model(small_t, cams, features=False)
-        row.update(views=1, image_size=256)
-        fn = lambda: render_model(target, cams, features=False)  # noqa: E731
-    elif stage == "lift":
-        from gsa.features import CanonicalExtractor, lift_features
-
-        lift_features(small_t, CanonicalExtractor("cpu"), views=2, image_size=32, iterations=1, backend="cpu")
-        views, size, iters = (6, 64, 20) if quick else (24, 128, 150)  # lifting's own defaults when full
-        row.update(views=views, image_size=size, iterations=iters)
-
-        def fn():
-            return lift_features(
-                target, CanonicalExtractor("cpu"), views=views, image_size=size, iterations=iters, backend="cpu"
-            )
-    else:
-        raise ValueError(stage)
-    peak_before = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
-    base = _rss_now_mb()
-    t0 = time.perf_counter()
-    result = fn()
-    row["seconds"] = time.perf_counter() - t0
-    peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
-    row["peak_rss_mb"] = peak
-    row["stage_peak_mb"] = max(peak - base, 0.0) if peak > peak_before else 0.0
-    if stage == "coarse":
-        row["rre_deg"] = accuracy(result.transform, truth, source.means, target.means)["rre_deg"]
-    return row
-
-
-def _rss_now_mb() -> float:
-    try:
-        with open("/proc/self/statm") as fh:
-            return int(fh.read().split()[1]) * os.sysconf("SC_PAGE_SIZE") / 2**20
-    except OSError:
-        return 0.0
-
-
-def speed_stages() -> list[str]:
-    stages = ["coarse"]
-    if FINE_ROWS:
-        stages.append("fine")
-    else:
-        print("note: speed: fine-stage rows off, fine timing skipped")
-    return [*stages, "render", "lift"]
 
 
 def protocol_speed(quick: bool, seed: int, out: Path, peers: list[str] | None = None) -> list[dict]:
-    sizes = [2_000, 5_000] if quick else [10_000, 50_000, 100_000, 200_000]
-    rows = []
-    for n, stage in itertools.product(sizes, speed_stages()):
-        proc = subprocess.run(
-            [
-                sys.executable,
-                "-c",
-                "import json; from gsa.bench.protocols import _speed_child; "
-                f"print(json.dumps(_speed_child({n}, {seed}, {stage!r}, {quick})))",
-            ],
-            capture_output=True,
-            text=True,
-        )
-        if proc.returncode != 0:
-            tail = (proc.stderr.strip().splitlines() or ["?"])[-1]
-            print(f"note: speed {stage} at {n} failed: {tail}")
-            rows.append({"protocol": "speed", "gaussians": n, "stage": stage, "error": tail})
-            continue
-        row = json.loads(proc.stdout.strip().splitlines()[-1])
-        row["protocol"] = "speed"
-        rows.append(row)
-        print(
-            f"  {n} Gaussians, {stage}: {row['seconds']:.2f} s, peak RSS {row['peak_rss_mb']:.0f} MB",
-            file=sys.stderr,
-            flush=True,
-        )
-    _save(out, "speed", rows)
-    return rows
-
-
-# ---------------------------------------------------------------- io
-
-
-def _io_child(n: int) -> dict:
-    import tempfile
-
-    from gsa.io.ply import read_ply, write_ply
-
-    model = make_object("bus", seed=1, n_gaussians=n, sh_degree=3)
-    with tempfile.TemporaryDirectory() as d:
-        path = Path(d) / "big.ply"
-        t0 = time.perf_counter()
-        write_ply(model, path)
-        write_s = time.perf_counter() - t0
-        size_mb = path.stat().st_size / 2**20
-        del model
-        base = _rss_now_mb()
-        t0 = time.perf_counter()
-        loaded = read_ply(path)
-        read_s = time.perf_counter() - t0
-        peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
-        return {
-            "gaussians": len(loaded),
-            "file_mb": size_mb,
-            "write_seconds": write_s,
-            "read_seconds": read_s,
-            "rss_growth_mb": _rss_now_mb() - base,
-            "peak_rss_mb": peak,
-        }
-
-
-def protocol_io(quick: bool, seed: int, out: Path, peers: list[str] | None = None) -> list[dict]:
-    n = 200_000 if quick else 1_000_000
-    proc = subprocess.run(
-        [
-            sys.executable,
-            "-c",
-            f"import json; from gsa.bench.protocols import _io_child; print(json.dumps(_io_child({n})))",
-        ],
-        capture_output=True,
-        text=True,
-        check=True,
-    )
-    rows = [json.loads(proc.stdout.strip().splitlines()[-1]) | {"protocol": "io"}]
-    _save(out, "io", rows)
-    return rows
+    return _speed.protocol_speed(quick, seed, out, peers, fine=FINE_ROWS)
 
 
 PROTOCOLS = {
@@ -749,128 +293,6 @@ PROTOCOLS = {
     "symmetric": protocol_symmetric,
     "deform": protocol_deform,
 }
-
-
-# ---------------------------------------------------------------- output
-
-
-def _save(out: Path, name: str, rows: list[dict]) -> None:
-    out.mkdir(parents=True, exist_ok=True)
-    meta = {
-        "date": date.today().isoformat(),
-        "machine": f"{platform.machine()}, {os.cpu_count()} CPU cores",
-        "python": platform.python_version(),
-        "note": NOISE_NOTE,
-    }
-    (out / f"{name}.json").write_text(json.dumps({"meta": meta, "rows": rows}, indent=2, default=str))
-
-
-def _f(x: float, digits: int) -> str:
-    return "—" if x is None or not np.isfinite(x) else f"{x:.{digits}f}"
-
-
-def format_table(name: str, rows: list[dict]) -> str:
-    if name == "io":
-        lines = [
-            "| Gaussians (SH degree 3) | file (MB) | write (s) | read (s) | RSS growth after read (MB) |",
-            "|---:|---:|---:|---:|---:|",
-        ]
-        for r in rows:
-            lines.append(
-                f"| {r['gaussians']:,} | {r['file_mb']:.0f} | {r['write_seconds']:.2f} | "
-                f"{r['read_seconds']:.2f} | {r['rss_growth_mb']:.0f} |"
-            )
-        return "\n".join(lines)
-    if name == "speed":
-        lines = [
-            "| Gaussians (each model) | stage | s | peak RSS (MB) | stage's own peak (MB) | note |",
-            "|---:|---|---:|---:|---:|---|",
-        ]
-        for r in rows:
-            if "error" in r:
-                lines.append(f"| {r['gaussians']:,} | {r['stage']} | — | — | — | failed: {r['error'][:60]} |")
-                continue
-            note = ", ".join(f"{k} {r[k]}" for k in ("views", "image_size", "iterations") if k in r)
-            if "rre_deg" in r:
-                note = f"RRE {r['rre_deg']:.3f}°"
-            lines.append(
-                f"| {r['gaussians']:,} | {r['stage']} | {r['seconds']:.2f} | {r['peak_rss_mb']:.0f} | "
-                f"{r['stage_peak_mb']:.0f} | {note} |"
-            )
-        return "\n".join(lines)
-    if name in ("category", "ablation"):
-        cats = [c for c in CATEGORIES if any(c in r.get("per_category_mean_rre_deg", {}) for r in rows)]
-        head = "method" if name == "category" else "configuration"
-        ratio = "time ratio vs GSA coarse" if name == "category" else "time ratio vs default coarse"
-        lines = [
-            f"| {head} | "
-            + " | ".join(f"{c} RRE (°)" for c in cats)
-            + f" | mean RRE (°) | success (RRE<5°) | s / pair | {ratio} |",
-            "|---|" + "---:|" * (len(cats) + 4),
-        ]
-        for r in rows:
-            per = r["per_category_mean_rre_deg"]
-            lines.append(
-                f"| {r['method']} | "
-                + " | ".join(_f(per.get(c, float("nan")), 2) for c in cats)
-                + f" | {_f(r['mean_rre_deg'], 2)} | {r['success_rate'] * 100:.0f}% | "
-                f"{r['seconds_per_pair']:.2f} | {_f(r['time_ratio_vs_gsa_coarse'], 2)} |"
-            )
-        return "\n".join(lines + _calibration_lines(rows))
-    symmetric = any("success_rate_any_symmetric" in r for r in rows)
-    sym_head, sym_rule = (" success, any symmetric pose (RRE<5°) |", "---:|") if symmetric else ("", "")
-    lines = [
-        "| method | pairs | mean RRE (°) | median RRE (°) | mean scale err (%) | mean ATE / diag | "
-        "success (RRE<5°) |" + sym_head + " s / pair | time ratio vs GSA coarse |",
-        "|---|---:|---:|---:|---:|---:|---:|" + sym_rule + "---:|---:|",
-    ]
-    for r in rows:
-        failed = f" ({r['failed']} failed)" if r.get("failed") else ""
-        sym = f" {_pct(r.get('success_rate_any_symmetric'))} |" if symmetric else ""
-        lines.append(
-            f"| {r['method']} | {r['pairs']}{failed} | {_f(r['mean_rre_deg'], 4)} | {_f(r['median_rre_deg'], 4)} | "
-            f"{_f(r['mean_scale_error_pct'], 4)} | {_f(r['mean_ate_normalized'], 5)} | {r['success_rate'] * 100:.0f}% |"
-            f"{sym} {r['seconds_per_pair']:.2f} | {_f(r['time_ratio_vs_gsa_coarse'], 2)} |"
-        )
-    return "\n".join(lines + _calibration_lines(rows))
-
-
-def _pct(x: float | None) -> str:
-    return "—" if x is None or not np.isfinite(x) else f"{x * 100:.0f}%"
-
-
-def _calibration_text(c: dict) -> str:
-    text = (
-        f"{c['flagged']}/{c['flag_results']} flagged doubtful ({_pct(c['flagged_rate'])}); "
-        f"unflagged: {c['unflagged']}, {_pct(c['unflagged_success_rate'])} succeed; "
-        f"failures: {c['failures']}, {_pct(c['failures_flagged_rate'])} flagged"
-    )
-    if not c.get("confidence_reported"):
-        text += " (align() reported no confidence)"
-    return text
-
-
-def _calibration_lines(rows: list[dict]) -> list[str]:
-    """Lines under a table: the doubtful flag against success, for rows that carry it."""
-    cal = [r for r in rows if "flagged_rate" in r]
-    if not cal:
-        return []
-    return ["", "Confidence calibration (success = RRE < 5°):"] + [
-        f"- {r['method']}: {_calibration_text(r)}" for r in cal
-    ]
-
-
-def calibration_summary(results: dict[str, list[dict]], method: str = GSA_COARSE) -> str | None:
-    """One line over all protocols run: `method`'s doubtful flag against success."""
-    names = [n for n, rows in results.items() if any(r.get("method") == method and "flagged_rate" in r for r in rows)]
-    records = [rec for n in names for r in results[n] if r.get("method") == method for rec in r["records"]]
-    c = calibration(records)
-    if not c:
-        return None
-    return (
-        f"Confidence calibration, {method}, over {', '.join(names)}: {c['flag_results']} results; "
-        + _calibration_text(c)
-    )
 
 
 def run_protocols(
