@@ -159,7 +159,7 @@ def check_request(b: Backend, n_sources: int, options: dict[str, Any], webhook: 
         raise invalid_input("at least one source model is required")
     if n_sources > s.max_sources:
         raise too_large(f"{n_sources} sources exceeds the limit of {s.max_sources}")
-    validate_options(options)
+    validate_options(options, s)
     if webhook:
         try:
             check_url(webhook["url"], s.webhook_allow_private)

@@ -3,7 +3,8 @@
 from __future__ import annotations
 
 import dataclasses
-from typing import Any, Literal, get_args
+import math
+from typing import Any, Literal, NamedTuple, get_args
 
 from gsa.features.settings import FeatureSettings  # torch-free: safe at API start-up
 from gsa.settings_env import feature_settings_env
@@ -44,7 +45,135 @@ def align_option_names() -> set[str]:
     return {f.name for f in dataclasses.fields(AlignOptions)}
 
 
-def validate_options(options: dict[str, Any]) -> dict[str, Any]:
+class Bound(NamedTuple):
+    """The values one numeric option may take: `kind` int or float, lo..hi
+    inclusive (None: open), `lo_open`: lo itself excluded (a positive float)."""
+
+    kind: type
+    lo: float | None
+    hi: float | None
+    lo_open: bool = False
+
+    def describe(self) -> str:
+        kind = "an integer" if self.kind is int else "a number"
+        if self.lo is not None and self.hi is not None:
+            return f"{kind} in {'(' if self.lo_open else '['}{self.lo}, {self.hi}]"
+        if self.lo is not None:
+            return f"{kind} {'>' if self.lo_open else '≥'} {self.lo}"
+        return f"{kind} ≤ {self.hi}"
+
+    def json_schema(self) -> dict[str, Any]:
+        """The bound in OpenAPI terms (documentation only: enforcement is check_option_values)."""
+        out: dict[str, Any] = {}
+        if self.lo is not None:
+            out["exclusiveMinimum" if self.lo_open else "minimum"] = self.lo
+        if self.hi is not None:
+            out["maximum"] = self.hi
+        return out
+
+
+# Bounds on every numeric option a client may set: the one place they live (the HTTP
+# schema documents them from here, HTTP and gRPC submissions are checked against them).
+# The upper bounds cap the work and memory one job can ask for; the lower ones are the
+# library's own minimums, checked here so a bad value is a 422 at submission, not a failed job.
+OPTION_BOUNDS: dict[str, Bound] = {
+    "tau_f": Bound(float, 0, None, lo_open=True),
+    "coarse_iterations": Bound(int, 1, 1000),
+    "max_candidates": Bound(int, 1, 256),
+    "trim": Bound(float, 0, None, lo_open=True),
+    "hypothesis_points": Bound(int, 10, 100_000),
+    "hypothesis_iterations": Bound(int, 1, 200),
+    "refine_points": Bound(int, 10, 200_000),
+    "refine_iterations": Bound(int, 1, 1000),
+    "max_points": Bound(int, 10, 200_000),
+    "inlier_threshold": Bound(float, 0, 10, lo_open=True),
+    "hypothesis_truncation": Bound(float, 0, 10, lo_open=True),
+    "anchor_count": Bound(int, 100, 20_000),
+    "search_rotations": Bound(int, 64, 20_000),
+    "seed": Bound(int, 0, 2**63 - 1),
+    "fine_iterations": Bound(int, 0, 5000),
+    "fine_views": Bound(int, 1, 64),
+    "fine_lr": Bound(float, 0, 1, lo_open=True),
+    "fine_image_size": Bound(int, 8, 1024),
+    "recon_iterations": Bound(int, 10, 100_000),
+}
+# Choices the library checks only when the fine stage starts (gsa.align.fine.FineOptions,
+# whose module loads torch): repeated here so a typo is refused at submission.
+OPTION_CHOICES: dict[str, tuple[str, ...]] = {
+    "fine_loss": ("smooth_l1", "l1", "l2"),
+    "fine_on": ("features", "colors"),
+}
+STAGE_NAMES = ("auto", "coarse", "fine")
+BOOL_OPTIONS = {"renders", "weight_by_opacity"}
+# The fine stage's work, fine_views × fine_image_size² × fine_iterations, with the
+# library's defaults for the ones a job leaves out.
+FINE_DEFAULTS = {"fine_views": 5, "fine_image_size": 128, "fine_iterations": 60}
+
+
+def _out_of_range(name: str, bound: Bound) -> Exception:
+    extra: dict[str, Any] = {"option": name}
+    if bound.lo is not None:
+        extra["exclusive_minimum" if bound.lo_open else "minimum"] = bound.lo
+    if bound.hi is not None:
+        extra["maximum"] = bound.hi
+    return invalid_input(f"option {name!r} must be {bound.describe()}", **extra)
+
+
+def check_option_values(options: dict[str, Any]) -> None:
+    """Types, bounds and choices of the options a client set (no settings needed):
+    422 invalid-input naming the option and its bound."""
+    for name, v in options.items():
+        bound = OPTION_BOUNDS.get(name)
+        if bound is not None:
+            if name == "trim" and v is None:
+                continue
+            number = isinstance(v, int | float) and not isinstance(v, bool)
+            if not number or (bound.kind is int and not isinstance(v, int)):
+                raise _out_of_range(name, bound)
+            too_low = bound.lo is not None and not (v > bound.lo if bound.lo_open else v >= bound.lo)
+            too_high = bound.hi is not None and not v <= bound.hi
+            if too_low or too_high or not math.isfinite(v):
+                raise _out_of_range(name, bound)
+        elif name in OPTION_CHOICES and v not in OPTION_CHOICES[name]:
+            choices = OPTION_CHOICES[name]
+            raise invalid_input(f"option {name!r} must be one of {', '.join(choices)}", option=name, allowed=choices)
+        elif name in BOOL_OPTIONS and not isinstance(v, bool):
+            raise invalid_input(f"option {name!r} must be true or false", option=name)
+    if "stages" in options:
+        _check_stages(options["stages"])
+
+
+def _check_stages(stages: Any) -> None:
+    from gsa.align.pipeline import STAGE_CHOICES  # lazy, as in align_option_names
+
+    combos = " | ".join(",".join(c) for c in STAGE_CHOICES)
+    if not isinstance(stages, list | tuple) or not all(isinstance(x, str) for x in stages):
+        raise invalid_input(f"option 'stages' must be a list of stage names ({combos})", option="stages")
+    unknown = sorted({x for x in stages if x not in STAGE_NAMES})
+    if unknown:
+        raise invalid_input(
+            f"unknown stage(s): {', '.join(unknown)}; stages must be one of {combos}",
+            option="stages",
+            allowed=[list(c) for c in STAGE_CHOICES],
+        )
+    if tuple(stages) not in STAGE_CHOICES:
+        raise invalid_input(
+            f"stages {','.join(stages) or '(none)'} is not a pipeline; stages must be one of {combos}",
+            option="stages",
+            allowed=[list(c) for c in STAGE_CHOICES],
+        )
+
+
+def fine_work(options: dict[str, Any]) -> int:
+    """fine_views × fine_image_size² × fine_iterations for these options (defaults filled in)."""
+    v = {k: options.get(k, d) for k, d in FINE_DEFAULTS.items()}
+    return int(v["fine_views"]) * int(v["fine_image_size"]) ** 2 * int(v["fine_iterations"])
+
+
+def validate_options(options: dict[str, Any], settings=None) -> dict[str, Any]:
+    """The one check of a job's options (HTTP JSON and multipart, gRPC): server-only
+    and unknown names, types and bounds, the library's own consistency checks and,
+    given settings, the per-job work budget (`max_fine_work`)."""
     fixed = sorted(k for k in options if server_only_option(k))
     if fixed:
         # Paths and devices are the server's business: a client path must never reach the filesystem.
@@ -61,4 +190,22 @@ def validate_options(options: dict[str, Any]) -> dict[str, Any]:
         bad = sorted(set(outs) - set(OUTPUT_NAMES))
         if bad:
             raise invalid_input(f"unknown output(s): {', '.join(bad)}")
+    check_option_values(options)
+    # The library's own checks (AlignOptions.__post_init__) at submission, not in the worker.
+    from gsa.align.pipeline import AlignOptions  # lazy, as in align_option_names
+
+    try:
+        AlignOptions(**{k: v for k, v in options.items() if k in known})
+    except (TypeError, ValueError) as exc:
+        raise invalid_input(f"invalid options: {exc}") from None
+    budget = getattr(settings, "max_fine_work", None)
+    if budget is not None:
+        work = fine_work(options)
+        if work > budget:
+            raise invalid_input(
+                f"fine_views × fine_image_size² × fine_iterations = {work} exceeds the per-job budget of {budget}",
+                option="fine_views × fine_image_size² × fine_iterations",
+                maximum=budget,
+                value=work,
+            )
     return options

@@ -43,6 +43,9 @@ class Settings(BaseSettings):
     max_zip_entries: int = 2_000
     max_zip_uncompressed_bytes: int = 4 * 1024 * 1024 * 1024
     max_zip_ratio: float = 200.0
+    # Per-job work of the fine stage: fine_views × fine_image_size² × fine_iterations
+    # (the per-option bounds are in service.options.OPTION_BOUNDS).
+    max_fine_work: int = 2_000_000_000
 
     worker_device: str = "cpu"
     spheremap_weights: Path | None = None

@@ -5,10 +5,10 @@ from __future__ import annotations
 from datetime import UTC, datetime
 from typing import Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 from service.models import Asset, Job, JobState
-from service.options import OutputName
+from service.options import OPTION_BOUNDS, OutputName, check_option_values
 
 
 class Problem(BaseModel):
@@ -22,24 +22,38 @@ class Problem(BaseModel):
     instance: str | None = None
 
 
+def _bounded(name: str, description: str | None = None, **kw):
+    """A field whose documented bounds come from service.options (which enforces them)."""
+    return Field(None, description=description, json_schema_extra=OPTION_BOUNDS[name].json_schema(), **kw)
+
+
 class AlignOptionsIn(BaseModel):
     """Alignment options; fields not listed (e.g. fine_*) pass through to the
-    library's AlignOptions and are rejected with 422 if it does not know them."""
+    library's AlignOptions and are rejected with 422 if it does not know them.
+    Types, bounds and choices are checked by service.options (422 invalid-input
+    naming the option and its bound)."""
 
     model_config = ConfigDict(extra="allow")
-    stages: list[str] | None = Field(None, examples=[["coarse", "fine"]])
+    stages: list[str] | None = Field(None, examples=[["coarse", "fine"]], description="auto | coarse | coarse,fine")
     features: str | None = Field(None, description="feature backend: auto | canonical | spheremap | dinov2")
-    tau_f: float | None = Field(None, gt=0, description="feature-match threshold τ_f")
-    coarse_iterations: int | None = Field(None, ge=1, le=1000)
-    seed: int | None = None
+    tau_f: float | None = _bounded("tau_f", "feature-match threshold τ_f")
+    coarse_iterations: int | None = _bounded("coarse_iterations")
+    seed: int | None = _bounded("seed")
+    fine_views: int | None = _bounded("fine_views", "fine stage: rendered views")
+    fine_image_size: int | None = _bounded("fine_image_size", "fine stage: render size in pixels (square)")
+    fine_iterations: int | None = _bounded(
+        "fine_iterations",
+        "fine stage: optimiser steps; fine_views × fine_image_size² × fine_iterations is also capped "
+        "per job (GSA_MAX_FINE_WORK)",
+    )
     renders: bool | None = Field(None, description="produce before/after renders (default true)")
     outputs: list[OutputName] | None = Field(None, description="artifacts wanted (default: all)")
-    recon_iterations: int | None = Field(
-        None,
-        ge=10,
-        le=100_000,
-        description="3DGS training iterations for image-set inputs",
-    )
+    recon_iterations: int | None = _bounded("recon_iterations", "3DGS training iterations for image-set inputs")
+
+    @model_validator(mode="after")
+    def _check(self):
+        check_option_values(self.to_dict())  # raises a 422 Problem (not a pydantic error)
+        return self
 
     def to_dict(self) -> dict[str, Any]:
         return self.model_dump(exclude_none=True)

@@ -1,0 +1,114 @@
+"""Service hardening: option bounds and the work budget, stage names, the gRPC
+bind host, request-body limits for non-multipart bodies, Unicode file names and
+job errors free of worker paths."""
+
+from __future__ import annotations
+
+import json
+
+import grpc
+import pytest
+
+from service.grpc_gen import alignment_pb2 as pb
+from service.grpc_gen import alignment_pb2_grpc as pbg
+from tests.service.conftest import assert_problem, submit_pair
+
+AUTH = (("authorization", "Bearer key-alice"),)
+
+
+@pytest.fixture
+def stub(stack):
+    ch = grpc.insecure_channel(stack["grpc"])
+    yield pbg.AlignmentServiceStub(ch)
+    ch.close()
+
+
+def _json_job(http, options: dict):
+    # Options are checked before the asset ids are looked up: a valid request
+    # with made-up ids answers 404, an invalid one 422.
+    return http.post("/v1/jobs", json={"source": "ast_nope", "target": "ast_nope", "options": options})
+
+
+def _grpc_submit(stub, options: dict):
+    header = pb.SubmitHeader(
+        options_json=json.dumps(options), source_asset_ids=["ast_nope"], target_asset_id="ast_nope"
+    )
+    with pytest.raises(grpc.RpcError) as e:
+        stub.SubmitAlignment(iter([pb.SubmitRequest(header=header)]), metadata=AUTH)
+    return e.value.code(), json.loads(dict(e.value.trailing_metadata())["gsa-problem"])
+
+
+# ------------------------------------------------------------------ 1. bounds
+@pytest.mark.parametrize(
+    "option,value,bound",
+    [("fine_views", 65, 64), ("fine_image_size", 1025, 1024), ("fine_iterations", 5001, 5000)],
+)
+def test_option_upper_bounds_http_json_multipart_and_grpc(http, stub, pair, option, value, bound):
+    body = assert_problem(_json_job(http, {option: value}), 422, "invalid-input")
+    assert body["option"] == option and body["maximum"] == bound, body
+    assert option in body["detail"] and str(bound) in body["detail"]
+
+    body = assert_problem(submit_pair(http, pair, {option: value}), 422, "invalid-input")
+    assert body["option"] == option and body["maximum"] == bound
+
+    code, problem = _grpc_submit(stub, {option: value})
+    assert code == grpc.StatusCode.INVALID_ARGUMENT
+    assert problem["option"] == option and problem["maximum"] == bound
+
+    # The bound itself is allowed: validation passes and the made-up asset is the 404.
+    assert_problem(_json_job(http, {option: bound}), 404, "not-found")
+    code, _ = _grpc_submit(stub, {option: bound})
+    assert code == grpc.StatusCode.NOT_FOUND
+
+
+def test_other_numeric_options_are_bounded(http):
+    for option, value in [
+        ("seed", -1),
+        ("max_points", 10**9),
+        ("refine_iterations", 10**6),
+        ("hypothesis_points", 10**9),
+        ("fine_lr", 0),
+        ("coarse_iterations", 1001),
+        ("recon_iterations", 10**9),
+        ("fine_views", "many"),
+    ]:
+        body = assert_problem(_json_job(http, {option: value}), 422)
+        assert option in json.dumps(body), (option, body)
+
+
+def test_fine_work_budget(http, stub):
+    from service.settings import Settings
+
+    budget = Settings().max_fine_work
+    over = {"fine_views": 64, "fine_image_size": 1024, "fine_iterations": 100}  # each within its bound
+    assert 64 * 1024**2 * 100 > budget
+    body = assert_problem(_json_job(http, over), 422, "invalid-input")
+    assert body["maximum"] == budget and body["value"] == 64 * 1024**2 * 100
+    assert "fine_views" in body["option"] and "fine_iterations" in body["option"]
+    code, problem = _grpc_submit(stub, over)
+    assert code == grpc.StatusCode.INVALID_ARGUMENT and problem["maximum"] == budget
+    # within the budget: accepted as before
+    assert_problem(_json_job(http, {"fine_views": 64, "fine_image_size": 256, "fine_iterations": 100}), 404)
+
+
+def test_openapi_documents_the_bounds(http):
+    props = http.get("/openapi.json").json()["components"]["schemas"]["AlignOptionsIn"]["properties"]
+    assert props["fine_views"]["maximum"] == 64
+    assert props["fine_image_size"]["maximum"] == 1024
+    assert props["fine_iterations"]["maximum"] == 5000
+
+
+# ------------------------------------------------------------------ 2. stages
+def test_unknown_stage_is_rejected_at_submission(http, stub, pair):
+    body = assert_problem(_json_job(http, {"stages": ["warp"]}), 422, "invalid-input")
+    assert body["option"] == "stages" and "warp" in body["detail"]
+    assert_problem(submit_pair(http, pair, {"stages": ["warp"]}), 422, "invalid-input")
+    assert_problem(_json_job(http, {"stages": ["fine"]}), 422, "invalid-input")  # not a pipeline
+    code, problem = _grpc_submit(stub, {"stages": ["warp"]})
+    assert code == grpc.StatusCode.INVALID_ARGUMENT and problem["option"] == "stages"
+    # other library checks too, and choices only the fine stage would have checked
+    assert_problem(_json_job(http, {"features": "magic"}), 422, "invalid-input")
+    assert_problem(_json_job(http, {"fine_loss": "l7"}), 422, "invalid-input")
+    # valid stage lists still pass
+    for stages in (["auto"], ["coarse"], ["coarse", "fine"]):
+        assert_problem(_json_job(http, {"stages": stages}), 404)
