@@ -41,7 +41,8 @@ RUN pip install ".[service]" && python -c "import service.grpc_gen.alignment_pb2
 
 RUN useradd --create-home --uid 10001 gsa && mkdir -p /data && chown gsa /data && chown -R gsa /opt/numba-cache
 USER gsa
-ENV GSA_STORAGE_ROOT=/data GSA_WORKER_DEVICE=${VARIANT}
+# gRPC binds loopback unless told otherwise; in a container it must listen on all interfaces.
+ENV GSA_STORAGE_ROOT=/data GSA_WORKER_DEVICE=${VARIANT} GSA_GRPC_HOST=0.0.0.0
 VOLUME ["/data"]
 EXPOSE 8000 50051
 HEALTHCHECK --interval=15s --timeout=3s --start-period=20s \

@@ -304,8 +304,14 @@ class AlignmentServicer(pbg.AlignmentServiceServicer):
             pos += len(chunk)
 
 
-def serve_grpc(backend: Backend, port: int, host: str = "[::]", metrics=None, max_workers: int = 16) -> grpc.Server:
+def serve_grpc(
+    backend: Backend, port: int, host: str | None = None, metrics=None, max_workers: int = 16
+) -> grpc.Server:
+    """Serve gRPC on host:port; host defaults to settings.grpc_host (loopback unless configured)."""
     s = backend.settings
+    host = host or s.grpc_host
+    if ":" in host and not host.startswith("["):
+        host = f"[{host}]"  # an IPv6 literal
     server = grpc.server(
         futures.ThreadPoolExecutor(max_workers=max_workers),
         options=[

@@ -70,6 +70,9 @@ class Settings(BaseSettings):
     public_docs: bool = True
 
     grpc_port: int | None = None
+    # The interface gRPC binds: loopback by default, like `gsa serve --host`; 0.0.0.0 or ::
+    # for all interfaces (the Docker image sets 0.0.0.0).
+    grpc_host: str = "127.0.0.1"
 
     @field_validator("api_keys", mode="before")
     @classmethod

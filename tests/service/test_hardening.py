@@ -112,3 +112,58 @@ def test_unknown_stage_is_rejected_at_submission(http, stub, pair):
     # valid stage lists still pass
     for stages in (["auto"], ["coarse"], ["coarse", "fine"]):
         assert_problem(_json_job(http, {"stages": stages}), 404)
+
+
+# ------------------------------------------------------------------ 3. gRPC bind host
+def _listening(port: int) -> set[str]:
+    """The local addresses with a TCP socket listening on `port` (from /proc/net)."""
+    import ipaddress
+    from pathlib import Path
+
+    out = set()
+    for table in ("tcp", "tcp6"):
+        for line in Path(f"/proc/net/{table}").read_text().splitlines()[1:]:
+            local, state = line.split()[1], line.split()[3]
+            addr, p = local.split(":")
+            if state != "0A" or int(p, 16) != port:
+                continue
+            raw = bytes.fromhex(addr)
+            # /proc/net stores each 32-bit word in host (little-endian) order
+            raw = b"".join(raw[i : i + 4][::-1] for i in range(0, len(raw), 4))
+            ip = ipaddress.ip_address(raw)
+            out.add(str(getattr(ip, "ipv4_mapped", None) or ip))  # gRPC may bind 127.0.0.1 as ::ffff:127.0.0.1
+    return out
+
+
+def _health(target: str) -> bool:
+    from grpc_health.v1 import health_pb2, health_pb2_grpc
+
+    with grpc.insecure_channel(target) as ch:
+        try:
+            health_pb2_grpc.HealthStub(ch).Check(health_pb2.HealthCheckRequest(), timeout=3)
+            return True
+        except grpc.RpcError:
+            return False
+
+
+def test_grpc_binds_loopback_by_default(stack):
+    # The real server started by `gsa serve --grpc-port` with no host configured.
+    port = int(stack["grpc"].rsplit(":", 1)[1])
+    assert _listening(port) == {"127.0.0.1"}
+
+
+def test_grpc_listens_on_the_configured_host_only(tmp_path):
+    from service.backend import make_backend
+    from service.grpc_server import serve_grpc
+    from service.settings import Settings
+    from tests.service.conftest import free_port
+
+    port = free_port()
+    b = make_backend(Settings(storage_root=tmp_path, auth_disabled=True, grpc_host="127.0.0.2"))
+    server = serve_grpc(b, port)
+    try:
+        assert _listening(port) == {"127.0.0.2"}
+        assert _health(f"127.0.0.2:{port}")
+        assert not _health(f"127.0.0.1:{port}")
+    finally:
+        server.stop(grace=0)
