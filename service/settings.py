@@ -36,6 +36,8 @@ class Settings(BaseSettings):
     auth_disabled: bool = False
 
     max_upload_bytes: int = 512 * 1024 * 1024  # per file
+    # Any request body that is not multipart/form-data (JSON job specs, …): answered 413 past this.
+    max_body_bytes: int = 1024 * 1024
     max_gaussians: int = 5_000_000
     max_sources: int = 16  # N in "N models to one reference"
     max_images: int = 500

@@ -74,19 +74,37 @@ def _title(status: int) -> str:
         return "Error"
 
 
+DEFAULT_MAX_BODY_BYTES = 1 << 20
+
+
 class BodyLimit:
     """Pure ASGI middleware: caps the request body (Content-Length or chunked)
-    and answers 413 as soon as the cap is passed, without reading the rest."""
+    and answers 413 as soon as the cap is passed, without reading the rest.
 
-    def __init__(self, app, max_bytes_for):
+    Multipart bodies (uploads) get `max_bytes_for(path)`; every other content type
+    (JSON, form-urlencoded, none) at most `max_body_bytes` (default: the app's
+    settings.max_body_bytes), whatever the path allows for uploads."""
+
+    def __init__(self, app, max_bytes_for, max_body_bytes: int | None = None):
         self.app = app
-        self.max_bytes_for = max_bytes_for  # path -> byte cap (or None)
+        self.max_bytes_for = max_bytes_for  # path -> byte cap for multipart bodies
+        self.max_body_bytes = max_body_bytes
+
+    def _body_cap(self, scope) -> int:
+        if self.max_body_bytes is not None:
+            return self.max_body_bytes
+        # Starlette puts the application in the scope before the middleware stack runs.
+        backend = getattr(getattr(scope.get("app"), "state", None), "backend", None)
+        return getattr(getattr(backend, "settings", None), "max_body_bytes", DEFAULT_MAX_BODY_BYTES)
 
     async def __call__(self, scope, receive, send):
         if scope["type"] != "http" or scope["method"] not in ("POST", "PUT", "PATCH"):
             return await self.app(scope, receive, send)
         cap = self.max_bytes_for(scope["path"])
         headers = dict(scope.get("headers") or [])
+        ctype = headers.get(b"content-type", b"").split(b";", 1)[0].strip().lower()
+        if ctype != b"multipart/form-data":
+            cap = min(cap, self._body_cap(scope))
         cl = headers.get(b"content-length")
         if cl is not None and cl.isdigit() and int(cl) > cap:
             return await _send_problem(scope, send, too_large(f"request body exceeds the limit of {cap} bytes"))
