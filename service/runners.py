@@ -6,6 +6,7 @@ from __future__ import annotations
 import gc
 import logging
 import os
+import signal
 import sys
 import threading
 import time
@@ -91,18 +92,80 @@ def _warm_up() -> None:
 
 
 def run_rq_worker(burst: bool = False, name: str | None = None) -> None:
-    """A worker process: RQ worker on the job + webhook queues, plus a reaper."""
+    """A worker process: RQ worker on the job + webhook queues, plus a reaper.
+
+    RQ's work loop gives up ("... quitting") on most Redis errors (a restart, a
+    failover, a network blip). A supervisor loop around it waits for Redis with
+    capped exponential backoff (worker_reconnect_min_s .. worker_reconnect_max_s),
+    logging each retry, and starts a fresh RQ worker once Redis answers, so
+    queued and requeued jobs run again. It ends only on a stop request
+    (SIGTERM/SIGINT), or when the queue is drained in burst mode."""
+    from redis.exceptions import ConnectionError as RedisConnectionError
+    from redis.exceptions import TimeoutError as RedisTimeoutError
     from rq import Worker  # lazy: embedded mode runs without RQ
 
     backend = process_backend()
     if backend.redis is None:
         raise SystemExit("gsa worker needs GSA_REDIS_URL (embedded mode runs workers inside `gsa serve`)")
+    s = backend.settings
     _warm_up()
     stop = threading.Event()
     start_reaper(backend, stop)
     queues = [backend.queue.hooks, backend.queue.q]  # webhooks first: they are tiny
-    w = Worker(queues, connection=backend.redis, name=name or f"gsa-{uuid.uuid4().hex[:8]}")
+    base = name or f"gsa-{uuid.uuid4().hex[:8]}"
+    delay, retry = s.worker_reconnect_min_s, 0
     try:
-        w.work(burst=burst, with_scheduler=True)
+        while True:
+            # A worker lost with Redis may leave its registration behind (a Redis
+            # that persisted it): each reconnection registers under a fresh name.
+            w = None
+            started = time.monotonic()
+            error: Exception | None = None
+            try:
+                w = Worker(queues, connection=backend.redis, name=base if retry == 0 else f"{base}.{retry}")
+                w.max_connection_wait_time = s.worker_reconnect_max_s  # RQ's own retry while dequeuing
+                w.work(burst=burst, with_scheduler=True)
+            except (RedisConnectionError, RedisTimeoutError) as exc:  # registering, or in teardown
+                error = exc
+            # A SIGTERM/SIGINT (warm shutdown) ends the worker for good.
+            stopped = w is not None and (
+                getattr(w, "_shutdown_requested_date", None) is not None or getattr(w, "_stop_requested", False)
+            )
+            if stopped or (burst and error is None and _redis_up(backend)):
+                return
+            if time.monotonic() - started > 60:  # it ran a good while: start the backoff afresh
+                delay = s.worker_reconnect_min_s
+            why = f"{type(error).__name__}: {error}" if error else "the RQ work loop ended"
+            delay, retry = _wait_for_redis(backend, why, retry, delay, s.worker_reconnect_max_s)
     finally:
         stop.set()
+
+
+def _redis_up(backend: Backend) -> bool:
+    try:
+        return bool(backend.redis.ping())
+    except Exception:
+        return False
+
+
+def _wait_for_redis(backend: Backend, why: str, retry: int, delay: float, cap: float) -> tuple[float, int]:
+    """Sleep with capped exponential backoff until Redis answers a PING; returns
+    the next delay and the retry count. SIGTERM/SIGINT while waiting end the process (RQ's handlers
+    belong to the worker that just ended)."""
+
+    def _exit(signum, frame):
+        raise SystemExit(0)
+
+    signal.signal(signal.SIGTERM, _exit)
+    signal.signal(signal.SIGINT, _exit)
+    while True:
+        retry += 1
+        log.warning("worker lost Redis (%s); reconnect attempt %d in %.1f s", why, retry, delay)
+        time.sleep(delay)
+        delay = min(delay * 2, cap)
+        try:
+            if backend.redis.ping():
+                log.warning("Redis is back; restarting the worker (reconnect attempt %d)", retry)
+                return delay, retry
+        except Exception as exc:
+            why = f"{type(exc).__name__}: {exc}"

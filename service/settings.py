@@ -60,6 +60,12 @@ class Settings(BaseSettings):
     lease_s: float = 30.0
     reaper_interval_s: float = 5.0
     embedded_workers: int = 1
+    # `gsa worker` outlives Redis restarts: it retries with exponential backoff
+    # from worker_reconnect_min_s, capped at worker_reconnect_max_s.
+    worker_reconnect_min_s: float = 0.5
+    worker_reconnect_max_s: float = 30.0
+    # Retry-After (seconds) on the 503 answered while the job store is unreachable.
+    unavailable_retry_after_s: int = 5
 
     webhook_secret: str | None = None
     webhook_max_attempts: int = 5
