@@ -55,7 +55,7 @@ class CandidateTable:
         return int((self.target_index >= 0).sum())
 
 
-@dataclass
+@dataclass(frozen=True)
 class CoarseResult:
     transform: Sim3
     iterations: int
@@ -190,8 +190,7 @@ def coarse_align(
         return nearest_candidate(np.ascontiguousarray(x), q_all, table)
 
     result = _icp(p, q_all, match, init, opts, w, progress, "features")
-    result.candidates = candidates.pair_count
-    return result
+    return replace(result, candidates=candidates.pair_count)
 
 
 def icp_refine(
@@ -241,6 +240,4 @@ def icp_refine(
         if result.iterations <= 2:
             break
     assert result is not None
-    result.history = history
-    result.iterations = len(history)
-    return result
+    return replace(result, history=history, iterations=len(history))

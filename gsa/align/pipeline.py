@@ -1,15 +1,16 @@
 """`align()`: features -> coarse (the robust global search of gsa.align.robust, or frame
 hypotheses + the paper's feature-guided ICP) -> fine, one call, with a GT-free verdict.
 
-The CLI, the service worker, the benchmarks and the tests all call this.
+The CLI, the service worker, the benchmarks and the tests all call this. Option and result
+types live in gsa.align.types, the GT-free metrics in gsa.align.quality (both re-exported).
+Kept whole (~480 lines): align() and _Pair, the per-pair state every stage method shares.
 """
 
 from __future__ import annotations
 
 import functools
 import time
-from collections.abc import Callable
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, replace
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -25,6 +26,19 @@ from gsa.align.coarse import (
     icp_refine,
 )
 from gsa.align.nearest import query_workers
+from gsa.align.quality import quality_metrics, reverse_distances
+from gsa.align.types import (
+    EXTRACTOR_MODES,
+    FEATURE_MODES,
+    STAGE_CHOICES,
+    AlignmentResult,
+    AlignOptions,
+    FeatureMode,
+    Progress,
+    RefineMode,
+    SearchMode,
+    StageName,
+)
 from gsa.canonical import (
     CanonicalFrame,
     canonical_features,
@@ -38,133 +52,23 @@ from gsa.sim3 import Sim3
 if TYPE_CHECKING:
     from gsa.render.cameras import Cameras
 
-Progress = Callable[[str, float], None]
-FEATURE_MODES = ("auto", "file", "canonical", "spheremap", "dinov2")
-EXTRACTOR_MODES = ("spheremap", "dinov2")
-STAGE_CHOICES = (("auto",), ("coarse",), ("coarse", "fine"))
-
-
-@dataclass
-class AlignOptions:
-    # auto: coarse+fine when the coarse stage ends at the feature-guided ICP (the paper's
-    # pipeline: files' features, or refine off), which the fine stage still improves; coarse
-    # alone after the nearest-neighbour refinement, which already ends below what the fine
-    # loss can resolve (docs/benchmarks.md "fine stage").
-    stages: tuple[str, ...] = ("auto",)
-    # auto: the files' own features when both have them, else the extractor of feature_settings
-    # (the CLI reads GSA_FEATURES_* into them) when its weights are set, else canonical.
-    features: str = "auto"
-    feature_settings: object | None = None  # gsa.features.FeatureSettings for spheremap/dinov2
-    tau_f: float = 0.01
-    coarse_iterations: int = 30
-    max_candidates: int = 32
-    weight_by_opacity: bool = False
-    trim: float | None = 3.0
-    # Nearest-neighbour ICP after the feature-guided stage; "auto": only with the
-    # weight-free canonical features (see gsa.align.coarse.icp_refine).
-    refine: str = "auto"
-    # Ambiguous canonical frames: each hypothesis is tried on a source subsample.
-    hypothesis_points: int = 2000
-    hypothesis_iterations: int = 8
-    refine_points: int = 12_000  # Gaussians sampled for the refinement ICP (half per side in the robust path)
-    refine_iterations: int = 40  # cheap: cached neighbour tables (icp_refine, robust.refine)
-    # The feature stage and the quality metrics use at most this many source
-    # Gaussians (the authors subsample to 30k-50k); the target is always used whole.
-    max_points: int = 30_000
-    inlier_threshold: float = 0.03  # GT-free inlier distance, as a fraction of the target's RMS radius
-    # Hypotheses are ranked by the symmetric nearest-neighbour distance truncated at this
-    # fraction of the target's RMS radius (see _Pair.select).
-    hypothesis_truncation: float = 0.1
-    # Coarse initialisation with canonical features. "global": the robust search of
-    # gsa.align.robust (SO(3) sample + frame relabellings on floater-free anchors, scored by
-    # overlap and colour); "frames": one canonical frame per model and its plausible
-    # relabellings, then the feature-guided stage (the earlier default). auto: global,
-    # except with refine off, which asks for the feature stage alone.
-    search: str = "auto"
-    anchor_count: int = 2000
-    search_rotations: int = 4096
-    seed: int = 0
-    fine_iterations: int = 60
-    fine_views: int = 5
-    fine_lr: float = 0.01
-    fine_image_size: int = 128
-    fine_loss: str = "smooth_l1"
-    fine_on: str = "features"  # or "colors" (paper Table 4 ablation)
-
-    def __post_init__(self) -> None:
-        self.stages = tuple(self.stages)
-        if self.stages not in STAGE_CHOICES:
-            raise ValueError(f"stages must be auto, coarse or coarse,fine, got {','.join(self.stages) or 'nothing'}")
-        if self.features not in FEATURE_MODES:
-            raise ValueError(f"features must be one of {', '.join(FEATURE_MODES)}, got {self.features!r}")
-        if not self.tau_f > 0:
-            raise ValueError("tau_f must be positive")
-        if self.search not in ("auto", "global", "frames"):
-            raise ValueError(f"search must be auto, global or frames, got {self.search!r}")
-        # Bounded: both set the size of arrays the search holds at once.
-        if not (100 <= self.anchor_count <= 20_000 and 64 <= self.search_rotations <= 20_000):
-            raise ValueError("anchor_count must be in 100..20000 and search_rotations in 64..20000")
-        if self.refine not in ("auto", "on", "off"):
-            raise ValueError(f"refine must be auto, on or off, got {self.refine!r}")
-        if self.coarse_iterations < 1 or self.max_candidates < 1:
-            raise ValueError("coarse_iterations and max_candidates must be at least 1")
-        if not self.hypothesis_truncation > 0 or not self.inlier_threshold > 0:
-            raise ValueError("hypothesis_truncation and inlier_threshold must be positive")
-
-    def coarse_options(self, iterations: int | None = None) -> CoarseOptions:
-        return CoarseOptions(
-            tau_f=self.tau_f,
-            max_iterations=iterations or self.coarse_iterations,
-            max_candidates=self.max_candidates,
-            trim=self.trim,
-        )
-
-
-@dataclass
-class AlignmentResult:
-    transform: Sim3  # maps source coordinates into the target frame
-    coarse: CoarseResult
-    features: str  # which features guided the alignment
-    stages: tuple[str, ...] = ("coarse",)  # the stages that ran (AlignOptions.stages resolved)
-    metrics: dict = field(default_factory=dict)
-    timings: dict = field(default_factory=dict)
-    hypotheses: list[dict] = field(default_factory=list)
-    fine: object | None = None  # gsa.align.fine.FineResult when the fine stage ran
-    lifting: list[dict] = field(default_factory=list)  # gsa.features LiftReports when features were lifted
-    source_frame: CanonicalFrame | None = None
-    target_frame: CanonicalFrame | None = None
-
-    def to_dict(self) -> dict:
-        out = self.transform.to_dict()
-        stages = {
-            "coarse": {
-                **self.coarse.transform.to_dict(),
-                "iterations": self.coarse.iterations,
-                "converged": self.coarse.converged,
-                "matched": self.coarse.matched,
-                "candidate_pairs": self.coarse.candidates,
-                "history": self.coarse.history,
-            }
-        }
-        if self.fine is not None:
-            fine = self.fine
-            stages["fine"] = {
-                **fine.transform.to_dict(),
-                "loss_history": [float(v) for v in fine.loss_history],
-                "best_loss": float(fine.best_loss),
-                "best_iteration": int(fine.best_iteration),
-            }
-        out.update(
-            metrics=self.metrics,
-            timings=self.timings,
-            features=self.features,
-            stages_run=list(self.stages),
-            hypotheses=self.hypotheses,
-            stages=stages,
-        )
-        if self.lifting:
-            out["lifting"] = self.lifting
-        return out
+__all__ = [
+    "EXTRACTOR_MODES",
+    "FEATURE_MODES",
+    "STAGE_CHOICES",
+    "AlignOptions",
+    "AlignmentError",
+    "AlignmentResult",
+    "CoarseOptions",
+    "CoarseResult",
+    "FeatureMode",
+    "Progress",
+    "RefineMode",
+    "SearchMode",
+    "StageName",
+    "align",
+    "quality_metrics",
+]
 
 
 def _initial_transform(src: CanonicalFrame, dst: CanonicalFrame) -> Sim3:
@@ -474,7 +378,7 @@ class _Pair:
                 fwd_d, _ = self.dst_tree.query(
                     res.transform.apply(self.src_pts[sub]), k=1, workers=query_workers(len(sub))
                 )
-                rev_d = _reverse_distances(res.transform, self.dst_pts[rev_sub], self.src_tree)
+                rev_d = reverse_distances(res.transform, self.dst_pts[rev_sub], self.src_tree)
                 tau = opts.hypothesis_truncation * self.dst_frame.radius
                 closeness = 1.0 - 0.5 * (np.minimum(fwd_d, tau).mean() + np.minimum(rev_d, tau).mean()) / tau
                 entry.update(
@@ -522,11 +426,14 @@ class _Pair:
                 self.weights_at(rows),
                 progress,
             )
-            coarse.transform = refined.transform
-            coarse.history += refined.history
-            coarse.iterations += refined.iterations
-            coarse.converged = refined.converged
-            coarse.seconds += refined.seconds
+            coarse = replace(
+                coarse,
+                transform=refined.transform,
+                history=coarse.history + refined.history,
+                iterations=coarse.iterations + refined.iterations,
+                converged=refined.converged,
+                seconds=coarse.seconds + refined.seconds,
+            )
         return coarse
 
     def fine(self, best: _Hypothesis, init: Sim3, progress: Progress | None, cameras: Cameras | None = None):
@@ -577,43 +484,3 @@ class _Pair:
 
 def _subsample(rng: np.random.Generator, n: int, k: int) -> np.ndarray:
     return np.arange(n) if k >= n else np.sort(rng.choice(n, k, replace=False))
-
-
-def _reverse_distances(transform: Sim3, target_points: np.ndarray, source_tree: cKDTree) -> np.ndarray:
-    """Distance from each target point to the nearest mapped source point, in target units."""
-    d, _ = source_tree.query(transform.inverse().apply(target_points), k=1, workers=query_workers(len(target_points)))
-    return d * transform.scale
-
-
-def _reverse_inliers(transform: Sim3, target_points: np.ndarray, source_tree: cKDTree, threshold: float) -> float:
-    return float(np.mean(_reverse_distances(transform, target_points, source_tree) <= threshold))
-
-
-def quality_metrics(
-    transform: Sim3,
-    src_pts: np.ndarray,
-    dst_pts: np.ndarray,
-    src_feat: np.ndarray,
-    dst_feat: np.ndarray,
-    threshold: float,
-    src_tree: cKDTree,
-    dst_tree: cKDTree,
-    reverse_rows: np.ndarray | slice = slice(None),
-) -> dict:
-    """Ground-truth-free numbers a caller can judge a result by: the fractions of
-    source (forward) and target (reverse) Gaussians with a partner within the
-    inlier threshold, the RMS distance of forward inliers, and how well the
-    features of spatial nearest neighbours agree."""
-    fwd_d, fwd_i = dst_tree.query(transform.apply(src_pts), k=1, workers=query_workers(len(src_pts)))
-    reverse = _reverse_inliers(transform, dst_pts[reverse_rows], src_tree, threshold)
-    inlier = fwd_d <= threshold
-    forward = float(inlier.mean())
-    feat_d = np.linalg.norm(np.asarray(src_feat, np.float64) - np.asarray(dst_feat, np.float64)[fwd_i], axis=1)
-    return {
-        "inlier_fraction": 0.5 * (forward + reverse),
-        "inlier_fraction_forward": forward,
-        "inlier_fraction_reverse": reverse,
-        "rms_residual": float(np.sqrt(np.mean(fwd_d[inlier] ** 2))) if inlier.any() else float("inf"),
-        "feature_distance_median": float(np.median(feat_d)),
-        "feature_agreement": float(np.mean(feat_d <= 0.05)),
-    }

@@ -1,0 +1,197 @@
+"""The option and result types of `align()` (gsa.align.pipeline re-exports them):
+AlignOptions with the choices it accepts, and AlignmentResult."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import TYPE_CHECKING, Literal, get_args
+
+from gsa.align.coarse import CoarseOptions, CoarseResult
+from gsa.canonical import CanonicalFrame
+from gsa.sim3 import Sim3
+
+if TYPE_CHECKING:
+    from gsa.align.fine import FineResult
+    from gsa.features.settings import FeatureSettings
+
+Progress = Callable[[str, float], None]
+StageName = Literal["auto", "coarse", "fine"]
+FeatureMode = Literal["auto", "file", "canonical", "spheremap", "dinov2"]
+ExtractorMode = Literal["spheremap", "dinov2"]
+SearchMode = Literal["auto", "global", "frames"]
+RefineMode = Literal["auto", "on", "off"]
+FineLoss = Literal["smooth_l1", "l1", "l2"]
+FineSignal = Literal["features", "colors"]
+FEATURE_MODES: tuple[FeatureMode, ...] = get_args(FeatureMode)
+EXTRACTOR_MODES: tuple[ExtractorMode, ...] = get_args(ExtractorMode)
+STAGE_CHOICES: tuple[tuple[StageName, ...], ...] = (("auto",), ("coarse",), ("coarse", "fine"))
+
+
+@dataclass
+class AlignOptions:
+    """How `align()` runs. Every choice is checked when the options are made.
+
+    Args:
+        stages: ("auto",), ("coarse",) or ("coarse", "fine"). auto: coarse+fine when the
+            coarse stage ends at the feature-guided ICP (the paper's pipeline: files'
+            features, or refine off), which the fine stage still improves; coarse alone after
+            the nearest-neighbour refinement, which already ends below what the fine loss can
+            resolve (docs/benchmarks.md "fine stage").
+        features: auto, file, canonical, spheremap or dinov2. auto: the files' own features
+            when both have them, else the extractor of feature_settings (the CLI reads
+            GSA_FEATURES_* into them) when its weights are set, else canonical.
+        feature_settings: gsa.features.FeatureSettings for spheremap/dinov2 (weights, lifting).
+        tau_f: feature distance threshold τ_f of the candidate correspondences.
+        coarse_iterations: iteration limit of the feature-guided stage.
+        max_candidates: feature candidates kept per source Gaussian.
+        weight_by_opacity: weight correspondences by the source Gaussians' opacity.
+        trim: the feature-guided ICP drops matches beyond trim × the median residual
+            (None: keeps all).
+        refine: auto, on or off. Nearest-neighbour ICP after the feature-guided stage;
+            auto: only with the weight-free canonical features (see gsa.align.coarse.icp_refine).
+        hypothesis_points: ambiguous canonical frames: each hypothesis is tried on a source
+            subsample of this many Gaussians.
+        hypothesis_iterations: feature-stage iterations of that trial.
+        refine_points: Gaussians sampled for the refinement ICP (half per side in the robust path).
+        refine_iterations: iterations of the refinement ICP; cheap: cached neighbour tables
+            (icp_refine, robust.refine).
+        max_points: the feature stage and the quality metrics use at most this many source
+            Gaussians (the authors subsample to 30k-50k); the target is always used whole.
+        inlier_threshold: GT-free inlier distance, as a fraction of the target's RMS radius.
+        hypothesis_truncation: hypotheses are ranked by the symmetric nearest-neighbour
+            distance truncated at this fraction of the target's RMS radius (see _Pair.select).
+        search: auto, global or frames: the coarse initialisation with canonical features.
+            "global": the robust search of gsa.align.robust (SO(3) sample + frame relabellings
+            on floater-free anchors, scored by overlap and colour); "frames": one canonical
+            frame per model and its plausible relabellings, then the feature-guided stage (the
+            earlier default). auto: global, except with refine off, which asks for the
+            feature stage alone.
+        anchor_count: anchors per model of the global search (100..20000).
+        search_rotations: rotations sampled by the global search (64..20000).
+        seed: seed of every random choice (subsamples, search, fine-stage cameras).
+        fine_iterations: iterations of the fine stage.
+        fine_views: cameras the fine stage renders from.
+        fine_lr: learning rate of the fine stage.
+        fine_image_size: side of the fine stage's rendered images, in pixels.
+        fine_loss: smooth_l1, l1 or l2: the fine stage's image loss.
+        fine_on: "features" or "colors" (paper Table 4 ablation): what the fine stage renders.
+    """
+
+    stages: tuple[StageName, ...] = ("auto",)
+    features: FeatureMode = "auto"
+    feature_settings: FeatureSettings | None = None
+    tau_f: float = 0.01
+    coarse_iterations: int = 30
+    max_candidates: int = 32
+    weight_by_opacity: bool = False
+    trim: float | None = 3.0
+    refine: RefineMode = "auto"
+    hypothesis_points: int = 2000
+    hypothesis_iterations: int = 8
+    refine_points: int = 12_000
+    refine_iterations: int = 40
+    max_points: int = 30_000
+    inlier_threshold: float = 0.03
+    hypothesis_truncation: float = 0.1
+    search: SearchMode = "auto"
+    anchor_count: int = 2000
+    search_rotations: int = 4096
+    seed: int = 0
+    fine_iterations: int = 60
+    fine_views: int = 5
+    fine_lr: float = 0.01
+    fine_image_size: int = 128
+    fine_loss: FineLoss = "smooth_l1"
+    fine_on: FineSignal = "features"
+
+    def __post_init__(self) -> None:
+        self.stages = tuple(self.stages)
+        if self.stages not in STAGE_CHOICES:
+            raise ValueError(f"stages must be auto, coarse or coarse,fine, got {','.join(self.stages) or 'nothing'}")
+        if self.features not in FEATURE_MODES:
+            raise ValueError(f"features must be one of {', '.join(FEATURE_MODES)}, got {self.features!r}")
+        if not self.tau_f > 0:
+            raise ValueError("tau_f must be positive")
+        if self.search not in ("auto", "global", "frames"):
+            raise ValueError(f"search must be auto, global or frames, got {self.search!r}")
+        # Bounded: both set the size of arrays the search holds at once.
+        if not (100 <= self.anchor_count <= 20_000 and 64 <= self.search_rotations <= 20_000):
+            raise ValueError("anchor_count must be in 100..20000 and search_rotations in 64..20000")
+        if self.refine not in ("auto", "on", "off"):
+            raise ValueError(f"refine must be auto, on or off, got {self.refine!r}")
+        if self.coarse_iterations < 1 or self.max_candidates < 1:
+            raise ValueError("coarse_iterations and max_candidates must be at least 1")
+        if not self.hypothesis_truncation > 0 or not self.inlier_threshold > 0:
+            raise ValueError("hypothesis_truncation and inlier_threshold must be positive")
+
+    def coarse_options(self, iterations: int | None = None) -> CoarseOptions:
+        return CoarseOptions(
+            tau_f=self.tau_f,
+            max_iterations=iterations or self.coarse_iterations,
+            max_candidates=self.max_candidates,
+            trim=self.trim,
+        )
+
+
+@dataclass
+class AlignmentResult:
+    """What `align()` found; `to_dict()` is the result.json layout.
+
+    Attributes:
+        transform: maps source coordinates into the target frame.
+        coarse: the coarse stage's result (its transform is `transform` when no fine stage ran).
+        features: which features guided the alignment.
+        stages: the stages that ran (AlignOptions.stages resolved).
+        metrics: GT-free quality numbers and the verdict (confidence, doubtful, ...).
+        timings: seconds per step ("features", "hypotheses", "coarse", "fine", "metrics", "total", ...).
+        hypotheses: the scored initialisations.
+        fine: the fine stage's result when it ran.
+        lifting: gsa.features LiftReports (as dicts) when features were lifted.
+        source_frame: the source's canonical frame as chosen (axes re-labelled).
+        target_frame: the target's canonical frame.
+    """
+
+    transform: Sim3  # maps source coordinates into the target frame
+    coarse: CoarseResult
+    features: str  # which features guided the alignment
+    stages: tuple[str, ...] = ("coarse",)  # the stages that ran (AlignOptions.stages resolved)
+    metrics: dict = field(default_factory=dict)
+    timings: dict = field(default_factory=dict)
+    hypotheses: list[dict] = field(default_factory=list)
+    fine: FineResult | None = None  # when the fine stage ran
+    lifting: list[dict] = field(default_factory=list)  # gsa.features LiftReports when features were lifted
+    source_frame: CanonicalFrame | None = None
+    target_frame: CanonicalFrame | None = None
+
+    def to_dict(self) -> dict:
+        out = self.transform.to_dict()
+        stages = {
+            "coarse": {
+                **self.coarse.transform.to_dict(),
+                "iterations": self.coarse.iterations,
+                "converged": self.coarse.converged,
+                "matched": self.coarse.matched,
+                "candidate_pairs": self.coarse.candidates,
+                "history": self.coarse.history,
+            }
+        }
+        if self.fine is not None:
+            fine = self.fine
+            stages["fine"] = {
+                **fine.transform.to_dict(),
+                "loss_history": [float(v) for v in fine.loss_history],
+                "best_loss": float(fine.best_loss),
+                "best_iteration": int(fine.best_iteration),
+            }
+        out.update(
+            metrics=self.metrics,
+            timings=self.timings,
+            features=self.features,
+            stages_run=list(self.stages),
+            hypotheses=self.hypotheses,
+            stages=stages,
+        )
+        if self.lifting:
+            out["lifting"] = self.lifting
+        return out
