@@ -43,7 +43,7 @@ def test_fine_reduces_rotation_scale_translation_error(pair):
     assert len(res.loss_history) == 61
     assert res.best_loss == min(res.loss_history) < res.loss_history[0] / 10
     assert len(res.cameras) == 5 and res.cameras.width == 64
-    assert res.timing["total_s"] > 0
+    assert res.timings["total_s"] > 0
 
 
 def test_colour_ablation_runs_and_improves(pair):

@@ -66,7 +66,12 @@ class FineResult:
     best_loss: float
     best_iteration: int
     cameras: Cameras
-    timing: dict = field(default_factory=dict)
+    timings: dict = field(default_factory=dict)  # seconds: total_s, setup_s, loop_s, per_iteration_s
+
+    @property
+    def timing(self) -> dict:
+        """The former name of `timings`."""
+        return self.timings
 
     @property
     def initial_loss(self) -> float:
@@ -80,7 +85,7 @@ class FineResult:
             "best_loss": self.best_loss,
             "best_iteration": self.best_iteration,
             "views": len(self.cameras),
-            "timing": dict(self.timing),
+            "timings": dict(self.timings),
         }
 
 
@@ -243,10 +248,10 @@ def _fine_align(source, target, init, options, cams, render, feat_s, sh_s, feat_
         transform = Sim3(float(sc.detach()), rot.detach().numpy(), tr.detach().numpy())
         best_loss, best_it = history[-1], len(history) - 1
     t_end = time.perf_counter()
-    timing = {
+    timings = {
         "total_s": t_end - t_start,
         "setup_s": t_loop - t_start,
         "loop_s": t_end - t_loop,
         "per_iteration_s": (t_end - t_loop) / max(1, options.iterations),
     }
-    return FineResult(transform, init, history, best_loss, best_it, cams, timing)
+    return FineResult(transform, init, history, best_loss, best_it, cams, timings)

@@ -84,8 +84,8 @@ def main(argv=None) -> int:
         except OSError:
             load = "?"
         print(
-            f"run {rep + 1}: {wall:.2f} s wall (setup incl. target renders {res.timing['setup_s']:.2f} s, "
-            f"{res.timing['per_iteration_s'] * 1000:.1f} ms/iteration), process CPU {cpu:.2f} s, load {load}"
+            f"run {rep + 1}: {wall:.2f} s wall (setup incl. target renders {res.timings['setup_s']:.2f} s, "
+            f"{res.timings['per_iteration_s'] * 1000:.1f} ms/iteration), process CPU {cpu:.2f} s, load {load}"
         )
     best, median = min(walls), float(np.median(walls))
     print(

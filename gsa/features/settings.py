@@ -5,6 +5,7 @@ environment for the CLI and the service."""
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Literal
 
 
 @dataclass
@@ -17,7 +18,7 @@ class FeatureSettings:
     ("canonical" unless weights are configured).
     """
 
-    extractor: str = "canonical"
+    extractor: Literal["canonical", "spheremap", "dinov2"] = "canonical"
     backbone: str | None = None
     head: str | None = None
     input_size: int = 518  # 37x37 patches of 14 px, as GSA feeds the spherical mapper
@@ -28,4 +29,4 @@ class FeatureSettings:
     lift_lr: float = 0.02
     lift_batch_views: int = 4
     prune_threshold: float = 0.1  # the authors' background-Gaussian threshold
-    backend: str = "auto"  # rasterizer backend
+    backend: Literal["auto", "cpu", "cuda", "reference"] = "auto"  # rasterizer backend (gsa.render.BACKENDS)
