@@ -8,6 +8,7 @@ extracted before it has passed the limits, so a hostile upload (zip bomb,
 
 from __future__ import annotations
 
+import re
 import struct
 import zipfile
 from collections.abc import Callable
@@ -16,7 +17,7 @@ from pathlib import Path, PurePosixPath, PureWindowsPath
 import numpy as np
 
 from service.backend import Backend
-from service.models import InputRef
+from service.models import InputRef, Job
 from service.problems import Problem, invalid_input, too_large
 
 IMAGE_EXTS = {".png", ".jpg", ".jpeg"}
@@ -233,3 +234,39 @@ def load_input(
         reconstructions[name] = (summary, Path(res.model_path))
         return res.model
     raise invalid_input(f"unknown input kind {ref.kind!r}")
+
+
+# ------------------------------------------- worker paths out of client-facing errors
+# A job's inputs live in a worker temp folder (service.execution: tempfile prefix "gsa-job-")
+# as <role>.ply, <role>.zip, <role>-images/..., <role>-recon/... (load_input above), role
+# "target" or "source<i>". Library errors name those paths; clients know their files by name.
+_WORK_PATH = re.compile(r"(?:/[\w.-]+)*/gsa-job-[\w.-]+((?:/[\w.-]+)*)")
+_ROLE = re.compile(r"^/(target|source(\d+))(\.ply|\.zip|-images|-recon)?(?=/|$)(/.*)?$")
+
+
+def asset_label(ref: InputRef) -> str:
+    return ref.filename or ref.asset_id
+
+
+def redact_work_paths(text: str, job: Job) -> str:
+    """`text` with every worker temp path replaced by the name of the asset it came from
+    (an image set's member keeps its name inside: `photos.zip/00003.png`)."""
+
+    def repl(m: re.Match) -> str:
+        rest = m.group(1)
+        r = _ROLE.match(rest)
+        if r is None:
+            return rest.rsplit("/", 1)[-1] or "job workspace"
+        role, index, kind, inner = r.groups()
+        ref = job.target if role == "target" else (job.sources[int(index)] if int(index) < len(job.sources) else None)
+        label = asset_label(ref) if ref is not None else role
+        if kind == "-images" and inner:
+            return f"{label}{inner}"
+        return label
+
+    return _WORK_PATH.sub(repl, text)
+
+
+def redact_problem(problem: dict, job: Job) -> dict:
+    """A job's problem details with worker paths replaced by asset names (every string member)."""
+    return {k: redact_work_paths(v, job) if isinstance(v, str) else v for k, v in problem.items()}

@@ -155,7 +155,14 @@ def heartbeat(
 
 
 def finish_attempt(backend: Backend, job_id: str, token: str, state: JobState, **fields) -> bool:
-    """End this attempt in `state`; False if the attempt no longer owns the job."""
+    """End this attempt in `state`; False if the attempt no longer owns the job.
+    An error's worker temp paths become the names of the client's assets."""
+    if isinstance(fields.get("error"), dict):
+        from service.inputs import redact_problem  # lazy: inputs loads numpy
+
+        job = backend.store.get(job_id)
+        if job is not None:
+            fields["error"] = redact_problem(fields["error"], job)
     return backend.store.update(
         job_id,
         states={JobState.running},

@@ -11,6 +11,7 @@ from __future__ import annotations
 import tempfile
 from dataclasses import dataclass, field
 from email.message import Message
+from email.utils import collapse_rfc2231_value
 
 from python_multipart.multipart import MultipartParser
 from starlette.requests import Request
@@ -45,10 +46,32 @@ class Form:
                 p.file.close()
 
 
+def _header_text(raw: bytes) -> str:
+    """A part header's value: clients (browsers, httpx, curl) send file names as raw
+    UTF-8 (RFC 7578 §4.2, HTML's form encoding); Latin-1 only for bytes that are not UTF-8."""
+    try:
+        return raw.decode("utf-8")
+    except UnicodeDecodeError:
+        return raw.decode("latin-1")
+
+
 def _disposition(value: str) -> tuple[str | None, str | None]:
+    """(name, filename) of a part's Content-Disposition. An RFC 5987/2231 `filename*`
+    (charset'lang'percent-encoded) wins over a plain `filename` (RFC 6266 §4.3)."""
     m = Message()
     m["content-disposition"] = value
-    return m.get_param("name", header="content-disposition"), m.get_filename()
+    name = m.get_param("name", header="content-disposition")
+    plain = extended = None
+    for key, v in m.get_params(header="content-disposition") or []:
+        if key != "filename":
+            continue
+        if isinstance(v, tuple):  # filename*: (charset, language, value)
+            extended = collapse_rfc2231_value(v)
+        elif plain is None:
+            plain = v
+    if isinstance(name, tuple):
+        name = collapse_rfc2231_value(name)
+    return name, extended if extended is not None else plain
 
 
 async def parse_multipart(request: Request, max_file_bytes: int, max_files: int) -> Form:
@@ -81,7 +104,7 @@ async def parse_multipart(request: Request, max_file_bytes: int, max_files: int)
         st["hval"] += data[start:end]
 
     def on_header_end():
-        st["headers"][st["hname"].decode("latin-1").lower()] = st["hval"].decode("latin-1")
+        st["headers"][st["hname"].decode("latin-1").lower()] = _header_text(st["hval"])
         st["hname"], st["hval"] = b"", b""
 
     def on_headers_finished():

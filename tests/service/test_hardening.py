@@ -243,3 +243,77 @@ def test_bodies_under_the_limit_and_uploads_are_unchanged(http):
     # multipart uploads keep their own (per-file) limits: 2 MiB is not a 413
     r = http.post("/v1/assets", files={"file": ("junk.bin", b"\1" * (2 << 20))})
     assert_problem(r, 422, "invalid-input")
+
+
+# ------------------------------------------------------------------ 5. names and paths
+UNICODE_NAME = "пример-模型.ply"
+
+
+def test_unicode_file_names_are_stored_and_returned(http, pair):
+    data = pair["source"].read_bytes()
+    r = http.post("/v1/assets", files={"file": (UNICODE_NAME, data)})  # raw UTF-8 in filename="..."
+    assert r.status_code == 201, r.text
+    assert r.json()["filename"] == UNICODE_NAME
+    assert http.get(f"/v1/assets/{r.json()['id']}").json()["filename"] == UNICODE_NAME
+
+    # RFC 5987 filename* wins over the ASCII fallback
+    from urllib.parse import quote
+
+    body = (
+        b'--bnd\r\nContent-Disposition: form-data; name="file"; filename="fallback.ply"; filename*=UTF-8\'\''
+        + quote(UNICODE_NAME).encode()
+        + b"\r\nContent-Type: application/octet-stream\r\n\r\n"
+        + data
+        + b"\r\n--bnd--\r\n"
+    )
+    r = http.post("/v1/assets", content=body, headers={"Content-Type": "multipart/form-data; boundary=bnd"})
+    assert r.status_code == 201, r.text
+    assert r.json()["filename"] == UNICODE_NAME
+
+
+def test_job_errors_name_the_asset_not_worker_paths(http, pair, tmp_path):
+    from gsa.io.ply import read_ply, write_ply
+    from tests.service.conftest import wait_job
+
+    m = read_ply(pair["source"])
+    m.means[0, 0] = float("nan")  # the header is fine (accepted at upload); the worker's read fails
+    write_ply(m, tmp_path / "nan.ply")
+    src = http.post("/v1/assets", files={"file": (UNICODE_NAME, (tmp_path / "nan.ply").read_bytes())})
+    assert src.status_code == 201, src.text
+    tgt = http.post("/v1/assets", files={"file": ("target.ply", pair["target"].read_bytes())}).json()
+    job = http.post("/v1/jobs", json={"source": src.json()["id"], "target": tgt["id"]}).json()
+    done = wait_job(http, job["id"], timeout=120)
+    assert done["state"] == "failed", done
+    err = done["error"]
+    assert err["status"] == 422 and err["type"].endswith("/invalid-input"), err
+    assert UNICODE_NAME in err["detail"] and "NaN" in err["detail"], err
+    assert "gsa-job-" not in json.dumps(err, ensure_ascii=False) and "/tmp" not in err["detail"], err
+
+
+def test_redact_work_paths_maps_every_workspace_file():
+    from service.inputs import redact_work_paths
+    from service.models import InputRef, Job
+
+    def ref(i, name, kind="ply"):
+        return InputRef(asset_id=i, key="k", kind=kind, filename=name)
+
+    job = Job(
+        id="job_x",
+        owner="o",
+        created_at=0,
+        updated_at=0,
+        max_attempts=1,
+        sources=[ref("ast_a", UNICODE_NAME), ref("ast_b", None, "images")],
+        target=ref("ast_t", "t.ply"),
+        options={},
+    )
+    cases = {
+        "/tmp/gsa-job-ab_1/source0.ply: bad": f"{UNICODE_NAME}: bad",
+        "open '/var/tmp/gsa-job-q/target.ply' failed": "open 't.ply' failed",
+        "/tmp/gsa-job-q/source1-images/00003.png is broken": "ast_b/00003.png is broken",
+        "/tmp/gsa-job-q/target-recon/sparse/0: no model": "t.ply: no model",
+        "/tmp/gsa-job-q/out0/aligned.ply": "aligned.ply",
+        "in /tmp/gsa-job-q": "in job workspace",
+    }
+    for text, want in cases.items():
+        assert redact_work_paths(text, job) == want
