@@ -1,5 +1,9 @@
 """`gsa` command line: align, demo, synth, bench, and the service verbs.
 
+Over 400 lines on purpose: the parser and handlers of the core verbs in the one module the
+`gsa` entry point imports (its start-up is measured, scripts/bench_cli.py); verbs that belong
+to a subpackage already live beside it (render, lift, reconstruct, the service's).
+
 Every failure the user can cause ends as one line on stderr and a non-zero
 exit code, never a traceback.
 """

@@ -18,7 +18,11 @@ driven to zero features and pruned, and each Gaussian's feature becomes the mult
 consensus of what it covers.
 
 Optimiser: Adam with per-parameter state kept as plain tensors, so densification can
-index/extend the moments (as 3DGS does) instead of resetting them.
+index/extend the moments (as 3DGS does) instead of resetting them (gsa.recon.density, with
+the density control; the losses are in gsa.recon.losses).
+
+Over 400 lines on purpose: train_gaussians is one training loop (~200 lines) whose steps share
+its local state; splitting it would only pass that state around.
 """
 
 from __future__ import annotations
@@ -30,11 +34,12 @@ from dataclasses import asdict, dataclass, field
 
 import numpy as np
 import torch
-import torch.nn.functional as F
 from scipy.spatial import cKDTree
 
 from gsa.canonical import canonical_features
 from gsa.model import SH_C0, GaussianModel, sh_coeff_count
+from gsa.recon.density import Adam, densify_and_prune
+from gsa.recon.losses import psnr, rgb_loss, ssim  # noqa: F401  (ssim: public here before the split)
 from gsa.render import rasterize, render_model
 from gsa.render.cameras import Cameras
 
@@ -117,85 +122,6 @@ class TrainResult:
     psnr_heldout_masked: float | None  # PSNR inside the object masks only
     seconds: float
     config: dict = field(default_factory=dict)
-
-
-# ----------------------------------------------------------------------------- losses
-def _gauss_window(size: int = 11, sigma: float = 1.5) -> torch.Tensor:
-    x = torch.arange(size, dtype=torch.float32) - size // 2
-    g = torch.exp(-(x**2) / (2 * sigma**2))
-    g = g / g.sum()
-    return g[:, None] * g[None, :]
-
-
-_WINDOW = _gauss_window()
-
-
-def ssim(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
-    """Mean SSIM of (H, W, C) images in [0, 1] (11x11 Gaussian window, as 3DGS)."""
-    c = a.shape[-1]
-    x = a.permute(2, 0, 1)[None]
-    y = b.permute(2, 0, 1)[None]
-    w = _WINDOW.to(a.dtype)[None, None].expand(c, 1, -1, -1)
-    pad = _WINDOW.shape[0] // 2
-    conv = lambda t: F.conv2d(t, w, padding=pad, groups=c)  # noqa: E731
-    mx, my = conv(x), conv(y)
-    sxx = conv(x * x) - mx**2
-    syy = conv(y * y) - my**2
-    sxy = conv(x * y) - mx * my
-    c1, c2 = 0.01**2, 0.03**2
-    s = ((2 * mx * my + c1) * (2 * sxy + c2)) / ((mx**2 + my**2 + c1) * (sxx + syy + c2))
-    return s.mean()
-
-
-def rgb_loss(pred: torch.Tensor, target: torch.Tensor, ssim_weight: float = 0.2) -> torch.Tensor:
-    """0.8·L1 + 0.2·(1 − SSIM)."""
-    return (1 - ssim_weight) * (pred - target).abs().mean() + ssim_weight * (1 - ssim(pred, target))
-
-
-def psnr(a: np.ndarray, b: np.ndarray, mask: np.ndarray | None = None) -> float:
-    d = (np.asarray(a, np.float64) - np.asarray(b, np.float64)) ** 2
-    mse = d.mean() if mask is None else d[mask].mean()
-    return float(10 * np.log10(1.0 / max(mse, 1e-12)))
-
-
-# ----------------------------------------------------------------------------- Adam
-class _Adam:
-    """Adam over a dict of leaf tensors; moments are plain tensors so rows can be
-    selected or appended when Gaussians are pruned or densified."""
-
-    def __init__(self, params: dict[str, torch.Tensor], lrs: dict[str, float], betas=(0.9, 0.999), eps=1e-15):
-        self.params, self.lrs, self.betas, self.eps = params, dict(lrs), betas, eps
-        self.m = {k: torch.zeros_like(v) for k, v in params.items()}
-        self.v = {k: torch.zeros_like(v) for k, v in params.items()}
-        self.t = dict.fromkeys(params, 0)
-
-    @torch.no_grad()
-    def step(self, names) -> None:
-        b1, b2 = self.betas
-        for k in names:
-            p = self.params[k]
-            if p.grad is None:
-                continue
-            g = p.grad
-            self.t[k] += 1
-            self.m[k].mul_(b1).add_(g, alpha=1 - b1)
-            self.v[k].mul_(b2).addcmul_(g, g, value=1 - b2)
-            mh = self.m[k] / (1 - b1 ** self.t[k])
-            vh = self.v[k] / (1 - b2 ** self.t[k])
-            p.sub_(self.lrs[k] * mh / (vh.sqrt() + self.eps))
-            p.grad = None
-
-    def zero_grad(self) -> None:
-        for p in self.params.values():
-            p.grad = None
-
-    def remap(self, new_params: dict[str, torch.Tensor], keep: torch.Tensor, n_new: int) -> None:
-        """Rows `keep` of every tensor survive (in order), then n_new rows with zero moments."""
-        for k in new_params:
-            for st in (self.m, self.v):
-                old = st[k][keep]
-                st[k] = torch.cat([old, torch.zeros((n_new,) + old.shape[1:], dtype=old.dtype)])
-        self.params = new_params
 
 
 # ----------------------------------------------------------------------------- init
@@ -344,7 +270,7 @@ def train_gaussians(
         "features": cfg.lr_features,
     }
     params = {k: v for k, v in P.items() if v is not None}
-    opt = _Adam(params, {k: lrs[k] for k in params})
+    opt = Adam(params, {k: lrs[k] for k in params})
     geo_names = ["means", "quats", "log_scales", "opacity", "sh_dc", "sh_rest"]
     grad_acc = torch.zeros(len(P["means"]))
     grad_cnt = torch.zeros(len(P["means"]))
@@ -425,14 +351,14 @@ def train_gaussians(
         # density control
         if cfg.densify_from <= it < cfg.densify_until and it > 0 and it % cfg.densify_every == 0:
             avg = grad_acc / grad_cnt.clamp_min(1)
-            _densify_and_prune(opt, avg, cfg, extent, rng, densify=True)
+            densify_and_prune(opt, avg, cfg, extent, rng, densify=True)
             grad_acc = torch.zeros(len(opt.params["means"]))
             grad_cnt = torch.zeros(len(opt.params["means"]))
         if cfg.opacity_reset_every and it > 0 and it % cfg.opacity_reset_every == 0 and it < cfg.densify_until:
             with torch.no_grad():
                 opt.params["opacity"].clamp_(max=math.log(0.01 / 0.99))
     # final clean-up: transparent and near-zero-feature Gaussians
-    _densify_and_prune(opt, None, cfg, extent, rng, densify=False)
+    densify_and_prune(opt, None, cfg, extent, rng, densify=False)
     model = _to_model(opt.params, sh_tensor())
     if model.features is not None:
         # Provenance travels in the PLY: `gsa align --features auto` recomputes canonical ones.
@@ -501,75 +427,3 @@ def _to_model(p, sh) -> GaussianModel:
         sh.detach().numpy(),
         None if feats is None else feats.detach().numpy(),
     )
-
-
-@torch.no_grad()
-def _densify_and_prune(opt: _Adam, avg_grad, cfg: TrainConfig, extent: float, rng, densify: bool) -> None:
-    p = opt.params
-    n = len(p["means"])
-    scales = p["log_scales"].exp()
-    smax = scales.max(1).values
-    new_rows: dict[str, list[torch.Tensor]] = {k: [] for k in p}
-    remove = torch.zeros(n, dtype=torch.bool)
-    if densify and avg_grad is not None and n < cfg.max_gaussians:
-        big = avg_grad >= cfg.grad_threshold
-        # Keep the growth within the cap: the largest gradients first.
-        budget = max(0, cfg.max_gaussians - n)
-        idx = torch.nonzero(big).flatten()
-        if len(idx) > budget:
-            idx = idx[torch.argsort(avg_grad[idx], descending=True)[:budget]]
-        sel = torch.zeros(n, dtype=torch.bool)
-        sel[idx] = True
-        clone = sel & (smax <= cfg.percent_dense * extent)
-        split = sel & ~clone
-        for k in p:  # clone: an identical copy (the gradient steps then separate them)
-            new_rows[k].append(p[k][clone])
-        if split.any():
-            m = p["means"][split]
-            s = scales[split]
-            q = p["quats"][split]
-            q = q / q.norm(dim=1, keepdim=True)
-            r = _quat_to_rot(q)
-            for _ in range(2):  # two children sampled from the parent, scales / 1.6
-                off = (r @ (torch.randn_like(s) * s)[..., None])[..., 0]
-                for k in p:
-                    if k == "means":
-                        new_rows[k].append(m + off)
-                    elif k == "log_scales":
-                        new_rows[k].append(p[k][split] - math.log(1.6))
-                    else:
-                        new_rows[k].append(p[k][split])
-            remove |= split
-    op = torch.sigmoid(p["opacity"])
-    remove |= op < cfg.prune_opacity
-    remove |= smax > 0.2 * extent
-    if "features" in p:
-        remove |= p["features"].norm(dim=1) < cfg.feature_prune
-    keep = ~remove
-    if keep.sum() < 4:  # never prune the model away
-        return
-    new_params = {}
-    n_new = 0
-    for k in p:
-        add = torch.cat(new_rows[k]) if new_rows[k] else p[k][:0]
-        n_new = len(add)
-        new_params[k] = torch.cat([p[k].detach()[keep], add.detach()]).requires_grad_(True)
-    opt.remap(new_params, keep, n_new)
-
-
-def _quat_to_rot(q: torch.Tensor) -> torch.Tensor:
-    w, x, y, z = q.unbind(-1)
-    return torch.stack(
-        [
-            1 - 2 * (y * y + z * z),
-            2 * (x * y - w * z),
-            2 * (x * z + w * y),
-            2 * (x * y + w * z),
-            1 - 2 * (x * x + z * z),
-            2 * (y * z - w * x),
-            2 * (x * z - w * y),
-            2 * (y * z + w * x),
-            1 - 2 * (x * x + y * y),
-        ],
-        -1,
-    ).reshape(q.shape[:-1] + (3, 3))
