@@ -18,17 +18,19 @@ from __future__ import annotations
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from typing import Literal
 
 import numpy as np
 import torch
 
+from gsa.align.types import FineLoss, FineSignal
 from gsa.canonical import canonical_features
 from gsa.model import GaussianModel
 from gsa.render import covariance, locality_order, render_gaussians, resolve_backend
 from gsa.render.cameras import Cameras, cameras_around
 from gsa.sim3 import Sim3
 
-LOSSES = ("smooth_l1", "l1", "l2")
+LOSSES: tuple[FineLoss, ...] = ("smooth_l1", "l1", "l2")
 
 
 @dataclass
@@ -38,12 +40,12 @@ class FineOptions:
     lr_decay: float = 0.1  # final lr = lr * lr_decay (exponential schedule); 1.0 keeps it constant
     views: int = 5
     image_size: int = 128
-    loss: str = "smooth_l1"  # "smooth_l1" | "l1" | "l2"
-    on: str = "features"  # "features" | "colors" (paper Table 4 ablation)
+    loss: FineLoss = "smooth_l1"
+    on: FineSignal = "features"  # colors: paper Table 4 ablation
     keep_best: bool = True
     alpha_threshold: float = 0.1  # a pixel is foreground where either render's alpha exceeds this
     seed: int = 0
-    backend: str = "auto"
+    backend: Literal["auto", "cpu", "cuda", "reference"] = "auto"  # gsa.render.BACKENDS
 
     def validate(self) -> None:
         if self.iterations < 0:
