@@ -29,7 +29,7 @@ from service.leases import (
 )
 from service.models import Job, JobState
 from service.options import DEFAULT_OUTPUTS, align_option_names, server_options
-from service.problems import Problem, invalid_input
+from service.problems import Problem, infrastructure_problem, invalid_input
 
 log = logging.getLogger("gsa.worker")
 
@@ -91,21 +91,58 @@ def execute(job_id: str, backend: Backend) -> JobState | None:
             ).to_dict()
             final = JobState.failed if finish_attempt(backend, job_id, token, JobState.failed, error=err) else None
     except Exception as exc:
-        err = problem_for(exc)
-        if err.status >= 500:
-            log.exception("job %s failed", job_id)
-        final = (
-            JobState.failed if finish_attempt(backend, job_id, token, JobState.failed, error=err.to_dict()) else None
-        )
+        infra = infrastructure_problem(exc, s.unavailable_retry_after_s)
+        if infra is not None:
+            final = _retry_later(backend, job, token, exc, infra)
+        else:
+            err = problem_for(exc)
+            if err.status >= 500:
+                log.exception("job %s failed", job_id)
+            final = (
+                JobState.failed
+                if finish_attempt(backend, job_id, token, JobState.failed, error=err.to_dict())
+                else None
+            )
     finally:
         stop.set()
         prog.finish()
         if final != JobState.succeeded:
             backend.storage.delete_prefix(art_prefix)  # no partial artifacts from a failed attempt
         _release_memory()
-    if final is not None:
+    if final is not None and final != JobState.queued:
         notify_webhook(backend, job_id)
     return final
+
+
+def _retry_later(backend: Backend, job: Job, token: str, exc: Exception, problem: Problem) -> JobState | None:
+    """The attempt failed on the service's own infrastructure (storage full or
+    failing, job store unreachable), not on the job: put the job back in the
+    queue for another attempt, or fail it with that problem (503/507, not
+    alignment-failed) once its attempts are spent. If the store cannot be
+    written either, the lease expires and the reaper requeues the job."""
+    attempts = job.attempts + 1  # this attempt's number (`job` was read before the claim)
+    log.warning("job %s attempt %d hit an infrastructure error (%s: %s)", job.id, attempts, type(exc).__name__, exc)
+    try:
+        if attempts >= job.max_attempts:
+            ok = finish_attempt(backend, job.id, token, JobState.failed, error=problem.to_dict())
+            return JobState.failed if ok else None
+        if not backend.store.update(
+            job.id,
+            states={JobState.running},
+            token=token,
+            state=JobState.queued,
+            stage="requeued",
+            run_token=None,
+            lease_until=None,
+            worker=None,
+        ):
+            return None
+        ref = backend.queue.enqueue(job.id)
+        backend.store.update(job.id, queue_ref=ref, enqueued_at=time.time())
+        return JobState.queued
+    except Exception:
+        log.exception("job %s: could not record the retry; the reaper will requeue it", job.id)
+        return None
 
 
 def library_input_errors() -> tuple[type[Exception], ...]:

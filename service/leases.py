@@ -20,7 +20,7 @@ import time
 
 from service.backend import Backend, notify_webhook
 from service.models import Job, JobState
-from service.problems import Problem
+from service.problems import Problem, infrastructure_problem
 
 log = logging.getLogger("gsa.worker")
 
@@ -256,8 +256,11 @@ def start_reaper(backend: Backend, stop: threading.Event) -> threading.Thread:
             try:
                 reap(backend)
                 resend_lost(backend)
-            except Exception:
-                log.exception("reaper pass failed")
+            except Exception as exc:
+                if infrastructure_problem(exc) is not None:  # Redis down, disk trouble: one line, not a traceback
+                    log.warning("reaper pass failed: %s: %s", type(exc).__name__, exc)
+                else:
+                    log.exception("reaper pass failed")
 
     t = threading.Thread(target=loop, name="gsa-reaper", daemon=True)
     t.start()

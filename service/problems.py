@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+import errno
+import sqlite3
+import sys
 from typing import Any
 
 PROBLEM_BASE = "https://gsa.dev/problems/"
@@ -51,3 +54,53 @@ def invalid_input(detail: str, **extra: Any) -> Problem:
 
 def too_large(detail: str) -> Problem:
     return Problem(413, "payload-too-large", "Payload too large", detail)
+
+
+def unavailable(detail: str, retry_after: int, kind: str = "service-unavailable") -> Problem:
+    p = Problem(503, kind, "Service unavailable", detail)
+    p.headers["Retry-After"] = str(max(int(retry_after), 1))
+    return p
+
+
+# errno values that mean "no room left": answered 507, not 503.
+_FULL = {errno.ENOSPC, getattr(errno, "EDQUOT", errno.ENOSPC), errno.EFBIG}
+# OSErrors that are about a particular file (a bug or lost data), not the infrastructure.
+_NOT_INFRA = (FileNotFoundError, IsADirectoryError, NotADirectoryError, FileExistsError)
+
+
+def infrastructure_problem(exc: BaseException, retry_after: int = 5) -> Problem | None:
+    """The problem for a failure of the service's own infrastructure (job store
+    unreachable, storage full or failing), or None if `exc` is not one.
+
+    Redis connection/timeout errors and a locked/unavailable SQLite database are
+    503 with Retry-After; a full disk (ENOSPC/EDQUOT, "database or disk is full")
+    is 507; other storage I/O errors (EIO, EROFS, EACCES...) are 503."""
+    rexc = sys.modules.get("redis.exceptions")  # only if Redis is in use at all
+    if rexc is not None and isinstance(exc, (rexc.ConnectionError, rexc.TimeoutError)):
+        return unavailable(
+            f"the job store (Redis) is unreachable ({type(exc).__name__}); retry later",
+            retry_after,
+            "store-unavailable",
+        )
+    if isinstance(exc, sqlite3.OperationalError):
+        msg = str(exc).lower()
+        if "full" in msg:
+            return _insufficient(f"the job database is full: {exc}")
+        if any(k in msg for k in ("locked", "busy", "disk i/o", "unable to open", "readonly")):
+            return unavailable(
+                f"the job database is unavailable ({exc}); retry later", retry_after, "store-unavailable"
+            )
+        return None
+    if isinstance(exc, OSError) and not isinstance(exc, _NOT_INFRA) and type(exc).__module__ == "builtins":
+        if exc.errno in _FULL:
+            return _insufficient("the service's storage is full; retry later or contact the operator")
+        return unavailable(
+            f"storage I/O error ({exc.strerror or type(exc).__name__}); retry later",
+            retry_after,
+            "storage-unavailable",
+        )
+    return None
+
+
+def _insufficient(detail: str) -> Problem:
+    return Problem(507, "insufficient-storage", "Insufficient storage", detail)

@@ -8,17 +8,19 @@ sharing this process's job store and queue.
 from __future__ import annotations
 
 import logging
+import sqlite3
 import threading
 from contextlib import asynccontextmanager
 
-from fastapi import FastAPI
+from fastapi import FastAPI, Request
 
 from service.api import artifacts, assets, jobs, ops
-from service.api.middleware import BodyLimit, RequestMetrics, install_error_handlers
+from service.api.middleware import BodyLimit, RequestMetrics, install_error_handlers, problem_response
 from service.api.openapi import custom_openapi
 from service.backend import Backend, make_backend
 from service.leases import start_reaper
 from service.metrics import Metrics
+from service.problems import Problem, infrastructure_problem
 from service.runners import start_embedded_workers
 from service.settings import Settings, get_settings
 
@@ -68,6 +70,7 @@ def create_app(
     app.state.backend = backend or make_backend(settings)
     app.state.metrics = Metrics(app.state.backend)
     install_error_handlers(app)
+    install_infrastructure_handlers(app, settings.unavailable_retry_after_s)
     s = app.state.backend.settings
     per_file = s.max_upload_bytes
 
@@ -86,3 +89,31 @@ def create_app(
 
     app.openapi = lambda: custom_openapi(app)
     return app
+
+
+def install_infrastructure_handlers(app: FastAPI, retry_after: int) -> None:
+    """Job store unreachable (Redis down, SQLite locked) -> 503 + Retry-After;
+    storage full -> 507; other storage I/O errors -> 503; all problem+json.
+
+    These are specific handlers, so Starlette's ExceptionMiddleware answers them
+    like any other problem and the keep-alive connection stays usable (the
+    catch-all Exception handler re-raises to the server after answering)."""
+    classes: list[type[BaseException]] = [sqlite3.OperationalError, OSError]
+    try:
+        import redis.exceptions as rexc
+
+        classes += [rexc.ConnectionError, rexc.TimeoutError]
+    except ImportError:  # embedded mode without the Redis client
+        pass
+
+    async def _infrastructure(request: Request, exc: Exception):
+        p = infrastructure_problem(exc, retry_after)
+        if p is None:
+            log.error("unhandled error on %s %s", request.method, request.url.path, exc_info=exc)
+            p = Problem(500, "internal-error", "Internal server error")
+        else:
+            log.warning("%s %s: %s (%s: %s)", request.method, request.url.path, p.status, type(exc).__name__, exc)
+        return problem_response(p, request)
+
+    for cls in classes:
+        app.add_exception_handler(cls, _infrastructure)

@@ -6,6 +6,8 @@ append-only file in its own folder so the queue survives a restart."""
 
 from __future__ import annotations
 
+import json
+import os
 import shutil
 import subprocess
 import time
@@ -16,6 +18,7 @@ import pytest
 
 from tests.service.conftest import (
     ALICE,
+    assert_problem,
     free_port,
     service_env,
     start_api,
@@ -143,3 +146,111 @@ def test_worker_started_while_redis_is_down_waits_for_it(tmp_path, redis_server,
         worker.stop()
         if api is not None:
             api.stop()
+
+
+def test_api_answers_503_while_redis_is_down_and_recovers_on_the_same_connection(tmp_path, redis_server, pair):
+    import http.client
+
+    env = service_env(tmp_path, GSA_REDIS_URL=redis_server.url, GSA_UNAVAILABLE_RETRY_AFTER_S="7")
+    api, url, _ = start_api(tmp_path, env, name="api-503")
+    try:
+        with httpx.Client(base_url=url, headers=ALICE, timeout=60) as http_:
+            r = submit_pair(http_, pair, {"stages": ["coarse"], "outputs": ["result"]})
+            assert r.status_code == 202, r.text
+            job_id = r.json()["id"]
+        host, port = url.removeprefix("http://").split(":")
+        conn = http.client.HTTPConnection(host, int(port), timeout=30)
+
+        def call(method, path, body=None):
+            headers = {**ALICE, "Content-Type": "application/json"} if body else dict(ALICE)
+            conn.request(method, path, body=body, headers=headers)
+            resp = conn.getresponse()
+            return resp, resp.read()
+
+        resp, _ = call("GET", f"/v1/jobs/{job_id}")
+        assert resp.status == 200
+        sock = conn.sock
+
+        redis_server.stop()
+        for method, path, body in (
+            ("GET", f"/v1/jobs/{job_id}", None),
+            ("GET", "/v1/jobs", None),
+            ("POST", "/v1/jobs", b'{"sources": ["ast_x"], "target": "ast_y"}'),
+            ("POST", f"/v1/jobs/{job_id}:cancel", None),
+        ):
+            resp, raw = call(method, path, body)
+            assert resp.status == 503, (method, path, resp.status, raw)
+            assert resp.getheader("Content-Type").startswith("application/problem+json")
+            assert resp.getheader("Retry-After") == "7"
+            problem = json.loads(raw)
+            assert problem["status"] == 503 and problem["type"].endswith("/store-unavailable"), problem
+            assert not resp.will_close and conn.sock is sock, "the keep-alive connection must survive"
+        resp, raw = call("GET", "/readyz")
+        assert resp.status == 503 and resp.getheader("Retry-After"), raw
+        assert json.loads(raw)["checks"]["store"] is False
+
+        redis_server.start()
+        resp, raw = call("GET", f"/v1/jobs/{job_id}")
+        assert resp.status == 200, raw
+        assert conn.sock is sock  # the same connection, still serving
+        resp, raw = call("GET", "/readyz")
+        assert resp.status == 200, raw
+        conn.close()
+    finally:
+        api.stop()
+
+
+def test_storage_errors_are_507_or_503_and_jobs_retry_them(tmp_path, pair, monkeypatch):
+    """Disk full on an upload is 507, another storage I/O error 503 (problem+json,
+    not 500); a job attempt that hits a full disk is requeued, and fails with
+    insufficient-storage (not alignment-failed) once its attempts are spent."""
+    import errno
+
+    from fastapi.testclient import TestClient
+
+    from service.api.app import create_app
+    from service.backend import make_backend
+    from service.models import JobState
+    from service.settings import Settings
+    from service.worker import execute
+
+    s = Settings(storage_root=tmp_path / "data", api_keys={"k": "me"}, max_attempts=2)
+    H = {"Authorization": "Bearer k"}
+    backend = make_backend(s)
+    real_put = backend.storage.put
+    with TestClient(create_app(s, backend, run_workers=False)) as c:
+
+        def upload():
+            with open(pair["source"], "rb") as fh:
+                return c.post("/v1/assets", headers=H, files={"file": ("s.ply", fh)})
+
+        def failing_put(code):
+            def put(key, data, **kw):
+                raise OSError(code, os.strerror(code))
+
+            return put
+
+        monkeypatch.setattr(backend.storage, "put", failing_put(errno.ENOSPC))
+        assert_problem(upload(), 507, "insufficient-storage")
+        monkeypatch.setattr(backend.storage, "put", failing_put(errno.EIO))
+        r = upload()
+        assert_problem(r, 503, "storage-unavailable")
+        assert r.headers["Retry-After"]
+
+        monkeypatch.setattr(backend.storage, "put", real_put)
+        with open(pair["source"], "rb") as a, open(pair["target"], "rb") as b:
+            r = c.post(
+                "/v1/jobs",
+                headers=H,
+                files=[("source", ("s.ply", a)), ("target", ("t.ply", b))],
+                data={"options": '{"stages": ["coarse"], "outputs": ["result"]}'},
+            )
+        assert r.status_code == 202, r.text
+        jid = r.json()["id"]
+        monkeypatch.setattr(backend.storage, "put", failing_put(errno.ENOSPC))
+        assert execute(jid, backend) == JobState.queued  # storing the artifacts failed: try again
+        job = c.get(f"/v1/jobs/{jid}", headers=H).json()
+        assert job["state"] == "queued" and job["attempts"] == 1 and job["error"] is None, job
+        assert execute(jid, backend) == JobState.failed  # attempts spent
+        job = c.get(f"/v1/jobs/{jid}", headers=H).json()
+        assert job["error"]["type"].endswith("/insufficient-storage") and job["error"]["status"] == 507, job
