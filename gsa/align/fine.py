@@ -18,12 +18,11 @@ from __future__ import annotations
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Literal
 
 import numpy as np
 import torch
 
-from gsa.align.types import FineLoss, FineSignal
+from gsa.align.choices import FineLoss, FineSignal, RenderBackend
 from gsa.canonical import canonical_features
 from gsa.model import GaussianModel
 from gsa.render import covariance, locality_order, render_gaussians, resolve_backend
@@ -45,7 +44,7 @@ class FineOptions:
     keep_best: bool = True
     alpha_threshold: float = 0.1  # a pixel is foreground where either render's alpha exceeds this
     seed: int = 0
-    backend: Literal["auto", "cpu", "cuda", "reference"] = "auto"  # gsa.render.BACKENDS
+    backend: RenderBackend = "auto"
 
     def validate(self) -> None:
         if self.iterations < 0:

@@ -17,6 +17,16 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from gsa.align import robust
+from gsa.align.choices import (
+    EXTRACTOR_MODES,
+    FEATURE_MODES,
+    STAGE_CHOICES,
+    FeatureMode,
+    Progress,
+    RefineMode,
+    SearchMode,
+    StageName,
+)
 from gsa.align.coarse import (
     AlignmentError,
     CoarseOptions,
@@ -27,18 +37,7 @@ from gsa.align.coarse import (
 )
 from gsa.align.nearest import query_workers
 from gsa.align.quality import quality_metrics, reverse_distances
-from gsa.align.types import (
-    EXTRACTOR_MODES,
-    FEATURE_MODES,
-    STAGE_CHOICES,
-    AlignmentResult,
-    AlignOptions,
-    FeatureMode,
-    Progress,
-    RefineMode,
-    SearchMode,
-    StageName,
-)
+from gsa.align.types import AlignmentResult, AlignOptions
 from gsa.canonical import (
     CanonicalFrame,
     canonical_features,

@@ -1,31 +1,47 @@
 """The option and result types of `align()` (gsa.align.pipeline re-exports them):
-AlignOptions with the choices it accepts, and AlignmentResult."""
+AlignOptions, checked against the choices of gsa.align.choices, and AlignmentResult."""
 
 from __future__ import annotations
 
-from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING, Literal, get_args
+from typing import TYPE_CHECKING
 
+from gsa.align.choices import (
+    EXTRACTOR_MODES,
+    FEATURE_MODES,
+    STAGE_CHOICES,
+    ExtractorMode,
+    FeatureMode,
+    FineLoss,
+    FineSignal,
+    Progress,
+    RefineMode,
+    SearchMode,
+    StageName,
+)
 from gsa.align.coarse import CoarseOptions, CoarseResult
 from gsa.canonical import CanonicalFrame
+from gsa.features.settings import FeatureSettings  # torch-free, so typing.get_type_hints(AlignOptions) resolves
 from gsa.sim3 import Sim3
+
+__all__ = [
+    "EXTRACTOR_MODES",
+    "FEATURE_MODES",
+    "STAGE_CHOICES",
+    "AlignOptions",
+    "AlignmentResult",
+    "ExtractorMode",
+    "FeatureMode",
+    "FineLoss",
+    "FineSignal",
+    "Progress",
+    "RefineMode",
+    "SearchMode",
+    "StageName",
+]
 
 if TYPE_CHECKING:
     from gsa.align.fine import FineResult
-    from gsa.features.settings import FeatureSettings
-
-Progress = Callable[[str, float], None]
-StageName = Literal["auto", "coarse", "fine"]
-FeatureMode = Literal["auto", "file", "canonical", "spheremap", "dinov2"]
-ExtractorMode = Literal["spheremap", "dinov2"]
-SearchMode = Literal["auto", "global", "frames"]
-RefineMode = Literal["auto", "on", "off"]
-FineLoss = Literal["smooth_l1", "l1", "l2"]
-FineSignal = Literal["features", "colors"]
-FEATURE_MODES: tuple[FeatureMode, ...] = get_args(FeatureMode)
-EXTRACTOR_MODES: tuple[ExtractorMode, ...] = get_args(ExtractorMode)
-STAGE_CHOICES: tuple[tuple[StageName, ...], ...] = (("auto",), ("coarse",), ("coarse", "fine"))
 
 
 @dataclass

@@ -5,12 +5,19 @@ feature-norm pruning, App. E)."""
 from __future__ import annotations
 
 import math
-from typing import TYPE_CHECKING
+from typing import Protocol
 
 import torch
 
-if TYPE_CHECKING:
-    from gsa.recon.train import TrainConfig
+
+class DensityConfig(Protocol):
+    """The gsa.recon.train.TrainConfig fields density control reads."""
+
+    grad_threshold: float
+    percent_dense: float
+    max_gaussians: int
+    prune_opacity: float
+    feature_prune: float
 
 
 class Adam:
@@ -53,7 +60,7 @@ class Adam:
 
 
 @torch.no_grad()
-def densify_and_prune(opt: Adam, avg_grad, cfg: TrainConfig, extent: float, rng, densify: bool) -> None:
+def densify_and_prune(opt: Adam, avg_grad, cfg: DensityConfig, extent: float, rng, densify: bool) -> None:
     p = opt.params
     n = len(p["means"])
     scales = p["log_scales"].exp()
