@@ -8,11 +8,14 @@ from __future__ import annotations
 
 import gc
 import logging
+import shutil
 import sys
 import tempfile
 import threading
 import time
 import uuid
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 
 from service.artifacts import collect_outputs, store_artifacts, synchronized_renders
@@ -194,8 +197,7 @@ def _run(backend: Backend, job: Job, token: str, prog: JobProgress, art_prefix: 
     except (TypeError, ValueError) as exc:
         raise Problem(422, "invalid-input", "Invalid options", str(exc)) from None
 
-    with tempfile.TemporaryDirectory(prefix="gsa-job-") as tmp:
-        work = Path(tmp)
+    with job_workspace(job.id, token) as work:
         prog("loading", 0.0)
         target = load_input(backend, job.target, work, "target", prog, reconstructions, recon_iterations)
         results, files, transforms = [], [], []
@@ -252,6 +254,22 @@ def _run(backend: Backend, job: Job, token: str, prog: JobProgress, art_prefix: 
         stage="done",
     )
     return JobState.succeeded if ok else None
+
+
+WORKSPACE_PREFIX = "gsa-job-"
+
+
+@contextmanager
+def job_workspace(job_id: str, token: str) -> Iterator[Path]:
+    """The attempt's temp folder, <tmp>/gsa-job-<job id>-<token[:12]>-<random>, removed
+    on every way out (success, failure, cancel, lease lost, timeout, and SIGTERM of
+    the work horse, which run_job turns into SystemExit). What a SIGKILL leaves behind
+    is swept by service.leases.sweep_workspaces (its name says whose it was)."""
+    d = Path(tempfile.mkdtemp(prefix=f"{WORKSPACE_PREFIX}{job_id}-{token[:12]}-"))
+    try:
+        yield d
+    finally:
+        shutil.rmtree(d, ignore_errors=True)
 
 
 def _release_memory() -> None:

@@ -14,9 +14,13 @@ from __future__ import annotations
 
 import logging
 import os
+import re
+import shutil
 import socket
+import tempfile
 import threading
 import time
+from pathlib import Path
 
 from service.backend import Backend, notify_webhook
 from service.models import Job, JobState
@@ -250,12 +254,53 @@ def resend_lost(backend: Backend) -> list[str]:
     return out
 
 
+_WORKSPACE = re.compile(r"^gsa-job-(job_[0-9a-f]+)-([0-9a-f]{12})-")
+
+
+def sweep_workspaces(backend: Backend, root: str | os.PathLike | None = None) -> list[Path]:
+    """Remove job temp folders (<tmp>/gsa-job-*) that no live attempt owns: left by
+    a work horse or worker that was SIGKILLed, or a process that died mid-job.
+
+    A folder is stale once it is older than the lease and its attempt (job id and
+    run token in its name) is not running on an unexpired lease; a folder in an
+    older naming is stale after job_timeout_s + lease_s. Runs at worker start-up
+    and on every reaper pass."""
+    s = backend.settings
+    now = time.time()
+    removed = []
+    for d in Path(root or tempfile.gettempdir()).glob("gsa-job-*"):
+        try:
+            age = now - d.stat().st_mtime
+        except OSError:
+            continue
+        if age < s.lease_s or not d.is_dir():
+            continue
+        m = _WORKSPACE.match(d.name)
+        if m:
+            job = backend.store.get(m.group(1))
+            live = (
+                job is not None
+                and job.state == JobState.running
+                and (job.run_token or "").startswith(m.group(2))
+                and (job.lease_until or 0) > now
+            )
+            if live:
+                continue
+        elif age < s.job_timeout_s + s.lease_s:
+            continue
+        shutil.rmtree(d, ignore_errors=True)
+        log.warning("removed stale job workspace %s", d)
+        removed.append(d)
+    return removed
+
+
 def start_reaper(backend: Backend, stop: threading.Event) -> threading.Thread:
     def loop():
         while not stop.wait(backend.settings.reaper_interval_s):
             try:
                 reap(backend)
                 resend_lost(backend)
+                sweep_workspaces(backend)
             except Exception as exc:
                 if infrastructure_problem(exc) is not None:  # Redis down, disk trouble: one line, not a traceback
                     log.warning("reaper pass failed: %s: %s", type(exc).__name__, exc)

@@ -14,7 +14,7 @@ import uuid
 
 from service.backend import Backend, process_backend
 from service.execution import execute
-from service.leases import reap, start_reaper
+from service.leases import reap, start_reaper, sweep_workspaces
 
 log = logging.getLogger("gsa.worker")
 
@@ -22,6 +22,7 @@ log = logging.getLogger("gsa.worker")
 def start_embedded_workers(backend: Backend, stop: threading.Event) -> list[threading.Thread]:
     """In-process workers for embedded mode: poll the SQLite queue, run jobs."""
     reap(backend, force=True)  # jobs "running" in a previous process were lost with it
+    sweep_workspaces(backend)  # and their temp folders with them
 
     def loop():
         while not stop.is_set():
@@ -46,9 +47,23 @@ def start_embedded_workers(backend: Backend, stop: threading.Event) -> list[thre
     return threads
 
 
+def _terminated(signum, frame):
+    raise SystemExit(128 + signum)
+
+
 def run_job(job_id: str) -> str | None:
-    """RQ task entry point (runs in the forked work horse)."""
-    state = execute(job_id, process_backend())
+    """RQ task entry point (runs in the forked work horse).
+
+    RQ's work horse dies at once on SIGTERM (SIG_DFL): here it becomes SystemExit,
+    so the attempt unwinds (its temp folder and partial artifacts are removed) and
+    the reaper requeues the job when its lease expires."""
+    main = threading.current_thread() is threading.main_thread()
+    previous = signal.signal(signal.SIGTERM, _terminated) if main else None
+    try:
+        state = execute(job_id, process_backend())
+    finally:
+        if main:
+            signal.signal(signal.SIGTERM, previous if previous is not None else signal.SIG_DFL)
     return state.value if state else None
 
 
@@ -109,6 +124,10 @@ def run_rq_worker(burst: bool = False, name: str | None = None) -> None:
         raise SystemExit("gsa worker needs GSA_REDIS_URL (embedded mode runs workers inside `gsa serve`)")
     s = backend.settings
     _warm_up()
+    try:
+        sweep_workspaces(backend)  # what a SIGKILLed horse on this machine left behind
+    except Exception as exc:  # Redis not up yet: the reaper sweeps later
+        log.warning("start-up sweep of job temp folders skipped: %s", exc)
     stop = threading.Event()
     start_reaper(backend, stop)
     queues = [backend.queue.hooks, backend.queue.q]  # webhooks first: they are tiny

@@ -254,3 +254,174 @@ def test_storage_errors_are_507_or_503_and_jobs_retry_them(tmp_path, pair, monke
         assert execute(jid, backend) == JobState.failed  # attempts spent
         job = c.get(f"/v1/jobs/{jid}", headers=H).json()
         assert job["error"]["type"].endswith("/insufficient-storage") and job["error"]["status"] == 507, job
+
+
+# ------------------------------------------------------------ job temp folders
+def _workspaces(root: Path) -> list[Path]:
+    return sorted(root.glob("gsa-job-*"))
+
+
+def test_every_exit_path_removes_the_job_temp_folder(tmp_path, pair, monkeypatch):
+    import tempfile
+
+    import gsa.align.pipeline as pipeline
+    from service.backend import make_backend
+    from service.models import JobState
+    from service.settings import Settings
+    from service.worker import execute
+
+    tmp = tmp_path / "tmp"
+    tmp.mkdir()
+    monkeypatch.setattr(tempfile, "tempdir", str(tmp))
+    s = Settings(storage_root=tmp_path / "data", api_keys={"k": "me"}, max_attempts=1)
+    backend = make_backend(s)
+    real_align = pipeline.align
+    seen = []
+
+    def submit() -> str:
+        from fastapi.testclient import TestClient
+
+        from service.api.app import create_app
+
+        with TestClient(create_app(s, backend, run_workers=False)) as c:
+            with open(pair["source"], "rb") as a, open(pair["target"], "rb") as b:
+                r = c.post(
+                    "/v1/jobs",
+                    headers={"Authorization": "Bearer k"},
+                    files=[("source", ("s.ply", a)), ("target", ("t.ply", b))],
+                    data={"options": '{"stages": ["coarse"], "outputs": ["result"]}'},
+                )
+        assert r.status_code == 202, r.text
+        return r.json()["id"]
+
+    def run_with(fake) -> tuple[JobState | None, str]:
+        jid = submit()
+
+        def align(source, target, opts, progress=None):
+            seen.append(_workspaces(tmp))
+            return fake(jid, source, target, opts, progress)
+
+        monkeypatch.setattr(pipeline, "align", align)
+        try:
+            state = execute(jid, backend)
+        finally:
+            monkeypatch.setattr(pipeline, "align", real_align)
+        assert seen[-1], "the attempt should have had a workspace"
+        assert _workspaces(tmp) == [], f"workspace left behind after {state}"
+        return state, jid
+
+    def ok(jid, *a):
+        return real_align(*a)
+
+    def boom(jid, *a):
+        raise RuntimeError("library bug")
+
+    def cancelled(jid, *a):
+        backend.store.update(jid, cancel_requested=True)
+        a[-1]("coarse", 0.5)
+
+    def lease_lost(jid, *a):
+        backend.store.update(jid, run_token="someone-else")
+        a[-1]("coarse", 0.5)
+
+    def timed_out(jid, *a):
+        backend.settings.job_timeout_s = 0.0
+        try:
+            a[-1]("coarse", 0.5)
+        finally:
+            backend.settings.job_timeout_s = 3600.0
+
+    def interrupted(jid, *a):
+        raise SystemExit(143)  # what run_job turns the work horse's SIGTERM into
+
+    assert run_with(ok)[0] == JobState.succeeded
+    assert run_with(boom)[0] == JobState.failed
+    assert run_with(cancelled)[0] == JobState.cancelled
+    assert run_with(lease_lost)[0] is None
+    assert run_with(timed_out)[0] == JobState.failed
+    with pytest.raises(SystemExit):
+        run_with(interrupted)
+    assert _workspaces(tmp) == []
+
+
+def test_sweep_removes_only_workspaces_no_live_attempt_owns(tmp_path):
+    import time as _time
+
+    from service.backend import make_backend
+    from service.leases import sweep_workspaces
+    from service.models import InputRef, Job, JobState
+    from service.settings import Settings
+
+    b = make_backend(Settings(storage_root=tmp_path / "data", lease_s=30, job_timeout_s=600))
+    ref = InputRef(asset_id="a", key="uploads/x/y", kind="ply")
+    now = _time.time()
+
+    def job(jid, state, token=None, lease=None):
+        b.store.create(Job(id=jid, owner="o", created_at=now, updated_at=now, sources=[ref], target=ref))
+        if state != JobState.queued:
+            b.store.update(jid, state=state, run_token=token, lease_until=lease)
+
+    tok = "a" * 32
+    job("job_" + "1" * 32, JobState.running, tok, now + 60)  # live attempt
+    job("job_" + "2" * 32, JobState.running, tok, now - 5)  # its worker died: lease expired
+    job("job_" + "3" * 32, JobState.failed)  # finished
+    job("job_" + "4" * 32, JobState.running, "b" * 32, now + 60)  # a newer attempt owns it
+    root = tmp_path / "tmp"
+    dirs = {}
+    for name, age in (
+        ("live", 120),
+        ("expired", 120),
+        ("finished", 120),
+        ("superseded", 120),
+        ("young", 5),
+        ("legacy-old", 1000),
+        ("legacy-recent", 120),
+    ):
+        n = {"live": 1, "expired": 2, "finished": 3, "superseded": 4, "young": 3}.get(name)
+        d = root / (f"gsa-job-job_{str(n) * 32}-{tok[:12]}-x{name}" if n else f"gsa-job-{name}")
+        (d / "out0").mkdir(parents=True)
+        (d / "source0.ply").write_bytes(b"ply")
+        os.utime(d, (now - age, now - age))
+        dirs[name] = d
+    removed = {p.name for p in sweep_workspaces(b, root)}
+    assert removed == {dirs[k].name for k in ("expired", "finished", "superseded", "legacy-old")}
+    assert {p.name for p in _workspaces(root)} == {dirs[k].name for k in ("live", "young", "legacy-recent")}
+
+
+def test_sigterm_of_the_work_horse_removes_its_temp_folder(tmp_path, redis_url, pair):
+    tmp = tmp_path / "tmp"
+    tmp.mkdir()
+    env = service_env(
+        tmp_path,
+        GSA_REDIS_URL=redis_url + "/2",
+        GSA_QUEUE_NAME="sigterm",
+        TMPDIR=str(tmp),
+        # no reaper pass during the test: the folder must go because the horse cleaned up
+        GSA_REAPER_INTERVAL_S="3600",
+        GSA_LEASE_S="60",
+    )
+    api, url, _ = start_api(tmp_path, env, name="api-sigterm")
+    worker = start_worker(tmp_path, env, name="worker-sigterm")
+    try:
+        with httpx.Client(base_url=url, headers=ALICE, timeout=60) as http_:
+            job, _ = submit_slow_job(http_, pair, copies=4)
+            wait_job(http_, job["id"], states=("running",), timeout=120)
+            wait_until(lambda: _workspaces(tmp), 60, 0.1, "the job's temp folder")
+            assert job["id"] in _workspaces(tmp)[0].name
+
+            def horse():
+                for pid in worker.descendants():
+                    try:
+                        pgrp = int(Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[2])
+                    except (OSError, ValueError, IndexError):
+                        continue
+                    if pgrp == pid:  # RQ's work horse leads its own process group
+                        return pid
+                return None
+
+            pid = wait_until(horse, 30, 0.1, "the work horse")
+            os.kill(pid, 15)
+            wait_until(lambda: not _workspaces(tmp), 60, 0.1, "the horse to remove its temp folder")
+    finally:
+        worker.stop()
+        api.stop()
