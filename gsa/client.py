@@ -33,6 +33,48 @@ class GSAError(Exception):
         super().__init__(f"{status} {problem.get('title', '')}: {problem.get('detail', '')}".strip())
 
 
+class ServiceUnreachable(ConnectionError):
+    """The service could not be reached at all (refused, unresolvable host,
+    connect timeout, connection dropped): no answer to report, only why."""
+
+    def __init__(self, url: str, reason: str):
+        self.url, self.reason = url, reason
+        super().__init__(f"cannot reach {url}: {reason}")
+
+
+def _reason(exc: BaseException) -> str:
+    """'connection refused', 'name or service not known', 'timed out', ...: the
+    operating system's words for why a connection failed, without errno noise."""
+    if isinstance(exc, httpx.TimeoutException):
+        return "timed out"
+    seen: set[int] = set()
+    e: BaseException | None = exc
+    while e is not None and id(e) not in seen:  # the OSError under httpx/httpcore's wrappers
+        seen.add(id(e))
+        if isinstance(e, OSError) and (e.strerror or e.errno):
+            return (e.strerror or os.strerror(e.errno)).lower()
+        e = e.__cause__ or e.__context__
+    text = str(exc)
+    if text.startswith("[Errno") and "] " in text:
+        text = text.split("] ", 1)[1]
+    return (text or type(exc).__name__).lower()
+
+
+class _Client(httpx.Client):
+    """httpx.Client whose failures to connect (or connections dropped before any
+    answer) raise ServiceUnreachable naming the server, not an httpx traceback."""
+
+    def __init__(self, *args, server: str, **kwargs):
+        super().__init__(*args, **kwargs)
+        self.server = server
+
+    def send(self, request: httpx.Request, **kwargs) -> httpx.Response:
+        try:
+            return super().send(request, **kwargs)
+        except (httpx.ConnectError, httpx.ConnectTimeout, httpx.RemoteProtocolError) as exc:
+            raise ServiceUnreachable(self.server, _reason(exc)) from exc
+
+
 class JobFailed(GSAError):
     def __init__(self, job: dict):
         self.job = job
@@ -51,7 +93,10 @@ class GSAClient:
         base_url = base_url or os.environ.get("GSA_SERVER", "http://127.0.0.1:8000")
         api_key = api_key if api_key is not None else os.environ.get("GSA_API_KEY")
         headers = {"Authorization": f"Bearer {api_key}"} if api_key else {}
-        self.http = httpx.Client(base_url=base_url, headers=headers, timeout=timeout, transport=transport)
+        self.base_url = str(base_url).rstrip("/")
+        self.http = _Client(
+            base_url=base_url, headers=headers, timeout=timeout, transport=transport, server=self.base_url
+        )
         self._etags: dict[str, tuple[str, dict]] = {}
 
     def close(self) -> None:

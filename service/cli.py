@@ -79,10 +79,32 @@ def add_service_parsers(subparsers) -> None:
 
     p = subparsers.add_parser("fetch", help="download a job's artifacts")
     p.add_argument("job_id")
-    p.add_argument("names", nargs="*", help="artifact names (default: all)")
+    p.add_argument("names", nargs="*", help="artifact names, e.g. result.json (default: all)")
     p.add_argument("--out", default=".", help="output folder")
     client_args(p)
     p.set_defaults(func=cmd_fetch)
+    _intermixed(p)  # `gsa fetch JOB --out DIR result.json`: names may follow the options
+
+
+def _intermixed(parser: argparse.ArgumentParser) -> None:
+    """Let this subparser's positionals come after its options.
+
+    argparse fills `job_id` and an empty nargs="*" `names` from the first run of
+    positionals, so in `fetch JOB --out DIR result.json` the name was "unrecognized".
+    The top-level parser (gsa/cli.py) hands a subcommand's arguments to
+    subparser.parse_known_args, which this routes through parse_known_intermixed_args
+    (that calls parse_known_args again itself: the flag lets the inner call through)."""
+
+    def parse_known_args(args=None, namespace=None):
+        if getattr(parser, "_in_intermixed", False):
+            return argparse.ArgumentParser.parse_known_args(parser, args, namespace)
+        parser._in_intermixed = True
+        try:
+            return argparse.ArgumentParser.parse_known_intermixed_args(parser, args, namespace)
+        finally:
+            parser._in_intermixed = False
+
+    parser.parse_known_args = parse_known_args
 
 
 def _settings_env(args) -> None:
@@ -160,18 +182,61 @@ def _progress(job) -> None:
     )
 
 
+EXIT_UNREACHABLE = 3  # no answer from the server (1: it answered an error, or the job failed)
+EXIT_BROKEN_PIPE = 128 + 13  # what a shell reports for a process ended by SIGPIPE
+
+
 def _errors(fn):
+    """Client verbs end with one clear line, never a traceback: the server's
+    problem (exit 1), the server not reachable (exit 3), or the reader of our
+    output gone (`gsa status J | head -1`: exit 141, nothing printed)."""
+
     def wrapped(args) -> int:
-        from gsa.client import GSAError
+        import httpx
+
+        from gsa.client import GSAError, ServiceUnreachable
 
         try:
-            return fn(args)
+            try:
+                rc = fn(args)
+            finally:
+                sys.stdout.flush()  # a closed pipe shows up here, not at interpreter exit
+            return rc
+        except BrokenPipeError:
+            _silence_stdout()
+            return EXIT_BROKEN_PIPE
         except GSAError as exc:
             print(f"error: {exc}", file=sys.stderr)
-            _print(exc.problem)
+            _print_quietly(exc.problem)
             return 1
+        except ServiceUnreachable as exc:
+            print(f"gsa: {exc}", file=sys.stderr)
+            return EXIT_UNREACHABLE
+        except httpx.HTTPError as exc:  # a read timeout, a connection dropped mid-answer, ...
+            reason = str(exc) or type(exc).__name__
+            print(f"gsa: request to {args.server} failed: {reason}", file=sys.stderr)
+            return EXIT_UNREACHABLE
 
     return wrapped
+
+
+def _silence_stdout() -> None:
+    """Point stdout at /dev/null so the interpreter's final flush does not raise
+    BrokenPipeError again ("Exception ignored ... Broken pipe")."""
+    try:
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(devnull, sys.stdout.fileno())
+        os.close(devnull)
+    except (OSError, ValueError):
+        pass
+
+
+def _print_quietly(obj) -> None:
+    try:
+        _print(obj)
+        sys.stdout.flush()
+    except BrokenPipeError:
+        _silence_stdout()
 
 
 @_errors
