@@ -262,8 +262,9 @@ def sweep_workspaces(backend: Backend, root: str | os.PathLike | None = None) ->
     a work horse or worker that was SIGKILLed, or a process that died mid-job.
 
     A folder is stale once it is older than the lease and its attempt (job id and
-    run token in its name) is not running on an unexpired lease; a folder in an
-    older naming is stale after job_timeout_s + lease_s. Runs at worker start-up
+    run token in its name) is not running on an unexpired lease; a folder whose
+    job this store does not know (another deployment on the machine, an older
+    naming) only after job_timeout_s + lease_s. Runs at worker start-up
     and on every reaper pass."""
     s = backend.settings
     now = time.time()
@@ -276,17 +277,18 @@ def sweep_workspaces(backend: Backend, root: str | os.PathLike | None = None) ->
         if age < s.lease_s or not d.is_dir():
             continue
         m = _WORKSPACE.match(d.name)
-        if m:
-            job = backend.store.get(m.group(1))
+        job = backend.store.get(m.group(1)) if m else None
+        if job is not None:
             live = (
-                job is not None
-                and job.state == JobState.running
+                job.state == JobState.running
                 and (job.run_token or "").startswith(m.group(2))
                 and (job.lease_until or 0) > now
             )
             if live:
                 continue
         elif age < s.job_timeout_s + s.lease_s:
+            # Not a job of this store (another deployment sharing the machine's temp
+            # folder, or an older naming): only once no attempt can still be running.
             continue
         shutil.rmtree(d, ignore_errors=True)
         log.warning("removed stale job workspace %s", d)

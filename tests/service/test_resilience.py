@@ -376,16 +376,20 @@ def test_sweep_removes_only_workspaces_no_live_attempt_owns(tmp_path):
         ("young", 5),
         ("legacy-old", 1000),
         ("legacy-recent", 120),
+        ("other-store", 120),  # a job this store does not know: another deployment's
+        ("other-store-old", 1000),
     ):
-        n = {"live": 1, "expired": 2, "finished": 3, "superseded": 4, "young": 3}.get(name)
+        n = {"live": 1, "expired": 2, "finished": 3, "superseded": 4, "young": 3, "other-store": 7}.get(name)
+        n = {"other-store-old": 8}.get(name, n)
         d = root / (f"gsa-job-job_{str(n) * 32}-{tok[:12]}-x{name}" if n else f"gsa-job-{name}")
         (d / "out0").mkdir(parents=True)
         (d / "source0.ply").write_bytes(b"ply")
         os.utime(d, (now - age, now - age))
         dirs[name] = d
     removed = {p.name for p in sweep_workspaces(b, root)}
-    assert removed == {dirs[k].name for k in ("expired", "finished", "superseded", "legacy-old")}
-    assert {p.name for p in _workspaces(root)} == {dirs[k].name for k in ("live", "young", "legacy-recent")}
+    assert removed == {dirs[k].name for k in ("expired", "finished", "superseded", "legacy-old", "other-store-old")}
+    kept = ("live", "young", "legacy-recent", "other-store")
+    assert {p.name for p in _workspaces(root)} == {dirs[k].name for k in kept}
 
 
 def test_sigterm_of_the_work_horse_removes_its_temp_folder(tmp_path, redis_url, pair):
