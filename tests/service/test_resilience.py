@@ -429,3 +429,32 @@ def test_sigterm_of_the_work_horse_removes_its_temp_folder(tmp_path, redis_url, 
     finally:
         worker.stop()
         api.stop()
+
+
+def test_embedded_store_errors_are_problems(tmp_path, monkeypatch):
+    """SQLite's equivalents: a locked database is 503 + Retry-After, a full one 507,
+    and a genuine bug (no such table) stays a 500."""
+    import sqlite3
+
+    from fastapi.testclient import TestClient
+
+    from service.api.app import create_app
+    from service.backend import make_backend
+    from service.settings import Settings
+
+    s = Settings(storage_root=tmp_path / "data", api_keys={"k": "me"}, unavailable_retry_after_s=11)
+    backend = make_backend(s)
+    with TestClient(create_app(s, backend, run_workers=False), raise_server_exceptions=False) as c:
+        for message, status, kind in (
+            ("database is locked", 503, "store-unavailable"),
+            ("database or disk is full", 507, "insufficient-storage"),
+            ("no such table: jobs", 500, "internal-error"),
+        ):
+
+            def get(job_id, message=message):
+                raise sqlite3.OperationalError(message)
+
+            monkeypatch.setattr(backend.store, "get", get)
+            r = c.get("/v1/jobs/job_x", headers={"Authorization": "Bearer k"})
+            assert_problem(r, status, kind)
+            assert (r.headers.get("Retry-After") == "11") == (status == 503), r.headers
