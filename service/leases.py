@@ -262,7 +262,7 @@ def sweep_workspaces(backend: Backend, root: str | os.PathLike | None = None) ->
     a work horse or worker that was SIGKILLed, or a process that died mid-job.
 
     A folder is stale once it is older than the lease and its attempt (job id and
-    run token in its name) is not running on an unexpired lease; a folder whose
+    run token in its name) no longer runs the job (reaped, finished); a folder whose
     job this store does not know (another deployment on the machine, an older
     naming) only after job_timeout_s + lease_s. Runs at worker start-up
     and on every reaper pass."""
@@ -279,12 +279,10 @@ def sweep_workspaces(backend: Backend, root: str | os.PathLike | None = None) ->
         m = _WORKSPACE.match(d.name)
         job = backend.store.get(m.group(1)) if m else None
         if job is not None:
-            live = (
-                job.state == JobState.running
-                and (job.run_token or "").startswith(m.group(2))
-                and (job.lease_until or 0) > now
-            )
-            if live:
+            # Still this attempt's job: leave it, even with a lapsed lease (a heartbeat
+            # late under load renews it). A dead worker's job is reaped soon (fresh
+            # token or a final state), and then its folder goes.
+            if job.state == JobState.running and (job.run_token or "").startswith(m.group(2)):
                 continue
         elif age < s.job_timeout_s + s.lease_s:
             # Not a job of this store (another deployment sharing the machine's temp

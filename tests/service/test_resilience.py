@@ -363,7 +363,7 @@ def test_sweep_removes_only_workspaces_no_live_attempt_owns(tmp_path):
 
     tok = "a" * 32
     job("job_" + "1" * 32, JobState.running, tok, now + 60)  # live attempt
-    job("job_" + "2" * 32, JobState.running, tok, now - 5)  # its worker died: lease expired
+    job("job_" + "2" * 32, JobState.queued)  # its worker died: the reaper requeued it
     job("job_" + "3" * 32, JobState.failed)  # finished
     job("job_" + "4" * 32, JobState.running, "b" * 32, now + 60)  # a newer attempt owns it
     root = tmp_path / "tmp"
