@@ -142,6 +142,9 @@ __all__ = [
 ]
 
 
+# The protocols below look up the pair generators, default_runners, align and FINE_ROWS in
+# this module when they run, so a test can replace them here (monkeypatch.setattr(P, ...)).
+
 # Rows that run the fine stage (it renders, so they dominate a protocol's time). Always on in
 # a real run; unit tests of the protocol tables switch it off.
 FINE_ROWS = True
