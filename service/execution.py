@@ -108,9 +108,12 @@ def execute(job_id: str, backend: Backend) -> JobState | None:
             )
     finally:
         stop.set()
-        prog.finish()
-        if final != JobState.succeeded:
-            backend.storage.delete_prefix(art_prefix)  # no partial artifacts from a failed attempt
+        try:  # clean-up must not mask the attempt's outcome (e.g. Redis or the disk gone meanwhile)
+            prog.finish()
+            if final != JobState.succeeded:
+                backend.storage.delete_prefix(art_prefix)  # no partial artifacts from a failed attempt
+        except Exception:
+            log.exception("job %s: clean-up after the attempt failed", job_id)
         _release_memory()
     if final is not None and final != JobState.queued:
         notify_webhook(backend, job_id)
