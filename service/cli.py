@@ -19,6 +19,7 @@ def add_service_parsers(subparsers) -> None:
     p.add_argument("--host", default="127.0.0.1")
     p.add_argument("--port", type=int, default=8000)
     p.add_argument("--grpc-port", type=int, help="also serve gRPC on this port")
+    p.add_argument("--grpc-host", help="gRPC bind address (default $GSA_GRPC_HOST or 127.0.0.1, as --host)")
     p.add_argument(
         "--redis-url",
         help="Redis URL (default $GSA_REDIS_URL); none = embedded worker + SQLite",
@@ -115,6 +116,8 @@ def _settings_env(args) -> None:
         os.environ["GSA_STORAGE_ROOT"] = args.storage_root
     if getattr(args, "grpc_port", None):
         os.environ["GSA_GRPC_PORT"] = str(args.grpc_port)
+    if getattr(args, "grpc_host", None):
+        os.environ["GSA_GRPC_HOST"] = args.grpc_host
     if getattr(args, "workers", None):
         os.environ["GSA_EMBEDDED_WORKERS"] = str(args.workers)
     if getattr(args, "no_auth", False):

@@ -313,3 +313,17 @@ def test_cancel_queued_and_job_timeout_in_process(tmp_path, pair):
         job = c.get(f"/v1/jobs/{jid}", headers=H).json()
         assert job["error"]["type"].endswith("/job-timeout") and job["error"]["status"] == 504
         assert job["artifacts"] == [] and job["attempts"] == 1
+
+
+def test_serve_grpc_host_flag_reaches_the_settings(monkeypatch):
+    from gsa.cli import build_parser
+    from service.cli import _settings_env
+    from service.settings import Settings
+
+    # setenv first: monkeypatch then restores both variables, which _settings_env writes directly
+    for name in ("GSA_GRPC_HOST", "GSA_GRPC_PORT"):
+        monkeypatch.setenv(name, "")
+        monkeypatch.delenv(name)
+    args = build_parser().parse_args(["serve", "--grpc-port", "50099", "--grpc-host", "127.0.0.3"])
+    _settings_env(args)
+    assert Settings().grpc_host == "127.0.0.3"
