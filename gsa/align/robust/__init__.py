@@ -24,7 +24,9 @@ part in it. This module does not trust any single frame:
    confidence; near-ties are reported as ambiguous with their poses.
 
 Modules: anchoring (1, and the colour trust), search (2-3, with the numba scoring and
-capture kernels), refine (the full-resolution refinement, frame relabellings, verdict).
+capture kernels), placement (the widened search for doubtful answers), poses (one
+pose's score, the anchor ICP, the decision), refine (the full-resolution refinement,
+frame relabellings, verdict).
 """
 
 from gsa.align.robust.anchoring import (
@@ -35,6 +37,20 @@ from gsa.align.robust.anchoring import (
     colour_weight,
     floater_mask,
     srgb_to_lab,
+)
+from gsa.align.robust.poses import (
+    COLOUR_MATCH,
+    COLOUR_PAIR_DISTANCE,
+    COLOUR_SIGMA,
+    DISTINCT_DEG,
+    SCORE_TIE,
+    TRUNCATION,
+    Candidate,
+    SearchResult,
+    bidirectional_icp,
+    decide,
+    rotation_offset_deg,
+    score_pose,
 )
 from gsa.align.robust.refine import (
     CONFIDENCE_THRESHOLD,
@@ -48,23 +64,7 @@ from gsa.align.robust.refine import (
     refine,
     verdict,
 )
-from gsa.align.robust.search import (
-    COLOUR_MATCH,
-    COLOUR_PAIR_DISTANCE,
-    COLOUR_SIGMA,
-    DISTINCT_DEG,
-    RIVAL_WINDOW,
-    SCORE_TIE,
-    TRUNCATION,
-    Candidate,
-    SearchOptions,
-    SearchResult,
-    bidirectional_icp,
-    decide,
-    global_search,
-    rotation_offset_deg,
-    score_pose,
-)
+from gsa.align.robust.search import RIVAL_WINDOW, SearchOptions, global_search
 
 __all__ = [
     "Anchors",

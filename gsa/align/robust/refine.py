@@ -7,7 +7,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from gsa.align.nearest import nearest_candidate
-from gsa.align.robust.search import Candidate, SearchResult
+from gsa.align.robust.poses import Candidate, SearchResult
 from gsa.canonical import SIGNED_PERMUTATIONS, CanonicalFrame, relabelling_label
 from gsa.geometry import rotation_distance_deg
 from gsa.sim3 import DegenerateCorrespondencesError, Sim3, solve_sim3

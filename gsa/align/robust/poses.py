@@ -1,0 +1,205 @@
+"""Pose candidates of the robust search: the overlap score of one pose (truncated
+closeness both ways, colour as far as the models share it), the bidirectional coloured
+ICP on the anchors, and the decision between refined poses (ties -> ambiguous)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from gsa.align.robust.anchoring import Anchors
+from gsa.geometry import rotation_distance_deg
+from gsa.sim3 import DegenerateCorrespondencesError, Sim3, solve_sim3
+
+# Truncation of distances in the overlap score, as a fraction of the target's
+# anchor RMS radius: far enough to count near misses, near enough that a wrong
+# pose gains nothing from points that merely lie inside the other model's box.
+TRUNCATION = 0.1
+# Pairs closer than this (fraction of the target radius) compare colours.
+COLOUR_PAIR_DISTANCE = 0.05
+# Colour similarity of a pair: exp(−ΔE² / 2σ²) in CIELAB.
+COLOUR_SIGMA = 12.0
+# In coloured matching, a ΔE of COLOUR_SIGMA weighs like this fraction of the truncation distance.
+COLOUR_MATCH = 0.5
+# Poses whose scores differ by less than this are a tie (a symmetric shape whose
+# colours cannot tell its sides apart): the result is ambiguous.
+SCORE_TIE = 0.03
+# Rotations closer than this are one pose, not alternatives.
+DISTINCT_DEG = 15.0
+
+
+@dataclass
+class Candidate:
+    transform: Sim3
+    origin: str  # "grid" or "frame:<relabelling>"
+    score: float = 0.0  # what poses are ranked by: overlap, with colour as far as the models share it
+    geometry: float = 0.0  # overlap alone: truncated closeness both ways, in [0, 1]
+    colour: float = 0.0  # colour agreement of overlapping pairs in [0, 1]
+    overlap: float = 0.0  # fraction of anchors (both ways) with a partner within COLOUR_PAIR_DISTANCE
+
+    def to_dict(self, reference: Sim3 | None = None) -> dict:
+        out = {
+            "origin": self.origin,
+            "score": self.score,
+            "geometry": self.geometry,
+            "colour": self.colour,
+            "overlap": self.overlap,
+        }
+        if reference is not None:
+            out["rotation_offset_deg"] = rotation_offset_deg(self.transform, reference)
+            out["scale_ratio"] = self.transform.scale / reference.scale
+        out["transform"] = self.transform.matrix().tolist()
+        return out
+
+
+def rotation_offset_deg(a: Sim3, b: Sim3) -> float:
+    return rotation_distance_deg(a.rotation, b.rotation)
+
+
+@dataclass
+class SearchResult:
+    candidates: list[Candidate]  # refined and de-duplicated, the chosen one first
+    colour_weight: float  # how far colour counted in the scores (0: not shared by the models)
+    margin: float  # lead over the best distinct alternative, in units of SCORE_TIE
+    rivals: list[Candidate]  # the poses tied with the best
+
+    @property
+    def best(self) -> Candidate:
+        return self.candidates[0]
+
+    @property
+    def ambiguous(self) -> bool:
+        """A distinct pose ties with the best."""
+        return bool(self.rivals)
+
+
+def _pair_scores(d: np.ndarray, lab_a: np.ndarray, lab_b: np.ndarray, tau: float, w_colour: float) -> np.ndarray:
+    """Per point: truncated closeness to its partner, c·(1 − 2w(1 − k)) with k the
+    colour similarity and w the trust in colour. With trusted colour a close pair of
+    the wrong colour counts against a pose (one object cannot disagree with itself),
+    while a point with no partner counts nothing (the other capture may lack it):
+    a partial capture's flip can overlap more than its true pose, never in colour."""
+    closeness = 1.0 - np.minimum(d, tau) / tau
+    if w_colour <= 0:
+        return closeness
+    de2 = np.sum((lab_a - lab_b) ** 2, axis=-1)
+    return closeness * (1.0 - 2.0 * w_colour * (1.0 - np.exp(-0.5 * de2 / COLOUR_SIGMA**2)))
+
+
+def bidirectional_icp(
+    src: Anchors,
+    dst: Anchors,
+    init: Sim3,
+    src_rows: np.ndarray,
+    dst_rows: np.ndarray,
+    iterations: int,
+    w_colour: float = 0.0,
+    trim: float = 4.0,
+) -> Sim3:
+    """Robust ICP with Horn's symmetric scale on correspondences from both
+    directions: a source anchor's nearest target anchor, and a target anchor's
+    nearest mapped source anchor. One direction alone lets a partial model's
+    scale drift (it matches into the other's interior); both pin it. Pairs get
+    Tukey weights (cut-off trim × median distance) times their colour similarity
+    as far as colour is trusted: where two partial captures do not overlap, the
+    nearest partner is close in space but the wrong colour."""
+    p, q = src.points[src_rows], dst.points[dst_rows]
+    transform = init
+    # With trusted colour, partners are searched in (position, λ·Lab): a colour
+    # difference of COLOUR_SIGMA weighs like a fraction of the truncation distance,
+    # so matches reach across a misalignment towards the same-coloured part.
+    lam = COLOUR_MATCH * TRUNCATION * dst.radius / COLOUR_SIGMA * w_colour
+    if lam > 0:
+        dst_tree = cKDTree(np.hstack([dst.points, lam * dst.lab]))
+        # In source units the colour axis shrinks with the scale; the start's scale is
+        # close enough for choosing partners (distances below are exact).
+        lam_src = lam / init.scale
+        src_tree = cKDTree(np.hstack([src.points, lam_src * src.lab]))
+        p_lab, q_lab = lam * src.lab[src_rows], lam_src * dst.lab[dst_rows]
+    for _ in range(iterations):
+        if lam > 0:
+            _, j = dst_tree.query(np.hstack([transform.apply(p), p_lab]), k=1)
+            _, i = src_tree.query(np.hstack([transform.inverse().apply(q), q_lab]), k=1)
+            d_f = np.linalg.norm(transform.apply(p) - dst.points[j], axis=1)
+            d_r = np.linalg.norm(q - transform.apply(src.points[i]), axis=1)
+        else:
+            d_f, j = dst.tree.query(transform.apply(p), k=1)
+            d_r, i = src.tree.query(transform.inverse().apply(q), k=1)
+            d_r = d_r * transform.scale
+        a = np.concatenate([p, src.points[i]])
+        b = np.concatenate([dst.points[j], q])
+        d = np.concatenate([d_f, d_r])
+        cut = trim * max(float(np.median(d)), 1e-12 * dst.radius)
+        weight = np.clip(1.0 - (d / cut) ** 2, 0.0, None) ** 2
+        if w_colour > 0:
+            de2 = np.concatenate(
+                [np.sum((src.lab[src_rows] - dst.lab[j]) ** 2, 1), np.sum((dst.lab[dst_rows] - src.lab[i]) ** 2, 1)]
+            )
+            colour = (1.0 - w_colour) + w_colour * np.exp(-0.5 * de2 / COLOUR_SIGMA**2)
+            weight = weight * colour
+        keep = weight > 1e-6
+        try:
+            new = solve_sim3(a[keep], b[keep], weight[keep])
+        except DegenerateCorrespondencesError:
+            break
+        step = new @ transform.inverse()
+        transform = new
+        # Anchors are a summary: the full-resolution refinement does the last digits.
+        if (
+            rotation_distance_deg(step.rotation, np.eye(3)) < 0.01
+            and abs(np.log(step.scale)) < 1e-4
+            and np.linalg.norm(step.translation) < 1e-4 * dst.radius
+        ):
+            break
+    return transform
+
+
+def score_pose(src: Anchors, dst: Anchors, transform: Sim3, origin: str = "", w_colour: float = 0.0) -> Candidate:
+    """Score, overlap-only geometry, colour agreement and overlap fraction of a pose (all anchors)."""
+    tau = TRUNCATION * dst.radius
+    d_f, j = dst.tree.query(transform.apply(src.points), k=1)
+    d_r, i = src.tree.query(transform.inverse().apply(dst.points), k=1)
+    d_r = d_r * transform.scale
+
+    def both(fwd: np.ndarray, rev: np.ndarray) -> float:
+        return float(0.5 * (np.average(fwd, weights=src.weights) + np.average(rev, weights=dst.weights)))
+
+    score = both(
+        _pair_scores(d_f, src.lab, dst.lab[j], tau, w_colour), _pair_scores(d_r, dst.lab, src.lab[i], tau, w_colour)
+    )
+    geometry = both(1 - np.minimum(d_f, tau) / tau, 1 - np.minimum(d_r, tau) / tau)
+    near = COLOUR_PAIR_DISTANCE * dst.radius
+    pair_f, pair_r = d_f <= near, d_r <= near
+    de = np.concatenate(
+        [
+            np.linalg.norm(src.lab[pair_f] - dst.lab[j[pair_f]], axis=1),
+            np.linalg.norm(dst.lab[pair_r] - src.lab[i[pair_r]], axis=1),
+        ]
+    )
+    colour = float(np.mean(np.exp(-0.5 * (de / COLOUR_SIGMA) ** 2))) if len(de) else 0.0
+    overlap = float(0.5 * (pair_f.mean() + pair_r.mean()))
+    return Candidate(transform, origin, score, geometry, colour, overlap)
+
+
+def _dedupe(cands: list[Candidate]) -> list[Candidate]:
+    """Several starts converge to one pose: keep the best-scoring copy of each."""
+    cands = sorted(cands, key=lambda c: -c.score)
+    out: list[Candidate] = []
+    for c in cands:
+        if all(
+            rotation_offset_deg(c.transform, o.transform) > DISTINCT_DEG
+            or abs(np.log(c.transform.scale / o.transform.scale)) > 0.2
+            for o in out
+        ):
+            out.append(c)
+    return out
+
+
+def decide(cands: list[Candidate], w_colour: float) -> SearchResult:
+    """The best score wins; a distinct pose within SCORE_TIE of it makes the result ambiguous."""
+    best = cands[0]
+    rivals = [c for c in cands[1:] if c.score >= best.score - SCORE_TIE]
+    margin = (best.score - cands[1].score) / SCORE_TIE if len(cands) > 1 else float("inf")
+    return SearchResult(cands, w_colour, float(margin), rivals)
