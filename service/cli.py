@@ -132,13 +132,16 @@ def cmd_serve(args) -> int:
     import uvicorn
 
     from service.api.app import create_app
+    from service.api.request_ids import RequestIdFilter
     from service.settings import Settings
 
     _settings_env(args)
     logging.basicConfig(
         level=args.log_level.upper(),
-        format="%(asctime)s %(levelname)s %(name)s: %(message)s",
+        format="%(asctime)s %(levelname)s %(name)s [%(request_id)s]: %(message)s",
     )
+    for handler in logging.getLogger().handlers:
+        handler.addFilter(RequestIdFilter())  # "-" outside requests
     settings = Settings()
     mode = "embedded (SQLite + in-process worker)" if settings.embedded else f"distributed (Redis {settings.redis_url})"
     print(

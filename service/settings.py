@@ -66,6 +66,9 @@ class Settings(BaseSettings):
     worker_reconnect_max_s: float = 30.0
     # Retry-After (seconds) on the 503 answered while the job store is unreachable.
     unavailable_retry_after_s: int = 5
+    # Browser origins allowed to call the API (CORS), e.g. GSA_CORS_ORIGINS='["https://assets.example"]';
+    # empty: no CORS headers, browsers on other origins are refused.
+    cors_origins: list[str] = []
 
     webhook_secret: str | None = None
     webhook_max_attempts: int = 5

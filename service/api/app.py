@@ -13,10 +13,12 @@ import threading
 from contextlib import asynccontextmanager
 
 from fastapi import FastAPI, Request
+from fastapi.middleware.cors import CORSMiddleware
 
 from service.api import artifacts, assets, jobs, ops
 from service.api.middleware import BodyLimit, RequestMetrics, install_error_handlers, problem_response
 from service.api.openapi import custom_openapi
+from service.api.request_ids import RequestIds
 from service.backend import Backend, make_backend
 from service.leases import start_reaper
 from service.metrics import Metrics
@@ -83,6 +85,22 @@ def create_app(
 
     app.add_middleware(BodyLimit, max_bytes_for=cap)
     app.add_middleware(RequestMetrics, metrics=app.state.metrics)
+    if s.cors_origins:
+        app.add_middleware(
+            CORSMiddleware,
+            allow_origins=s.cors_origins,
+            allow_methods=["GET", "HEAD", "POST", "DELETE", "OPTIONS"],
+            allow_headers=[
+                "Authorization",
+                "Content-Type",
+                "Idempotency-Key",
+                "If-None-Match",
+                "Range",
+                "X-Request-Id",
+            ],
+            expose_headers=["X-Request-Id", "ETag", "Location", "Retry-After", "Content-Range"],
+        )
+    app.add_middleware(RequestIds)  # outermost: every response, even a refused one, carries its id
     # This order is the order of the paths in the OpenAPI document.
     for resource in (ops, assets, jobs, artifacts):
         app.include_router(resource.router)

@@ -126,7 +126,9 @@ def service_env(tmp: Path, **extra) -> dict:
     return env
 
 
-def start_api(tmp: Path, env: dict, grpc: bool = False, name="api") -> tuple[Proc, str, int | None]:
+def start_api(
+    tmp: Path, env: dict, grpc: bool = False, name="api", log_level: str = "warning"
+) -> tuple[Proc, str, int | None]:
     port = free_port()
     gport = free_port() if grpc else None
     args = [
@@ -137,7 +139,7 @@ def start_api(tmp: Path, env: dict, grpc: bool = False, name="api") -> tuple[Pro
         "--port",
         str(port),
         "--log-level",
-        "warning",
+        log_level,
     ]
     if gport:
         args += ["--grpc-port", str(gport)]
