@@ -5,9 +5,12 @@ in-process worker thread)."""
 from __future__ import annotations
 
 import logging
+import shutil
+import tempfile
 import threading
 import uuid
 from dataclasses import dataclass, field
+from pathlib import Path
 
 from service.redis_store import RedisJobStore
 from service.settings import Settings, get_settings
@@ -111,7 +114,25 @@ class Backend:
     threads: list = field(default_factory=list)
 
     def ready(self) -> dict[str, bool]:
-        return {"store": self.store.ping(), "storage": self.storage.ping()}
+        return {"store": self.store.ping(), "storage": self.storage.ping(), "disk_space": self.disk_space_ok()}
+
+    def disk_space_ok(self) -> bool:
+        """Free space on the local disks a job writes to (job workspaces in the temp
+        folder; blobs too with local storage) is at least settings.min_free_bytes: a
+        full disk should take the instance out of rotation before jobs fail on it."""
+        folders = {Path(tempfile.gettempdir())}
+        if self.settings.storage_backend != "s3":
+            folders.add(Path(self.settings.storage_root))
+        try:
+            return all(shutil.disk_usage(_existing(f)).free >= self.settings.min_free_bytes for f in folders)
+        except OSError:
+            return False
+
+
+def _existing(folder: Path) -> Path:
+    while not folder.exists() and folder != folder.parent:
+        folder = folder.parent
+    return folder
 
 
 def make_backend(settings: Settings | None = None) -> Backend:

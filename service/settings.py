@@ -66,6 +66,8 @@ class Settings(BaseSettings):
     worker_reconnect_max_s: float = 30.0
     # Retry-After (seconds) on the 503 answered while the job store is unreachable.
     unavailable_retry_after_s: int = 5
+    # /readyz answers 503 below this much free space in the temp folder or local storage.
+    min_free_bytes: int = 256 * 1024 * 1024
     # Browser origins allowed to call the API (CORS), e.g. GSA_CORS_ORIGINS='["https://assets.example"]';
     # empty: no CORS headers, browsers on other origins are refused.
     cors_origins: list[str] = []

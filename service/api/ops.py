@@ -29,7 +29,7 @@ def readyz(b: B):
     checks = b.ready()
     if not all(checks.values()):
         bad = ", ".join(k for k, v in checks.items() if not v)
-        p = ProblemError(503, "not-ready", "Service not ready", f"unreachable: {bad}", checks=checks)
+        p = ProblemError(503, "not-ready", "Service not ready", f"failing: {bad}", checks=checks)
         p.headers["Retry-After"] = str(b.settings.unavailable_retry_after_s)
         raise p
     return Health(status="ready", checks=checks)
