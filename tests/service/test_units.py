@@ -271,7 +271,7 @@ def test_readyz_reports_unreachable_redis(tmp_path):
     with TestClient(create_app(s)) as c:
         r = c.get("/readyz")
         assert r.status_code == 503 and r.headers["content-type"].startswith("application/problem+json")
-        assert r.json()["checks"] == {"store": False, "storage": True}
+        assert r.json()["checks"] == {"store": False, "storage": True, "disk_space": True}
         assert c.get("/healthz").status_code == 200
 
 
