@@ -47,7 +47,8 @@ def add_lift_parser(subparsers) -> None:
 
 
 def cmd_lift(args) -> int:
-    from gsa.features import FeatureSettings, lift_features, make_extractor, prune_background
+    from gsa.features import FeatureSettings, make_extractor, prune_background
+    from gsa.features.prepare import lift_with_settings
     from gsa.io.ply import read_ply, write_ply
     from gsa.settings_env import feature_settings_env
 
@@ -78,17 +79,7 @@ def cmd_lift(args) -> int:
             last[0] = key
             print(f"[gsa] {stage} {int(frac * 100)}%", file=sys.stderr, flush=True)
 
-    lifted, report = lift_features(
-        model,
-        extractor,
-        views=s.lift_views,
-        image_size=s.lift_image_size,
-        iterations=s.lift_iterations,
-        lr=s.lift_lr,
-        batch_views=s.lift_batch_views,
-        backend=s.backend,
-        progress=progress,
-    )
+    lifted, report = lift_with_settings(model, extractor, s, progress)
     removed = 0
     if s.prune_threshold > 0:
         lifted, removed = prune_background(lifted, s.prune_threshold)

@@ -81,9 +81,20 @@ def prepare_for_alignment(
         out.metadata["features"] = "canonical"
         return out
     ext = extractor if extractor is not None else make_extractor(mode, settings)
-    lifted, report = lift_features(
+    lifted, report = lift_with_settings(model, ext, settings, progress)
+    if reports is not None:
+        reports.append(report)
+    if settings.prune_threshold > 0:
+        lifted, _ = prune_background(lifted, settings.prune_threshold)
+    return lifted
+
+
+def lift_with_settings(model: GaussianModel, extractor, settings: FeatureSettings, progress=None):
+    """lift_features with the lifting parameters of `settings` (views, size, iterations,
+    learning rate, views per batch, backend): (lifted model, LiftReport)."""
+    return lift_features(
         model,
-        ext,
+        extractor,
         views=settings.lift_views,
         image_size=settings.lift_image_size,
         iterations=settings.lift_iterations,
@@ -92,11 +103,6 @@ def prepare_for_alignment(
         backend=settings.backend,
         progress=progress,
     )
-    if reports is not None:
-        reports.append(report)
-    if settings.prune_threshold > 0:
-        lifted, _ = prune_background(lifted, settings.prune_threshold)
-    return lifted
 
 
 def resolve_mode(mode: str, settings: FeatureSettings, *models: GaussianModel) -> str:
