@@ -25,42 +25,43 @@ _runtime_version.ValidateProtobufRuntimeVersion(
 _sym_db = _symbol_database.Default()
 
 
+from google.protobuf import empty_pb2 as google_dot_protobuf_dot_empty__pb2
 from google.protobuf import timestamp_pb2 as google_dot_protobuf_dot_timestamp__pb2
 
 
-DESCRIPTOR = _descriptor_pool.Default().AddSerializedFile(b'\n\x16gsa/v1/alignment.proto\x12\x06gsa.v1\x1a\x1fgoogle/protobuf/timestamp.proto\"f\n\rSubmitRequest\x12&\n\x06header\x18\x01 \x01(\x0b\x32\x14.gsa.v1.SubmitHeaderH\x00\x12\"\n\x05\x63hunk\x18\x02 \x01(\x0b\x32\x11.gsa.v1.FileChunkH\x00\x42\t\n\x07payload\"\x92\x01\n\x0cSubmitHeader\x12\x18\n\x10source_asset_ids\x18\x01 \x03(\t\x12\x17\n\x0ftarget_asset_id\x18\x02 \x01(\t\x12\x14\n\x0coptions_json\x18\x03 \x01(\t\x12\x17\n\x0fidempotency_key\x18\x04 \x01(\t\x12 \n\x07webhook\x18\x05 \x01(\x0b\x32\x0f.gsa.v1.Webhook\"&\n\x07Webhook\x12\x0b\n\x03url\x18\x01 \x01(\t\x12\x0e\n\x06secret\x18\x02 \x01(\t\"V\n\tFileChunk\x12\x1a\n\x04role\x18\x01 \x01(\x0e\x32\x0c.gsa.v1.Role\x12\r\n\x05index\x18\x02 \x01(\r\x12\x10\n\x08\x66ilename\x18\x03 \x01(\t\x12\x0c\n\x04\x64\x61ta\x18\x04 \x01(\x0c\"\x18\n\x06JobRef\x12\x0e\n\x06job_id\x18\x01 \x01(\t\"O\n\x0f\x41rtifactRequest\x12\x0e\n\x06job_id\x18\x01 \x01(\t\x12\x0c\n\x04name\x18\x02 \x01(\t\x12\x0e\n\x06offset\x18\x03 \x01(\x03\x12\x0e\n\x06length\x18\x04 \x01(\x03\"W\n\rArtifactChunk\x12\x0c\n\x04\x64\x61ta\x18\x01 \x01(\x0c\x12\x0e\n\x06offset\x18\x02 \x01(\x03\x12\x12\n\ntotal_size\x18\x03 \x01(\x03\x12\x14\n\x0c\x63ontent_type\x18\x04 \x01(\t\"F\n\x07Problem\x12\x0c\n\x04type\x18\x01 \x01(\t\x12\r\n\x05title\x18\x02 \x01(\t\x12\x0e\n\x06status\x18\x03 \x01(\x05\x12\x0e\n\x06\x64\x65tail\x18\x04 \x01(\t\"\x9e\x01\n\tTransform\x12\x0e\n\x06matrix\x18\x01 \x03(\x01\x12\r\n\x05scale\x18\x02 \x01(\x01\x12\x10\n\x08rotation\x18\x03 \x03(\x01\x12\x12\n\nquaternion\x18\x04 \x03(\x01\x12\x13\n\x0btranslation\x18\x05 \x03(\x01\x12\x12\n\nconfidence\x18\x06 \x01(\x01\x12\x11\n\tambiguous\x18\x07 \x01(\x08\x12\x10\n\x08\x64oubtful\x18\x08 \x01(\x08\"<\n\x08\x41rtifact\x12\x0c\n\x04name\x18\x01 \x01(\t\x12\x0c\n\x04size\x18\x02 \x01(\x03\x12\x14\n\x0c\x63ontent_type\x18\x03 \x01(\t\"\xc6\x04\n\x03Job\x12\n\n\x02id\x18\x01 \x01(\t\x12\x1f\n\x05state\x18\x02 \x01(\x0e\x32\x10.gsa.v1.JobState\x12\r\n\x05stage\x18\x03 \x01(\t\x12\x10\n\x08progress\x18\x04 \x01(\x01\x12.\n\ncreated_at\x18\x05 \x01(\x0b\x32\x1a.google.protobuf.Timestamp\x12.\n\nupdated_at\x18\x06 \x01(\x0b\x32\x1a.google.protobuf.Timestamp\x12.\n\nstarted_at\x18\x07 \x01(\x0b\x32\x1a.google.protobuf.Timestamp\x12/\n\x0b\x66inished_at\x18\x08 \x01(\x0b\x32\x1a.google.protobuf.Timestamp\x12\x10\n\x08\x61ttempts\x18\t \x01(\x05\x12\x14\n\x0cmax_attempts\x18\n \x01(\x05\x12\x18\n\x10\x63\x61ncel_requested\x18\x0b \x01(\x08\x12\x18\n\x10source_asset_ids\x18\x0c \x03(\t\x12\x17\n\x0ftarget_asset_id\x18\r \x01(\t\x12\x14\n\x0coptions_json\x18\x0e \x01(\t\x12\x1e\n\x05\x65rror\x18\x0f \x01(\x0b\x32\x0f.gsa.v1.Problem\x12$\n\ttransform\x18\x10 \x01(\x0b\x32\x11.gsa.v1.Transform\x12%\n\ntransforms\x18\x11 \x03(\x0b\x32\x11.gsa.v1.Transform\x12\x13\n\x0bresult_json\x18\x12 \x01(\t\x12#\n\tartifacts\x18\x13 \x03(\x0b\x32\x10.gsa.v1.Artifact*>\n\x04Role\x12\x14\n\x10ROLE_UNSPECIFIED\x10\x00\x12\x0f\n\x0bROLE_SOURCE\x10\x01\x12\x0f\n\x0bROLE_TARGET\x10\x02*\x9a\x01\n\x08JobState\x12\x19\n\x15JOB_STATE_UNSPECIFIED\x10\x00\x12\x14\n\x10JOB_STATE_QUEUED\x10\x01\x12\x15\n\x11JOB_STATE_RUNNING\x10\x02\x12\x17\n\x13JOB_STATE_SUCCEEDED\x10\x03\x12\x14\n\x10JOB_STATE_FAILED\x10\x04\x12\x17\n\x13JOB_STATE_CANCELLED\x10\x05\x32\x88\x02\n\x10\x41lignmentService\x12\x37\n\x0fSubmitAlignment\x12\x15.gsa.v1.SubmitRequest\x1a\x0b.gsa.v1.Job(\x01\x12%\n\x06GetJob\x12\x0e.gsa.v1.JobRef\x1a\x0b.gsa.v1.Job\x12)\n\x08WatchJob\x12\x0e.gsa.v1.JobRef\x1a\x0b.gsa.v1.Job0\x01\x12(\n\tCancelJob\x12\x0e.gsa.v1.JobRef\x1a\x0b.gsa.v1.Job\x12?\n\x0bGetArtifact\x12\x17.gsa.v1.ArtifactRequest\x1a\x15.gsa.v1.ArtifactChunk0\x01\x62\x06proto3')
+DESCRIPTOR = _descriptor_pool.Default().AddSerializedFile(b'\n\x16gsa/v1/alignment.proto\x12\x06gsa.v1\x1a\x1bgoogle/protobuf/empty.proto\x1a\x1fgoogle/protobuf/timestamp.proto\"f\n\rSubmitRequest\x12&\n\x06header\x18\x01 \x01(\x0b\x32\x14.gsa.v1.SubmitHeaderH\x00\x12\"\n\x05\x63hunk\x18\x02 \x01(\x0b\x32\x11.gsa.v1.FileChunkH\x00\x42\t\n\x07payload\"\x92\x01\n\x0cSubmitHeader\x12\x18\n\x10source_asset_ids\x18\x01 \x03(\t\x12\x17\n\x0ftarget_asset_id\x18\x02 \x01(\t\x12\x14\n\x0coptions_json\x18\x03 \x01(\t\x12\x17\n\x0fidempotency_key\x18\x04 \x01(\t\x12 \n\x07webhook\x18\x05 \x01(\x0b\x32\x0f.gsa.v1.Webhook\"&\n\x07Webhook\x12\x0b\n\x03url\x18\x01 \x01(\t\x12\x0e\n\x06secret\x18\x02 \x01(\t\"V\n\tFileChunk\x12\x1a\n\x04role\x18\x01 \x01(\x0e\x32\x0c.gsa.v1.Role\x12\r\n\x05index\x18\x02 \x01(\r\x12\x10\n\x08\x66ilename\x18\x03 \x01(\t\x12\x0c\n\x04\x64\x61ta\x18\x04 \x01(\x0c\"\x18\n\x06JobRef\x12\x0e\n\x06job_id\x18\x01 \x01(\t\"O\n\x0f\x41rtifactRequest\x12\x0e\n\x06job_id\x18\x01 \x01(\t\x12\x0c\n\x04name\x18\x02 \x01(\t\x12\x0e\n\x06offset\x18\x03 \x01(\x03\x12\x0e\n\x06length\x18\x04 \x01(\x03\"W\n\rArtifactChunk\x12\x0c\n\x04\x64\x61ta\x18\x01 \x01(\x0c\x12\x0e\n\x06offset\x18\x02 \x01(\x03\x12\x12\n\ntotal_size\x18\x03 \x01(\x03\x12\x14\n\x0c\x63ontent_type\x18\x04 \x01(\t\"F\n\x07Problem\x12\x0c\n\x04type\x18\x01 \x01(\t\x12\r\n\x05title\x18\x02 \x01(\t\x12\x0e\n\x06status\x18\x03 \x01(\x05\x12\x0e\n\x06\x64\x65tail\x18\x04 \x01(\t\"\x9e\x01\n\tTransform\x12\x0e\n\x06matrix\x18\x01 \x03(\x01\x12\r\n\x05scale\x18\x02 \x01(\x01\x12\x10\n\x08rotation\x18\x03 \x03(\x01\x12\x12\n\nquaternion\x18\x04 \x03(\x01\x12\x13\n\x0btranslation\x18\x05 \x03(\x01\x12\x12\n\nconfidence\x18\x06 \x01(\x01\x12\x11\n\tambiguous\x18\x07 \x01(\x08\x12\x10\n\x08\x64oubtful\x18\x08 \x01(\x08\"<\n\x08\x41rtifact\x12\x0c\n\x04name\x18\x01 \x01(\t\x12\x0c\n\x04size\x18\x02 \x01(\x03\x12\x14\n\x0c\x63ontent_type\x18\x03 \x01(\t\"\xc6\x04\n\x03Job\x12\n\n\x02id\x18\x01 \x01(\t\x12\x1f\n\x05state\x18\x02 \x01(\x0e\x32\x10.gsa.v1.JobState\x12\r\n\x05stage\x18\x03 \x01(\t\x12\x10\n\x08progress\x18\x04 \x01(\x01\x12.\n\ncreated_at\x18\x05 \x01(\x0b\x32\x1a.google.protobuf.Timestamp\x12.\n\nupdated_at\x18\x06 \x01(\x0b\x32\x1a.google.protobuf.Timestamp\x12.\n\nstarted_at\x18\x07 \x01(\x0b\x32\x1a.google.protobuf.Timestamp\x12/\n\x0b\x66inished_at\x18\x08 \x01(\x0b\x32\x1a.google.protobuf.Timestamp\x12\x10\n\x08\x61ttempts\x18\t \x01(\x05\x12\x14\n\x0cmax_attempts\x18\n \x01(\x05\x12\x18\n\x10\x63\x61ncel_requested\x18\x0b \x01(\x08\x12\x18\n\x10source_asset_ids\x18\x0c \x03(\t\x12\x17\n\x0ftarget_asset_id\x18\r \x01(\t\x12\x14\n\x0coptions_json\x18\x0e \x01(\t\x12\x1e\n\x05\x65rror\x18\x0f \x01(\x0b\x32\x0f.gsa.v1.Problem\x12$\n\ttransform\x18\x10 \x01(\x0b\x32\x11.gsa.v1.Transform\x12%\n\ntransforms\x18\x11 \x03(\x0b\x32\x11.gsa.v1.Transform\x12\x13\n\x0bresult_json\x18\x12 \x01(\t\x12#\n\tartifacts\x18\x13 \x03(\x0b\x32\x10.gsa.v1.Artifact*>\n\x04Role\x12\x14\n\x10ROLE_UNSPECIFIED\x10\x00\x12\x0f\n\x0bROLE_SOURCE\x10\x01\x12\x0f\n\x0bROLE_TARGET\x10\x02*\x9a\x01\n\x08JobState\x12\x19\n\x15JOB_STATE_UNSPECIFIED\x10\x00\x12\x14\n\x10JOB_STATE_QUEUED\x10\x01\x12\x15\n\x11JOB_STATE_RUNNING\x10\x02\x12\x17\n\x13JOB_STATE_SUCCEEDED\x10\x03\x12\x14\n\x10JOB_STATE_FAILED\x10\x04\x12\x17\n\x13JOB_STATE_CANCELLED\x10\x05\x32\xbd\x02\n\x10\x41lignmentService\x12\x37\n\x0fSubmitAlignment\x12\x15.gsa.v1.SubmitRequest\x1a\x0b.gsa.v1.Job(\x01\x12%\n\x06GetJob\x12\x0e.gsa.v1.JobRef\x1a\x0b.gsa.v1.Job\x12)\n\x08WatchJob\x12\x0e.gsa.v1.JobRef\x1a\x0b.gsa.v1.Job0\x01\x12(\n\tCancelJob\x12\x0e.gsa.v1.JobRef\x1a\x0b.gsa.v1.Job\x12\x33\n\tDeleteJob\x12\x0e.gsa.v1.JobRef\x1a\x16.google.protobuf.Empty\x12?\n\x0bGetArtifact\x12\x17.gsa.v1.ArtifactRequest\x1a\x15.gsa.v1.ArtifactChunk0\x01\x62\x06proto3')
 
 _globals = globals()
 _builder.BuildMessageAndEnumDescriptors(DESCRIPTOR, _globals)
 _builder.BuildTopDescriptorsAndMessages(DESCRIPTOR, 'gsa.v1.alignment_pb2', _globals)
 if not _descriptor._USE_C_DESCRIPTORS:
   DESCRIPTOR._loaded_options = None
-  _globals['_ROLE']._serialized_start=1524
-  _globals['_ROLE']._serialized_end=1586
-  _globals['_JOBSTATE']._serialized_start=1589
-  _globals['_JOBSTATE']._serialized_end=1743
-  _globals['_SUBMITREQUEST']._serialized_start=67
-  _globals['_SUBMITREQUEST']._serialized_end=169
-  _globals['_SUBMITHEADER']._serialized_start=172
-  _globals['_SUBMITHEADER']._serialized_end=318
-  _globals['_WEBHOOK']._serialized_start=320
-  _globals['_WEBHOOK']._serialized_end=358
-  _globals['_FILECHUNK']._serialized_start=360
-  _globals['_FILECHUNK']._serialized_end=446
-  _globals['_JOBREF']._serialized_start=448
-  _globals['_JOBREF']._serialized_end=472
-  _globals['_ARTIFACTREQUEST']._serialized_start=474
-  _globals['_ARTIFACTREQUEST']._serialized_end=553
-  _globals['_ARTIFACTCHUNK']._serialized_start=555
-  _globals['_ARTIFACTCHUNK']._serialized_end=642
-  _globals['_PROBLEM']._serialized_start=644
-  _globals['_PROBLEM']._serialized_end=714
-  _globals['_TRANSFORM']._serialized_start=717
-  _globals['_TRANSFORM']._serialized_end=875
-  _globals['_ARTIFACT']._serialized_start=877
-  _globals['_ARTIFACT']._serialized_end=937
-  _globals['_JOB']._serialized_start=940
-  _globals['_JOB']._serialized_end=1522
-  _globals['_ALIGNMENTSERVICE']._serialized_start=1746
-  _globals['_ALIGNMENTSERVICE']._serialized_end=2010
+  _globals['_ROLE']._serialized_start=1553
+  _globals['_ROLE']._serialized_end=1615
+  _globals['_JOBSTATE']._serialized_start=1618
+  _globals['_JOBSTATE']._serialized_end=1772
+  _globals['_SUBMITREQUEST']._serialized_start=96
+  _globals['_SUBMITREQUEST']._serialized_end=198
+  _globals['_SUBMITHEADER']._serialized_start=201
+  _globals['_SUBMITHEADER']._serialized_end=347
+  _globals['_WEBHOOK']._serialized_start=349
+  _globals['_WEBHOOK']._serialized_end=387
+  _globals['_FILECHUNK']._serialized_start=389
+  _globals['_FILECHUNK']._serialized_end=475
+  _globals['_JOBREF']._serialized_start=477
+  _globals['_JOBREF']._serialized_end=501
+  _globals['_ARTIFACTREQUEST']._serialized_start=503
+  _globals['_ARTIFACTREQUEST']._serialized_end=582
+  _globals['_ARTIFACTCHUNK']._serialized_start=584
+  _globals['_ARTIFACTCHUNK']._serialized_end=671
+  _globals['_PROBLEM']._serialized_start=673
+  _globals['_PROBLEM']._serialized_end=743
+  _globals['_TRANSFORM']._serialized_start=746
+  _globals['_TRANSFORM']._serialized_end=904
+  _globals['_ARTIFACT']._serialized_start=906
+  _globals['_ARTIFACT']._serialized_end=966
+  _globals['_JOB']._serialized_start=969
+  _globals['_JOB']._serialized_end=1551
+  _globals['_ALIGNMENTSERVICE']._serialized_start=1775
+  _globals['_ALIGNMENTSERVICE']._serialized_end=2092
 # @@protoc_insertion_point(module_scope)

@@ -6,6 +6,7 @@
 import grpc
 import warnings
 
+from google.protobuf import empty_pb2 as google_dot_protobuf_dot_empty__pb2
 from service.grpc_gen import alignment_pb2 as gsa_dot_v1_dot_alignment__pb2
 
 GRPC_GENERATED_VERSION = '1.85.1'
@@ -57,6 +58,11 @@ class AlignmentServiceStub:
                 request_serializer=gsa_dot_v1_dot_alignment__pb2.JobRef.SerializeToString,
                 response_deserializer=gsa_dot_v1_dot_alignment__pb2.Job.FromString,
                 _registered_method=True)
+        self.DeleteJob = channel.unary_unary(
+                '/gsa.v1.AlignmentService/DeleteJob',
+                request_serializer=gsa_dot_v1_dot_alignment__pb2.JobRef.SerializeToString,
+                response_deserializer=google_dot_protobuf_dot_empty__pb2.Empty.FromString,
+                _registered_method=True)
         self.GetArtifact = channel.unary_stream(
                 '/gsa.v1.AlignmentService/GetArtifact',
                 request_serializer=gsa_dot_v1_dot_alignment__pb2.ArtifactRequest.SerializeToString,
@@ -94,6 +100,14 @@ class AlignmentServiceServicer:
         context.set_details('Method not implemented!')
         raise NotImplementedError('Method not implemented!')
 
+    def DeleteJob(self, request, context):
+        """Removes a finished job and its artifacts (FAILED_PRECONDITION while it is
+        queued or running: cancel it first), like HTTP DELETE /v1/jobs/{id}.
+        """
+        context.set_code(grpc.StatusCode.UNIMPLEMENTED)
+        context.set_details('Method not implemented!')
+        raise NotImplementedError('Method not implemented!')
+
     def GetArtifact(self, request, context):
         """Missing associated documentation comment in .proto file."""
         context.set_code(grpc.StatusCode.UNIMPLEMENTED)
@@ -122,6 +136,11 @@ def add_AlignmentServiceServicer_to_server(servicer, server):
                     servicer.CancelJob,
                     request_deserializer=gsa_dot_v1_dot_alignment__pb2.JobRef.FromString,
                     response_serializer=gsa_dot_v1_dot_alignment__pb2.Job.SerializeToString,
+            ),
+            'DeleteJob': grpc.unary_unary_rpc_method_handler(
+                    servicer.DeleteJob,
+                    request_deserializer=gsa_dot_v1_dot_alignment__pb2.JobRef.FromString,
+                    response_serializer=google_dot_protobuf_dot_empty__pb2.Empty.SerializeToString,
             ),
             'GetArtifact': grpc.unary_stream_rpc_method_handler(
                     servicer.GetArtifact,
@@ -237,6 +256,33 @@ class AlignmentService:
             '/gsa.v1.AlignmentService/CancelJob',
             gsa_dot_v1_dot_alignment__pb2.JobRef.SerializeToString,
             gsa_dot_v1_dot_alignment__pb2.Job.FromString,
+            options,
+            channel_credentials,
+            insecure,
+            call_credentials,
+            compression,
+            wait_for_ready,
+            timeout,
+            metadata,
+            _registered_method=True)
+
+    @staticmethod
+    def DeleteJob(request,
+            target,
+            options=(),
+            channel_credentials=None,
+            call_credentials=None,
+            insecure=False,
+            compression=None,
+            wait_for_ready=None,
+            timeout=None,
+            metadata=None):
+        return grpc.experimental.unary_unary(
+            request,
+            target,
+            '/gsa.v1.AlignmentService/DeleteJob',
+            gsa_dot_v1_dot_alignment__pb2.JobRef.SerializeToString,
+            google_dot_protobuf_dot_empty__pb2.Empty.FromString,
             options,
             channel_credentials,
             insecure,
