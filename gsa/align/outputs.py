@@ -15,7 +15,7 @@ from gsa.io.ply import write_ply
 from gsa.model import GaussianModel, merge_models
 from gsa.sim3 import Sim3
 
-OUTPUTS = ("result", "aligned", "merged", "renders")
+OUTPUTS = ("result", "aligned", "merged", "renders", "preview")
 
 
 def write_json(data: dict, path: Path) -> Path:
