@@ -59,6 +59,10 @@ def write_outputs(
 
         renders = write_alignment_renders(source, target, Sim3.identity(), result.transform, out / "renders")
         paths.update({f"renders/{p.name}": p for p in renders.values()})
+    if "preview" in outputs:
+        from gsa.viewer.preview import write_previews  # the browser viewer's downsampled .splat files
+
+        paths.update(write_previews(source, target, result.transform, out))
     if "result" in outputs:
         data = result.to_dict()
         if extra:
