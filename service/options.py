@@ -13,7 +13,7 @@ from service.problems import invalid_input
 SERVICE_OPTIONS = {"outputs", "renders", "recon_iterations"}
 # The artifacts a job can produce: the one definition (the HTTP schema's enum,
 # validation and the worker's default all come from it).
-OutputName = Literal["result", "aligned", "merged", "renders"]
+OutputName = Literal["result", "aligned", "merged", "renders", "preview"]
 OUTPUT_NAMES: tuple[str, ...] = get_args(OutputName)
 DEFAULT_OUTPUTS = OUTPUT_NAMES  # a job that names no outputs gets all of them
 
