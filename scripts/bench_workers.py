@@ -1,0 +1,186 @@
+#!/usr/bin/env python
+"""Throughput of `gsa worker` as documented: N workers, a batch of small jobs.
+
+    PYTHONPATH=. python scripts/bench_workers.py [--workers 2] [--jobs 20] [--gaussians 3000] [--outputs all] [--keep]
+
+Starts its own redis-server (free loopback port), `gsa serve` and `gsa worker`
+processes (the installed entry point, with no tuning environment) in a temp dir.
+Uploads one small pair as assets, then:
+
+1. waits until every worker has registered with RQ (ready to take jobs), and
+   measures the first job's submit -> succeeded time ("first job after start");
+2. runs --warm sequential jobs on the now-warm workers (median submit -> succeeded);
+3. submits --jobs jobs at once and reports jobs/min from the first submission
+   to the last job's end.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import shutil
+import signal
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import httpx
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT / "scripts"))
+from bench_service import free_port, make_pair, start, wait_http  # noqa: E402
+
+KEY = "bench-key"
+FINAL = ("succeeded", "failed", "cancelled")
+
+
+def gsa_exe() -> str:
+    exe = Path(sys.executable).with_name("gsa")
+    return str(exe) if exe.exists() else shutil.which("gsa") or "gsa"
+
+
+def wait_final(c: httpx.Client, ids: list[str], timeout: float = 600) -> dict[str, dict]:
+    done: dict[str, dict] = {}
+    deadline = time.monotonic() + timeout
+    while len(done) < len(ids):
+        if time.monotonic() > deadline:
+            raise TimeoutError(f"{len(ids) - len(done)} jobs not finished")
+        for jid in ids:
+            if jid not in done:
+                j = c.get(f"/v1/jobs/{jid}").json()
+                if j["state"] in FINAL:
+                    done[jid] = j
+        time.sleep(0.02)
+    return done
+
+
+def submit(c: httpx.Client, ids: list[str], options: dict) -> str:
+    r = c.post("/v1/jobs", json={"source": ids[0], "target": ids[1], "options": options})
+    r.raise_for_status()
+    return r.json()["id"]
+
+
+def one_job(c: httpx.Client, ids: list[str], options: dict) -> tuple[float, dict]:
+    t = time.perf_counter()
+    jid = submit(c, ids, options)
+    job = wait_final(c, [jid])[jid]
+    return time.perf_counter() - t, job
+
+
+def phases(job: dict) -> str:
+    """created -> started (queue, fork) and started -> finished (the attempt), from the job record."""
+    from datetime import datetime
+
+    def ts(v):
+        return datetime.fromisoformat(v.replace("Z", "+00:00")).timestamp()
+
+    wait = ts(job["started_at"]) - ts(job["created_at"])
+    run = ts(job["finished_at"]) - ts(job["started_at"])
+    return f"queue->start {1e3 * wait:.0f} ms, start->end {1e3 * run:.0f} ms"
+
+
+def registered_workers(redis_url: str) -> int:
+    import redis
+    from rq import Worker
+
+    return len(Worker.all(connection=redis.Redis.from_url(redis_url)))
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--workers", type=int, default=2)
+    ap.add_argument("--jobs", type=int, default=20)
+    ap.add_argument("--warm", type=int, default=5)
+    ap.add_argument("--gaussians", type=int, default=3000)
+    ap.add_argument("--outputs", default="all", help="comma list, or 'all' (the service default)")
+    ap.add_argument("--keep", action="store_true", help="keep the temp folder (logs) for a look")
+    a = ap.parse_args()
+    options = {} if a.outputs == "all" else {"outputs": a.outputs.split(",")}
+    tmp = Path(tempfile.mkdtemp(prefix="gsa-bench-workers-"))
+    procs: list[subprocess.Popen] = []
+    try:
+        src, tgt = make_pair(tmp, a.gaussians)
+        rport = free_port()
+        procs.append(
+            subprocess.Popen(
+                [shutil.which("redis-server"), "--port", str(rport), "--bind", "127.0.0.1"]
+                + ["--save", "", "--appendonly", "no", "--dir", str(tmp)],
+                stdout=subprocess.DEVNULL,
+                start_new_session=True,
+            )
+        )
+        redis_url = f"redis://127.0.0.1:{rport}/0"
+        # The documented environment only: no NUMBA_* or other tuning variables.
+        env = {k: v for k, v in os.environ.items() if not k.startswith(("GSA_", "NUMBA_", "OMP_"))}
+        env.update(GSA_STORAGE_ROOT=str(tmp / "data"), GSA_API_KEYS=json.dumps({KEY: "bench"}))
+        env["GSA_REDIS_URL"] = redis_url
+        port = free_port()
+        url = f"http://127.0.0.1:{port}"
+        procs.append(start([gsa_exe(), "serve", "--port", str(port), "--log-level", "warning"], env, tmp / "api.log"))
+        wait_http(url + "/healthz")
+        with httpx.Client(base_url=url, headers={"Authorization": f"Bearer {KEY}"}, timeout=60) as c:
+            ids = []
+            for p in (src, tgt):
+                with open(p, "rb") as fh:
+                    ids.append(c.post("/v1/assets", files={"file": (p.name, fh)}).json()["id"])
+            t_start = time.perf_counter()
+            for i in range(a.workers):
+                procs.append(start([gsa_exe(), "worker"], env, tmp / f"worker{i}.log"))
+            deadline = time.monotonic() + 300
+            while registered_workers(redis_url) < a.workers:
+                if time.monotonic() > deadline:
+                    raise TimeoutError("workers did not register")
+                time.sleep(0.05)
+            ready = time.perf_counter() - t_start
+            first, job = one_job(c, ids, options)
+            assert job["state"] == "succeeded", job
+            first_phases = phases(job)
+            warm = []
+            for _ in range(a.warm):
+                dt, job = one_job(c, ids, options)
+                assert job["state"] == "succeeded", job
+                warm.append(dt)
+            warm_phases = phases(job)
+            t0 = time.perf_counter()
+            batch = [submit(c, ids, options) for _ in range(a.jobs)]
+            done = wait_final(c, batch)
+            elapsed = time.perf_counter() - t0
+        ok = sum(j["state"] == "succeeded" for j in done.values())
+        warm_med = statistics.median(warm)
+        try:
+            load = " ".join(f"{x:.2f}" for x in os.getloadavg())
+        except OSError:
+            load = "n/a"
+        print(
+            f"workers={a.workers} jobs={a.jobs} gaussians={a.gaussians} outputs={a.outputs} "
+            f"cores={os.cpu_count()} load(1/5/15 min)={load}"
+        )
+        print(f"worker start -> registered with RQ:      {ready:6.2f} s")
+        print(f"first job after start (submit->result):  {1e3 * first:7.0f} ms ({first_phases})")
+        print(f"warm job, median of {a.warm} (submit->result): {1e3 * warm_med:7.0f} ms (last: {warm_phases})")
+        print(f"first / warm:                             {first / warm_med:6.2f}x")
+        print(f"batch: {ok}/{a.jobs} succeeded in {elapsed:.2f} s = {60 * a.jobs / elapsed:.1f} jobs/min")
+        for i in range(a.workers):
+            for line in (tmp / f"worker{i}.log").read_text(errors="replace").splitlines():
+                if "warm-up" in line:
+                    print(f"  worker{i}: {line.split(': ', 1)[-1]}")
+        return 0 if ok == a.jobs else 1
+    finally:
+        for p in reversed(procs):
+            try:
+                os.killpg(p.pid, signal.SIGTERM)
+                p.wait(10)
+            except Exception:
+                pass
+        if a.keep:
+            print(f"logs kept in {tmp}")
+        else:
+            shutil.rmtree(tmp, ignore_errors=True)
+
+
+if __name__ == "__main__":
+    sys.exit(main())
