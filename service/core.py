@@ -43,10 +43,65 @@ def _local(b: Backend, key: str, tmpdir: Path) -> Path:
     return b.storage.download(key, tmpdir / "blob")
 
 
+def blob_key(owner: str, sha256: str) -> str:
+    """Where an owner's upload with these bytes is stored: content-addressed, so
+    identical uploads share one blob. Per owner: dedup never crosses tenants (an
+    owner cannot learn what another uploaded)."""
+    return f"cas/{hashlib.sha256(owner.encode()).hexdigest()[:32]}/{sha256}"
+
+
+def _digest(data: BinaryIO, max_bytes: int) -> str | None:
+    """sha256 of a seekable upload (then rewound); None for a stream that cannot be re-read."""
+    if not (hasattr(data, "seek") and hasattr(data, "read")):
+        return None
+    data.seek(0)
+    sha, size = hashlib.sha256(), 0
+    while chunk := data.read(CHUNK):
+        size += len(chunk)
+        if size > max_bytes:
+            raise too_large(f"upload exceeds the limit of {max_bytes} bytes")
+        sha.update(chunk)
+    data.seek(0)
+    return sha.hexdigest()
+
+
+def _reuse(b: Backend, owner: str, sha256: str, filename: str | None, expect: str | None) -> Asset | None:
+    """A new asset id for bytes this owner already stored: no second copy, one more
+    reference to the blob. None if no live asset holds these bytes."""
+    key = blob_key(owner, sha256)
+    for other_id in b.store.blob_ref_ids(key):
+        other = b.store.get_asset(other_id)
+        if other is None or other.owner != owner or other.key != key:
+            continue
+        if expect == "ply" and other.kind != "ply":
+            raise invalid_input(f"{filename or 'upload'}: not a PLY file (it does not start with 'ply')")
+        asset = other.model_copy(update={"id": new_id("ast"), "filename": filename, "created_at": time.time()})
+        b.store.add_blob_ref(key, asset.id)
+        if not b.storage.exists(key):  # its last other user was deleted meanwhile: store it afresh
+            b.store.remove_blob_ref(key, asset.id)
+            return None
+        b.store.put_asset(asset)
+        return asset
+    return None
+
+
+def release_blob(b: Backend, asset: Asset) -> None:
+    """Drop asset's reference to its blob; the bytes go with the last reference."""
+    if b.store.remove_blob_ref(asset.key, asset.id) == 0:
+        b.storage.delete(asset.key)
+
+
 def ingest(b: Backend, owner: str, data, filename: str | None, *, expect: str | None = None) -> Asset:
-    """Stream one upload to storage, validate it, record it. Nothing remains on failure."""
+    """Stream one upload to storage, validate it, record it. Nothing remains on failure.
+    Bytes this owner already uploaded are stored once (service.core.blob_key)."""
     s = b.settings
-    key = new_key("uploads", filename or "upload")
+    sha = _digest(data, s.max_upload_bytes)
+    if sha is not None:
+        reused = _reuse(b, owner, sha, filename, expect)
+        if reused is not None:
+            return reused
+    key = blob_key(owner, sha) if sha else new_key("uploads", filename or "upload")
+    asset_id = new_id("ast")
     h = _Hashing(data)
     size = b.storage.put(key, h, max_bytes=s.max_upload_bytes)
     name = filename or "upload"
@@ -57,7 +112,7 @@ def ingest(b: Backend, owner: str, data, filename: str | None, *, expect: str | 
         if expect == "ply" and kind != "ply":
             raise invalid_input(f"{name}: not a PLY file (it does not start with 'ply')")
         fields = dict(
-            id=new_id("ast"),
+            id=asset_id,
             owner=owner,
             key=key,
             size=size,
@@ -75,10 +130,17 @@ def ingest(b: Backend, owner: str, data, filename: str | None, *, expect: str | 
                 asset = Asset(**fields, kind="images", content_type="application/zip", n_images=n)
             else:
                 raise invalid_input(f"{name}: not a 3DGS .ply or a .zip of images (unrecognised file type)")
+        b.store.add_blob_ref(key, asset.id)
         b.store.put_asset(asset)
         return asset
     except BaseException:
-        b.storage.delete(key)
+        # Another upload of the same bytes may have finished meanwhile: its reference keeps the blob.
+        try:
+            users = b.store.remove_blob_ref(key, asset_id)
+        except Exception:  # store unreachable: only a blob no other asset can share goes
+            users = 1 if key.startswith("cas/") else 0
+        if users == 0:
+            b.storage.delete(key)
         raise
 
 
@@ -149,8 +211,8 @@ def release(b: Backend, owner: str, idempotency_key: str | None) -> None:
 
 
 def discard_asset(b: Backend, asset: Asset) -> None:
-    b.storage.delete(asset.key)
     b.store.delete_asset(asset.id)
+    release_blob(b, asset)
 
 
 def check_request(b: Backend, n_sources: int, options: dict[str, Any], webhook: dict | None) -> None:

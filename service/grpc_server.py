@@ -11,11 +11,12 @@ import time
 from concurrent import futures
 
 import grpc
+from google.protobuf import empty_pb2
 from google.protobuf.timestamp_pb2 import Timestamp
 from grpc_health.v1 import health, health_pb2, health_pb2_grpc
 from grpc_reflection.v1alpha import reflection
 
-from service import core
+from service import core, retention
 from service.api.deps import owner_for_key
 from service.api.schemas import AlignOptionsIn
 from service.backend import Backend
@@ -259,6 +260,15 @@ class AlignmentServicer(pbg.AlignmentServiceServicer):
     def CancelJob(self, request, context):
         owner = self._owner(context)
         return self._guard(lambda: job_to_pb(core.cancel_job(self.b, owner, request.job_id)), context)
+
+    def DeleteJob(self, request, context):
+        owner = self._owner(context)
+
+        def delete():
+            retention.delete_job(self.b, owner, request.job_id)
+            return empty_pb2.Empty()
+
+        return self._guard(delete, context)
 
     def WatchJob(self, request, context):
         owner = self._owner(context)

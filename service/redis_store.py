@@ -144,6 +144,50 @@ class RedisJobStore:
     def release_idempotency(self, owner, key):
         self.r.delete(f"{self.p}idem:{owner}:{key}")
 
+    def delete(self, job_id):
+        job = self.get(job_id)
+        if job is None:
+            return False
+        pipe = self.r.pipeline(transaction=True)
+        pipe.delete(self._jk(job_id))
+        pipe.zrem(f"{self.p}owner:{job.owner}", job_id)
+        for s in JobState:
+            pipe.srem(f"{self.p}state:{_enc(s)}", job_id)
+        pipe.execute()
+        if job.idempotency_key:
+            k = f"{self.p}idem:{job.owner}:{job.idempotency_key}"
+            held = self.r.get(k)
+            if held is not None and held.decode().partition("|")[0] == job_id:
+                self.r.delete(k)
+        return True
+
+    def jobs(self):
+        pipe = self.r.pipeline(transaction=False)
+        for s in JobState:
+            pipe.smembers(f"{self.p}state:{_enc(s)}")
+        ids = sorted({i for members in pipe.execute() for i in members})
+        for start in range(0, len(ids), 500):
+            yield from self._many(ids[start : start + 500])
+
+    def asset_ids(self):
+        n = len(f"{self.p}asset:")
+        return [k.decode()[n:] for k in self.r.scan_iter(match=f"{self.p}asset:*", count=1000)]
+
+    def add_blob_ref(self, key, asset_id):
+        pipe = self.r.pipeline(transaction=True)
+        pipe.sadd(f"{self.p}blobrefs:{key}", asset_id)
+        pipe.scard(f"{self.p}blobrefs:{key}")
+        return int(pipe.execute()[1])
+
+    def remove_blob_ref(self, key, asset_id):
+        pipe = self.r.pipeline(transaction=True)
+        pipe.srem(f"{self.p}blobrefs:{key}", asset_id)
+        pipe.scard(f"{self.p}blobrefs:{key}")
+        return int(pipe.execute()[1])
+
+    def blob_ref_ids(self, key):
+        return sorted(i.decode() for i in self.r.smembers(f"{self.p}blobrefs:{key}"))
+
     def delete_asset(self, asset_id):
         self.r.delete(f"{self.p}asset:{asset_id}")
 

@@ -72,6 +72,12 @@ class Settings(BaseSettings):
     # empty: no CORS headers, browsers on other origins are refused.
     cors_origins: list[str] = []
 
+    # Retention: finished jobs (with their artifacts) and assets no remaining job uses are
+    # deleted this many days after they finished / were uploaded; 0 keeps everything.
+    # The API process sweeps every retention_sweep_interval_s (service.retention).
+    retention_days: float = 0.0
+    retention_sweep_interval_s: float = 3600.0
+
     webhook_secret: str | None = None
     webhook_max_attempts: int = 5
     webhook_timeout_s: float = 5.0

@@ -33,6 +33,7 @@ class SQLiteJobStore:
                 CREATE TABLE IF NOT EXISTS assets (id TEXT PRIMARY KEY, data TEXT);
                 CREATE TABLE IF NOT EXISTS idem (k TEXT PRIMARY KEY, job_id TEXT, hash TEXT, at REAL);
                 CREATE TABLE IF NOT EXISTS stages (stage TEXT PRIMARY KEY, n INTEGER, secs REAL);
+                CREATE TABLE IF NOT EXISTS blobrefs (k TEXT, asset_id TEXT, PRIMARY KEY (k, asset_id));
                 """
             )
 
@@ -122,6 +123,41 @@ class SQLiteJobStore:
     def release_idempotency(self, owner, key):
         with self.lock:
             self.db.execute("DELETE FROM idem WHERE k=?", (f"{owner}:{key}",))
+
+    def delete(self, job_id):
+        with self.lock:
+            row = self.db.execute("SELECT data FROM jobs WHERE id=?", (job_id,)).fetchone()
+            if row is None:
+                return False
+            job = Job.model_validate_json(row[0])
+            self.db.execute("DELETE FROM jobs WHERE id=?", (job_id,))
+            if job.idempotency_key:
+                k = f"{job.owner}:{job.idempotency_key}"
+                self.db.execute("DELETE FROM idem WHERE k=? AND job_id=?", (k, job_id))
+        return True
+
+    def jobs(self):
+        with self.lock:
+            rows = self.db.execute("SELECT data FROM jobs").fetchall()
+        return (Job.model_validate_json(r[0]) for r in rows)
+
+    def asset_ids(self):
+        with self.lock:
+            return [r[0] for r in self.db.execute("SELECT id FROM assets").fetchall()]
+
+    def add_blob_ref(self, key, asset_id):
+        with self.lock:
+            self.db.execute("INSERT OR IGNORE INTO blobrefs VALUES (?,?)", (key, asset_id))
+            return self.db.execute("SELECT COUNT(*) FROM blobrefs WHERE k=?", (key,)).fetchone()[0]
+
+    def remove_blob_ref(self, key, asset_id):
+        with self.lock:
+            self.db.execute("DELETE FROM blobrefs WHERE k=? AND asset_id=?", (key, asset_id))
+            return self.db.execute("SELECT COUNT(*) FROM blobrefs WHERE k=?", (key,)).fetchone()[0]
+
+    def blob_ref_ids(self, key):
+        with self.lock:
+            return [r[0] for r in self.db.execute("SELECT asset_id FROM blobrefs WHERE k=?", (key,)).fetchall()]
 
     def delete_asset(self, asset_id):
         with self.lock:

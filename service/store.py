@@ -6,6 +6,7 @@ the API, workers and reapers can write the same job without locks of their own.
 
 from __future__ import annotations
 
+from collections.abc import Iterator
 from typing import Protocol
 
 from service.models import Asset, Job, JobState
@@ -53,6 +54,27 @@ class JobStore(Protocol):
         ...
 
     def release_idempotency(self, owner: str, key: str) -> None: ...
+
+    def delete(self, job_id: str) -> bool:
+        """Remove the job record (its owner index, state set and idempotency key with it);
+        False if it was not there. Artifacts are the caller's (service.retention)."""
+        ...
+
+    def jobs(self) -> Iterator[Job]:
+        """Every job, in no particular order (retention sweeps)."""
+        ...
+
+    def asset_ids(self) -> list[str]: ...
+
+    def add_blob_ref(self, key: str, asset_id: str) -> int:
+        """Record that asset_id uses the stored blob `key`; returns the number of users."""
+        ...
+
+    def remove_blob_ref(self, key: str, asset_id: str) -> int:
+        """Forget that asset_id uses `key`; returns how many users remain (0: delete the blob)."""
+        ...
+
+    def blob_ref_ids(self, key: str) -> list[str]: ...
 
     def put_asset(self, asset: Asset) -> None: ...
 

@@ -23,6 +23,7 @@ from service.backend import Backend, make_backend
 from service.leases import start_reaper
 from service.metrics import Metrics
 from service.problems import Problem, infrastructure_problem
+from service.retention import start_retention
 from service.runners import start_embedded_workers
 from service.settings import Settings, get_settings
 
@@ -44,6 +45,7 @@ def create_app(
         b = app.state.backend
         stop = threading.Event()
         start_reaper(b, stop)
+        start_retention(b, stop)
         if b.settings.embedded and run_workers:
             start_embedded_workers(b, stop)
         grpc_server = None

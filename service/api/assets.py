@@ -5,7 +5,7 @@ from __future__ import annotations
 from fastapi import APIRouter, Request, Response
 from fastapi.concurrency import run_in_threadpool
 
-from service import core
+from service import core, retention
 from service.api.deps import B, Owner
 from service.api.openapi import UPLOAD_BODY, problem_responses
 from service.api.schemas import AssetOut
@@ -56,3 +56,18 @@ async def upload_asset(request: Request, response: Response, owner: Owner, b: B)
 )
 async def get_asset(asset_id: str, owner: Owner, b: B):
     return AssetOut.from_asset(core.get_asset(b, owner, asset_id))
+
+
+@router.delete(
+    "/v1/assets/{asset_id}",
+    status_code=204,
+    response_class=Response,
+    tags=["assets"],
+    summary="Delete an asset",
+    description="409 asset-in-use while a queued or running job reads it. Identical uploads share one "
+    "stored copy; the bytes go with the last asset that uses them.",
+    responses=problem_responses(401, 404, 409),
+)
+async def delete_asset(asset_id: str, owner: Owner, b: B):
+    await run_in_threadpool(retention.delete_asset, b, owner, asset_id)
+    return Response(status_code=204)

@@ -13,7 +13,7 @@ from fastapi.concurrency import run_in_threadpool
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
 
-from service import core
+from service import core, retention
 from service.api.deps import B, Owner
 from service.api.openapi import JOB_BODY, problem_responses
 from service.api.schemas import AlignOptionsIn, JobCreate, JobList, JobOut, WebhookIn
@@ -256,3 +256,18 @@ async def list_jobs(
 )
 async def cancel_job(job_id: str, owner: Owner, b: B):
     return JobOut.from_job(core.cancel_job(b, owner, job_id))
+
+
+@router.delete(
+    "/v1/jobs/{job_id}",
+    status_code=204,
+    response_class=Response,
+    tags=["jobs"],
+    summary="Delete a finished job and its artifacts",
+    description="Only a final job (succeeded, failed, cancelled) can be deleted; a queued or running job "
+    "answers 409 job-not-finished: cancel it first. The job's input assets stay (DELETE /v1/assets/{id}).",
+    responses=problem_responses(401, 404, 409),
+)
+async def delete_job(job_id: str, owner: Owner, b: B):
+    await run_in_threadpool(retention.delete_job, b, owner, job_id)
+    return Response(status_code=204)

@@ -163,8 +163,9 @@ def test_etag_304_range_206_and_list(http, pair):
 
 
 def _blob_count(stack) -> int:
-    root = stack["tmp"] / "data" / "blobs" / "uploads"  # artifacts of earlier jobs may still land in jobs/
-    return sum(1 for p in root.rglob("*") if p.is_file()) if root.exists() else 0
+    # Uploads (content-addressed under cas/); artifacts of earlier jobs may still land in jobs/.
+    roots = [stack["tmp"] / "data" / "blobs" / d for d in ("uploads", "cas")]
+    return sum(1 for root in roots if root.exists() for p in root.rglob("*") if p.is_file())
 
 
 def _asset_count(stack) -> int:
