@@ -1,0 +1,175 @@
+"""Every 3DGS file format in and out: sniffing, reading into the internal convention, writing.
+
+`read_model` detects the format from the bytes (magic numbers and headers, never the
+extension), reads it, maps its axes into the internal convention (gsa.io.frames) and
+records `metadata["format"]`. `write_model` maps back and writes atomically. Every problem
+is one `FormatError` (a PlyError, so existing handlers catch it) naming the file.
+"""
+
+from __future__ import annotations
+
+import os
+import struct
+import tempfile
+from pathlib import Path
+
+import numpy as np
+
+from gsa.io import frames
+from gsa.io.ply import DEFAULT_MAX_GAUSSIANS, MAX_HEADER_BYTES, PlyError, read_ply, write_ply
+from gsa.model import GaussianModel, ModelError
+
+FORMATS = ("ply", "compressed-ply", "splat", "ksplat", "spz", "sog", "glb")
+EXTENSIONS = {
+    "ply": ".ply",
+    "compressed-ply": ".compressed.ply",
+    "splat": ".splat",
+    "ksplat": ".ksplat",
+    "spz": ".spz",
+    "sog": ".sog",
+    "glb": ".glb",
+}
+# Highest SH degree each format stores (a higher one is truncated on write).
+MAX_SH_DEGREE = {"ply": 3, "compressed-ply": 3, "splat": 0, "ksplat": 2, "spz": 3, "sog": 3, "glb": 3}
+
+
+class FormatError(PlyError):
+    """A model file that is not readable in any supported format; one line naming the file."""
+
+
+def sniff_bytes(head: bytes, size: int) -> str | None:
+    """The format of a file from its first bytes (≥ 4096 when the file has them) and size."""
+    if head.startswith(b"ply"):
+        end = head.find(b"end_header", 0, MAX_HEADER_BYTES)
+        header = head[: end if end >= 0 else MAX_HEADER_BYTES]
+        return "compressed-ply" if b"element chunk " in header else "ply"
+    if head[:4] == b"glTF":
+        return "glb"
+    if head[:2] == b"\x1f\x8b" or head[:4] == b"NGSP":
+        return "spz"
+    if head[:4] == b"PK\x03\x04":
+        return "sog"
+    if len(head) >= 24 and head[0] == 0 and head[1] == 1 and size >= 4096:
+        max_sections, sections, _, _, level = struct.unpack_from("<IIIIH", head, 4)
+        if 1 <= max_sections <= 1 << 16 and sections <= max_sections and level <= 2:
+            return "ksplat"
+    if size > 0 and size % 32 == 0 and len(head) >= 32:
+        from gsa.io.splat import SPLAT_DTYPE
+
+        first = np.frombuffer(head[: (len(head) // 32) * 32], SPLAT_DTYPE)
+        if np.isfinite(first["pos"]).all() and (first["scale"] >= 0).all() and np.isfinite(first["scale"]).all():
+            return "splat"
+    return None
+
+
+def sniff(path: str | os.PathLike) -> str:
+    """The format of a file, from its bytes. Raises FormatError when none fits."""
+    path = Path(path)
+    try:
+        size = path.stat().st_size
+        with open(path, "rb") as fh:
+            head = fh.read(MAX_HEADER_BYTES)
+    except OSError as exc:
+        raise FormatError(path, f"cannot open: {exc.strerror or exc}") from None
+    if size == 0:
+        raise FormatError(path, "the file is empty")
+    fmt = sniff_bytes(head, size)
+    if fmt is None:
+        raise FormatError(path, f"not a 3DGS file in any supported format ({', '.join(FORMATS)})")
+    return fmt
+
+
+def read_model(path: str | os.PathLike, *, max_gaussians: int = DEFAULT_MAX_GAUSSIANS) -> GaussianModel:
+    """Read any supported 3DGS file into the internal convention (metadata "format" says which)."""
+    path = Path(path)
+    fmt = sniff(path)
+    if fmt == "ply":
+        model = read_ply(path, max_gaussians=max_gaussians)
+    else:
+        model = _read_other(path, fmt, max_gaussians)
+        model.metadata["source_path"] = str(path)
+    model.metadata["format"] = fmt
+    return frames.to_internal(model, fmt)
+
+
+def _read_other(path: Path, fmt: str, max_gaussians: int) -> GaussianModel:
+    try:
+        data = path.read_bytes()
+    except OSError as exc:
+        raise FormatError(path, f"cannot open: {exc.strerror or exc}") from None
+    try:
+        if fmt == "splat":
+            from gsa.io.splat import SPLAT_DTYPE, decode_splat
+
+            if len(data) // 32 > max_gaussians:
+                raise FormatError(path, f"{len(data) // 32} Gaussians exceeds the limit of {max_gaussians}")
+            model = decode_splat(np.frombuffer(data, SPLAT_DTYPE))
+        elif fmt == "glb":
+            from gsa.io.glb import decode_glb
+
+            model = decode_glb(data)
+        else:
+            from gsa.io import packed
+
+            packed.check_header(fmt, data, max_gaussians)
+            model = packed.decode(fmt, data)
+        if len(model) > max_gaussians:
+            raise FormatError(path, f"{len(model)} Gaussians exceeds the limit of {max_gaussians}")
+        model.validate(source="data")
+    except FormatError:
+        raise
+    except (ValueError, ModelError) as exc:  # GlbError, PackedError, ModelError
+        raise FormatError(path, f"{fmt}: {exc}") from None
+    model.quats = model.quats / np.linalg.norm(model.quats, axis=1, keepdims=True)  # buffers may be read-only
+    return model
+
+
+def format_for_path(path: str | os.PathLike) -> str | None:
+    """The format an output file name asks for by its extension, if any."""
+    name = Path(path).name.lower()
+    for fmt, ext in sorted(EXTENSIONS.items(), key=lambda kv: -len(kv[1])):
+        if name.endswith(ext):
+            return fmt
+    return None
+
+
+def write_model(
+    model: GaussianModel, path: str | os.PathLike, fmt: str | None = None, *, sh_degree: int | None = None
+) -> Path:
+    """Write an internal-convention model as `fmt` (default: from the extension, else PLY), atomically."""
+    path = Path(path)
+    fmt = fmt or format_for_path(path) or "ply"
+    if fmt not in FORMATS:
+        raise ValueError(f"unknown format {fmt!r}; choose from {', '.join(FORMATS)}")
+    degree = min(model.sh_degree if sh_degree is None else sh_degree, MAX_SH_DEGREE[fmt])
+    if degree != model.sh_degree:
+        model = model.with_sh_degree(degree)
+    model = frames.from_internal(model, fmt)
+    if fmt == "ply":
+        return write_ply(model, path)
+    if fmt == "splat":
+        from gsa.io.splat import encode_splat
+
+        data = encode_splat(model).tobytes()
+    elif fmt == "glb":
+        from gsa.io.glb import encode_glb
+
+        data = encode_glb(model)
+    else:
+        from gsa.io import packed
+
+        data = packed.encode(fmt, model)
+    return _atomic_write(path, data)
+
+
+def _atomic_write(path: Path, data: bytes) -> Path:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", dir=path.parent)
+    try:
+        with os.fdopen(fd, "wb") as fh:
+            fh.write(data)
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+    return path
