@@ -446,6 +446,7 @@ def _add_module_commands(sub) -> None:
     add_render_parser(sub)
     add_lift_parser(sub)
     add_reconstruct_parser(sub)
+    add_view_parser(sub)
     # Verbs of other packages (the service's `serve`, `worker`, `submit`, ...) come through
     # the "gsa.commands" entry point group: service/ depends on gsa/, never the reverse.
     for entry in entry_points(group="gsa.commands"):
