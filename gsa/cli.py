@@ -442,6 +442,7 @@ def _add_module_commands(sub) -> None:
     from gsa.features.command import add_lift_parser
     from gsa.recon.command import add_reconstruct_parser
     from gsa.render.command import add_render_parser
+    from gsa.viewer.command import add_view_parser
 
     add_render_parser(sub)
     add_lift_parser(sub)
