@@ -241,6 +241,10 @@ def cmd_align(args: argparse.Namespace) -> int:
     if args.renders:
         renders = write_outputs(result, source, target, args.renders, outputs={"renders"})
         data["renders"] = sorted(str(p) for p in renders.values())
+    data["inputs"] = {"source": str(args.source), "target": str(args.target)}  # `gsa view` reads them
+    if args.preview:
+        previews = write_outputs(result, source, target, Path(args.out).parent, outputs={"preview"})
+        data["preview"] = {Path(name).stem: str(p) for name, p in previews.items()}
     write_json(data, Path(args.out))
     _print_transform(result, args.out)
     return 0
