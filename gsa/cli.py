@@ -402,6 +402,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--aligned-out", help="write the source mapped into the target frame (PLY)")
     p.add_argument("--merged-out", help="write aligned source + target as one model (PLY)")
     p.add_argument("--renders", help="write before/after PNG renders into this folder")
+    p.add_argument("--preview", action="store_true", help="write .splat previews for `gsa view` beside --out")
     p.add_argument("--quiet", action="store_true", help="no progress on stderr")
     add_align_arguments(p)
     p.set_defaults(func=cmd_align)
