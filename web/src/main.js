@@ -1,0 +1,265 @@
+// The GSA results page's 3D viewer: three synchronised views (source, target, aligned
+// overlay) of the job's .splat previews, drawn by Spark (3DGS on three.js).
+// The page (built by gsa/viewer/page.py) carries a JSON config in #gsa-config; this
+// script only reads it and the preview files it names (same origin, no CDN).
+// window.gsaViewer reports state for people and tests: {ready, firstFrameMs, error, ...}.
+import { SparkRenderer, SplatMesh } from "@sparkjsdev/spark";
+import * as THREE from "three";
+
+const BACKGROUND = 0x1b1d22;
+const TARGET_TINT = [0.15, 0.45, 1.0];
+const SOURCE_TINTS = [
+  [1.0, 0.5, 0.1],
+  [0.95, 0.2, 0.75],
+  [0.3, 0.9, 0.3],
+  [1.0, 0.9, 0.2],
+];
+const UPS = { "+z": [0, 0, 1], "+y": [0, 1, 0], "-y": [0, -1, 0] };
+
+const state = (window.gsaViewer = { ready: false, firstFrameMs: null, error: null, frames: 0, panes: {} });
+
+function fail(err) {
+  state.error = String(err && err.message ? err.message : err);
+  const box = document.getElementById("viewer-status");
+  if (box) box.textContent = `viewer: ${state.error}`;
+  document.documentElement.dataset.viewer = "error";
+  console.warn("gsa viewer:", state.error);
+}
+
+async function fetchBytes(url) {
+  const r = await fetch(url, { credentials: "same-origin" });
+  if (!r.ok) throw new Error(`${r.status} loading a preview`);
+  return new Uint8Array(await r.arrayBuffer());
+}
+
+// Centre and radius of a .splat file's positions (32-byte records, float32 x y z first).
+function bounds(bytes) {
+  const n = Math.floor(bytes.byteLength / 32);
+  const f = new Float32Array(bytes.buffer, bytes.byteOffset, n * 8);
+  const c = [0, 0, 0];
+  for (let i = 0; i < n; i++) for (let k = 0; k < 3; k++) c[k] += f[i * 8 + k] / n;
+  let ss = 0;
+  for (let i = 0; i < n; i++) for (let k = 0; k < 3; k++) ss += (f[i * 8 + k] - c[k]) ** 2 / n;
+  return { center: new THREE.Vector3(...c), radius: Math.max(Math.sqrt(ss), 1e-6) };
+}
+
+// A copy whose colours are the tint shaded by each splat's own lightness.
+function tinted(bytes, tint) {
+  const out = bytes.slice();
+  for (let o = 24; o < out.length; o += 32) {
+    const l = (0.299 * out[o] + 0.587 * out[o + 1] + 0.114 * out[o + 2]) / 255;
+    const shade = 0.45 + 0.55 * l;
+    for (let k = 0; k < 3; k++) out[o + k] = Math.round(255 * tint[k] * shade);
+  }
+  return out;
+}
+
+function makeMesh(bytes) {
+  return new SplatMesh({ fileBytes: bytes.slice(), fileType: "splat" });
+}
+
+class Pane {
+  constructor(name, canvas, frame) {
+    this.name = name;
+    this.canvas = canvas;
+    this.frame = frame;
+    this.renderer = new THREE.WebGLRenderer({ canvas, antialias: false, preserveDrawingBuffer: true });
+    this.renderer.setClearColor(BACKGROUND, 1);
+    this.scene = new THREE.Scene();
+    this.spark = new SparkRenderer({ renderer: this.renderer, onDirty: () => (this.dirty = true) });
+    this.scene.add(this.spark);
+    this.camera = new THREE.PerspectiveCamera(40, 1, 0.01, 1000);
+    this.meshes = {};
+    this.dirty = true;
+    this.painted = false;
+  }
+
+  add(key, mesh) {
+    this.meshes[key] = mesh;
+    this.scene.add(mesh);
+  }
+
+  show(key, visible) {
+    if (this.meshes[key]) this.meshes[key].visible = visible;
+    this.dirty = true;
+  }
+
+  resize() {
+    const w = this.canvas.clientWidth;
+    const h = this.canvas.clientHeight;
+    if (w && h && (this.canvas.width !== w || this.canvas.height !== h)) {
+      this.renderer.setSize(w, h, false);
+      this.camera.aspect = w / h;
+      this.camera.updateProjectionMatrix();
+      this.dirty = true;
+    }
+  }
+
+  place(view) {
+    const { center, radius } = this.frame;
+    const up = new THREE.Vector3(...UPS[view.up]);
+    const e1 = Math.abs(up.x) > 0.9 ? new THREE.Vector3(0, 1, 0) : new THREE.Vector3(1, 0, 0);
+    e1.sub(up.clone().multiplyScalar(e1.dot(up))).normalize();
+    const e2 = up.clone().cross(e1);
+    const d = radius * view.distance;
+    const dir = e1
+      .multiplyScalar(Math.cos(view.elevation) * Math.cos(view.azimuth))
+      .add(e2.multiplyScalar(Math.cos(view.elevation) * Math.sin(view.azimuth)))
+      .add(up.clone().multiplyScalar(Math.sin(view.elevation)));
+    this.camera.position.copy(center).addScaledVector(dir, d);
+    this.camera.up.copy(up);
+    this.camera.near = Math.max(d - 4 * radius, d * 0.01);
+    this.camera.far = d + 6 * radius;
+    this.camera.lookAt(center);
+    this.camera.updateProjectionMatrix();
+  }
+
+  // Rendered at least once with something drawn (Spark sorts in a worker: the first
+  // frames after loading may still be empty).
+  hasPixels() {
+    const gl = this.renderer.getContext();
+    const w = gl.drawingBufferWidth;
+    const h = gl.drawingBufferHeight;
+    const px = new Uint8Array(w * h * 4);
+    gl.readPixels(0, 0, w, h, gl.RGBA, gl.UNSIGNED_BYTE, px);
+    const bg = new THREE.Color(BACKGROUND);
+    const br = Math.round(bg.r * 255);
+    const bb = Math.round(bg.b * 255);
+    for (let i = 0; i < px.length; i += 4 * 7) {
+      if (Math.abs(px[i] - br) > 8 || Math.abs(px[i + 2] - bb) > 8) return true;
+    }
+    return false;
+  }
+}
+
+function controls(canvases, view, onChange) {
+  for (const canvas of canvases) {
+    let last = null;
+    canvas.addEventListener("pointerdown", (e) => {
+      last = [e.clientX, e.clientY];
+      canvas.setPointerCapture(e.pointerId);
+    });
+    canvas.addEventListener("pointerup", () => (last = null));
+    canvas.addEventListener("pointermove", (e) => {
+      if (!last) return;
+      view.azimuth -= (e.clientX - last[0]) * 0.01;
+      view.elevation = Math.max(-1.5, Math.min(1.5, view.elevation + (e.clientY - last[1]) * 0.01));
+      last = [e.clientX, e.clientY];
+      onChange();
+    });
+    canvas.addEventListener(
+      "wheel",
+      (e) => {
+        e.preventDefault();
+        view.distance = Math.max(0.5, Math.min(20, view.distance * Math.exp(e.deltaY * 0.001)));
+        onChange();
+      },
+      { passive: false },
+    );
+  }
+}
+
+async function main() {
+  const config = JSON.parse(document.getElementById("gsa-config").textContent);
+  const models = config.results;
+  const el = (id) => document.getElementById(id);
+  if (!models.length || !models[0].preview.target) {
+    el("viewer-status").textContent = "no preview models in this result (the job ran without the 'preview' output)";
+    document.documentElement.dataset.viewer = "no-preview";
+    state.ready = true;
+    return;
+  }
+  const targetBytes = await fetchBytes(models[0].preview.target);
+  const sourceBytes = await Promise.all(models.map((m) => fetchBytes(m.preview.source)));
+  const alignedBytes = await Promise.all(models.map((m) => fetchBytes(m.preview.aligned)));
+  const targetFrame = bounds(targetBytes);
+  const panes = {
+    source: new Pane("source", el("view-source"), bounds(sourceBytes[0])),
+    target: new Pane("target", el("view-target"), targetFrame),
+    overlay: new Pane("overlay", el("view-overlay"), targetFrame),
+  };
+  state.panes = panes;
+  sourceBytes.forEach((b, i) => panes.source.add(`source${i}`, makeMesh(b)));
+  panes.target.add("target", makeMesh(targetBytes));
+  const tintedMeshes = { target: makeMesh(tinted(targetBytes, TARGET_TINT)) };
+  alignedBytes.forEach((b, i) => {
+    tintedMeshes[`source${i}`] = makeMesh(tinted(b, SOURCE_TINTS[i % SOURCE_TINTS.length]));
+  });
+  for (const [k, m] of Object.entries(tintedMeshes)) panes.overlay.add(k, m);
+  const natural = {};
+
+  const view = { azimuth: 0.8, elevation: 0.45, distance: 3.2, up: config.up || "+z" };
+  const redraw = () => {
+    for (const p of Object.values(panes)) p.dirty = true;
+  };
+  controls(Object.values(panes).map((p) => p.canvas), view, redraw);
+
+  // The source pane shows one source at a time (a multi-model job has several).
+  const pick = el("pick-source");
+  const showSource = (i) => {
+    sourceBytes.forEach((_, j) => panes.source.show(`source${j}`, j === i));
+    panes.source.frame = bounds(sourceBytes[i]);
+    redraw();
+  };
+  showSource(0);
+  if (pick) pick.addEventListener("change", () => showSource(Number(pick.value)));
+  const upPick = el("pick-up");
+  if (upPick) {
+    upPick.value = view.up;
+    upPick.addEventListener("change", () => {
+      view.up = upPick.value;
+      redraw();
+    });
+  }
+  // Overlay toggles: one checkbox per model (data-model="target" / "source0" ...), and the tint.
+  const tint = el("toggle-tint");
+  const visibleKeys = () => {
+    const on = {};
+    for (const box of document.querySelectorAll("input[data-model]")) on[box.dataset.model] = box.checked;
+    return on;
+  };
+  const applyToggles = () => {
+    const on = visibleKeys();
+    const useTint = !tint || tint.checked;
+    if (!useTint) {
+      natural.target ??= makeMesh(targetBytes);
+      alignedBytes.forEach((b, i) => (natural[`source${i}`] ??= makeMesh(b)));
+      for (const [k, m] of Object.entries(natural)) if (!m.parent) panes.overlay.scene.add(m);
+    }
+    for (const k of Object.keys(tintedMeshes)) {
+      tintedMeshes[k].visible = useTint && on[k] !== false;
+      if (natural[k]) natural[k].visible = !useTint && on[k] !== false;
+    }
+    panes.overlay.dirty = true;
+    state.visible = { ...on, tint: useTint };
+  };
+  for (const box of document.querySelectorAll("input[data-model]")) box.addEventListener("change", applyToggles);
+  if (tint) tint.addEventListener("change", applyToggles);
+  applyToggles();
+
+  await Promise.all(
+    Object.values(panes).flatMap((p) => Object.values(p.meshes).map((m) => m.initialized)),
+  );
+  state.loadedMs = performance.now();
+  const loop = () => {
+    for (const p of Object.values(panes)) {
+      p.resize();
+      if (!p.dirty && p.painted) continue;
+      p.dirty = false;
+      p.place(view);
+      p.renderer.render(p.scene, p.camera);
+      if (!p.painted && p.hasPixels()) p.painted = true;
+    }
+    state.frames += 1;
+    if (!state.ready && Object.values(panes).every((p) => p.painted)) {
+      state.firstFrameMs = performance.now();
+      state.ready = true;
+      document.documentElement.dataset.viewer = "ready";
+      el("viewer-status").textContent = `ready: first frame ${(state.firstFrameMs / 1000).toFixed(2)} s after navigation`;
+    }
+    requestAnimationFrame(loop);
+  };
+  requestAnimationFrame(loop);
+}
+
+main().catch(fail);
