@@ -10,9 +10,11 @@ import os
 import tempfile
 from pathlib import Path
 
+from gsa.align.contract import transform_contract
 from gsa.align.pipeline import AlignmentResult
-from gsa.io.ply import write_ply
-from gsa.model import GaussianModel, merge_models
+from gsa.io.formats import EXTENSIONS, write_model
+from gsa.merge import merge
+from gsa.model import GaussianModel
 from gsa.sim3 import Sim3
 
 OUTPUTS = ("result", "aligned", "merged", "renders", "preview")
@@ -39,8 +41,12 @@ def write_outputs(
     out_dir: str | os.PathLike,
     outputs: set[str] | frozenset[str] = frozenset({"result", "aligned", "merged"}),
     extra: dict | None = None,
+    model_format: str = "ply",
+    merge_mode: str = "concat",
 ) -> dict[str, Path]:
-    """Write the requested outputs into out_dir; returns {artifact name: path}."""
+    """Write the requested outputs into out_dir; returns {artifact name: path}. Models are
+    written as `model_format` (aligned.ply, aligned.spz, ...); `merge_mode` "dedup" drops
+    Gaussians duplicated between the aligned source and the target (gsa.merge)."""
     unknown = set(outputs) - set(OUTPUTS)
     if unknown:
         raise ValueError(f"unknown outputs {sorted(unknown)}; choose from {', '.join(OUTPUTS)}")
@@ -50,10 +56,14 @@ def write_outputs(
     aligned = None
     if "aligned" in outputs or "merged" in outputs:
         aligned = source.transformed(result.transform)
+    ext = EXTENSIONS[model_format]
+    merge_report = None
     if "aligned" in outputs:
-        paths["aligned.ply"] = write_ply(aligned, out / "aligned.ply")
+        paths[f"aligned{ext}"] = write_model(aligned, out / f"aligned{ext}", model_format)
     if "merged" in outputs:
-        paths["merged.ply"] = write_ply(merge_models(aligned, target), out / "merged.ply")
+        merged, removed = merge(aligned, target, merge_mode)
+        merge_report = {"mode": merge_mode, "removed": removed, "gaussians": len(merged)}
+        paths[f"merged{ext}"] = write_model(merged, out / f"merged{ext}", model_format)
     if "renders" in outputs:
         from gsa.render.views import write_alignment_renders  # lazy: loads torch, only renders need it
 
@@ -65,6 +75,13 @@ def write_outputs(
         paths.update(write_previews(source, target, result.transform, out))
     if "result" in outputs:
         data = result.to_dict()
+        data.update(
+            transform_contract(
+                result.transform, source.metadata.get("format", "ply"), target.metadata.get("format", "ply")
+            )
+        )
+        if merge_report:
+            data["merge"] = merge_report
         if extra:
             data.update(extra)
         data["artifacts"] = sorted(paths)
