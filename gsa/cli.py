@@ -23,6 +23,8 @@ from pathlib import Path
 import numpy as np
 
 EXIT_FAILED = 1
+# gsa.io.formats.FORMATS, spelled out so building the parser imports nothing (a test checks they agree)
+FORMAT_CHOICES = ("ply", "compressed-ply", "splat", "ksplat", "spz", "sog", "glb")
 
 
 class CliError(Exception):
@@ -104,8 +106,8 @@ class ProgressPrinter:
 
 
 def _load_model(path: str, role: str = "model", args: argparse.Namespace | None = None):
-    """A PLY file, or an image set (folder or .zip) reconstructed first."""
-    from gsa.io.ply import read_ply
+    """A 3DGS file in any supported format, or an image set (folder or .zip) reconstructed first."""
+    from gsa.io.formats import read_model
 
     p = Path(path)
     if p.is_dir() or p.suffix.lower() == ".zip":
@@ -117,7 +119,7 @@ def _load_model(path: str, role: str = "model", args: argparse.Namespace | None 
         preset = getattr(args, "preset", "cpu")
         print(f"[gsa] reconstructing {role} from {path} into {out} (preset {preset})", file=sys.stderr)
         return reconstruct(p, out, preset=preset, progress=ProgressPrinter(not getattr(args, "quiet", False))).model
-    return read_ply(p)
+    return read_model(p)
 
 
 def _align_options(args: argparse.Namespace):
@@ -214,10 +216,11 @@ def add_align_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def cmd_align(args: argparse.Namespace) -> int:
+    from gsa.align.contract import transform_contract
     from gsa.align.outputs import write_json, write_outputs
     from gsa.align.pipeline import align
-    from gsa.io.ply import write_ply
-    from gsa.model import merge_models
+    from gsa.io.formats import format_for_path, write_model
+    from gsa.merge import merge
 
     options = _align_options(args)
     source = _load_model(args.source, "source", args)
@@ -232,12 +235,22 @@ def cmd_align(args: argparse.Namespace) -> int:
             raise CliError(str(exc)) from None
     result = align(source, target, options, progress=ProgressPrinter(not args.quiet), target_cameras=cameras)
     data = result.to_dict()
+    source_format = source.metadata.get("format", "ply")
+    data.update(transform_contract(result.transform, source_format, target.metadata.get("format", "ply")))
     if args.aligned_out or args.merged_out:
+        # --format, else the output name's extension, else the source's own format
+        def fmt_for(path: str) -> str:
+            return args.format or format_for_path(path) or source_format
+
         aligned = source.transformed(result.transform)
         if args.aligned_out:
-            data["aligned_out"] = str(write_ply(aligned, args.aligned_out))
+            data["aligned_out"] = str(write_model(aligned, args.aligned_out, fmt_for(args.aligned_out)))
         if args.merged_out:
-            data["merged_out"] = str(write_ply(merge_models(aligned, target), args.merged_out))
+            merged, removed = merge(aligned, target, args.merge)
+            data["merge"] = {"mode": args.merge, "removed": removed, "gaussians": len(merged)}
+            data["merged_out"] = str(write_model(merged, args.merged_out, fmt_for(args.merged_out)))
+            if args.merge != "concat":
+                print(f"merge        {removed} duplicated Gaussians removed ({args.merge})", file=sys.stderr)
     if args.renders:
         renders = write_outputs(result, source, target, args.renders, outputs={"renders"})
         data["renders"] = sorted(str(p) for p in renders.values())
@@ -381,6 +394,18 @@ def cmd_synth(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_convert(args: argparse.Namespace) -> int:
+    from gsa.io.formats import format_for_path, read_model, write_model
+
+    fmt = args.format or format_for_path(args.output)
+    if fmt is None:
+        raise CliError(f"{args.output}: no known extension; name the output format with --format")
+    model = read_model(args.input)
+    path = write_model(model, args.output, fmt, sh_degree=args.sh_degree)
+    print(f"{path}: {len(model)} Gaussians, {model.metadata['format']} -> {fmt}")
+    return 0
+
+
 def cmd_bench(args: argparse.Namespace) -> int:
     from gsa.bench.peers import PEERS
     from gsa.bench.protocols import run_protocols
@@ -403,9 +428,27 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--merged-out", help="write aligned source + target as one model (PLY)")
     p.add_argument("--renders", help="write before/after PNG renders into this folder")
     p.add_argument("--preview", action="store_true", help="write .splat previews for `gsa view` beside --out")
+    p.add_argument(
+        "--format",
+        choices=FORMAT_CHOICES,
+        help="format of --aligned-out/--merged-out (default: the output name's extension, else the source's format)",
+    )
+    p.add_argument(
+        "--merge",
+        choices=["concat", "dedup"],
+        default="concat",
+        help="dedup: drop Gaussians duplicated between the aligned source and the target (the more opaque stays)",
+    )
     p.add_argument("--quiet", action="store_true", help="no progress on stderr")
     add_align_arguments(p)
     p.set_defaults(func=cmd_align)
+
+    p = sub.add_parser("convert", help="convert a 3DGS file between formats (sniffed from the bytes)")
+    p.add_argument("input", help="ply, compressed PLY, .splat, .ksplat, .spz, .sog or .glb (KHR_gaussian_splatting)")
+    p.add_argument("output")
+    p.add_argument("--format", choices=FORMAT_CHOICES, help="output format (default: from the output's extension)")
+    p.add_argument("--sh-degree", type=int, choices=[0, 1, 2, 3], help="truncate or zero-pad SH to this degree")
+    p.set_defaults(func=cmd_convert)
 
     p = sub.add_parser("demo", help="align generated example data with a known answer")
     p.add_argument("--out", default="out/demo")
