@@ -75,7 +75,7 @@ def sniff(path: str | os.PathLike) -> str:
         raise FormatError(path, "the file is empty")
     fmt = sniff_bytes(head, size)
     if fmt is None:
-        raise FormatError(path, f"not a 3DGS file in any supported format ({', '.join(FORMATS)})")
+        raise FormatError(path, f"not a PLY nor any other supported 3DGS format ({', '.join(FORMATS[1:])})")
     return fmt
 
 

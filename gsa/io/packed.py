@@ -78,22 +78,39 @@ def check_header(fmt: str, data: bytes, max_gaussians: int) -> None:
 
 
 def _check_spz(data: bytes, max_gaussians: int) -> None:
-    if data[:4] == b"NGSP":  # SPZ v4: plain header, zstd sections
-        head = data[:16]
-    else:
-        try:
-            head = zlib.decompressobj(16 + zlib.MAX_WBITS).decompress(data, 16)
-        except zlib.error as exc:
-            raise PackedError(f"the gzip stream is corrupt ({exc})") from None
+    gz = data[:4] != b"NGSP"  # SPZ v4 has a plain header and zstd sections
+    try:
+        head = zlib.decompressobj(16 + zlib.MAX_WBITS).decompress(data, 16) if gz else data[:16]
+    except zlib.error as exc:
+        raise PackedError(f"the gzip stream is corrupt ({exc})") from None
     if len(head) < 16:
         raise PackedError("truncated: no complete SPZ header")
-    magic, version, count = struct.unpack_from("<III", head, 0)
+    magic, version, count, degree = struct.unpack_from("<IIIB", head, 0)
     if magic != SPZ_MAGIC:
         raise PackedError("not an SPZ stream (no NGSP magic)")
     if version not in (1, 2, 3, 4):
         raise PackedError(f"unsupported SPZ version {version}")
     if count > max_gaussians:
         raise PackedError(f"{count} Gaussians exceeds the limit of {max_gaussians}")
+    if degree > 3:
+        raise PackedError(f"SH degree {degree} in the header (0..3 exist)")
+    if gz and version <= 3:
+        # The whole stream, at most one byte past what the header implies: a truncated or
+        # corrupt stream is named here (gaussforge says only "std::bad_cast"), and a stream
+        # that would inflate far beyond its header's count is never inflated.
+        per = 9 + 1 + 3 + 3 + (4 if version == 3 else 3) + 3 * (sh_coeff_count(degree) - 1)
+        need = 16 + count * per
+        inflater = zlib.decompressobj(16 + zlib.MAX_WBITS)
+        try:
+            got = len(inflater.decompress(data, need + (1 << 20)))
+        except zlib.error as exc:
+            raise PackedError(f"the gzip stream is corrupt ({exc})") from None
+        if got < need:
+            raise PackedError(
+                f"truncated: the header declares {count} Gaussians ({need} bytes), the stream holds {got}"
+            )
+        if not inflater.eof and inflater.unconsumed_tail:
+            raise PackedError(f"the stream inflates beyond the {need} bytes its header declares")
 
 
 def _check_sog(data: bytes, max_gaussians: int) -> None:
