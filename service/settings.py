@@ -71,6 +71,11 @@ class Settings(BaseSettings):
     # Browser origins allowed to call the API (CORS), e.g. GSA_CORS_ORIGINS='["https://assets.example"]';
     # empty: no CORS headers, browsers on other origins are refused.
     cors_origins: list[str] = []
+    # Results pages in the browser (service.api.view): the HMAC key of their signed links
+    # (unset: a random key per process, so links work only on the process that made them)
+    # and how long a link stays valid.
+    view_secret: str | None = None
+    view_link_ttl_s: float = 900.0
 
     # Retention: finished jobs (with their artifacts) and assets no remaining job uses are
     # deleted this many days after they finished / were uploaded; 0 keeps everything.
