@@ -15,7 +15,7 @@ from contextlib import asynccontextmanager
 from fastapi import FastAPI, Request
 from fastapi.middleware.cors import CORSMiddleware
 
-from service.api import artifacts, assets, jobs, ops
+from service.api import artifacts, assets, jobs, ops, view
 from service.api.middleware import BodyLimit, RequestMetrics, install_error_handlers, problem_response
 from service.api.openapi import custom_openapi
 from service.api.request_ids import RequestIds
