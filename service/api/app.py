@@ -104,7 +104,7 @@ def create_app(
         )
     app.add_middleware(RequestIds)  # outermost: every response, even a refused one, carries its id
     # This order is the order of the paths in the OpenAPI document.
-    for resource in (ops, assets, jobs, artifacts):
+    for resource in (ops, assets, jobs, artifacts, view):
         app.include_router(resource.router)
 
     app.openapi = lambda: custom_openapi(app)
