@@ -177,6 +177,11 @@ def protocol_io(quick: bool, seed: int, out: Path, peers: list[str] | None = Non
         check=True,
     )
     rows = [json.loads(proc.stdout.strip().splitlines()[-1]) | {"protocol": "io"}]
+    from gsa.bench.formats_io import protocol_formats  # every format's round trip and format pairs
+
+    roundtrips, pairs = protocol_formats(quick)
+    rows += [r | {"protocol": "io", "kind": "roundtrip"} for r in roundtrips]
+    rows += [r | {"protocol": "io", "kind": "pair"} for r in pairs]
     save_rows(out, "io", rows)
     return rows
 

@@ -23,10 +23,17 @@ def format_table(name: str, rows: list[dict]) -> str:
             "|---:|---:|---:|---:|---:|",
         ]
         for r in rows:
-            lines.append(
-                f"| {r['gaussians']:,} | {r['file_mb']:.0f} | {r['write_seconds']:.2f} | "
-                f"{r['read_seconds']:.2f} | {r['rss_growth_mb']:.0f} |"
-            )
+            if "kind" not in r:
+                lines.append(
+                    f"| {r['gaussians']:,} | {r['file_mb']:.0f} | {r['write_seconds']:.2f} | "
+                    f"{r['read_seconds']:.2f} | {r['rss_growth_mb']:.0f} |"
+                )
+        roundtrips = [r for r in rows if r.get("kind") == "roundtrip"]
+        pairs = [r for r in rows if r.get("kind") == "pair"]
+        if roundtrips or pairs:
+            from gsa.bench.formats_io import format_tables
+
+            lines += ["", format_tables(roundtrips, pairs)]
         return "\n".join(lines)
     if name == "speed":
         lines = [
