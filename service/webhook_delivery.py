@@ -18,6 +18,7 @@ import json
 import logging
 import socket
 import time
+from datetime import UTC, datetime
 from urllib.parse import urlparse
 
 log = logging.getLogger("gsa.webhooks")
@@ -49,6 +50,11 @@ def check_url(url: str, allow_private: bool) -> None:
             raise ValueError(f"webhook host {u.hostname!r} resolves to a non-public address")
 
 
+def iso_time(t: float | None) -> str | None:
+    """ISO-8601 UTC, as the REST API writes times (pydantic's form: ...T12:00:00.5Z)."""
+    return None if t is None else datetime.fromtimestamp(t, UTC).isoformat().replace("+00:00", "Z")
+
+
 def post_job_event(store, job_id: str, settings) -> None:
     import httpx  # lazy: only processes that send webhooks pay for loading it
 
@@ -59,7 +65,7 @@ def post_job_event(store, job_id: str, settings) -> None:
         {
             "job_id": job.id,
             "state": job.state.value,
-            "finished_at": job.finished_at,
+            "finished_at": iso_time(job.finished_at),
             "attempts": job.attempts,
         },
         separators=(",", ":"),

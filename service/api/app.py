@@ -70,6 +70,7 @@ def create_app(
         docs_url="/docs" if settings.public_docs else None,
         redoc_url=None,
         openapi_url="/openapi.json" if settings.public_docs else None,
+        generate_unique_id_function=operation_id,
     )
     app.state.backend = backend or make_backend(settings)
     app.state.metrics = Metrics(app.state.backend)
@@ -109,6 +110,13 @@ def create_app(
 
     app.openapi = lambda: custom_openapi(app)
     return app
+
+
+def operation_id(route) -> str:
+    """A route without an explicit operation_id gets its handler's name in camelCase
+    (get_job -> getJob), not FastAPI's path-and-method id, so ids stay stable."""
+    head, *rest = route.name.split("_")
+    return head + "".join(w[:1].upper() + w[1:] for w in rest)
 
 
 def install_infrastructure_handlers(app: FastAPI, retry_after: int) -> None:

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import re
+from email.utils import formatdate, parsedate_to_datetime
 from typing import Annotated
 
 from fastapi import APIRouter, Header, Response
@@ -21,9 +22,12 @@ _RANGE = re.compile(r"^bytes=(\d*)-(\d*)$")
 
 @router.get(
     "/v1/jobs/{job_id}/artifacts/{name:path}",
+    operation_id="getArtifact",
     tags=["jobs"],
     summary="Download an artifact",
-    description="Supports single byte ranges (Range: bytes=a-b) with 206 Partial Content.",
+    description="Supports single byte ranges (Range: bytes=a-b) with 206 Partial Content. With If-Range "
+    "(the ETag or Last-Modified of a copy you hold), a range is served only if the artifact is still that "
+    "version; otherwise the whole artifact comes with 200 (RFC 9110).",
     response_class=StreamingResponse,
     responses={
         200: {
@@ -44,17 +48,57 @@ def get_artifact(
     owner: Owner,
     b: B,
     range_header: Annotated[str | None, Header(alias="Range")] = None,
+    if_range: Annotated[str | None, Header(alias="If-Range")] = None,
 ):
-    _, art = core.get_artifact(b, owner, job_id, name)
+    job, art = core.get_artifact(b, owner, job_id, name)
+    status, headers, start, end = _plan(job, art, range_header, if_range)
+    if art.size == 0:
+        return Response(b"", media_type=art.content_type, headers=headers)
+    return StreamingResponse(
+        b.storage.open(art.key, start, end),
+        status_code=status,
+        media_type=art.content_type,
+        headers=headers,
+    )
+
+
+@router.head(
+    "/v1/jobs/{job_id}/artifacts/{name:path}",
+    operation_id="headArtifact",
+    tags=["jobs"],
+    summary="An artifact's headers (size, ETag) without its body",
+    response_class=Response,
+    responses={206: {"description": "partial content"}, **problem_responses(401, 404, 409, 416)},
+)
+async def head_artifact(
+    job_id: str,
+    name: str,
+    owner: Owner,
+    b: B,
+    range_header: Annotated[str | None, Header(alias="Range")] = None,
+    if_range: Annotated[str | None, Header(alias="If-Range")] = None,
+):
+    job, art = core.get_artifact(b, owner, job_id, name)
+    status, headers, _, _ = _plan(job, art, range_header, if_range)
+    headers["Content-Type"] = art.content_type
+    return Response(status_code=status, headers=headers)
+
+
+def _plan(job, art, range_header: str | None, if_range: str | None) -> tuple[int, dict[str, str], int, int]:
+    """(status, headers, first byte, last byte) of a download: 206 for one satisfiable
+    range, unless an If-Range names another version (then the whole artifact, 200)."""
     size = art.size
+    etag = f'"{art.key.rsplit("/", 2)[-2][:16]}-{size}"'
+    modified = formatdate(job.finished_at or job.updated_at, usegmt=True)
     headers = {
         "Accept-Ranges": "bytes",
-        "ETag": f'"{art.key.rsplit("/", 2)[-2][:16]}-{size}"',
+        "ETag": etag,
+        "Last-Modified": modified,
         "Content-Disposition": f'attachment; filename="{art.name}"',
     }
     start, end, status = 0, size - 1, 200
     m = _RANGE.match(range_header.strip()) if range_header else None
-    if m and (m.group(1) or m.group(2)):
+    if m and (m.group(1) or m.group(2)) and _if_range_holds(if_range, etag, modified):
         a, z = m.group(1), m.group(2)
         if a:
             start, end = int(a), min(int(z), size - 1) if z else size - 1
@@ -71,12 +115,19 @@ def get_artifact(
             raise p
         status = 206
         headers["Content-Range"] = f"bytes {start}-{end}/{size}"
-    headers["Content-Length"] = str(end - start + 1)
-    if size == 0:
-        return Response(b"", media_type=art.content_type, headers=headers)
-    return StreamingResponse(
-        b.storage.open(art.key, start, end),
-        status_code=status,
-        media_type=art.content_type,
-        headers=headers,
-    )
+    headers["Content-Length"] = str(max(end - start + 1, 0))
+    return status, headers, start, end
+
+
+def _if_range_holds(if_range: str | None, etag: str, modified: str) -> bool:
+    """RFC 9110 §13.1.5: no If-Range, or one naming this version (the same strong ETag,
+    or exactly this Last-Modified date); anything else (weak or stale) sends the whole artifact."""
+    if if_range is None:
+        return True
+    v = if_range.strip()
+    if v.startswith(('"', "W/")):
+        return v == etag
+    try:
+        return parsedate_to_datetime(v) == parsedate_to_datetime(modified)
+    except (TypeError, ValueError):
+        return False

@@ -17,6 +17,7 @@ router = APIRouter()
 
 @router.post(
     "/v1/assets",
+    operation_id="uploadAsset",
     status_code=201,
     response_model=AssetOut,
     tags=["assets"],
@@ -49,6 +50,7 @@ async def upload_asset(request: Request, response: Response, owner: Owner, b: B)
 
 @router.get(
     "/v1/assets/{asset_id}",
+    operation_id="getAsset",
     response_model=AssetOut,
     tags=["assets"],
     summary="Asset metadata",
@@ -60,6 +62,7 @@ async def get_asset(asset_id: str, owner: Owner, b: B):
 
 @router.delete(
     "/v1/assets/{asset_id}",
+    operation_id="deleteAsset",
     status_code=204,
     response_class=Response,
     tags=["assets"],

@@ -49,6 +49,7 @@ def _job_response(job, created: bool) -> JSONResponse:
 
 @router.post(
     "/v1/jobs",
+    operation_id="createJob",
     status_code=202,
     response_model=JobOut,
     tags=["jobs"],
@@ -188,6 +189,7 @@ def _etag_matches(header: str | None, etag: str) -> bool:
 
 @router.get(
     "/v1/jobs/{job_id}",
+    operation_id="getJob",
     response_model=JobOut,
     tags=["jobs"],
     summary="Job state, progress and result",
@@ -223,6 +225,7 @@ def _decode_cursor(c: str) -> tuple[float, str]:
 
 @router.get(
     "/v1/jobs",
+    operation_id="listJobs",
     response_model=JobList,
     tags=["jobs"],
     summary="List your jobs, newest first",
@@ -246,6 +249,7 @@ async def list_jobs(
 
 @router.post(
     "/v1/jobs/{job_id}:cancel",
+    operation_id="cancelJob",
     status_code=202,
     response_model=JobOut,
     tags=["jobs"],
@@ -260,6 +264,7 @@ async def cancel_job(job_id: str, owner: Owner, b: B):
 
 @router.delete(
     "/v1/jobs/{job_id}",
+    operation_id="deleteJob",
     status_code=204,
     response_class=Response,
     tags=["jobs"],

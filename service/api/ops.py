@@ -13,13 +13,14 @@ from service.problems import Problem as ProblemError
 router = APIRouter()
 
 
-@router.get("/healthz", response_model=Health, tags=["ops"], summary="Liveness")
+@router.get("/healthz", operation_id="healthz", response_model=Health, tags=["ops"], summary="Liveness")
 async def healthz() -> Health:
     return Health(status="ok")
 
 
 @router.get(
     "/readyz",
+    operation_id="readyz",
     response_model=Health,
     tags=["ops"],
     summary="Readiness: job store and storage reachable",
@@ -37,6 +38,7 @@ def readyz(b: B):
 
 @router.get(
     "/metrics",
+    operation_id="getMetrics",
     tags=["ops"],
     summary="Prometheus metrics (any valid API key)",
     responses={200: {"content": {CONTENT_TYPE_LATEST: {}}}},

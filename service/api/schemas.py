@@ -2,13 +2,17 @@
 
 from __future__ import annotations
 
+import logging
 from datetime import UTC, datetime
 from typing import Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, model_validator
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
+from service.api.results import JobResult
 from service.models import Asset, Job, JobState
 from service.options import OPTION_BOUNDS, OutputName, check_option_values
+
+log = logging.getLogger("gsa.api")
 
 
 class Problem(BaseModel):
@@ -98,7 +102,7 @@ class JobOut(BaseModel):
     target: str = Field(description="target asset id")
     options: dict[str, Any]
     error: Problem | None = None
-    result: dict[str, Any] | None = Field(
+    result: JobResult | None = Field(
         None,
         description="when succeeded: transform (4x4 row-major, x_t = s R x_s + t), scale, rotation (3x3), "
         "quaternion (wxyz), translation, metrics, timings; `results` lists one entry per source",
@@ -128,7 +132,7 @@ class JobOut(BaseModel):
             target=job.target.asset_id,
             options=job.options,
             error=job.error,
-            result=job.result,
+            result=_result(job),
             artifacts=[
                 ArtifactOut(
                     name=a.name,
@@ -140,6 +144,16 @@ class JobOut(BaseModel):
             ],
             links={"self": base, "cancel": f"{base}:cancel"},
         )
+
+
+def _result(job: Job) -> JobResult | None:
+    if job.result is None:
+        return None
+    try:
+        return JobResult.model_validate(job.result)
+    except ValidationError:  # a result stored by another library version: shown as stored
+        log.warning("job %s: stored result does not match the JobResult schema", job.id)
+        return JobResult.model_construct(**job.result)
 
 
 class JobList(BaseModel):

@@ -343,6 +343,9 @@ def test_webhook_signed_and_retried(http, pair):
         headers, body = _Hook.got[0]
         payload = json.loads(body)
         assert payload["job_id"] == job["id"] and payload["state"] == "succeeded"
+        # Times as the REST API writes them (ISO-8601), not a float.
+        assert payload["finished_at"] == http.get(f"/v1/jobs/{job['id']}").json()["finished_at"]
+        assert isinstance(payload["finished_at"], str) and payload["finished_at"].endswith("Z")
         mac = hmac.new(b"s3cret", headers["X-GSA-Timestamp"].encode() + b"." + body, hashlib.sha256).hexdigest()
         assert headers["X-GSA-Signature"] == "sha256=" + mac
     finally:

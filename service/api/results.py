@@ -1,0 +1,113 @@
+"""The typed `result` of a job (OpenAPI): what the worker stores, from
+gsa.align's AlignmentResult.to_dict() plus the service's own fields.
+
+Every model allows extra members: a newer library may add metrics or stages,
+and a stored result must never fail to serialise (JobOut.from_job falls back to
+the stored dict if one does not validate)."""
+
+from __future__ import annotations
+
+from typing import Any
+
+from pydantic import BaseModel, ConfigDict, Field, model_serializer
+
+Matrix = list[list[float]]
+
+
+class _Open(BaseModel):
+    model_config = ConfigDict(extra="allow")
+
+    @model_serializer(mode="wrap")
+    def _as_stored(self, handler):
+        # Members the stored result does not have stay absent (not null): the JSON is the stored one.
+        return {k: v for k, v in handler(self).items() if v is not None or k in self.model_fields_set}
+
+
+class Sim3Out(_Open):
+    """A similarity transform x_target = scale · R · x_source + t."""
+
+    transform: Matrix | None = Field(None, description="4×4, row-major")
+    scale: float | None = None
+    rotation: Matrix | None = Field(None, description="3×3")
+    quaternion: list[float] | None = Field(None, description="(w, x, y, z)")
+    translation: list[float] | None = None
+
+
+class Pose(_Open):
+    """A candidate pose the coarse stage scored (hypotheses, metrics.alternatives)."""
+
+    origin: str | None = None
+    score: float | None = None
+    geometry: float | None = None
+    colour: float | None = None
+    overlap: float | None = None
+    rotation_offset_deg: float | None = None
+    scale_ratio: float | None = None
+    transform: Matrix | None = None
+    chosen: bool | None = None
+
+
+class Metrics(_Open):
+    """GT-free quality numbers; trust the transform only when `doubtful` is false."""
+
+    confidence: float | None = Field(None, description="0..1")
+    ambiguous: bool | None = None
+    doubtful: bool | None = Field(None, description="ambiguous or confidence < 0.5")
+    alternatives: list[Pose] | None = None
+    hypothesis: str | None = None
+    score: float | None = None
+    margin: float | None = None
+    overlap_score: float | None = None
+    overlap_fraction: float | None = None
+    colour_agreement: float | None = None
+    colour_weight: float | None = None
+    inlier_fraction: float | None = None
+    inlier_fraction_forward: float | None = None
+    inlier_fraction_reverse: float | None = None
+    inlier_threshold: float | None = None
+    rms_residual: float | None = None
+    feature_agreement: float | None = None
+    feature_distance_median: float | None = None
+
+
+class CoarseStage(Sim3Out):
+    iterations: int | None = None
+    converged: bool | None = None
+    matched: int | None = None
+    candidate_pairs: int | None = None
+    history: list[dict[str, Any]] | None = None
+
+
+class FineStage(Sim3Out):
+    loss_history: list[float] | None = None
+    best_loss: float | None = None
+    best_iteration: int | None = None
+
+
+class Stages(_Open):
+    coarse: CoarseStage | None = None
+    fine: FineStage | None = None
+
+
+class SourceResult(Sim3Out):
+    """One source model aligned to the target."""
+
+    source_asset_id: str | None = None
+    metrics: Metrics | None = None
+    timings: dict[str, float] | None = Field(None, description="seconds per stage")
+    features: str | None = Field(None, description="the feature backend used")
+    stages_run: list[str] | None = None
+    hypotheses: list[Pose] | None = None
+    stages: Stages | None = None
+    lifting: list[dict[str, Any]] | None = None
+
+
+class JobResult(SourceResult):
+    """A succeeded job's result. A pair job carries its one source's fields at the top
+    level too; `results` always lists one entry per source."""
+
+    results: list[SourceResult] | None = None
+    reconstructions: dict[str, dict[str, Any]] | None = Field(
+        None, description="summaries of the models reconstructed from image-set inputs"
+    )
+    notes: list[str] | None = None
