@@ -12,14 +12,19 @@ import tempfile
 from dataclasses import dataclass, field
 from email.message import Message
 from email.utils import collapse_rfc2231_value
+from typing import BinaryIO
 
 from python_multipart.multipart import MultipartParser
 from starlette.requests import Request
 
 from service.problems import invalid_input, too_large
 
-MAX_FIELD_BYTES = 1 << 20
+MAX_FIELD_BYTES = 1 << 20  # all non-file fields of one request together (they are held in memory)
 MAX_PARTS = 1000
+# File parts are kept in memory up to this much per request in all (then on disk):
+# a request of 1000 small files must not hold 1000 spool buffers of a MiB each.
+MEMORY_SPOOL_BYTES = 4 << 20
+SPOOL_PART_BYTES = 1 << 20
 
 
 @dataclass
@@ -27,7 +32,7 @@ class FilePart:
     name: str
     filename: str | None
     content_type: str | None
-    file: tempfile.SpooledTemporaryFile
+    file: BinaryIO  # in memory while small (SpooledTemporaryFile), else a temp file
     size: int = 0
 
 
@@ -89,6 +94,8 @@ async def parse_multipart(request: Request, max_file_bytes: int, max_files: int)
         "part": None,
         "buf": None,
         "n": 0,
+        "field_bytes": 0,
+        "spool_left": MEMORY_SPOOL_BYTES,
     }
 
     def on_part_begin():
@@ -114,11 +121,13 @@ async def parse_multipart(request: Request, max_file_bytes: int, max_files: int)
         if filename is not None:
             if sum(len(v) for v in form.files.values()) >= max_files:
                 raise too_large(f"more than {max_files} files in one request")
+            spool = min(SPOOL_PART_BYTES, st["spool_left"])
+            st["spool_left"] -= spool
             part = FilePart(
                 name,
                 filename,
                 st["headers"].get("content-type"),
-                tempfile.SpooledTemporaryFile(max_size=1 << 20),
+                tempfile.SpooledTemporaryFile(max_size=spool) if spool > 0 else tempfile.TemporaryFile(),
             )
             form.files.setdefault(name, []).append(part)
             st["part"] = part
@@ -136,8 +145,11 @@ async def parse_multipart(request: Request, max_file_bytes: int, max_files: int)
                 raise too_large(f"file {p.filename!r} exceeds the limit of {max_file_bytes} bytes")
             p.file.write(data[start:end])
         else:
-            if len(st["buf"]) + n > MAX_FIELD_BYTES:
-                raise too_large(f"form field {st['name']!r} exceeds {MAX_FIELD_BYTES} bytes")
+            # Counted over all fields, not per field: 1000 parts of just under the cap
+            # each would otherwise hold a gigabyte in memory.
+            st["field_bytes"] += n
+            if st["field_bytes"] > MAX_FIELD_BYTES:
+                raise too_large(f"form fields exceed {MAX_FIELD_BYTES} bytes in total (at {st['name']!r})")
             st["buf"] += data[start:end]
 
     def on_part_end():
