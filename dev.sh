@@ -27,6 +27,8 @@ setup_system_tools() {
     local missing=()
     command -v redis-server >/dev/null 2>&1 || missing+=(redis-server)
     command -v docker-compose >/dev/null 2>&1 || missing+=(docker-compose)
+    # The results-page tests drive Debian's Chromium headless (software WebGL) via playwright.
+    command -v chromium >/dev/null 2>&1 || missing+=(chromium)
     if [ ${#missing[@]} -gt 0 ]; then
         local sudo=""
         [ "$(id -u)" -ne 0 ] && sudo="sudo"
