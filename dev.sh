@@ -36,6 +36,19 @@ setup_system_tools() {
     fi
 }
 
+setup_web() {
+    # The results page's 3D viewer: web/ (Spark + three, pinned by package-lock.json) bundled
+    # by esbuild into gsa/viewer/static/viewer.js; rebuilt only when web/'s sources changed.
+    local stamp
+    stamp="gsa/viewer/static/.built-$(cat web/package.json web/package-lock.json web/src/*.js | sha1sum | cut -c1-16)"
+    if [ ! -f "$stamp" ] || [ ! -f gsa/viewer/static/viewer.js ]; then
+        command -v npm >/dev/null 2>&1 || { echo "dev.sh: npm (Node >= 20) is needed to build web/" >&2; exit 1; }
+        (cd web && npm ci --no-audit --no-fund --loglevel=error && npm run --silent build)
+        rm -f gsa/viewer/static/.built-*
+        touch "$stamp"
+    fi
+}
+
 cmd=${1:-}
 [ $# -gt 0 ] && shift
 case "$cmd" in
