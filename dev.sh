@@ -59,6 +59,7 @@ case "$cmd" in
     test)
         setup_python
         setup_system_tools
+        setup_web
         exec "$VENV/bin/python" -m pytest -q "$@"
         ;;
     lint)
