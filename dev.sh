@@ -67,8 +67,11 @@ case "$cmd" in
         "$VENV/bin/ruff" check .
         exec "$VENV/bin/ruff" format --check .
         ;;
+    build-web)
+        setup_web
+        ;;
     *)
-        echo "usage: ./dev.sh demo|test|lint [args...]" >&2
+        echo "usage: ./dev.sh demo|test|lint|build-web [args...]" >&2
         exit 2
         ;;
 esac
