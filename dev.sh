@@ -3,6 +3,7 @@
 #   ./dev.sh demo   set up .venv, then align generated example data end to end
 #   ./dev.sh test   set up .venv (and redis-server, docker-compose if missing), then run the test suite
 #   ./dev.sh lint   set up .venv, then ruff check and ruff format --check (CI runs it before the tests)
+#   ./dev.sh build-web   build the results page's viewer (web/ -> gsa/viewer/static/viewer.js; `test` does it too)
 # Extra arguments go to `gsa demo` or pytest.
 set -euo pipefail
 cd "$(dirname "$0")"
