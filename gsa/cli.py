@@ -216,8 +216,7 @@ def add_align_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def cmd_align(args: argparse.Namespace) -> int:
-    from gsa.align.contract import transform_contract
-    from gsa.align.outputs import write_json, write_outputs
+    from gsa.align.outputs import result_dict, write_json, write_outputs
     from gsa.align.pipeline import align
     from gsa.io.formats import format_for_path, write_model
     from gsa.merge import merge
@@ -234,9 +233,8 @@ def cmd_align(args: argparse.Namespace) -> int:
         except ValueError as exc:
             raise CliError(str(exc)) from None
     result = align(source, target, options, progress=ProgressPrinter(not args.quiet), target_cameras=cameras)
-    data = result.to_dict()
+    data = result_dict(result, source, target)
     source_format = source.metadata.get("format", "ply")
-    data.update(transform_contract(result.transform, source_format, target.metadata.get("format", "ply")))
     if args.aligned_out or args.merged_out:
         # --format, else the output name's extension, else the source's own format
         def fmt_for(path: str) -> str:

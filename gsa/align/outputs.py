@@ -34,6 +34,15 @@ def write_json(data: dict, path: Path) -> Path:
     return path
 
 
+def result_dict(result: AlignmentResult, source: GaussianModel, target: GaussianModel) -> dict:
+    """result.json's content: the alignment's own fields with the transform contract
+    (docs/formats.md) stated in the two models' file formats (metadata "format", PLY when unset)."""
+    data = result.to_dict()
+    source_format = source.metadata.get("format", "ply")
+    data.update(transform_contract(result.transform, source_format, target.metadata.get("format", "ply")))
+    return data
+
+
 def write_outputs(
     result: AlignmentResult,
     source: GaussianModel,
@@ -74,12 +83,7 @@ def write_outputs(
 
         paths.update(write_previews(source, target, result.transform, out))
     if "result" in outputs:
-        data = result.to_dict()
-        data.update(
-            transform_contract(
-                result.transform, source.metadata.get("format", "ply"), target.metadata.get("format", "ply")
-            )
-        )
+        data = result_dict(result, source, target)
         if merge_report:
             data["merge"] = merge_report
         if extra:
