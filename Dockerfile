@@ -4,6 +4,15 @@
 #                     --build-arg BASE=nvidia/cuda:12.8.1-cudnn-runtime-ubuntu24.04 .
 # One image runs every role: `serve` (API, +gRPC), `worker` (RQ), or the CLI.
 ARG BASE=python:3.11-slim
+
+# The results page's 3D viewer (web/: Spark + three from the package-lock), bundled by esbuild.
+FROM node:20-slim AS web
+WORKDIR /src/web
+COPY web/package.json web/package-lock.json ./
+RUN npm ci --no-audit --no-fund
+COPY web/src ./src
+RUN mkdir -p ../gsa/viewer/static && npm run build
+
 FROM ${BASE}
 
 ARG VARIANT=cpu
