@@ -39,6 +39,7 @@ RUN set -eux; \
 WORKDIR /app
 COPY pyproject.toml README.md* ./
 COPY gsa ./gsa
+COPY --from=web /src/gsa/viewer/static/viewer.js ./gsa/viewer/static/viewer.js
 COPY service ./service
 COPY proto ./proto
 # numba caches compiled kernels beside the code only where it may write; the image runs
