@@ -38,7 +38,7 @@ def collect_outputs(paths: dict, prefix: str) -> list[tuple[str, Path]]:
 def synchronized_renders(backend: Backend, job: Job, target, transforms, work: Path, notes: list) -> list:
     """Paper App. B: every model in the reference frame, seen from the same cameras."""
     # lazy: the renderer loads torch
-    from gsa.io.ply import read_ply
+    from gsa.io.formats import read_model
     from gsa.render.views import write_synchronized_renders
     from gsa.sim3 import Sim3
 
@@ -46,7 +46,8 @@ def synchronized_renders(backend: Backend, job: Job, target, transforms, work: P
         notes.append("synchronized renders skipped: they need every source as a 3DGS model file")
         return []
     models = [target] + [
-        read_ply(work / f"source{i}.ply", max_gaussians=backend.settings.max_gaussians) for i in range(len(job.sources))
+        read_model(work / f"source{i}.ply", max_gaussians=backend.settings.max_gaussians)
+        for i in range(len(job.sources))
     ]
     feats = all(m.features is not None for m in models)
     paths = write_synchronized_renders(models, work / "sync", transforms=[Sim3.identity(), *transforms], features=feats)

@@ -72,6 +72,35 @@ def validate_ply(path: Path, max_gaussians: int, display_name: str) -> int:
         raise invalid_input(f"{display_name}: {exc.problem}") from None
 
 
+def model_format(head: bytes, size: int, path: Path | None = None) -> str | None:
+    """The 3DGS format of an upload from its first bytes (gsa.io.formats.sniff_bytes), or None.
+    A zip is a SOG model only when it holds meta.json (else it is an image set)."""
+    from gsa.io.formats import sniff_bytes  # lazy: keeps the library off API start-up
+
+    fmt = sniff_bytes(head, size)
+    if fmt == "sog":
+        try:
+            with zipfile.ZipFile(path) as zf:
+                return "sog" if "meta.json" in zf.namelist() else None
+        except (zipfile.BadZipFile, OSError, TypeError):
+            return None
+    return fmt
+
+
+def validate_model(path: Path, max_gaussians: int, display_name: str) -> int:
+    """Full check of a 3DGS model in a format other than INRIA PLY (these are compressed:
+    decoding is the only complete check, and the formats' readers refuse lying headers
+    before decoding); returns the Gaussian count."""
+    from gsa.io.formats import FormatError, read_model
+
+    try:
+        return len(read_model(path, max_gaussians=max_gaussians))
+    except FormatError as exc:
+        if "exceeds the limit" in exc.problem:
+            raise too_large(f"{display_name}: {exc.problem}") from None
+        raise invalid_input(f"{display_name}: {exc.problem}") from None
+
+
 def image_size(head: bytes) -> tuple[int, int] | None:
     """(width, height) from a PNG IHDR or JPEG SOF marker, without decoding."""
     if head.startswith(b"\x89PNG\r\n\x1a\n") and len(head) >= 24:
@@ -202,12 +231,12 @@ def load_input(
     """A job input as a GaussianModel: a PLY as is, an image set through gsa.recon
     (its summary and model file are recorded in `reconstructions`)."""
     reconstructions = {} if reconstructions is None else reconstructions
-    from gsa.io.ply import read_ply  # lazy: keeps the library off API start-up
+    from gsa.io.formats import read_model  # lazy: keeps the library off API start-up
 
     s = backend.settings
-    if ref.kind == "ply":
+    if ref.kind == "ply":  # a 3DGS model in any format (sniffed; the file name does not matter)
         path = backend.storage.download(ref.key, workdir / f"{name}.ply")
-        return read_ply(path, max_gaussians=s.max_gaussians)
+        return read_model(path, max_gaussians=s.max_gaussians)
     if ref.kind == "images":
         # lazy: SfM and 3DGS training load OpenCV, pycolmap and torch
         from gsa.recon import ImageSetError, MaskError, SfMError, reconstruct
