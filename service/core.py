@@ -12,7 +12,15 @@ from pathlib import Path
 from typing import Any, BinaryIO
 
 from service.backend import Backend, notify_webhook
-from service.inputs import check_image, sniff, validate_ply, validate_zip
+from service.inputs import (
+    check_image,
+    model_content_type,
+    model_format,
+    sniff,
+    validate_model,
+    validate_ply,
+    validate_zip,
+)
 from service.models import TERMINAL, Asset, InputRef, Job, JobState, new_id
 from service.options import validate_options
 from service.problems import Problem, invalid_input, not_found, too_large
@@ -109,8 +117,9 @@ def ingest(b: Backend, owner: str, data, filename: str | None, *, expect: str | 
         kind = sniff(h.head)
         if size == 0:
             raise invalid_input(f"{name}: the upload is empty")
-        if expect == "ply" and kind != "ply":
-            raise invalid_input(f"{name}: not a PLY file (it does not start with 'ply')")
+        fmt = model_format(h.head, size)  # any 3DGS format (docs/formats.md); a SOG zip is told below
+        if expect == "ply" and kind not in ("ply", "zip") and fmt is None:
+            raise invalid_input(f"{name}: not a PLY file nor another 3DGS format (it does not start with 'ply')")
         fields = dict(
             id=asset_id,
             owner=owner,
@@ -122,9 +131,16 @@ def ingest(b: Backend, owner: str, data, filename: str | None, *, expect: str | 
         )
         with tempfile.TemporaryDirectory() as tmp:
             path = _local(b, key, Path(tmp))
-            if kind == "ply":
+            if kind == "zip":
+                fmt = model_format(h.head, size, path)
+                if expect == "ply" and fmt is None:
+                    raise invalid_input(f"{name}: a zip archive that is not a SOG model (no meta.json)")
+            if fmt == "ply":
                 n = validate_ply(path, s.max_gaussians, name)
                 asset = Asset(**fields, kind="ply", content_type="application/x-ply", n_gaussians=n)
+            elif fmt is not None:  # kind "ply" stands for any 3DGS model file
+                n = validate_model(path, s.max_gaussians, name)
+                asset = Asset(**fields, kind="ply", content_type=model_content_type(fmt), n_gaussians=n)
             elif kind == "zip":
                 n = validate_zip(path, s, name)
                 asset = Asset(**fields, kind="images", content_type="application/zip", n_images=n)

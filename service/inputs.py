@@ -87,6 +87,18 @@ def model_format(head: bytes, size: int, path: Path | None = None) -> str | None
     return fmt
 
 
+MODEL_CONTENT_TYPES = {
+    "ply": "application/x-ply",
+    "compressed-ply": "application/x-ply",
+    "glb": "model/gltf-binary",
+    "sog": "application/zip",
+}
+
+
+def model_content_type(fmt: str) -> str:
+    return MODEL_CONTENT_TYPES.get(fmt, "application/octet-stream")
+
+
 def validate_model(path: Path, max_gaussians: int, display_name: str) -> int:
     """Full check of a 3DGS model in a format other than INRIA PLY (these are compressed:
     decoding is the only complete check, and the formats' readers refuse lying headers
