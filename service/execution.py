@@ -173,7 +173,7 @@ def problem_for(exc: Exception) -> Problem:
 
 def _run(backend: Backend, job: Job, token: str, prog: JobProgress, art_prefix: str) -> JobState | None:
     # lazy: the aligner (numba kernels, ~1 s of imports) loads in the processes that run jobs
-    from gsa.align.outputs import write_outputs
+    from gsa.align.outputs import result_dict, write_outputs
     from gsa.align.pipeline import AlignOptions, align
 
     opts_in = dict(job.options)
@@ -226,7 +226,7 @@ def _run(backend: Backend, job: Job, token: str, prog: JobProgress, art_prefix: 
                 "target_asset_id": job.target.asset_id,
             }
             paths = write_outputs(res, source, target, out_dir, outputs=outputs, extra=extra)
-            d = res.to_dict()
+            d = result_dict(res, source, target)  # + the transform contract (docs/formats.md)
             d["source_asset_id"] = ref.asset_id
             results.append(d)
             files += collect_outputs(paths, f"s{i}/" if multi else "")
