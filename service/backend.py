@@ -124,7 +124,11 @@ class Backend:
         if self.settings.storage_backend != "s3":
             folders.add(Path(self.settings.storage_root))
         try:
-            return all(shutil.disk_usage(_existing(f)).free >= self.settings.min_free_bytes for f in folders)
+            if not all(shutil.disk_usage(_existing(f)).free >= self.settings.min_free_bytes for f in folders):
+                return False
+            # With a storage quota (GSA_STORAGE_QUOTA_BYTES), what is left of it counts too.
+            quota_free = getattr(self.storage, "free_bytes", lambda: None)()
+            return quota_free is None or quota_free >= min(self.settings.min_free_bytes, self.storage.quota // 10)
         except OSError:
             return False
 

@@ -68,6 +68,9 @@ class Settings(BaseSettings):
     unavailable_retry_after_s: int = 5
     # /readyz answers 503 below this much free space in the temp folder or local storage.
     min_free_bytes: int = 256 * 1024 * 1024
+    # Local storage only: bytes the blobs may take in all (0 = no quota). A write past it
+    # fails as on a full disk (507 / a retried job), and /readyz counts what is left of it.
+    storage_quota_bytes: int = 0
     # Browser origins allowed to call the API (CORS), e.g. GSA_CORS_ORIGINS='["https://assets.example"]';
     # empty: no CORS headers, browsers on other origins are refused.
     cors_origins: list[str] = []

@@ -7,10 +7,12 @@ shape, so no client-supplied path can ever reach the filesystem.
 
 from __future__ import annotations
 
+import errno
 import os
 import re
 import shutil
 import tempfile
+import time
 import uuid
 from collections.abc import Iterable, Iterator
 from pathlib import Path
@@ -66,9 +68,51 @@ def _chunks(data: BinaryIO | Iterable[bytes]) -> Iterator[bytes]:
 
 
 class LocalStorage:
-    def __init__(self, root: str | os.PathLike):
+    """Blobs as files under root. With quota_bytes (GSA_STORAGE_QUOTA_BYTES), a write
+    that would take the bytes stored under root past the quota fails as a full disk
+    does (OSError ENOSPC: 507 for an upload, a retried attempt for a job), so a
+    deployment sharing a disk keeps its share and disk-full handling can be tested
+    without filling a real disk. The usage is what every process sharing the folder
+    has stored, re-counted at most once a second, so writers racing within that
+    second may pass the quota by what they write meanwhile."""
+
+    USAGE_TTL_S = 1.0
+
+    def __init__(self, root: str | os.PathLike, quota_bytes: int | None = None):
         self.root = Path(root).resolve()
         self.root.mkdir(parents=True, exist_ok=True)
+        self.quota = quota_bytes if quota_bytes and quota_bytes > 0 else None
+        self._usage: tuple[float, int] = (float("-inf"), 0)
+
+    def used_bytes(self, max_age_s: float | None = None) -> int:
+        """Bytes of all files under root (a walk, cached for max_age_s)."""
+        counted_at, used = self._usage
+        if time.monotonic() - counted_at <= (self.USAGE_TTL_S if max_age_s is None else max_age_s):
+            return used
+        used, todo = 0, [self.root]
+        while todo:
+            try:
+                with os.scandir(todo.pop()) as it:
+                    for e in it:
+                        try:
+                            if e.is_dir(follow_symlinks=False):
+                                todo.append(Path(e.path))
+                            elif e.is_file(follow_symlinks=False):
+                                used += e.stat(follow_symlinks=False).st_size
+                        except OSError:  # removed while counting
+                            continue
+            except OSError:
+                continue
+        self._usage = (time.monotonic(), used)
+        return used
+
+    def free_bytes(self) -> int | None:
+        """Room left under the quota; None without a quota (the disk's own free space applies)."""
+        return None if self.quota is None else max(self.quota - self.used_bytes(), 0)
+
+    def _check_quota(self, base: int, written: int) -> None:
+        if self.quota is not None and base + written > self.quota:
+            raise OSError(errno.ENOSPC, f"storage quota of {self.quota} bytes exceeded")
 
     def _path(self, key: str) -> Path:
         p = (self.root / check_key(key)).resolve()
@@ -83,14 +127,19 @@ class LocalStorage:
         # failed/oversized upload leaves nothing behind.
         fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=".part-")
         written = 0
+        base = self.used_bytes() if self.quota is not None else 0
         try:
             with os.fdopen(fd, "wb") as fh:
                 for chunk in _chunks(data):
                     written += len(chunk)
                     if max_bytes is not None and written > max_bytes:
                         raise too_large(f"upload exceeds the limit of {max_bytes} bytes")
+                    self._check_quota(base, written)
                     fh.write(chunk)
             os.replace(tmp, path)
+            if self.quota is not None:
+                counted_at, used = self._usage
+                self._usage = (counted_at, used + written)
         except BaseException:
             Path(tmp).unlink(missing_ok=True)
             self._prune(path.parent)
@@ -143,7 +192,7 @@ class LocalStorage:
 
     def download(self, key, dest):
         dest = Path(dest)
-        try:  # same filesystem: a hard link avoids copying gigabytes
+        try:  # same filesystem: a hard link avoids copying gigabytes (and no quota is used)
             os.link(self._path(key), dest)
         except OSError:
             shutil.copyfile(self._path(key), dest)
@@ -217,4 +266,4 @@ def make_storage(settings) -> Storage:
         if not settings.s3_bucket:
             raise ValueError("GSA_S3_BUCKET is required for the s3 storage backend")
         return S3Storage(settings.s3_bucket, settings.s3_prefix, settings.s3_endpoint_url)
-    return LocalStorage(settings.storage_root / "blobs")
+    return LocalStorage(settings.storage_root / "blobs", settings.storage_quota_bytes)
