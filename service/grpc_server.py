@@ -69,7 +69,18 @@ def _transform(d: dict) -> pb.Transform:
         confidence=float(metrics.get("confidence", 0.0)),
         ambiguous=bool(metrics.get("ambiguous", False)),
         doubtful=bool(metrics.get("doubtful", False)),
+        quaternion_xyzw=[float(x) for x in d.get("quaternion_xyzw") or []],
+        inverse_matrix=[float(x) for row in d.get("inverse_transform") or [] for x in row],
+        gltf_node_matrix=[float(x) for x in d.get("gltf_node_matrix") or []],
+        source_frame=_frame((d.get("frames") or {}).get("source")),
+        target_frame=_frame((d.get("frames") or {}).get("target")),
     )
+
+
+def _frame(f: dict | None) -> pb.Frame | None:
+    if not f:
+        return None
+    return pb.Frame(**{k: str(f.get(k) or "") for k in ("format", "convention", "handedness", "up_axis", "units")})
 
 
 def job_to_pb(job: Job) -> pb.Job:

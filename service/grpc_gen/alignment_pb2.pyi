@@ -123,7 +123,7 @@ class Problem(_message.Message):
     def __init__(self, type: _Optional[str] = ..., title: _Optional[str] = ..., status: _Optional[int] = ..., detail: _Optional[str] = ...) -> None: ...
 
 class Transform(_message.Message):
-    __slots__ = ("matrix", "scale", "rotation", "quaternion", "translation", "confidence", "ambiguous", "doubtful")
+    __slots__ = ("matrix", "scale", "rotation", "quaternion", "translation", "confidence", "ambiguous", "doubtful", "quaternion_xyzw", "inverse_matrix", "gltf_node_matrix", "source_frame", "target_frame")
     MATRIX_FIELD_NUMBER: _ClassVar[int]
     SCALE_FIELD_NUMBER: _ClassVar[int]
     ROTATION_FIELD_NUMBER: _ClassVar[int]
@@ -132,6 +132,11 @@ class Transform(_message.Message):
     CONFIDENCE_FIELD_NUMBER: _ClassVar[int]
     AMBIGUOUS_FIELD_NUMBER: _ClassVar[int]
     DOUBTFUL_FIELD_NUMBER: _ClassVar[int]
+    QUATERNION_XYZW_FIELD_NUMBER: _ClassVar[int]
+    INVERSE_MATRIX_FIELD_NUMBER: _ClassVar[int]
+    GLTF_NODE_MATRIX_FIELD_NUMBER: _ClassVar[int]
+    SOURCE_FRAME_FIELD_NUMBER: _ClassVar[int]
+    TARGET_FRAME_FIELD_NUMBER: _ClassVar[int]
     matrix: _containers.RepeatedScalarFieldContainer[float]
     scale: float
     rotation: _containers.RepeatedScalarFieldContainer[float]
@@ -140,7 +145,26 @@ class Transform(_message.Message):
     confidence: float
     ambiguous: bool
     doubtful: bool
-    def __init__(self, matrix: _Optional[_Iterable[float]] = ..., scale: _Optional[float] = ..., rotation: _Optional[_Iterable[float]] = ..., quaternion: _Optional[_Iterable[float]] = ..., translation: _Optional[_Iterable[float]] = ..., confidence: _Optional[float] = ..., ambiguous: _Optional[bool] = ..., doubtful: _Optional[bool] = ...) -> None: ...
+    quaternion_xyzw: _containers.RepeatedScalarFieldContainer[float]
+    inverse_matrix: _containers.RepeatedScalarFieldContainer[float]
+    gltf_node_matrix: _containers.RepeatedScalarFieldContainer[float]
+    source_frame: Frame
+    target_frame: Frame
+    def __init__(self, matrix: _Optional[_Iterable[float]] = ..., scale: _Optional[float] = ..., rotation: _Optional[_Iterable[float]] = ..., quaternion: _Optional[_Iterable[float]] = ..., translation: _Optional[_Iterable[float]] = ..., confidence: _Optional[float] = ..., ambiguous: _Optional[bool] = ..., doubtful: _Optional[bool] = ..., quaternion_xyzw: _Optional[_Iterable[float]] = ..., inverse_matrix: _Optional[_Iterable[float]] = ..., gltf_node_matrix: _Optional[_Iterable[float]] = ..., source_frame: _Optional[_Union[Frame, _Mapping]] = ..., target_frame: _Optional[_Union[Frame, _Mapping]] = ...) -> None: ...
+
+class Frame(_message.Message):
+    __slots__ = ("format", "convention", "handedness", "up_axis", "units")
+    FORMAT_FIELD_NUMBER: _ClassVar[int]
+    CONVENTION_FIELD_NUMBER: _ClassVar[int]
+    HANDEDNESS_FIELD_NUMBER: _ClassVar[int]
+    UP_AXIS_FIELD_NUMBER: _ClassVar[int]
+    UNITS_FIELD_NUMBER: _ClassVar[int]
+    format: str
+    convention: str
+    handedness: str
+    up_axis: str
+    units: str
+    def __init__(self, format: _Optional[str] = ..., convention: _Optional[str] = ..., handedness: _Optional[str] = ..., up_axis: _Optional[str] = ..., units: _Optional[str] = ...) -> None: ...
 
 class Artifact(_message.Message):
     __slots__ = ("name", "size", "content_type")
