@@ -6,12 +6,13 @@ import re
 from email.utils import formatdate, parsedate_to_datetime
 from typing import Annotated
 
-from fastapi import APIRouter, Header, Response
+from fastapi import APIRouter, Header, Query, Response
 from fastapi.responses import StreamingResponse
 
 from service import core
 from service.api.deps import B, Owner
 from service.api.openapi import problem_responses
+from service.convert import converted_artifact
 from service.problems import Problem as ProblemError
 
 router = APIRouter()
@@ -39,7 +40,7 @@ _RANGE = re.compile(r"^bytes=(\d*)-(\d*)$")
             }
         },
         206: {"description": "partial content"},
-        **problem_responses(401, 404, 409, 416),
+        **problem_responses(401, 404, 409, 416, 422),
     },
 )
 def get_artifact(
@@ -49,8 +50,21 @@ def get_artifact(
     b: B,
     range_header: Annotated[str | None, Header(alias="Range")] = None,
     if_range: Annotated[str | None, Header(alias="If-Range")] = None,
+    model_format: Annotated[
+        str | None,
+        Query(
+            alias="format",
+            description="a model artifact converted to ply, compressed-ply, splat, ksplat, spz, sog or glb "
+            "(docs/formats.md); served whole",
+        ),
+    ] = None,
 ):
     job, art = core.get_artifact(b, owner, job_id, name)
+    if model_format is not None:
+        body, filename, media_type = converted_artifact(b, art, model_format)
+        return Response(
+            body, media_type=media_type, headers={"Content-Disposition": f'attachment; filename="{filename}"'}
+        )
     status, headers, start, end = _plan(job, art, range_header, if_range)
     if art.size == 0:
         return Response(b"", media_type=art.content_type, headers=headers)
