@@ -89,9 +89,33 @@ class Stages(_Open):
     fine: FineStage | None = None
 
 
-class SourceResult(Sim3Out):
-    """One source model aligned to the target."""
+class Frame(_Open):
+    """How a model file's coordinates are meant (docs/formats.md)."""
 
+    format: str | None = Field(None, description="ply, compressed-ply, splat, ksplat, spz, sog or glb")
+    convention: str | None = Field(None, description="RDF (x right, y down, z forward) or RUB (x right, y up, z back)")
+    handedness: str | None = None
+    up_axis: str | None = None
+    units: str | None = None
+
+
+class Frames(_Open):
+    source: Frame | None = None
+    target: Frame | None = None
+    internal: Frame | None = None
+    transform_maps: str | None = None
+    gltf_node_matrix_maps: str | None = None
+
+
+class SourceResult(Sim3Out):
+    """One source model aligned to the target. The transform maps source FILE coordinates
+    to target FILE coordinates (the transform contract, docs/formats.md)."""
+
+    quaternion_xyzw: list[float] | None = Field(None, description="(x, y, z, w), glTF order")
+    inverse_transform: Matrix | None = Field(None, description="4×4, row-major, target -> source")
+    gltf_node_matrix: list[float] | None = Field(None, description="16 numbers, column-major (glTF node matrix)")
+    frames: Frames | None = None
+    transform_internal: Matrix | None = Field(None, description="only when the files' axes differ from RDF")
     source_asset_id: str | None = None
     metrics: Metrics | None = None
     timings: dict[str, float] | None = Field(None, description="seconds per stage")
