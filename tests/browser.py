@@ -68,6 +68,18 @@ def drawn_fraction(rgb: np.ndarray) -> float:
     return float((np.abs(rgb - BACKGROUND).max(axis=2) > 12).mean())
 
 
+def wait_drawn(page, selector: str, minimum: float = 0.02, timeout: float = 30.0) -> float:
+    """The share of the view's pixels that are drawn, once it reaches `minimum`."""
+    deadline = time.monotonic() + timeout
+    while True:
+        found = drawn_fraction(canvas_pixels(page, selector))
+        if found >= minimum:
+            return found
+        if time.monotonic() > deadline:
+            raise AssertionError(f"{selector}: only {found:.4f} of the pixels drawn")
+        time.sleep(0.25)
+
+
 def colour_fractions(rgb: np.ndarray) -> dict[str, float]:
     """Shares of pixels of each overlay tint (web/src/main.js: target blue [.15, .45, 1],
     sources orange [1, .5, .1] then magenta [.95, .2, .75]) and of plain green, which no

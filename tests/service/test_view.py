@@ -13,7 +13,7 @@ import httpx
 import pytest
 
 from service.view_links import sign
-from tests.browser import browser_page, canvas_pixels, drawn_fraction, errors, wait_colours, wait_ready
+from tests.browser import browser_page, errors, wait_colours, wait_drawn, wait_ready
 from tests.service.conftest import ALICE, BOB, assert_problem, service_env, start_api, wait_job
 
 SECRET = "test-view-secret"
@@ -152,7 +152,7 @@ def test_browser_renders_the_job_page(view_stack, tmp_path):
         state = wait_ready(page)
         assert state["ready"] and state["error"] is None and state["firstFrameMs"] > 0, state
         for pane in ("source", "target", "overlay"):
-            assert drawn_fraction(canvas_pixels(page, f"#view-{pane}")) > 0.02, pane
+            wait_drawn(page, f"#view-{pane}")
         # Toggles: each model of the overlay on and off, each in its own tint.
         boxes = {k: page.locator(f'input[data-model="{k}"]') for k in ("target", "source0", "source1")}
         assert len(boxes) == page.locator("input[data-model]").count()
