@@ -110,15 +110,14 @@ def test_loss_curve_only_with_values():
     assert points == ["8.0,8.0", "50.0,25.0", "92.0,42.0"]  # highest loss at the top, lowest at the bottom
 
 
-def gsa(*args, timeout=60):
-    return subprocess.run([sys.executable, "-m", "gsa.cli", *args], capture_output=True, text=True, timeout=timeout)
+def test_gsa_view_refuses_what_is_not_a_result(tmp_path, capsys):
+    from gsa.cli import main
 
-
-def test_gsa_view_refuses_what_is_not_a_result(tmp_path):
     (tmp_path / "x.json").write_text('{"hello": 1}')
     for path in (tmp_path / "missing", tmp_path / "x.json", tmp_path):
-        r = gsa("view", str(path))
-        assert r.returncode == 1 and r.stderr.startswith("gsa: error: ") and r.stderr.count("\n") == 1, r.stderr
+        assert main(["view", str(path)]) == 1
+        err = capsys.readouterr().err
+        assert err.startswith("gsa: error: ") and err.count("\n") == 1 and str(path) in err, err
 
 
 def serve(path: Path) -> tuple[subprocess.Popen, str]:
@@ -148,6 +147,7 @@ def test_gsa_view_serves_only_its_files(aligned_pair):
         proc.wait(10)
 
 
+@pytest.mark.slow
 def test_gsa_view_in_the_browser(aligned_pair, tmp_path):
     # Previews written beside result.json are used; without them gsa view makes them
     # from the input files result.json names.
@@ -155,10 +155,10 @@ def test_gsa_view_in_the_browser(aligned_pair, tmp_path):
     bare = tmp_path / "bare"
     bare.mkdir()
     (bare / "result.json").write_text((out / "result.json").read_text())
-    for path in (out / "result.json", bare):
-        proc, url = serve(path)
-        try:
-            with browser_page() as (page, messages):
+    with browser_page() as (page, messages):
+        for path in (out / "result.json", bare):
+            proc, url = serve(path)
+            try:
                 page.goto(url)
                 state = wait_ready(page)
                 assert state["ready"] and state["error"] is None, state
@@ -167,7 +167,7 @@ def test_gsa_view_in_the_browser(aligned_pair, tmp_path):
                 wait_colours(page, "#view-overlay", lambda c: c["orange"] > 0.003 and c["blue"] > 0.003)
                 page.locator('input[data-model="target"]').set_checked(False)
                 wait_colours(page, "#view-overlay", lambda c: c["orange"] > 0.003 and c["blue"] < 0.0005)
-                assert errors(messages) == [], messages
-        finally:
-            proc.terminate()
-            proc.wait(10)
+            finally:
+                proc.terminate()
+                proc.wait(10)
+        assert errors(messages) == [], messages

@@ -143,6 +143,7 @@ def test_multi_model_page_names_every_source(view_stack):
     ]
 
 
+@pytest.mark.slow
 def test_browser_renders_the_job_page(view_stack, tmp_path):
     job = view_stack["multi"]
     link = httpx.post(f"{view_stack['url']}/v1/jobs/{job['id']}/view-link", headers=ALICE).json()["url"]
