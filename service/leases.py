@@ -120,12 +120,14 @@ class JobProgress:
             within = (lo + f * (hi - lo)) if lo is not None else (self.overall * self.n - self.part)
             # 1.0 is kept for "succeeded"; a running job's progress stays below it.
             self.overall = min(max(self.overall, (self.part + within) / self.n), 0.999)
+            # A progress report renews the lease too: a second renewer besides the heartbeat thread.
             self.b.store.update(
                 self.job_id,
                 states={JobState.running},
                 token=self.token,
                 stage=stage,
                 progress=self.overall,
+                lease_until=time.time() + self.b.settings.lease_s,
             )
 
     def finish(self) -> None:
@@ -140,9 +142,11 @@ def heartbeat(
     stop: threading.Event,
 ) -> None:
     """Thread body: renew the lease every lease_s/3 until `stop`; set `lost` once
-    the store refuses (another attempt owns the job now)."""
+    the store refuses (another attempt owns the job now). A failed renewal (store
+    unreachable for a moment) is retried after a tenth of the lease, not a third."""
     lease = backend.settings.lease_s
-    while not stop.wait(lease / 3):
+    wait = lease / 3
+    while not stop.wait(wait):
         try:
             ok = backend.store.update(
                 job_id,
@@ -150,9 +154,11 @@ def heartbeat(
                 token=token,
                 lease_until=time.time() + lease,
             )
-        except Exception:  # transient store error: the lease has slack for two misses
-            log.exception("lease renewal failed for %s", job_id)
+        except Exception as exc:  # transient store error: the lease has slack for a few quick retries
+            log.warning("lease renewal failed for %s: %s: %s", job_id, type(exc).__name__, exc)
+            wait = lease / 10
             continue
+        wait = lease / 3
         if not ok:
             lost.set()
             return

@@ -30,6 +30,10 @@ from gsa.render.cameras import Cameras, cameras_around
 from gsa.sim3 import Sim3
 
 LOSSES: tuple[FineLoss, ...] = ("smooth_l1", "l1", "l2")
+# Pixels rendered between two progress calls. Views are rendered in chunks of about this many
+# pixels, so a progress callback that stops the work (e.g. a cancelled service job raising from
+# it) is heard within about one chunk's forward or backward pass, however many and large the views.
+PIXELS_PER_REPORT = 1 << 20
 
 
 @dataclass
@@ -138,7 +142,9 @@ def fine_align(
 
     cameras: the target's training cameras if known (any image size; `options.views` evenly
     spaced ones are used at `options.image_size`), else orbit cameras around the target.
-    progress(stage, fraction) is called every iteration; an exception it raises propagates.
+    progress(stage, fraction) is called as the work advances (before the target renders, after
+    every chunk of views rendered forward and before its backward pass, every iteration; see
+    PIXELS_PER_REPORT); an exception it raises stops the stage and propagates.
     """
     options = options or FineOptions()
     options.validate()
@@ -169,25 +175,60 @@ def _covariance(model: GaussianModel, backend: str) -> torch.Tensor:
     return covariance(torch.as_tensor(model.quats), torch.as_tensor(model.log_scales), backend)
 
 
+def _view_chunks(n_views: int, width: int, height: int) -> list[slice]:
+    step = max(1, PIXELS_PER_REPORT // max(1, width * height))
+    return [slice(i, min(i + step, n_views)) for i in range(0, n_views, step)]
+
+
+def _render_views(means, cov, opacity, viewmats, intr, cams, signal, render, chunks, report):
+    """(image, alpha) of every view, rendered chunk by chunk with report() after each chunk and,
+    when gradients flow, again before each chunk's backward pass."""
+
+    def before_backward(grad):
+        report()
+
+    images, alphas = [], []
+    for sl in chunks:
+        out = render_gaussians(means, cov, opacity, viewmats[sl], intr[sl], cams.width, cams.height, **signal, **render)
+        image = out.features if signal["features"] is not None else out.colors
+        if report is not None and image.requires_grad:
+            image.register_hook(before_backward)
+        images.append(image)
+        alphas.append(out.alpha)
+        if report is not None:
+            report()
+    if len(chunks) == 1:
+        return images[0], alphas[0]
+    return torch.cat(images), torch.cat(alphas)
+
+
 def _fine_align(source, target, init, options, cams, render, feat_s, sh_s, feat_t, sh_t, progress, t_start):
+    chunks = _view_chunks(len(cams), cams.width, cams.height)
+    report_setup = None if progress is None else (lambda: progress("fine", 0.0))
+    if report_setup is not None:
+        report_setup()
     # fixed target renders
     with torch.no_grad():
         vm_t = torch.as_tensor(cams.viewmats, dtype=torch.float32)
         intr = torch.as_tensor(cams.intrinsics, dtype=torch.float32)
-        tgt = render_gaussians(
+        sig_t = dict(
+            sh=None if sh_t is None else torch.as_tensor(sh_t),
+            features=None if feat_t is None else torch.as_tensor(feat_t),
+        )
+        target_cov = _covariance(target, render["backend"])
+        img_t, alpha_t = _render_views(
             torch.as_tensor(target.means),
-            _covariance(target, render["backend"]),
+            target_cov,
             torch.sigmoid(torch.as_tensor(target.opacity_logits)),
             vm_t,
             intr,
-            cams.width,
-            cams.height,
-            sh=None if sh_t is None else torch.as_tensor(sh_t),
-            features=None if feat_t is None else torch.as_tensor(feat_t),
-            **render,
+            cams,
+            sig_t,
+            render,
+            chunks,
+            report_setup,
         )
-        img_t = tgt.features if feat_t is not None else tgt.colors
-        fg_t = tgt.alpha[..., 0] > options.alpha_threshold
+        fg_t = alpha_t[..., 0] > options.alpha_threshold
         means_s = torch.as_tensor(source.means)
         cov_s = _covariance(source, render["backend"])
         op_s = torch.sigmoid(torch.as_tensor(source.opacity_logits))
@@ -224,10 +265,16 @@ def _fine_align(source, target, init, options, cams, render, feat_s, sh_s, feat_
         m = torch.eye(4, dtype=torch.float64)
         m = torch.cat([torch.cat([sc * rot, tr[:, None]], 1), m[3:]], 0)
         vm = (w_world @ m).to(torch.float32)
+        report = None
+        if progress is not None:
+            done = it / max(1, options.iterations)
+
+            def report(done=done):
+                progress("fine", min(done, 1.0))
+
         with torch.set_grad_enabled(it < options.iterations):
-            out = render_gaussians(means_s, cov_s, op_s, vm, intr, cams.width, cams.height, **sig_s, **render)
-            img_s = out.features if feat_s is not None else out.colors
-            mask = (out.alpha[..., 0].detach() > options.alpha_threshold) | fg_t
+            img_s, alpha_s = _render_views(means_s, cov_s, op_s, vm, intr, cams, sig_s, render, chunks, report)
+            mask = (alpha_s[..., 0].detach() > options.alpha_threshold) | fg_t
             loss = _loss(options.loss, img_s[mask], img_t[mask])
         value = float(loss.detach())
         history.append(value)

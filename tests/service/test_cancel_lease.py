@@ -1,0 +1,56 @@
+"""Cancel reaches a job in the fine stage within seconds, and a job that runs far longer
+than its lease keeps it (heartbeat and progress renew it): one attempt, never run twice.
+Real API, RQ worker and Redis."""
+
+from __future__ import annotations
+
+import time
+
+import httpx
+import pytest
+
+from tests.service.conftest import ALICE, service_env, start_api, start_worker, submit_pair, wait_job, wait_until
+
+pytestmark = pytest.mark.slow  # starts servers and worker processes
+
+CANCEL_BOUND_S = 6.0
+
+
+def test_cancel_stops_a_job_in_the_fine_stage(http, pair):
+    # 32 views at 1024 px: one fine iteration (all views forward and backward) takes far longer
+    # than the bound here, so the cancel must be heard within an iteration (per chunk of views).
+    options = {"stages": ["coarse", "fine"], "fine_iterations": 29, "fine_views": 32, "fine_image_size": 1024}
+    job = submit_pair(http, pair, {**options, "outputs": ["result"]}).json()
+    wait_until(lambda: http.get(f"/v1/jobs/{job['id']}").json()["stage"] == "fine", 120, 0.1, "the fine stage")
+    time.sleep(2)  # well inside the stage's renders
+    asked = time.monotonic()
+    assert http.post(f"/v1/jobs/{job['id']}:cancel").status_code == 202
+    done = wait_job(http, job["id"], timeout=CANCEL_BOUND_S + 30)
+    took = time.monotonic() - asked
+    assert done["state"] == "cancelled" and done["attempts"] == 1, done
+    print(f"cancel in the fine stage took {took:.2f} s")
+    assert took < CANCEL_BOUND_S, f"cancel took {took:.1f} s"
+
+
+def test_a_job_longer_than_its_lease_runs_once(tmp_path, redis_url, pair):
+    lease = 1.0
+    env = service_env(tmp_path, GSA_REDIS_URL=redis_url + "/3", GSA_LEASE_S=lease, GSA_REAPER_INTERVAL_S=0.2)
+    api, url, _ = start_api(tmp_path, env, name="lease-api")
+    workers = [start_worker(tmp_path, env, name=f"lease-worker{i}") for i in range(2)]
+    try:
+        with httpx.Client(base_url=url, headers=ALICE, timeout=60) as http:
+            options = {"stages": ["coarse", "fine"], "fine_iterations": 80, "outputs": ["result"]}
+            job = submit_pair(http, pair, options).json()
+            done = wait_job(http, job["id"], timeout=240)
+        assert done["state"] == "succeeded", done
+        assert done["attempts"] == 1, done  # never reaped and run again by the idle second worker
+        from datetime import datetime
+
+        ran = datetime.fromisoformat(done["finished_at"]) - datetime.fromisoformat(done["started_at"])
+        assert ran.total_seconds() > 4 * lease, ran  # it did outlast its lease several times over
+        logs = "".join(p.tail(200_000) for p in [api, *workers])
+        assert "reaped job" not in logs
+    finally:
+        for p in workers:
+            p.stop()
+        api.stop()
