@@ -47,6 +47,7 @@ def test_a_job_longer_than_its_lease_runs_once(tmp_path, redis_url, pair):
         from datetime import datetime
 
         ran = datetime.fromisoformat(done["finished_at"]) - datetime.fromisoformat(done["started_at"])
+        print(f"job ran {ran.total_seconds():.1f} s on a {lease} s lease")
         assert ran.total_seconds() > 4 * lease, ran  # it did outlast its lease several times over
         logs = "".join(p.tail(200_000) for p in [api, *workers])
         assert "reaped job" not in logs
