@@ -153,34 +153,53 @@ def _check_compressed_ply(data: bytes, max_gaussians: int) -> None:
 
 
 def decode(fmt: str, data: bytes) -> GaussianModel:
-    """gaussforge's intermediate form -> GaussianModel (values still unchecked)."""
+    """Decoded through gaussforge's converter to an INRIA PLY in memory, then parsed here
+    (values still unchecked). Its `read` returns a dict of arrays, but fails with
+    std::bad_cast on every SH-degree-0 model (0.6.0); `convert` has no such gap."""
     forge = _forge()
     with _quiet_c_stdout() if fmt == "spz" else contextlib.nullcontext():
-        result = forge.read(data, GAUSSFORGE_NAMES[fmt])
+        result = forge.convert(data, GAUSSFORGE_NAMES[fmt], "ply")
     if "error" in result:
         raise PackedError(str(result["error"]))
-    ir = result["data"]
-    n = int(ir["numPoints"])
-    if n <= 0:
+    return parse_float_ply(result["data"])
+
+
+def parse_float_ply(ply: bytes) -> GaussianModel:
+    """An all-float binary little-endian 3DGS PLY held in memory (gaussforge's output)."""
+    from gsa.io.ply import REQUIRED
+
+    end = ply.find(b"end_header\n")
+    if not ply.startswith(b"ply\n") or end < 0:
+        raise PackedError("the decoder produced no PLY header")
+    lines = ply[:end].decode("ascii", "replace").splitlines()
+    count = next((int(ln.split()[2]) for ln in lines if ln.startswith("element vertex ")), 0)
+    names = [ln.split()[2] for ln in lines if ln.startswith("property float ")]
+    if count <= 0:
         raise PackedError("the file holds zero Gaussians")
-    degree = int(ir.get("meta", {}).get("shDegree", 0))
+    if any(n not in names for n in REQUIRED):
+        raise PackedError("the decoder's output lacks 3DGS properties")
+    body = end + len(b"end_header\n")
+    if len(ply) - body < count * len(names) * 4:
+        raise PackedError("the decoder's output is shorter than its header")
+    table = np.frombuffer(ply, "<f4", count * len(names), body).reshape(count, len(names))
+    index = {n: i for i, n in enumerate(names)}
 
-    def arr(key: str, width: int) -> np.ndarray:
-        raw = np.frombuffer(ir[key], np.float32)
-        if raw.size != n * width:
-            raise PackedError(f"decoded {key} hold {raw.size} values, expected {n * width}")
-        return raw.reshape(n, width)
+    def cols(keys: list[str]) -> np.ndarray:
+        return table[:, [index[k] for k in keys]]
 
-    k = sh_coeff_count(degree)
-    sh = np.empty((n, k, 3), np.float32)
-    sh[:, 0] = arr("colors", 3)
-    if k > 1:
-        sh[:, 1:] = arr("sh", 3 * (k - 1)).reshape(n, k - 1, 3)
+    rest = sum(1 for n in names if n.startswith("f_rest_"))
+    k = 1 + rest // 3
+    if k not in (1, 4, 9, 16):
+        raise PackedError(f"{rest} SH coefficients match no degree 0..3")
+    sh = np.empty((count, k, 3), np.float32)
+    sh[:, 0] = cols(["f_dc_0", "f_dc_1", "f_dc_2"])
+    if k > 1:  # channel-major in a PLY
+        sh[:, 1:] = cols([f"f_rest_{i}" for i in range(rest)]).reshape(count, 3, k - 1).transpose(0, 2, 1)
     return GaussianModel(
-        means=arr("positions", 3),
-        quats=arr("rotations", 4),
-        log_scales=arr("scales", 3),
-        opacity_logits=arr("alphas", 1)[:, 0],
+        means=cols(["x", "y", "z"]),
+        quats=cols(["rot_0", "rot_1", "rot_2", "rot_3"]),
+        log_scales=cols(["scale_0", "scale_1", "scale_2"]),
+        opacity_logits=cols(["opacity"])[:, 0],
         sh=sh,
     )
 
