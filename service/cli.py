@@ -132,40 +132,38 @@ def cmd_serve(args) -> int:
     import uvicorn
 
     from service.api.app import create_app
-    from service.api.request_ids import RequestIdFilter
+    from service.logs import configure_logging
     from service.settings import Settings
 
     _settings_env(args)
-    logging.basicConfig(
-        level=args.log_level.upper(),
-        format="%(asctime)s %(levelname)s %(name)s [%(request_id)s]: %(message)s",
-    )
-    for handler in logging.getLogger().handlers:
-        handler.addFilter(RequestIdFilter())  # "-" outside requests
     settings = Settings()
+    configure_logging(args.log_level, settings.log_format)
     mode = "embedded (SQLite + in-process worker)" if settings.embedded else f"distributed (Redis {settings.redis_url})"
-    print(
-        f"gsa serve: {mode}; http://{args.host}:{args.port}",
-        file=sys.stderr,
-        flush=True,
-    )
+    if settings.log_format == "json":
+        logging.getLogger("gsa.serve").warning("gsa serve: %s; http://%s:%s", mode, args.host, args.port)
+    else:
+        print(f"gsa serve: {mode}; http://{args.host}:{args.port}", file=sys.stderr, flush=True)
+    # JSON logs: uvicorn's own loggers go through the root handler (no text lines of its own),
+    # and its access log is left off: gsa.api.access writes one line per request with its id.
+    json_logs = settings.log_format == "json"
     uvicorn.run(
         create_app(settings),
         host=args.host,
         port=args.port,
         log_level=args.log_level,
         timeout_graceful_shutdown=5,
+        **({"log_config": None, "access_log": False} if json_logs else {}),
     )
     return 0
 
 
 def cmd_worker(args) -> int:
-    import logging
-
+    from service.logs import configure_logging
+    from service.settings import Settings
     from service.worker import run_rq_worker
 
     _settings_env(args)
-    logging.basicConfig(level="INFO", format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+    configure_logging("INFO", Settings().log_format)
     run_rq_worker(burst=args.burst, name=args.name)
     return 0
 

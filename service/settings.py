@@ -86,6 +86,9 @@ class Settings(BaseSettings):
     retention_days: float = 0.0
     retention_sweep_interval_s: float = 3600.0
 
+    # `gsa serve` / `gsa worker` log lines: "text", or "json" (one object per line, with request_id).
+    log_format: Literal["text", "json"] = "text"
+
     webhook_secret: str | None = None
     webhook_max_attempts: int = 5
     webhook_timeout_s: float = 5.0
