@@ -79,10 +79,12 @@ def model_format(head: bytes, size: int, path: Path | None = None) -> str | None
 
     fmt = sniff_bytes(head, size)
     if fmt == "sog":
+        if path is None:
+            return None
         try:
             with zipfile.ZipFile(path) as zf:
                 return "sog" if "meta.json" in zf.namelist() else None
-        except (zipfile.BadZipFile, OSError, TypeError):
+        except (zipfile.BadZipFile, OSError):
             return None
     return fmt
 
