@@ -87,6 +87,9 @@ def main() -> int:
                 outage_log.append(round(time.monotonic() - t, 1))
         changed = s.changed()
         summary = s.summary()
+        if a.worker:
+            summary["fuzzed_jobs"] = outcomes = s.fuzzed_job_outcomes()
+            summary["fuzzed_jobs_failed_500"] = sum(n for k, n in outcomes.items() if "(500 " in k)
         summary["outages_s"] = outage_log
         summary["stored_before_unchanged"] = not changed
         summary["wall_s"] = round(time.monotonic() - t0, 1)
@@ -100,6 +103,7 @@ def main() -> int:
         for c in changed:
             print("CHANGED", c)
         broken = s.stats.unexpected_5xx + s.stats.hangs + s.stats.no_answer + s.stats.other + len(changed)
+        broken += summary.get("fuzzed_jobs_failed_500", 0)
         return 1 if broken else 0
     finally:
         s.close()

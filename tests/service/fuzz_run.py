@@ -169,6 +169,40 @@ class FuzzSession:
             out.append(f"206 for a stale If-Range {if_range!r}")
         return out
 
+    def fuzzed_job_outcomes(self, timeout_s: float = 180) -> dict[str, int]:
+        """With a worker: wait for the jobs the fuzzer created, then count them by final
+        state and error type. A job the API accepted must never fail as the service's
+        fault (alignment-failed, 500): bad input is refused at submission, or fails 422."""
+        from tests.service.conftest import wait_until
+
+        baseline = {self.made["alice"][0]}
+
+        def jobs():
+            out, cursor = [], None
+            with self.dep.client(ALICE) as c:
+                while True:
+                    page = c.get("/v1/jobs", params={"limit": 200, **({"cursor": cursor} if cursor else {})}).json()
+                    out += [j for j in page["items"] if j["id"] not in baseline]
+                    cursor = page.get("next_cursor")
+                    if not cursor:
+                        return out
+
+        def settled():
+            js = jobs()
+            return js if all(j["state"] in ("succeeded", "failed", "cancelled") for j in js) else None
+
+        try:
+            found = wait_until(settled, timeout_s, 1.0, "fuzzed jobs to finish")
+        except TimeoutError:
+            found = jobs()
+        counts: dict[str, int] = {}
+        for j in found:
+            key = j["state"] + (
+                f" ({j['error']['status']} {j['error']['type'].rsplit('/', 1)[-1]})" if j["error"] else ""
+            )
+            counts[key] = counts.get(key, 0) + 1
+        return dict(sorted(counts.items()))
+
     # -- outages -----------------------------------------------------------------------------
     def redis_down(self) -> None:
         self.outage = True

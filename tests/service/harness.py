@@ -15,7 +15,7 @@ from pathlib import Path
 
 import httpx
 
-from tests.service.conftest import Proc, free_port, start_api, start_worker, wait_until
+from tests.service.conftest import PY, Proc, free_port, start_worker, wait_until
 
 
 class RedisServer:
@@ -81,9 +81,22 @@ class Deployment:
         self.n_workers = 0
 
     def start_api(self) -> str:
-        """(Re)start the API; the port may change, so callers read self.url."""
+        """(Re)start the API, on the same port each time (clients keep their URL)."""
         self.n_api += 1
-        self.api, self.url, _ = start_api(self.tmp, self.env, name=f"api{self.n_api}")
+        self.port = getattr(self, "port", None) or free_port()
+        self.url = f"http://127.0.0.1:{self.port}"
+        args = [PY, "-m", "service.cli", "serve", "--port", str(self.port), "--log-level", "warning"]
+        self.api = Proc(args, self.env, self.tmp / f"api{self.n_api}.log")
+
+        def up():
+            if self.api.p.poll() is not None:
+                raise RuntimeError(f"API exited: {self.api.tail()}")
+            try:
+                return httpx.get(self.url + "/healthz", timeout=1).status_code == 200
+            except httpx.HTTPError:
+                return False
+
+        wait_until(up, 60, 0.1, "API to start")
         return self.url
 
     def stop_api(self, kill: bool = True) -> None:
