@@ -211,3 +211,11 @@ def test_low_sh_degrees_read_back_in_every_format(tmp_path, degree):
         back = read_model(write_model(small, tmp_path / f"m{EXTENSIONS[fmt]}", fmt))
         assert len(back) == len(small) and back.sh_degree == min(degree, MAX_SH_DEGREE[fmt]), fmt
         assert attribute_errors(small, back, fmt)["colour"]["max"] <= ROUNDTRIP_BOUNDS[fmt]["colour"], fmt
+
+
+def test_arbitrary_bytes_of_a_multiple_of_32_are_not_a_splat(tmp_path):
+    rng = np.random.default_rng(0)
+    for i, junk in enumerate([b"\1" * (2 << 20), bytes(4096), rng.integers(0, 256, 1 << 16, dtype=np.uint8).tobytes()]):
+        (tmp_path / f"junk{i}").write_bytes(junk)
+        with pytest.raises(FormatError, match="not a PLY nor any other"):
+            read_model(tmp_path / f"junk{i}")

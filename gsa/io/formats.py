@@ -71,10 +71,21 @@ def sniff_bytes(head: bytes, size: int) -> str | None:
     if size > 0 and size % 32 == 0 and len(head) >= 32:
         from gsa.io.splat import SPLAT_DTYPE
 
-        first = np.frombuffer(head[: (len(head) // 32) * 32], SPLAT_DTYPE)
-        if np.isfinite(first["pos"]).all() and (first["scale"] >= 0).all() and np.isfinite(first["scale"]).all():
+        if _plausible_splat(np.frombuffer(head[: (len(head) // 32) * 32], SPLAT_DTYPE)):
             return "splat"
     return None
+
+
+def _plausible_splat(first: np.ndarray) -> bool:
+    """Headerless .splat: the first records must look like Gaussians (finite positions within
+    1e6, sizes 1e-8..1e4, not all at one point), so that arbitrary bytes whose length is a
+    multiple of 32 are not taken for one."""
+    with np.errstate(invalid="ignore", over="ignore"):
+        pos, scale = first["pos"].astype(np.float64), first["scale"].astype(np.float64)
+        if not (np.isfinite(pos).all() and (np.abs(pos) < 1e6).all()):
+            return False
+        sized = ((scale >= 1e-8) & (scale <= 1e4)).all(axis=1).mean()
+    return bool(sized >= 0.9 and (len(first) == 1 or np.ptp(pos, axis=0).max() > 0))
 
 
 def sniff(path: str | os.PathLike) -> str:
