@@ -43,9 +43,12 @@ def view_stack(tmp_path_factory, pair):
                     "options": {"renders": False},
                 },
             ).json()
-            done = [wait_job(c, j["id"], timeout=180) for j in (single, multi)]
-        assert [d["state"] for d in done] == ["succeeded", "succeeded"], done
-        yield {"url": url, "single": done[0], "multi": done[1]}
+            plain = c.post(
+                "/v1/jobs", json={"source": ids["source"], "target": ids["target"], "options": {"outputs": ["result"]}}
+            ).json()
+            done = [wait_job(c, j["id"], timeout=180) for j in (single, multi, plain)]
+        assert [d["state"] for d in done] == ["succeeded"] * 3, done
+        yield {"url": url, "single": done[0], "multi": done[1], "plain": done[2]}
     finally:
         api.stop()
 
@@ -143,6 +146,14 @@ def test_multi_model_page_names_every_source(view_stack):
     ]
 
 
+def test_job_without_previews_still_shows_its_numbers(view_stack):
+    job = view_stack["plain"]
+    page = httpx.get(f"{view_stack['url']}/v1/jobs/{job['id']}/view", headers=ALICE).text
+    config = json.loads(page.split("id=gsa-config>", 1)[1].split("</script>", 1)[0])
+    assert config["results"][0]["preview"] == {}  # the viewer says so instead of loading
+    assert "Sim(3)" in page and "confidence" in page and "Confident" in page
+
+
 @pytest.mark.slow
 def test_browser_renders_the_job_page(view_stack, tmp_path):
     job = view_stack["multi"]
@@ -168,4 +179,12 @@ def test_browser_renders_the_job_page(view_stack, tmp_path):
         assert both["green"] < 0.0005, both  # tinted: none of the car's own green
         page.locator("#toggle-tint").set_checked(False)
         wait_colours(page, "#view-overlay", lambda c: c["green"] > 0.003)  # the natural colours
+        # The source view shows the source picked; the up axis reorients all three views.
+        page.select_option("#pick-source", "1")
+        shown = "() => Object.entries(gsaViewer.panes.source.meshes).filter(([k, m]) => m.visible).map(([k]) => k)"
+        assert page.evaluate(shown) == ["source1"]
+        before = page.evaluate("() => gsaViewer.panes.target.camera.position.toArray()")
+        page.select_option("#pick-up", "+y")
+        wait_drawn(page, "#view-target")
+        assert page.evaluate("() => gsaViewer.panes.target.camera.position.toArray()") != before
         assert errors(messages) == [], messages
