@@ -88,7 +88,7 @@ def layout(title: str, body: str, static_url: str, *, script: bool = False) -> s
     return (
         "<!doctype html>\n<html lang=en><head><meta charset=utf-8>"
         '<meta name=viewport content="width=device-width, initial-scale=1">'
-        f'<title>{esc(title)}</title><link rel=stylesheet href="{esc(static_url)}viewer.css">{js}'
+        f'<title>{esc(title)}</title><link rel=icon href="data:,"><link rel=stylesheet href="{esc(static_url)}viewer.css">{js}'
         f"</head><body>{body}</body></html>\n"
     )
 

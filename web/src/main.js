@@ -188,7 +188,7 @@ async function main() {
   for (const [k, m] of Object.entries(tintedMeshes)) panes.overlay.add(k, m);
   const natural = {};
 
-  const view = { azimuth: 0.8, elevation: 0.45, distance: 3.2, up: config.up || "+z" };
+  const view = { azimuth: 0.8, elevation: 0.45, distance: 4.2, up: config.up || "+z" };
   const redraw = () => {
     for (const p of Object.values(panes)) p.dirty = true;
   };
