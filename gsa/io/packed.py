@@ -123,7 +123,7 @@ def _check_sog(data: bytes, max_gaussians: int) -> None:
     count = meta.get("count", meta.get("means", {}).get("shape", [0])[0]) if isinstance(meta, dict) else 0
     if not isinstance(count, int) or count > max_gaussians:
         raise PackedError(f"meta.json declares {count!r} Gaussians (limit {max_gaussians})")
-    if unpacked > 64 * 1024 + 200 * max(count, 1):  # images of ≤ 4 bytes per texel per property
+    if unpacked > (4 << 20) + 200 * max(count, 1):  # images of ≤ 4 bytes per texel per property, codebooks
         raise PackedError(f"the archive unpacks to {unpacked} bytes, far more than {count} Gaussians need")
 
 
