@@ -4,6 +4,7 @@
 from __future__ import annotations
 
 import json
+import shutil
 import subprocess
 import sys
 import urllib.error
@@ -17,6 +18,7 @@ from gsa.align.outputs import write_outputs
 from gsa.align.pipeline import AlignOptions, align
 from gsa.io.ply import write_ply
 from gsa.synth import make_object, random_sim3
+from gsa.viewer.local import collect
 from gsa.viewer.page import ResultView, loss_curve_svg, render_page, script_json
 from gsa.viewer.preview import PREVIEW_NAMES, downsample, read_splat, write_previews, write_splat
 from tests.browser import browser_page, errors, wait_colours, wait_drawn, wait_ready
@@ -171,3 +173,20 @@ def test_gsa_view_in_the_browser(aligned_pair, tmp_path):
                 proc.terminate()
                 proc.wait(10)
         assert errors(messages) == [], messages
+
+
+def test_gsa_view_reads_a_fetched_multi_model_job(aligned_pair, tmp_path):
+    """`gsa fetch JOB --out DIR` of a two-model job: s0/, s1/ (result.json, preview/) and synchronized/."""
+
+    for i in range(2):
+        shutil.copytree(aligned_pair["out"], tmp_path / f"s{i}")
+        data = json.loads((tmp_path / f"s{i}" / "result.json").read_text())
+        del data["inputs"]  # a service result names no local files
+        (tmp_path / f"s{i}" / "result.json").write_text(json.dumps(data))
+    (tmp_path / "synchronized").mkdir()
+    (tmp_path / "synchronized" / "synchronized.png").write_bytes(b"\x89PNG")
+    _, views, files, extra = collect(tmp_path, tmp_path / "work")
+    assert [v.label for v in views] == ["source 1", "source 2"]
+    assert views[1].preview == {k: f"files/s1/{k}.splat" for k in ("source", "target", "aligned")}
+    assert files["s1/aligned.splat"] == tmp_path / "s1" / "preview" / "aligned.splat"
+    assert extra == [("synchronized.png", "files/sync/synchronized.png")]
