@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import shutil
+import signal
 import sys
 import threading
 
@@ -17,6 +19,8 @@ def cmd_view(args) -> int:
     from gsa.viewer.local import make_server  # lazy: building the parser stays cheap
 
     server, url = make_server(args.result, port=args.port)  # its ValueErrors print as one line
+    # SIGTERM ends it like Ctrl-C: the previews it made go with it.
+    signal.signal(signal.SIGTERM, lambda signum, frame: sys.exit(0))
     print(url, flush=True)
     print("serving until interrupted (Ctrl-C)", file=sys.stderr, flush=True)
     thread = threading.Thread(target=server.serve_forever, daemon=True)
@@ -25,4 +29,5 @@ def cmd_view(args) -> int:
         thread.join()
     finally:
         server.shutdown()
+        shutil.rmtree(server.work_dir, ignore_errors=True)
     return 0

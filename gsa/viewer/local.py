@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import json
 import secrets
+import shutil
 import tempfile
 from http import HTTPStatus
 from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
@@ -92,9 +93,13 @@ def collect(path: str | Path, work: Path) -> tuple[str, list[ResultView], dict[s
 
 def make_server(path: str | Path, host: str = "127.0.0.1", port: int = 0) -> tuple[ThreadingHTTPServer, str]:
     """A server for the result's page (not yet serving); returns it and the page URL."""
-    work = Path(tempfile.mkdtemp(prefix="gsa-view-"))
-    title, views, files, extra = collect(path, work)
-    static_file("viewer.js")  # fail now, with the build hint, rather than on the first request
+    work = Path(tempfile.mkdtemp(prefix="gsa-view-"))  # previews made here; removed with the server
+    try:
+        title, views, files, extra = collect(path, work)
+        static_file("viewer.js")  # fail now, with the build hint, rather than on the first request
+    except BaseException:
+        shutil.rmtree(work, ignore_errors=True)
+        raise
     token = secrets.token_urlsafe(16)
     target = (
         views[0].result.get("inputs", {}).get("target") if isinstance(views[0].result.get("inputs"), dict) else None
@@ -136,4 +141,5 @@ def make_server(path: str | Path, host: str = "127.0.0.1", port: int = 0) -> tup
 
     server = ThreadingHTTPServer((host, port), Handler)
     server.daemon_threads = True
+    server.work_dir = work
     return server, f"http://{host}:{server.server_address[1]}/{token}/"
