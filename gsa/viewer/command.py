@@ -18,16 +18,18 @@ def add_view_parser(subparsers) -> None:
 def cmd_view(args) -> int:
     from gsa.viewer.local import make_server  # lazy: building the parser stays cheap
 
-    server, url = make_server(args.result, port=args.port)  # its ValueErrors print as one line
-    # SIGTERM ends it like Ctrl-C: the previews it made go with it.
+    # SIGTERM ends it like Ctrl-C, and the previews it made go with it.
     signal.signal(signal.SIGTERM, lambda signum, frame: sys.exit(0))
-    print(url, flush=True)
-    print("serving until interrupted (Ctrl-C)", file=sys.stderr, flush=True)
+    server, url = make_server(args.result, port=args.port)  # its ValueErrors print as one line
     thread = threading.Thread(target=server.serve_forever, daemon=True)
-    thread.start()
     try:
+        thread.start()
+        print(url, flush=True)
+        print("serving until interrupted (Ctrl-C)", file=sys.stderr, flush=True)
         thread.join()
     finally:
-        server.shutdown()
+        if thread.is_alive():
+            server.shutdown()
+        server.server_close()
         shutil.rmtree(server.work_dir, ignore_errors=True)
     return 0
