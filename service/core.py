@@ -84,10 +84,11 @@ def _reuse(b: Backend, owner: str, sha256: str, filename: str | None, expect: st
         if expect == "ply" and other.kind != "ply":
             raise invalid_input(f"{filename or 'upload'}: not a PLY file (it does not start with 'ply')")
         asset = other.model_copy(update={"id": new_id("ast"), "filename": filename, "created_at": time.time()})
-        b.store.add_blob_ref(key, asset.id)
-        if not b.storage.exists(key):  # its last other user was deleted meanwhile: store it afresh
-            b.store.remove_blob_ref(key, asset.id)
-            return None
+        with b.store.blob_lock(key):
+            b.store.add_blob_ref(key, asset.id)
+            if not b.storage.exists(key):  # its last other user was deleted meanwhile: store it afresh
+                b.store.remove_blob_ref(key, asset.id)
+                return None
         b.store.put_asset(asset)
         return asset
     return None
@@ -95,8 +96,9 @@ def _reuse(b: Backend, owner: str, sha256: str, filename: str | None, expect: st
 
 def release_blob(b: Backend, asset: Asset) -> None:
     """Drop asset's reference to its blob; the bytes go with the last reference."""
-    if b.store.remove_blob_ref(asset.key, asset.id) == 0:
-        b.storage.delete(asset.key)
+    with b.store.blob_lock(asset.key):
+        if b.store.remove_blob_ref(asset.key, asset.id) == 0:
+            b.storage.delete(asset.key)
 
 
 def ingest(b: Backend, owner: str, data, filename: str | None, *, expect: str | None = None) -> Asset:
@@ -110,10 +112,14 @@ def ingest(b: Backend, owner: str, data, filename: str | None, *, expect: str | 
             return reused
     key = blob_key(owner, sha) if sha else new_key("uploads", filename or "upload")
     asset_id = new_id("ast")
+    if sha is not None:
+        # Claim the blob before writing it: a delete of its last other user now leaves the bytes.
+        with b.store.blob_lock(key):
+            b.store.add_blob_ref(key, asset_id)
     h = _Hashing(data)
-    size = b.storage.put(key, h, max_bytes=s.max_upload_bytes)
     name = filename or "upload"
     try:
+        size = b.storage.put(key, h, max_bytes=s.max_upload_bytes)
         kind = sniff(h.head)
         if size == 0:
             raise invalid_input(f"{name}: the upload is empty")
@@ -146,17 +152,17 @@ def ingest(b: Backend, owner: str, data, filename: str | None, *, expect: str | 
                 asset = Asset(**fields, kind="images", content_type="application/zip", n_images=n)
             else:
                 raise invalid_input(f"{name}: not a 3DGS .ply or a .zip of images (unrecognised file type)")
-        b.store.add_blob_ref(key, asset.id)
         b.store.put_asset(asset)
         return asset
     except BaseException:
         # Another upload of the same bytes may have finished meanwhile: its reference keeps the blob.
         try:
-            users = b.store.remove_blob_ref(key, asset_id)
+            with b.store.blob_lock(key):
+                if b.store.remove_blob_ref(key, asset_id) == 0:
+                    b.storage.delete(key)
         except Exception:  # store unreachable: only a blob no other asset can share goes
-            users = 1 if key.startswith("cas/") else 0
-        if users == 0:
-            b.storage.delete(key)
+            if not key.startswith("cas/"):
+                b.storage.delete(key)
         raise
 
 

@@ -185,6 +185,10 @@ class RedisJobStore:
         pipe.scard(f"{self.p}blobrefs:{key}")
         return int(pipe.execute()[1])
 
+    def blob_lock(self, key):
+        # Held for one Redis round trip and a storage check (seconds at worst); expires if its holder dies.
+        return self.r.lock(f"{self.p}blobrefs-lock:{key}", timeout=60, blocking_timeout=30)
+
     def blob_ref_ids(self, key):
         return sorted(i.decode() for i in self.r.smembers(f"{self.p}blobrefs:{key}"))
 

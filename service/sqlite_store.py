@@ -21,6 +21,7 @@ class SQLiteJobStore:
         Path(path).parent.mkdir(parents=True, exist_ok=True)
         self.db = sqlite3.connect(str(path), check_same_thread=False, isolation_level=None, timeout=30)
         self.lock = threading.RLock()
+        self._blob_lock = threading.Lock()
         with self.lock:
             self.db.execute("PRAGMA journal_mode=WAL")
             self.db.execute("PRAGMA synchronous=NORMAL")
@@ -154,6 +155,9 @@ class SQLiteJobStore:
         with self.lock:
             self.db.execute("DELETE FROM blobrefs WHERE k=? AND asset_id=?", (key, asset_id))
             return self.db.execute("SELECT COUNT(*) FROM blobrefs WHERE k=?", (key,)).fetchone()[0]
+
+    def blob_lock(self, key):
+        return self._blob_lock  # one process owns the file: a process-wide lock suffices
 
     def blob_ref_ids(self, key):
         with self.lock:

@@ -7,6 +7,7 @@ the API, workers and reapers can write the same job without locks of their own.
 from __future__ import annotations
 
 from collections.abc import Iterator
+from contextlib import AbstractContextManager
 from typing import Protocol
 
 from service.models import Asset, Job, JobState
@@ -75,6 +76,12 @@ class JobStore(Protocol):
         ...
 
     def blob_ref_ids(self, key: str) -> list[str]: ...
+
+    def blob_lock(self, key: str) -> AbstractContextManager:
+        """Held while a blob's references are changed together with its bytes (the last
+        reference dropped and the blob deleted; a reference added and the blob checked),
+        so an upload reusing a blob and a delete of its last other user cannot interleave."""
+        ...
 
     def put_asset(self, asset: Asset) -> None: ...
 

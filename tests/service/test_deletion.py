@@ -225,3 +225,49 @@ def test_retention_keeps_what_is_recent_or_still_in_use(tmp_path):
         assert b.storage.exists(a.key) == (a.id not in gone), a.id
     assert sweep(b, now=now) == {"jobs": 0, "assets": 0}
     assert sweep(make_backend(Settings(storage_root=tmp_path)), now=now + 100 * day) == {"jobs": 0, "assets": 0}
+
+
+@pytest.mark.parametrize("kind", ["sqlite", "redis"])
+def test_concurrent_identical_uploads_and_deletes_never_lose_live_bytes(kind, tmp_path, redis_url, unique_ply):
+    """Threads upload the same bytes and delete their assets at once (the blob's reference
+    count hits 0 and goes up again all the time): every live asset keeps its bytes, and the
+    bytes go with the last asset. Real store (SQLite or a private Redis) and local storage."""
+    import io
+    import random
+    import threading
+
+    from service import core
+    from service.backend import make_backend
+    from service.retention import delete_asset
+    from service.settings import Settings
+
+    extra = {"redis_url": redis_url + "/5"} if kind == "redis" else {}
+    b = make_backend(Settings(storage_root=tmp_path, **extra))
+    data = unique_ply.read_bytes()
+    key = core.blob_key("racer", hashlib.sha256(data).hexdigest())
+    kept, errors = [], []
+
+    def racer(seed):
+        rng = random.Random(seed)
+        try:
+            for _ in range(15):
+                a = core.ingest(b, "racer", io.BytesIO(data), "same.ply")
+                if rng.random() < 0.8:
+                    delete_asset(b, "racer", a.id)
+                else:
+                    kept.append(a)
+        except Exception as exc:  # reported below: a thread's exception must fail the test
+            errors.append(exc)
+
+    threads = [threading.Thread(target=racer, args=(i,)) for i in range(4)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join(120)
+    assert not errors, errors
+    assert sorted(b.store.blob_ref_ids(key)) == sorted(a.id for a in kept)
+    if kept:
+        assert b.storage.local_path(key).read_bytes() == data
+    for a in kept:
+        delete_asset(b, "racer", a.id)
+    assert not b.storage.exists(key) and b.store.blob_ref_ids(key) == []
