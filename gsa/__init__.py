@@ -17,6 +17,7 @@ from gsa.sim3 import Sim3, solve_sim3
 
 if TYPE_CHECKING:  # pragma: no cover - for type checkers and IDEs only
     from gsa.align.pipeline import AlignmentError, AlignmentResult, AlignOptions  # noqa: F401
+    from gsa.io.formats import read_model, write_model  # noqa: F401
     from gsa.io.ply import read_ply, write_ply  # noqa: F401
 
 # The alignment API pulls in scipy and numba; it loads on first use so that
@@ -28,6 +29,8 @@ _LAZY = {
     "AlignmentError": "gsa.align.pipeline",
     "read_ply": "gsa.io.ply",
     "write_ply": "gsa.io.ply",
+    "read_model": "gsa.io.formats",  # any 3DGS format, sniffed (docs/formats.md)
+    "write_model": "gsa.io.formats",
 }
 
 __all__ = ["GaussianModel", "Sim3", "merge_models", "solve_sim3", *_LAZY]

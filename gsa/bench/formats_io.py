@@ -20,7 +20,6 @@ from pathlib import Path
 import numpy as np
 from scipy.spatial import cKDTree
 
-from gsa.bench.speed import rss_now_mb
 from gsa.model import SH_C0, GaussianModel
 
 # Formats whose writer reorders the Gaussians (SOG sorts them along a space-filling curve).
@@ -67,6 +66,15 @@ def attribute_errors(original: GaussianModel, read_back: GaussianModel, fmt: str
     if k > 1:
         errors["sh_rest"] = np.abs(o.sh[:, 1:k].astype(np.float64) - read_back.sh[:, 1:k]).ravel()
     return {name: {"max": float(v.max()), "rms": float(np.sqrt(np.mean(v**2)))} for name, v in errors.items() if v.size}
+
+
+def rss_now_mb() -> float:
+    """Resident memory now (gsa.bench.speed has the same; speed imports this module)."""
+    try:
+        with open("/proc/self/statm") as fh:
+            return int(fh.read().split()[1]) * os.sysconf("SC_PAGE_SIZE") / 2**20
+    except OSError:
+        return 0.0
 
 
 class PeakRss:
