@@ -187,4 +187,13 @@ def test_browser_renders_the_job_page(view_stack, tmp_path):
         page.select_option("#pick-up", "+y")
         wait_drawn(page, "#view-target")
         assert page.evaluate("() => gsaViewer.panes.target.camera.position.toArray()") != before
+        # A job made without previews: the page says so, the viewer does not fail.
+        plain = view_stack["plain"]["id"]
+        page.goto(
+            view_stack["url"]
+            + httpx.post(f"{view_stack['url']}/v1/jobs/{plain}/view-link", headers=ALICE).json()["url"]
+        )
+        assert wait_ready(page)["error"] is None
+        assert page.evaluate("() => document.documentElement.dataset.viewer") == "no-preview"
+        assert "no 3D previews" in page.locator("#viewer-status").inner_text()
         assert errors(messages) == [], messages

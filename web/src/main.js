@@ -164,7 +164,8 @@ async function main() {
   const models = config.results;
   const el = (id) => document.getElementById(id);
   if (!models.length || !models[0].preview.target) {
-    el("viewer-status").textContent = "no preview models in this result (the job ran without the 'preview' output)";
+    const status = el("viewer-status");
+    if (status) status.textContent = models.length ? "no 3D previews in this result (made without the preview output)" : "nothing to show in 3D yet";
     document.documentElement.dataset.viewer = "no-preview";
     state.ready = true;
     return;
