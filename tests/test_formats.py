@@ -219,3 +219,15 @@ def test_arbitrary_bytes_of_a_multiple_of_32_are_not_a_splat(tmp_path):
         (tmp_path / f"junk{i}").write_bytes(junk)
         with pytest.raises(FormatError, match="not a PLY nor any other"):
             read_model(tmp_path / f"junk{i}")
+
+
+def test_axis_flip_is_the_exact_rotation_by_180_degrees_about_x():
+    from gsa.io.frames import flip_yz
+    from gsa.sim3 import Sim3
+
+    m = make_object("car", seed=1, n_gaussians=500, sh_degree=3)
+    fast, general = flip_yz(m), m.transformed(Sim3(1.0, RDF_TO_RUB, np.zeros(3)))
+    assert np.allclose(fast.means, general.means, atol=1e-6)
+    assert np.allclose(np.abs((fast.quats * general.quats).sum(axis=1)), 1.0, atol=1e-6)
+    assert np.allclose(fast.sh, general.sh, atol=1e-5)  # every SH band's signs
+    assert np.array_equal(flip_yz(fast).means, m.means)  # its own inverse
