@@ -38,13 +38,13 @@ def _load_json(path: Path) -> dict:
 
 def _made_previews(result: dict, work: Path) -> dict[str, Path]:
     """Previews from the input files a CLI result names (when it was written without them)."""
-    from gsa.io.ply import read_ply
+    from gsa.io.formats import read_model  # every 3DGS format gsa align reads, in the same frame
     from gsa.sim3 import Sim3
     from gsa.viewer.preview import write_previews
 
     inputs = result.get("inputs") or {}
     try:
-        source, target = read_ply(inputs["source"]), read_ply(inputs["target"])
+        source, target = read_model(inputs["source"]), read_model(inputs["target"])
     except (KeyError, TypeError, OSError, ValueError):
         return {}
     return write_previews(source, target, Sim3.from_matrix(result["transform"]), work)
