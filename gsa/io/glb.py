@@ -45,7 +45,8 @@ def sh_attribute_names(degree: int) -> list[str]:
     return names
 
 
-def encode_glb(model: GaussianModel) -> bytes:
+def encode_glb(model: GaussianModel) -> list:
+    """The GLB as a list of byte strings and arrays to write in order (no joined copy)."""
     n = len(model)
     columns: list[tuple[str, np.ndarray, str]] = [
         ("POSITION", model.means, "VEC3"),
@@ -61,7 +62,7 @@ def encode_glb(model: GaussianModel) -> bytes:
     views, accessors, attributes, blobs, offset = [], [], {}, [], 0
     for i, (name, values, kind) in enumerate(columns):
         data = np.ascontiguousarray(values, dtype="<f4").reshape(n, -1)
-        blob = data.tobytes()
+        blob = memoryview(data).cast("B")
         views.append({"buffer": 0, "byteOffset": offset, "byteLength": len(blob)})
         accessor = {"bufferView": i, "componentType": 5126, "count": n, "type": kind}
         if name == "POSITION":  # required by the glTF spec
@@ -93,17 +94,14 @@ def encode_glb(model: GaussianModel) -> bytes:
     }
     js = json.dumps(doc, separators=(",", ":")).encode()
     js += b" " * (-len(js) % 4)
-    binary = b"".join(blobs)
-    total = 12 + 8 + len(js) + 8 + len(binary)
-    return b"".join(
-        [
-            struct.pack("<4sII", GLB_MAGIC, 2, total),
-            struct.pack("<II", len(js), _JSON),
-            js,
-            struct.pack("<II", len(binary), _BIN),
-            binary,
-        ]
-    )
+    total = 12 + 8 + len(js) + 8 + offset
+    return [
+        struct.pack("<4sII", GLB_MAGIC, 2, total),
+        struct.pack("<II", len(js), _JSON),
+        js,
+        struct.pack("<II", offset, _BIN),
+        *blobs,
+    ]
 
 
 def _chunks(data: bytes) -> tuple[dict, memoryview]:
