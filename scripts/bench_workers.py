@@ -98,6 +98,11 @@ def main() -> int:
     ap.add_argument("--gaussians", type=int, default=3000)
     ap.add_argument("--outputs", default="all", help="comma list, or 'all' (the service default)")
     ap.add_argument("--keep", action="store_true", help="keep the temp folder (logs) for a look")
+    ap.add_argument(
+        "--cold-cache",
+        action="store_true",
+        help="an empty numba cache (NUMBA_CACHE_DIR in the temp dir), as in a fresh container",
+    )
     a = ap.parse_args()
     options = {} if a.outputs == "all" else {"outputs": a.outputs.split(",")}
     tmp = Path(tempfile.mkdtemp(prefix="gsa-bench-workers-"))
@@ -118,6 +123,8 @@ def main() -> int:
         env = {k: v for k, v in os.environ.items() if not k.startswith(("GSA_", "NUMBA_", "OMP_"))}
         env.update(GSA_STORAGE_ROOT=str(tmp / "data"), GSA_API_KEYS=json.dumps({KEY: "bench"}))
         env["GSA_REDIS_URL"] = redis_url
+        if a.cold_cache:
+            env["NUMBA_CACHE_DIR"] = str(tmp / "numba-cache")
         port = free_port()
         url = f"http://127.0.0.1:{port}"
         procs.append(start([gsa_exe(), "serve", "--port", str(port), "--log-level", "warning"], env, tmp / "api.log"))
@@ -157,7 +164,7 @@ def main() -> int:
             load = "n/a"
         print(
             f"workers={a.workers} jobs={a.jobs} gaussians={a.gaussians} outputs={a.outputs} "
-            f"cores={os.cpu_count()} load(1/5/15 min)={load}"
+            f"cores={os.cpu_count()} cold_cache={a.cold_cache} load(1/5/15 min)={load}"
         )
         print(f"worker start -> registered with RQ:      {ready:6.2f} s")
         print(f"first job after start (submit->result):  {1e3 * first:7.0f} ms ({first_phases})")

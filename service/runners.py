@@ -8,9 +8,11 @@ import logging
 import os
 import signal
 import sys
+import tempfile
 import threading
 import time
 import uuid
+from pathlib import Path
 
 from service.backend import Backend, process_backend
 from service.execution import execute
@@ -59,6 +61,8 @@ def run_job(job_id: str) -> str | None:
     the reaper requeues the job when its lease expires."""
     main = threading.current_thread() is threading.main_thread()
     previous = signal.signal(signal.SIGTERM, _terminated) if main else None
+    if _HORSE_TORCH_THREADS and "torch" in sys.modules:
+        sys.modules["torch"].set_num_threads(_HORSE_TORCH_THREADS)
     try:
         state = execute(job_id, process_backend())
     finally:
@@ -67,14 +71,23 @@ def run_job(job_id: str) -> str | None:
     return state.value if state else None
 
 
+# torch's intra-op threads for the work horses: the worker parent runs torch single-threaded
+# (an OpenMP thread team does not survive fork(): the horse's first parallel op hangs), and
+# each horse restores this count before its job.
+_HORSE_TORCH_THREADS: int | None = None
+
+
 def _warm_up() -> None:
-    """Load the library and run one tiny alignment in the worker parent, so each
-    forked work horse inherits imported modules and loaded numba kernels
-    (a cold process pays ~1 s on its first alignment).
+    """Load the library and run one tiny alignment and render in the worker parent,
+    so each forked work horse inherits imported modules and loaded numba kernels:
+    a cold process pays ~1 s on its first alignment, and a fresh install (an empty
+    numba cache, as in a new container) ~20 s compiling the renderer on its first job.
 
     numba's default GNU-OpenMP threading layer aborts a child that forks after
     the parent ran parallel code, so the worker uses the fork-safe `workqueue`
-    layer (fine here: one job thread per process)."""
+    layer (fine here: one job thread per process); torch runs on one thread here
+    (see _HORSE_TORCH_THREADS)."""
+    global _HORSE_TORCH_THREADS
     if "numba" not in sys.modules:
         os.environ.setdefault("NUMBA_THREADING_LAYER", "workqueue")
     t = time.perf_counter()
@@ -87,15 +100,18 @@ def _warm_up() -> None:
                 numba.config.THREADING_LAYER,
             )
             return
-        from gsa.align.outputs import write_outputs  # noqa: F401
+        import torch
+
+        from gsa.align.outputs import write_outputs
         from gsa.align.pipeline import AlignOptions, align
         from gsa.synth import make_object
 
+        _HORSE_TORCH_THREADS = torch.get_num_threads()
+        torch.set_num_threads(1)
         m = make_object("car", seed=0, n_gaussians=500)
-        align(m, m, AlignOptions(coarse_iterations=2))
-        # Import only (torch and the render kernels): running torch ops here
-        # would start its OpenMP pool, which does not survive fork().
-        import gsa.render.views  # noqa: F401
+        res = align(m, m, AlignOptions(coarse_iterations=2))
+        with tempfile.TemporaryDirectory(prefix="gsa-warm-up-") as d:
+            write_outputs(res, m, m, Path(d), outputs={"result", "renders"})
     except Exception:  # a broken library shows up in the jobs' errors; keep serving
         log.exception("worker warm-up failed")
         return
