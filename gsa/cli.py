@@ -393,13 +393,16 @@ def cmd_synth(args: argparse.Namespace) -> int:
 
 
 def cmd_convert(args: argparse.Namespace) -> int:
-    from gsa.io.formats import format_for_path, read_model, write_model
+    from gsa.io.formats import MAX_SH_DEGREE, format_for_path, read_model, write_model
 
     fmt = args.format or format_for_path(args.output)
     if fmt is None:
         raise CliError(f"{args.output}: no known extension; name the output format with --format")
     model = read_model(args.input)
     path = write_model(model, args.output, fmt, sh_degree=args.sh_degree)
+    wanted = model.sh_degree if args.sh_degree is None else args.sh_degree
+    if wanted > MAX_SH_DEGREE[fmt]:
+        print(f"gsa: note: {fmt} stores SH up to degree {MAX_SH_DEGREE[fmt]}; higher bands dropped", file=sys.stderr)
     print(f"{path}: {len(model)} Gaussians, {model.metadata['format']} -> {fmt}")
     return 0
 
