@@ -262,6 +262,21 @@ def multipart_body(draw, corpus: dict[str, bytes], field_names: list[str], for_j
     return ctype, body
 
 
+def _range(ab) -> bytes:
+    a, z = ("" if v is None else str(v) for v in ab)
+    return f"bytes={a}-{z}".encode()
+
+
+RANGE = st.one_of(
+    st.tuples(st.integers(0, 4000), st.integers(0, 4000)).map(sorted).map(_range),  # well formed
+    st.tuples(st.integers(0, 4000), st.none()).map(_range),  # open end
+    st.tuples(st.none(), st.integers(0, 4000)).map(_range),  # suffix
+    st.tuples(st.integers(-5, 10**12) | st.none(), st.integers(-5, 10**12) | st.none()).map(_range),
+    st.sampled_from([b"bytes=0-0,5-9", b"bytes=99999999999999999999-", b"items=0-1", b"bytes=-0", b"bytes=5-2"]),
+    HEADER_VALUE,
+)
+
+
 class Targets:
     """Ids and artifact names the fuzzer aims at: the baseline's (the caller's own,
     and another owner's, which must stay invisible and unchanged) plus garbage."""
@@ -270,6 +285,7 @@ class Targets:
         self.own_job, self.own_asset = own_job, own_asset
         self.other_job, self.other_asset = other_job, other_asset
         self.artifacts = artifacts
+        self.etags: dict[str, str] = {}  # artifact name -> its ETag (If-Range that matches)
 
     def ids(self, job: bool):
         real = [self.own_job, self.other_job] if job else [self.own_asset, self.other_asset]
@@ -364,29 +380,17 @@ def requests(draw, corpus: dict[str, bytes], targets: Targets, names: list[str])
         prefix = draw(st.sampled_from(["/v1/jobs/", "/v1/assets/"]))
         return Req(kind, "DELETE", _path(draw, prefix, draw(targets.deletable_ids())), headers)
     if kind == "artifact":
-        job = draw(st.sampled_from([targets.own_job] * 3 + [targets.other_job]) | targets.ids(True))
-        name = draw(st.sampled_from(targets.artifacts) | st.sampled_from(["../x", "%2e%2e/x", "s0/result.json", ""]))
-        rng = draw(
-            st.one_of(
-                st.tuples(st.integers(-5, 5000) | st.none(), st.integers(-5, 5000) | st.none()).map(
-                    lambda ab: (
-                        b"bytes="
-                        + str(ab[0] if ab[0] is not None else "").encode()
-                        + b"-"
-                        + str(ab[1] if ab[1] is not None else "").encode()
-                    )
-                ),
-                st.sampled_from([b"bytes=0-0,5-9", b"bytes=99999999999999999999-", b"items=0-1", b"bytes=-0"]),
-                HEADER_VALUE,
-            )
-        )
-        if draw(st.booleans()):
-            headers.append((b"Range", rng))
-        if draw(st.booleans()):
-            headers.append(
-                (b"If-Range", draw(st.sampled_from([b'"stale-1"', b"Wed, 21 Oct 2015 07:28:00 GMT"]) | HEADER_VALUE))
-            )
-        method = draw(st.sampled_from(["GET", "GET", "HEAD"]))
+        own = not one_in(draw, 4)
+        job = targets.own_job if own else draw(st.sampled_from([targets.other_job]) | targets.ids(True))
+        real = draw(st.sampled_from(targets.artifacts))
+        name = real if not one_in(draw, 4) else draw(st.sampled_from(["../x", "%2e%2e/x", "s0/result.json", ""]))
+        if not one_in(draw, 3):
+            headers.append((b"Range", draw(RANGE)))
+        if one_in(draw, 2):
+            etag = targets.etags.get(real, '"none"').encode()
+            stale = st.sampled_from([b'"stale-1"', b"Wed, 21 Oct 2015 07:28:00 GMT", b"W/" + etag])
+            headers.append((b"If-Range", etag if one_in(draw, 2) else draw(stale | HEADER_VALUE)))
+        method = draw(st.sampled_from(["GET", "GET", "GET", "HEAD"]))
         return Req(kind, method, _path(draw, "/v1/jobs/", job, "/artifacts/" + name), headers)
     if kind == "misc":
         method = draw(st.sampled_from(["GET", "PUT", "PATCH", "OPTIONS", "TRACE", "DELETE", "POST", "FOO"]))

@@ -109,7 +109,11 @@ class FuzzSession:
         self.made = made
         self.stats.rss_start = self.dep.api_rss()
         self.stats.rss_peak = self.dep.api_rss("VmHWM")
-        return Targets(made["alice"][0], made["alice"][1], made["bob"][0], made["bob"][1], made["alice"][2])
+        targets = Targets(made["alice"][0], made["alice"][1], made["bob"][0], made["bob"][1], made["alice"][2])
+        with self.dep.client(ALICE) as c:
+            for n in targets.artifacts:
+                targets.etags[n] = c.get(f"/v1/jobs/{made['alice'][0]}/artifacts/{n}").headers["etag"]
+        return targets
 
     def snapshot(self, made: dict) -> dict:
         snap = {"blobs": _blob_digests(self.tmp / "data" / "blobs")}
