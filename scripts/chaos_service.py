@@ -48,10 +48,11 @@ def main() -> int:
     ap.add_argument("--gap", type=float, default=4.0, help="mean seconds between faults")
     ap.add_argument("--gaussians", type=int, default=1500)
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--webhook-wait", type=float, default=180, help="seconds to wait for late webhooks at the end")
     ap.add_argument("--keep", action="store_true", help="keep the temp folder (logs)")
     a = ap.parse_args()
     tmp = Path(tempfile.mkdtemp(prefix="gsa-chaos-"))
-    run = ChaosRun(tmp / "dep", make_pair(tmp, a.gaussians), a.jobs, a.workers, a.seed, a.gap)
+    run = ChaosRun(tmp / "dep", make_pair(tmp, a.gaussians), a.jobs, a.workers, a.seed, a.gap, a.webhook_wait)
     try:
         rep = run.run(DEFAULT_FAULTS * a.rounds, deadline_s=120 + 20 * a.rounds * len(DEFAULT_FAULTS))
     finally:

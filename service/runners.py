@@ -157,7 +157,15 @@ def run_rq_worker(burst: bool = False, name: str | None = None) -> None:
             started = time.monotonic()
             error: Exception | None = None
             try:
-                w = Worker(queues, connection=backend.redis, name=base if retry == 0 else f"{base}.{retry}")
+                # RQ retries a task whose worker died mid-run (a webhook delivery, whose
+                # Retry would else be lost with it) only at a maintenance pass: every
+                # 10 min by default, so this worker runs one every 30 s.
+                w = Worker(
+                    queues,
+                    connection=backend.redis,
+                    name=base if retry == 0 else f"{base}.{retry}",
+                    maintenance_interval=30,
+                )
                 w.max_connection_wait_time = s.worker_reconnect_max_s  # RQ's own retry while dequeuing
                 w.work(burst=burst, with_scheduler=True)
             except (RedisConnectionError, RedisTimeoutError) as exc:  # registering, or in teardown

@@ -94,10 +94,22 @@ def _ts(v: str | None) -> float | None:
 
 
 class ChaosRun:
-    def __init__(self, tmp: Path, pair: dict, jobs: int = 50, workers: int = 3, seed: int = 0, gap_s: float = 4.0):
+    def __init__(
+        self,
+        tmp: Path,
+        pair: dict,
+        jobs: int = 50,
+        workers: int = 3,
+        seed: int = 0,
+        gap_s: float = 4.0,
+        webhook_wait_s: float = 0.0,
+    ):
         self.tmp, self.pair, self.n_jobs, self.n_workers = tmp, pair, jobs, workers
         self.rng = random.Random(seed)
         self.gap_s = gap_s
+        # A webhook delivery killed with its worker is retried by RQ once its 60 s task
+        # timeout has passed, at the next maintenance pass (30 s): ~1.5-2 min late.
+        self.webhook_wait_s = webhook_wait_s
         self.sink = WebhookSink()
         self.redis = RedisServer(tmp / "redis")
         self.redis.start()
@@ -237,7 +249,12 @@ class ChaosRun:
         submitter.join(max(end - time.monotonic(), 1))
         while time.monotonic() < end and len(self.seen_final) < self.n_jobs:
             time.sleep(0.3)
-        time.sleep(1.5)  # a last look for late changes (a job finishing twice) and webhooks
+        # Webhooks are at-least-once with backoff (1, 5, 30 s...): one that failed during a
+        # fault comes later. Wait for them (and keep watching for late changes meanwhile).
+        hooks_by = time.monotonic() + self.webhook_wait_s
+        while time.monotonic() < hooks_by and set(self.ids.values()) - set(self.sink.reports):
+            time.sleep(0.3)
+        time.sleep(1.5)  # a last look for late changes (a job finishing twice)
         self.stop.set()
         monitor.join(10)
         return self._report(faults, time.monotonic() - t0)

@@ -27,5 +27,4 @@ def test_every_job_ends_exactly_once_through_the_faults(tmp_path, pair):
     assert rep.duplicated == [], why
     assert rep.final == {"succeeded": 50}, why
     assert rep.artifact_sets_not_one == [], why
-    assert rep.missing_webhooks == [], why
     assert rep.submit_retries > 0 and rep.attempts_max > 1, why  # the faults did hit clients and jobs
