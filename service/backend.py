@@ -57,11 +57,13 @@ class RQQueue:
             status = RQJob.fetch(ref, connection=self.q.connection).get_status(refresh=False)
         except NoSuchJobError:
             return True
-        return str(getattr(status, "value", status)) not in (
-            "queued",
-            "deferred",
-            "scheduled",
-        )
+        status = str(getattr(status, "value", status))
+        if status == "queued":
+            # A worker on several queues (ours: webhooks + jobs) dequeues with BLPOP; one
+            # killed before it marks the message started leaves it "queued" in no list.
+            r = self.q.connection
+            return r.lpos(self.q.key, ref) is None and r.lpos(self.q.intermediate_queue_key, ref) is None
+        return status not in ("deferred", "scheduled")
 
     def enqueue_webhook(self, job_id: str) -> None:
         from rq import Retry  # lazy: see RQQueue.__init__

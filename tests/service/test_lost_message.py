@@ -1,0 +1,39 @@
+"""A queue message taken by a worker that died before marking it started: RQ still
+says "queued", but no list holds it any more. The reaper must send it again (found
+by the chaos run: one job of 100 stayed queued for good)."""
+
+from __future__ import annotations
+
+import time
+
+import redis as redislib
+
+from service.backend import make_backend
+from service.core import create_job
+from service.jobs import Asset
+from service.settings import Settings
+from service.worker import resend_lost
+
+
+def test_a_queued_message_no_list_holds_is_resent(redis_url, tmp_path):
+    redislib.Redis.from_url(redis_url + "/4").flushdb()  # private test server, db 4
+    b = make_backend(Settings(redis_url=redis_url + "/4", storage_root=tmp_path, queue_name="blpop", lease_s=1))
+    a = Asset(
+        id="ast_1",
+        owner="o",
+        kind="ply",
+        key="uploads/x/a.ply",
+        size=1,
+        content_type="x",
+        sha256="0",
+        created_at=0,
+    )
+    job = create_job(b, "o", "job_blpop", [a], a, {}, None, None)
+    ref = b.store.get(job.id).queue_ref
+    b.store.update(job.id, enqueued_at=time.time() - 10)
+    assert resend_lost(b) == []  # still in the queue: a backlog, not a loss
+    b.redis.lpop(b.queue.q.key)  # what BLPOP does for a worker that is then SIGKILLed
+    assert b.queue.q.fetch_job(ref).get_status(refresh=True).value == "queued"
+    assert resend_lost(b) == [job.id]
+    new_ref = b.store.get(job.id).queue_ref
+    assert new_ref != ref and b.queue.q.job_ids == [new_ref]
