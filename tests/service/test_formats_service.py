@@ -103,3 +103,14 @@ def test_grpc_transform_carries_the_contract(stack, done_job):
     t = job.transform
     assert len(t.quaternion_xyzw) == 4 and len(t.gltf_node_matrix) == 16 and len(t.inverse_matrix) == 16
     assert t.source_frame.format == "spz" and t.target_frame.convention == "RUB"
+
+
+def test_a_header_claiming_too_many_gaussians_is_413(http, formatted):
+    import gzip
+    import struct
+
+    raw = bytearray(gzip.decompress(formatted["source"].read_bytes()))
+    struct.pack_into("<I", raw, 8, 6_000_000)  # the SPZ header's count, over GSA_MAX_GAUSSIANS (5M)
+    r = http.post("/v1/assets", files={"file": ("huge.spz", gzip.compress(bytes(raw)))})
+    body = assert_problem(r, 413)
+    assert "6000000 Gaussians exceeds the limit" in body["detail"]
