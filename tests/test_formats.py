@@ -231,3 +231,31 @@ def test_axis_flip_is_the_exact_rotation_by_180_degrees_about_x():
     assert np.allclose(np.abs((fast.quats * general.quats).sum(axis=1)), 1.0, atol=1e-6)
     assert np.allclose(fast.sh, general.sh, atol=1e-5)  # every SH band's signs
     assert np.array_equal(flip_yz(fast).means, m.means)  # its own inverse
+
+
+@pytest.mark.parametrize("fmt", [f for f in FORMATS if f != "ply"])
+def test_mutated_files_read_or_fail_with_one_format_error(written, tmp_path, fmt):
+    """Random bit flips, cuts, insertions and header edits: a model or a PlyError, nothing else."""
+    rng = np.random.default_rng(abs(hash(fmt)) % 2**32)
+    original = written[fmt].read_bytes()
+    for trial in range(25):
+        data = bytearray(original)
+        kind = trial % 4
+        if kind == 0:
+            for i in rng.integers(0, len(data), 20):
+                data[i] ^= 1 << int(rng.integers(0, 8))
+        elif kind == 1:
+            data = data[: int(rng.integers(1, len(data)))]
+        elif kind == 2:
+            at = int(rng.integers(0, min(len(data), 4096)))
+            data[at:at] = rng.integers(0, 256, int(rng.integers(1, 64)), dtype=np.uint8).tobytes()
+        else:
+            for i in rng.integers(0, min(len(data), 2048), 8):  # the header region
+                data[i] = int(rng.integers(0, 256))
+        path = tmp_path / f"m{trial}"
+        path.write_bytes(bytes(data))
+        try:
+            model = read_model(path, max_gaussians=100_000)
+        except PlyError:
+            continue
+        assert len(model) > 0 and np.isfinite(model.means).all()

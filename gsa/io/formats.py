@@ -146,6 +146,10 @@ def _read_other(path: Path, fmt: str, max_gaussians: int) -> GaussianModel:
         raise
     except (ValueError, ModelError) as exc:  # GlbError, PackedError, ModelError
         raise FormatError(path, f"{fmt}: {exc}") from None
+    except MemoryError:
+        raise FormatError(path, f"{fmt}: too large to decode in the memory available") from None
+    except Exception as exc:  # noqa: BLE001 - untrusted bytes: a decoder's surprise is the file's problem
+        raise FormatError(path, f"{fmt}: cannot decode ({type(exc).__name__}: {exc})") from None
     model.quats = model.quats / np.linalg.norm(model.quats, axis=1, keepdims=True)  # buffers may be read-only
     return model
 

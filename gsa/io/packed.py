@@ -1,22 +1,20 @@
 """Compressed PLY, .ksplat, SPZ and SOG through gaussforge (C++), with our own checks first.
 
 gaussforge 0.6.0 reads and writes all four from and to bytes, 10-100× faster than gsply's
-numba code on first use (no JIT), and it reports bad input as an error instead of crashing
-(tested on truncated and bit-flipped files). It trusts the counts in a header, so each
-reader here checks them against the file and the caller's Gaussian limit before
-gaussforge sees the bytes. Its SPZ decoder prints a debug line on the C stdout; that line
-is discarded.
+numba code on first use (no JIT). It reports most bad input as an error, but trusts the
+counts in a header and crashes (SIGSEGV) on some corrupt SOG archives: each reader here
+checks counts and sizes against the file and the caller's Gaussian limit first, and the
+decode itself runs in a child process (gsa/io/packed_child.py), which also keeps its SPZ
+debug line off our stdout.
 """
 
 from __future__ import annotations
 
-import contextlib
 import io
 import json
-import os
 import struct
+import subprocess
 import sys
-import threading
 import zipfile
 import zlib
 
@@ -26,7 +24,7 @@ from gsa.model import GaussianModel, sh_coeff_count
 
 GAUSSFORGE_NAMES = {"compressed-ply": "compressed.ply", "ksplat": "ksplat", "spz": "spz", "sog": "sog"}
 SPZ_MAGIC = 0x5053474E  # "NGSP"
-_STDOUT_LOCK = threading.Lock()
+DECODE_TIMEOUT_S = 600
 
 
 class PackedError(ValueError):
@@ -37,26 +35,6 @@ def _forge():
     import gaussforge  # lazy: a compiled extension only these formats need
 
     return gaussforge.GaussForge()
-
-
-@contextlib.contextmanager
-def _quiet_c_stdout():
-    """Discard what C code writes to file descriptor 1 meanwhile (gaussforge's SPZ debug line)."""
-    with _STDOUT_LOCK:
-        try:
-            sys.stdout.flush()
-            saved = os.dup(1)
-        except (OSError, ValueError, io.UnsupportedOperation):
-            yield
-            return
-        devnull = os.open(os.devnull, os.O_WRONLY)
-        try:
-            os.dup2(devnull, 1)
-            yield
-        finally:
-            os.dup2(saved, 1)
-            os.close(saved)
-            os.close(devnull)
 
 
 def check_header(fmt: str, data: bytes, max_gaussians: int) -> None:
@@ -153,15 +131,22 @@ def _check_compressed_ply(data: bytes, max_gaussians: int) -> None:
 
 
 def decode(fmt: str, data: bytes) -> GaussianModel:
-    """Decoded through gaussforge's converter to an INRIA PLY in memory, then parsed here
-    (values still unchecked). Its `read` returns a dict of arrays, but fails with
-    std::bad_cast on every SH-degree-0 model (0.6.0); `convert` has no such gap."""
-    forge = _forge()
-    with _quiet_c_stdout() if fmt == "spz" else contextlib.nullcontext():
-        result = forge.convert(data, GAUSSFORGE_NAMES[fmt], "ply")
-    if "error" in result:
-        raise PackedError(str(result["error"]))
-    return parse_float_ply(result["data"])
+    """Decoded by gaussforge's converter to an INRIA PLY, in a child process, then parsed here
+    (values still unchecked). Its `read` returns a dict of arrays but fails with std::bad_cast
+    on every SH-degree-0 model (0.6.0); `convert` has no such gap. The child: some corrupt SOG
+    archives crash gaussforge (SIGSEGV) — tests/test_formats.py mutates files of every format."""
+    proc = subprocess.run(
+        [sys.executable, "-m", "gsa.io.packed_child", GAUSSFORGE_NAMES[fmt]],
+        input=data,
+        capture_output=True,
+        timeout=DECODE_TIMEOUT_S,
+    )
+    if proc.returncode < 0:
+        raise PackedError(f"the decoder crashed on this file (signal {-proc.returncode}): corrupt data")
+    if proc.returncode != 0:
+        message = proc.stderr.decode("utf-8", "replace").strip().splitlines()
+        raise PackedError(message[-1] if message else f"the decoder failed (exit {proc.returncode})")
+    return parse_float_ply(proc.stdout)
 
 
 def parse_float_ply(ply: bytes) -> GaussianModel:
