@@ -3,6 +3,9 @@ overlap, symmetric shapes and the honesty of its confidence."""
 
 from __future__ import annotations
 
+import functools
+import sys
+
 import numpy as np
 import pytest
 from scipy.spatial import cKDTree
@@ -13,7 +16,7 @@ from gsa.geometry import quat_to_rotation, super_fibonacci_rotations
 from gsa.metrics import accuracy, rre_deg
 from gsa.sim3 import Sim3
 from gsa.synth import make_object, random_sim3
-from gsa.synth.variants import add_floaters, cut_by_plane, make_symmetric_object, symmetry_rotations
+from gsa.synth.variants import add_floaters, cut_by_plane, deform, make_symmetric_object, symmetry_rotations
 
 
 def _grey(model):
@@ -144,3 +147,42 @@ def test_unrelated_shapes_are_flagged():
     target = make_object("airplane", seed=1, n_gaussians=6000).transformed(truth)
     result = align(source, target)
     assert result.metrics["doubtful"]
+
+
+def _refine(source, target, init=None):
+    p, q = source.means.astype(np.float64), target.means.astype(np.float64)
+    return robust.refine(p, q, cKDTree(p), cKDTree(q), init or Sim3.identity())
+
+
+@functools.cache
+def _deformed_pairs():
+    """One instance per category: a sampling and a deformed other sampling, whose
+    natural alignment is the identity (gsa.synth.variants.deform)."""
+    pairs = []
+    for seed, category in enumerate(["airplane", "bus", "boat", "car", "chair", "motorcycle"]):
+        rng = np.random.default_rng([14, seed])
+        source = make_object(category, seed=seed, n_gaussians=20_000, sample_seed=1)
+        resampled = make_object(category, seed=seed, n_gaussians=30_000, sample_seed=2)
+        pairs.append((source, resampled, deform(resampled, rng), cut_by_plane(resampled, rng, keep=(0.6, 0.8))))
+    return pairs
+
+
+def _all_pairs_phase(history) -> bool:
+    return any(h["stage"] == "refine-all-pairs" for h in history)
+
+
+def test_refinement_fits_every_pair_only_where_the_models_coincide_nowhere():
+    pairs = _deformed_pairs()
+    assert sum(_all_pairs_phase(_refine(s, deformed)[1]) for s, _, deformed, _ in pairs) >= 4
+    assert not any(_all_pairs_phase(_refine(s, resampled)[1]) for s, resampled, _, _ in pairs)
+    assert not any(_all_pairs_phase(_refine(s, cut)[1]) for s, _, _, cut in pairs)
+
+
+def test_fitting_every_pair_averages_a_deformation_better_than_trimming(monkeypatch):
+    """A fit trimmed to the best-matching part of a deformed copy drifts from the
+    natural alignment; one over all pairs drifts less."""
+    pairs = [(s, deformed) for s, _, deformed, _ in _deformed_pairs()]
+    every_pair = [rre_deg(_refine(s, t)[0].rotation, np.eye(3)) for s, t in pairs]
+    monkeypatch.setattr(sys.modules["gsa.align.robust.refine"], "WHOLE_OVERLAP", 2.0)  # never: trim only
+    trimmed = [rre_deg(_refine(s, t)[0].rotation, np.eye(3)) for s, t in pairs]
+    assert np.mean(every_pair) < np.mean(trimmed), (every_pair, trimmed)
