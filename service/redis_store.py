@@ -53,6 +53,15 @@ return 1
 """
 
 
+# An Idempotency-Key is claimed before its job exists (the request's uploads are stored in
+# between). If the API process dies or Redis goes away in that window, the claim must not
+# answer "in progress" for a day: it lives IDEM_PENDING_S until create() gives it IDEM_TTL_S.
+# (A request whose uploads take longer than that to store may, retried meanwhile, make a
+# second job.) Found by the chaos run: a key stuck after an API SIGKILL.
+IDEM_PENDING_S = 120
+IDEM_TTL_S = 24 * 3600
+
+
 class RedisJobStore:
     """Distributed mode: one Redis hash per job, JSON field values."""
 
@@ -70,6 +79,8 @@ class RedisJobStore:
         pipe.hset(self._jk(job.id), mapping=data)
         pipe.zadd(f"{self.p}owner:{job.owner}", {job.id: job.created_at})
         pipe.sadd(f"{self.p}state:{_enc(job.state)}", job.id)
+        if job.idempotency_key:  # the claim made for this job now lasts its full time
+            pipe.expire(f"{self.p}idem:{job.owner}:{job.idempotency_key}", IDEM_TTL_S)
         pipe.execute()
 
     def _decode(self, raw: dict) -> Job | None:
@@ -136,7 +147,7 @@ class RedisJobStore:
 
     def claim_idempotency(self, owner, key, body_hash, job_id):
         k = f"{self.p}idem:{owner}:{key}"
-        if self.r.set(k, f"{job_id}|{body_hash}", nx=True, ex=24 * 3600):
+        if self.r.set(k, f"{job_id}|{body_hash}", nx=True, ex=IDEM_PENDING_S):
             return None
         job, _, h = self.r.get(k).decode().partition("|")
         return job, h

@@ -148,7 +148,9 @@ class ChaosRun:
                     if r.status_code == 202:
                         self.ids[i] = r.json()["id"]
                         break
-                    assert r.status_code in (503, 507), r.text  # only outages may refuse a good job
+                    # Only outages may refuse a good job, and an earlier try with this key that
+                    # the API (or Redis) lost mid-request: 409 "in progress" until its claim lapses.
+                    assert r.status_code in (503, 507) or "idempotency-in-progress" in r.text, r.text
                 except httpx.HTTPError:
                     pass
                 self.retries += 1
