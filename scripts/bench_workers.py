@@ -83,6 +83,13 @@ def phases(job: dict) -> str:
     return f"queue->start {1e3 * wait:.0f} ms, start->end {1e3 * run:.0f} ms"
 
 
+def cpu_seconds(pid: int) -> float:
+    """CPU time of a process and its reaped children (RQ's work horses): utime, stime,
+    cutime, cstime from /proc/<pid>/stat."""
+    fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+    return sum(int(x) for x in fields[11:15]) / os.sysconf("SC_CLK_TCK")
+
+
 def registered_workers(redis_url: str) -> int:
     import redis
     from rq import Worker
@@ -152,10 +159,14 @@ def main() -> int:
                 assert job["state"] == "succeeded", job
                 warm.append(dt)
             warm_phases = phases(job)
+            workers = procs[-a.workers :]
+            cpu0 = sum(cpu_seconds(p.pid) for p in workers)
             t0 = time.perf_counter()
             batch = [submit(c, ids, options) for _ in range(a.jobs)]
             done = wait_final(c, batch)
             elapsed = time.perf_counter() - t0
+            time.sleep(0.5)  # the last horse reaped
+            cpu_per_job = (sum(cpu_seconds(p.pid) for p in workers) - cpu0) / a.jobs
         ok = sum(j["state"] == "succeeded" for j in done.values())
         warm_med = statistics.median(warm)
         try:
@@ -171,6 +182,10 @@ def main() -> int:
         print(f"warm job, median of {a.warm} (submit->result): {1e3 * warm_med:7.0f} ms (last: {warm_phases})")
         print(f"first / warm:                             {first / warm_med:6.2f}x")
         print(f"batch: {ok}/{a.jobs} succeeded in {elapsed:.2f} s = {60 * a.jobs / elapsed:.1f} jobs/min")
+        print(
+            f"worker CPU per job (parents + horses): {cpu_per_job:.2f} s -> "
+            f"{60 * (os.cpu_count() or 1) / cpu_per_job:.0f} jobs/min if the workers had all {os.cpu_count()} cores"
+        )
         for i in range(a.workers):
             for line in (tmp / f"worker{i}.log").read_text(errors="replace").splitlines():
                 if "warm-up" in line:
