@@ -8,8 +8,6 @@ from __future__ import annotations
 
 import json
 import os
-import shutil
-import subprocess
 import time
 from pathlib import Path
 
@@ -19,7 +17,6 @@ import pytest
 from tests.service.conftest import (
     ALICE,
     assert_problem,
-    free_port,
     service_env,
     start_api,
     start_worker,
@@ -28,47 +25,9 @@ from tests.service.conftest import (
     wait_job,
     wait_until,
 )
+from tests.service.harness import RedisServer
 
 pytestmark = pytest.mark.slow  # starts servers and worker processes
-
-
-class RedisServer:
-    """A private redis-server that can be stopped and started again on the same
-    port and data folder (appendonly: what was queued survives the restart)."""
-
-    def __init__(self, d: Path):
-        self.exe = shutil.which("redis-server")
-        if self.exe is None:
-            pytest.fail("redis-server not installed (./dev.sh test installs it)")
-        self.dir, self.port, self.p = d, free_port(), None
-        d.mkdir(parents=True, exist_ok=True)
-
-    @property
-    def url(self) -> str:
-        return f"redis://127.0.0.1:{self.port}/0"
-
-    def start(self) -> None:
-        args = [self.exe, "--port", str(self.port), "--bind", "127.0.0.1", "--dir", str(self.dir)]
-        args += ["--appendonly", "yes", "--appendfsync", "always", "--save", ""]
-        self.p = subprocess.Popen(args, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-        import redis
-
-        r = redis.Redis(port=self.port)
-
-        def up():
-            try:
-                return r.ping()
-            except Exception:
-                return False
-
-        wait_until(up, 20, 0.05, "redis-server")
-        r.close()
-
-    def stop(self) -> None:
-        if self.p is not None and self.p.poll() is None:
-            self.p.terminate()
-            self.p.wait(20)
-        self.p = None
 
 
 @pytest.fixture
