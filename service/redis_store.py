@@ -15,6 +15,7 @@ from typing import Any
 from pydantic import BaseModel
 
 from service.models import Asset, Job, JobState
+from service.store import IDEM_PENDING_S, IDEM_TTL_S
 
 
 def _enc(v: Any) -> str:
@@ -51,15 +52,6 @@ if newst and newst ~= st then
 end
 return 1
 """
-
-
-# An Idempotency-Key is claimed before its job exists (the request's uploads are stored in
-# between). If the API process dies or Redis goes away in that window, the claim must not
-# answer "in progress" for a day: it lives IDEM_PENDING_S until create() gives it IDEM_TTL_S.
-# (A request whose uploads take longer than that to store may, retried meanwhile, make a
-# second job.) Found by the chaos run: a key stuck after an API SIGKILL.
-IDEM_PENDING_S = 120
-IDEM_TTL_S = 24 * 3600
 
 
 class RedisJobStore:

@@ -12,6 +12,7 @@ import time
 from pathlib import Path
 
 from service.models import Asset, Job, JobState
+from service.store import IDEM_PENDING_S, IDEM_TTL_S
 
 
 class SQLiteJobStore:
@@ -111,7 +112,14 @@ class SQLiteJobStore:
 
     def claim_idempotency(self, owner, key, body_hash, job_id):
         k = f"{owner}:{key}"
+        now = time.time()
         with self.lock:
+            # as in Redis: a claim whose job was never created lapses after IDEM_PENDING_S,
+            # one whose job exists after IDEM_TTL_S
+            self.db.execute(
+                "DELETE FROM idem WHERE k=? AND (at < ? OR (at < ? AND job_id NOT IN (SELECT id FROM jobs)))",
+                (k, now - IDEM_TTL_S, now - IDEM_PENDING_S),
+            )
             cur = self.db.execute(
                 "INSERT OR IGNORE INTO idem VALUES (?,?,?,?)",
                 (k, job_id, body_hash, time.time()),

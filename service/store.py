@@ -12,6 +12,14 @@ from typing import Protocol
 
 from service.models import Asset, Job, JobState
 
+# An Idempotency-Key is claimed before its job exists (the request's uploads are stored in
+# between). If the API process dies or the store goes away in that window, the claim must
+# not answer "in progress" for a day: it lives IDEM_PENDING_S until create() gives it
+# IDEM_TTL_S. (A request whose uploads take longer than that to store may, retried
+# meanwhile, make a second job.) Found by the chaos run: a key stuck after an API SIGKILL.
+IDEM_PENDING_S = 120
+IDEM_TTL_S = 24 * 3600
+
 
 class JobStore(Protocol):
     """Jobs, assets, idempotency keys and stage timings; see RedisJobStore and SQLiteJobStore."""

@@ -7,7 +7,7 @@ from __future__ import annotations
 import pytest
 import redis as redislib
 
-from service import redis_store
+from service import redis_store, store
 from service.backend import make_backend
 from service.core import claim, create_job
 from service.jobs import Asset
@@ -34,3 +34,25 @@ def test_a_claim_without_its_job_lapses_and_a_created_job_keeps_its_key(redis_ur
     assert b.redis.ttl(key) > redis_store.IDEM_PENDING_S  # the job's key lasts its full day
     again, existing = claim(b, "o", "k1", "fp")
     assert existing is not None and existing.id == retry
+
+
+def test_embedded_store_claims_lapse_as_in_redis(tmp_path):
+    b = make_backend(Settings(storage_root=tmp_path))  # no redis_url: the embedded SQLite store
+    a = Asset(
+        id="ast_1", owner="o", kind="ply", key="uploads/x/a.ply", size=1, content_type="x", sha256="0", created_at=0
+    )
+    first, existing = claim(b, "o", "k1", "fp")
+    assert existing is None
+    with pytest.raises(Problem) as p:
+        claim(b, "o", "k1", "fp")
+    assert p.value.status == 409
+    b.store.db.execute("UPDATE idem SET at = at - ?", (store.IDEM_PENDING_S + 1,))  # its job never came
+    retry, existing = claim(b, "o", "k1", "fp")
+    assert existing is None and retry != first
+    create_job(b, "o", retry, [a], a, {}, None, "k1")
+    b.store.db.execute("UPDATE idem SET at = at - ?", (store.IDEM_PENDING_S + 1,))
+    again, existing = claim(b, "o", "k1", "fp")  # a created job keeps its key past the pending time
+    assert existing is not None and existing.id == retry
+    b.store.db.execute("UPDATE idem SET at = at - ?", (store.IDEM_TTL_S,))
+    later, existing = claim(b, "o", "k1", "fp")  # and gives it up after its full day
+    assert existing is None and later not in (first, retry)
