@@ -421,12 +421,18 @@ def build_parser() -> argparse.ArgumentParser:
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
 
     p = sub.add_parser("align", help="align SOURCE onto TARGET (3DGS PLY files or image sets)")
-    p.add_argument("source", help="3DGS PLY, or a folder / .zip of images (reconstructed first)")
-    p.add_argument("target", help="3DGS PLY, or a folder / .zip of images (reconstructed first)")
+    p.add_argument(
+        "source",
+        help="3DGS model in any supported format (see gsa convert), or a folder / .zip of images (reconstructed first)",
+    )
+    p.add_argument(
+        "target",
+        help="3DGS model in any supported format (see gsa convert), or a folder / .zip of images (reconstructed first)",
+    )
     p.add_argument("--preset", default="cpu", choices=["cpu", "gpu"], help="reconstruction preset for image sets")
     p.add_argument("--out", default="result.json", help="result JSON path (default: %(default)s)")
-    p.add_argument("--aligned-out", help="write the source mapped into the target frame (PLY)")
-    p.add_argument("--merged-out", help="write aligned source + target as one model (PLY)")
+    p.add_argument("--aligned-out", help="write the source mapped into the target frame (format: see --format)")
+    p.add_argument("--merged-out", help="write aligned source + target as one model (format: see --format)")
     p.add_argument("--renders", help="write before/after PNG renders into this folder")
     p.add_argument("--preview", action="store_true", help="write .splat previews for `gsa view` beside --out")
     p.add_argument(
