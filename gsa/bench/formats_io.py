@@ -25,9 +25,6 @@ from gsa.model import SH_C0, GaussianModel
 # Formats whose writer reorders the Gaussians (SOG sorts them along a space-filling curve).
 REORDERING = frozenset({"sog"})
 PAIR_FORMATS = ("ply", "spz", "compressed-ply", "splat", "glb")
-# gaussforge's SOG writer grows much faster than linearly (9 s at 50k, 200 s at 100k, a 200k
-# write ran past 14 minutes): the SOG row is measured at this size.
-SOG_MAX_GAUSSIANS = 50_000
 # A fixed mmap threshold: glibc otherwise raises it after the model's generation frees its
 # arrays, later allocations reuse freed heap, and the RSS growth of a read or write hides.
 MEASURED_ENV = {**os.environ, "MALLOC_MMAP_THRESHOLD_": "131072"}
@@ -38,11 +35,13 @@ def matched(original: GaussianModel, read_back: GaussianModel, fmt: str) -> Gaus
     if fmt not in REORDERING:
         return original
     # Nearest position alone mismatches Gaussians closer together than the quantisation:
-    # of the 4 nearest, the one that also agrees best in size and colour.
+    # of the 4 nearest, the one that also agrees best in size, colour and orientation.
     dist, idx = cKDTree(original.means).query(read_back.means, k=4)
     size = np.abs(original.log_scales[idx] - read_back.log_scales[:, None, :]).sum(axis=2)
     colour = np.abs(original.sh[idx, 0] - read_back.sh[:, None, 0]).sum(axis=2)
-    cost = dist / max(float(dist[:, 0].max()), 1e-12) + size + colour
+    q = original.quats[idx] / np.linalg.norm(original.quats[idx], axis=2, keepdims=True)
+    turn = 1 - np.abs((q * read_back.quats[:, None, :]).sum(axis=2))
+    cost = dist / max(float(dist[:, 0].max()), 1e-12) + size + colour + turn
     return original.subset(idx[np.arange(len(idx)), cost.argmin(axis=1)])
 
 
@@ -183,9 +182,8 @@ def protocol_formats(quick: bool) -> tuple[list[dict], list[dict]]:
     n = 200_000 if quick else 1_000_000
     roundtrips = []
     for fmt in FORMATS:
-        size = min(n, SOG_MAX_GAUSSIANS) if fmt == "sog" else n
         proc = subprocess.run(
-            [sys.executable, "-m", "gsa.bench.formats_io", fmt, str(size)],
+            [sys.executable, "-m", "gsa.bench.formats_io", fmt, str(n)],
             capture_output=True,
             text=True,
             check=True,

@@ -1,4 +1,5 @@
-"""Compressed PLY, .ksplat, SPZ and SOG through gaussforge (C++), with our own checks first.
+"""Compressed PLY, .ksplat, SPZ and SOG through gaussforge (C++), with our own checks first;
+SOG is written by our own encoder (gsa/io/sog.py), gaussforge's being superlinear.
 
 gaussforge 0.6.0 reads and writes all four from and to bytes, 10-100× faster than gsply's
 numba code on first use (no JIT). It reports most bad input as an error, but trusts the
@@ -190,6 +191,10 @@ def parse_float_ply(ply: bytes) -> GaussianModel:
 
 
 def encode(fmt: str, model: GaussianModel) -> bytes:
+    if fmt == "sog":  # gaussforge's SOG writer is superlinear (200 s for 100k Gaussians)
+        from gsa.io.sog import encode_sog
+
+        return encode_sog(model)
     n = len(model)
     sh_rest = model.sh[:, 1:]
     if fmt == "compressed-ply":
