@@ -1,8 +1,9 @@
 """Benchmark pairs, each deterministic by seed: (label, make() -> (source, target, truth)).
 
-dup, same and category (the paper's protocols) and the robustness captures (partial,
-noisy, deform, symmetric; gsa.synth.variants), with the fields their labels add to a
-record and the symmetric protocol's judge.
+dup, same and category (the paper's protocols), the robustness captures (partial,
+noisy, deform, symmetric; gsa.synth.variants) and the scene pairs (issue 18;
+gsa.synth.scenes), with the fields their labels add to a record and the symmetric
+protocol's judge.
 """
 
 from __future__ import annotations
@@ -21,9 +22,11 @@ from gsa.synth import (
     cut_by_plane,
     deform,
     make_object,
+    make_scene,
     make_symmetric_object,
     paper_perturbation,
     random_sim3,
+    scene_captures,
     symmetric_spec,
     symmetry_rotations,
 )
@@ -165,3 +168,33 @@ def symmetric_judge(est: Sim3, truth: Sim3, source, target) -> dict:
     errors = [rre_deg(est.rotation, truth.rotation @ rot) for rot in symmetry_rotations(source)]
     j = int(np.argmin(errors))
     return {"rre_any_symmetric_deg": float(errors[j]), "symmetric_pose": j}
+
+
+# Scene pairs (issue 18): (pairs, scene Gaussians, capture size range) for quick and full.
+SCENE_QUICK = (3, 250_000, (80_000, 120_000))
+SCENE_FULL = (20, 3_200_000, (1_000_000, 2_000_000))
+
+
+def scene_pairs(quick: bool, seed: int, count: int | None = None, capture_size: int | None = None) -> list[Pair]:
+    """Two captures of one generated room each (gsa.synth.scene_captures): 50–80 %
+    overlap, each capture's size drawn in the size range (or `capture_size`), floaters,
+    each under its own Sim(3) with scale 0.2–5. Labels 'room-i'; the target's metadata
+    carries the room's extent in its units and the pair's overlap (scene_judge reads them)."""
+    default_count, scene_n, size_range = SCENE_QUICK if quick else SCENE_FULL
+    if capture_size is not None:
+        scene_n = max(scene_n, int(capture_size / 0.6) + 1)  # each half-space holds ≥ 60 % of the room
+    pairs = []
+    for i in range(default_count if count is None else count):
+
+        def make(i=i):
+            rng = np.random.default_rng([seed, 18, i])
+            sizes = (
+                (capture_size, capture_size) if capture_size else tuple(int(x) for x in rng.integers(*size_range, 2))
+            )
+            scene = make_scene(seed=1800 + i, n_gaussians=scene_n)
+            cap = scene_captures(scene, rng, sizes=sizes)
+            cap.target.metadata.update(pair_overlap=cap.overlap)
+            return cap.source, cap.target, cap.truth
+
+        pairs.append((f"room-{i}", make))
+    return pairs

@@ -23,6 +23,12 @@ symmetric 4- to 8-fold symmetric objects (prism, wheel, bottle) whose colour
           `rre_any_symmetric_deg` (the best of the k symmetric poses)
 deform    target = a stretched, tapered and bent copy of the instance
 
+scene     issue 18: two partial captures of a generated furnished room (gsa.synth.scenes;
+          50–80 % overlap, floaters, each capture under its own Sim(3), scale 0.2–5).
+          Full: 20 pairs of 1–2M Gaussians per capture; --quick: 3 pairs of ~100k.
+          Success: RRE < 2° and translation error < 2 % of the room's extent; peak
+          memory per method (gsa.bench.scene). GSA rows are align()'s coarse stage.
+
 GSA rows carry align()'s `confidence` and `doubtful` (metrics) per pair; tables
 then add how well the flag tracks failure (flagged rate, success among the
 unflagged, share of failures flagged), and `run_protocols` ends with that
@@ -56,6 +62,7 @@ from gsa.bench.pairs import (
     noisy_pairs,
     partial_pairs,
     same_pairs,
+    scene_pairs,
     symmetric_fields,
     symmetric_judge,
     symmetric_pairs,
@@ -78,6 +85,7 @@ from gsa.bench.records import (
     save_rows,
     summarise,
 )
+from gsa.bench.scene import add_scene_summary, scene_judge, with_peak_memory
 from gsa.bench.speed import io_child, protocol_io, rss_now_mb, speed_child, speed_stages
 from gsa.bench.tables import calibration_summary, format_table
 from gsa.synth import random_sim3
@@ -125,6 +133,7 @@ __all__ = [
     "protocol_noisy",
     "protocol_partial",
     "protocol_same",
+    "protocol_scene",
     "protocol_speed",
     "protocol_symmetric",
     "random_sim3",
@@ -132,6 +141,7 @@ __all__ = [
     "run_protocols",
     "same_pairs",
     "save_rows",
+    "scene_pairs",
     "similar_cameras",
     "speed_child",
     "speed_stages",
@@ -280,6 +290,18 @@ def protocol_ablation(quick: bool, seed: int, out: Path, peers: list[str] | None
     return rows
 
 
+def protocol_scene(quick: bool, seed: int, out: Path, peers: list[str] | None = None) -> list[dict]:
+    # Coarse only (align()'s default stages here): the fine stage renders every Gaussian of
+    # both models per view; what the scene path refines on is for it to decide.
+    runners = [
+        with_peak_memory(r) for r in [gsa_runner(False)] + [peer_runner(p, seed) for p in available_peers(peers)]
+    ]
+    rows = evaluate("scene", scene_pairs(quick, seed), runners, out=out, judge=scene_judge)
+    add_scene_summary(rows)
+    save_rows(out, "scene", rows)
+    return rows
+
+
 def protocol_speed(quick: bool, seed: int, out: Path, peers: list[str] | None = None) -> list[dict]:
     return _speed.protocol_speed(quick, seed, out, peers, fine=FINE_ROWS)
 
@@ -295,6 +317,7 @@ PROTOCOLS = {
     "noisy": protocol_noisy,
     "symmetric": protocol_symmetric,
     "deform": protocol_deform,
+    "scene": protocol_scene,
 }
 
 

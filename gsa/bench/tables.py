@@ -17,6 +17,10 @@ def _f(x: float, digits: int) -> str:
 
 
 def format_table(name: str, rows: list[dict]) -> str:
+    if name == "scene":
+        from gsa.bench.scene import format_scene_table
+
+        return format_scene_table(rows)
     if name == "io":
         lines = [
             "| Gaussians (SH degree 3) | file (MB) | write (s) | read (s) | RSS growth after read (MB) |",

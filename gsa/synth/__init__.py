@@ -1,7 +1,8 @@
-"""Procedural 3DGS objects and random perturbations for tests, demo and benchmarks."""
+"""Procedural 3DGS objects, furnished rooms (scenes) and random perturbations for tests, demo and benchmarks."""
 
 from gsa.synth.objects import CATEGORIES, make_object
 from gsa.synth.perturb import paper_perturbation, random_sim3
+from gsa.synth.scenes import SceneCaptures, make_scene, scene_captures
 from gsa.synth.variants import (
     SYMMETRIC_FAMILIES,
     add_floaters,
@@ -15,13 +16,16 @@ from gsa.synth.variants import (
 __all__ = [
     "CATEGORIES",
     "SYMMETRIC_FAMILIES",
+    "SceneCaptures",
     "add_floaters",
     "cut_by_plane",
     "deform",
     "make_object",
+    "make_scene",
     "make_symmetric_object",
     "paper_perturbation",
     "random_sim3",
+    "scene_captures",
     "symmetric_spec",
     "symmetry_rotations",
 ]
