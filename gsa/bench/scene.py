@@ -7,11 +7,14 @@ translation vector alone depends on where the origin happens to be).
 
 Peak memory per method: the kernel's high-water mark of this process (VmHWM), reset
 before each call (/proc/self/clear_refs), so each method's peak is its own; the growth
-column is that peak less the resident size before the call (the pair already loaded).
+column is that peak less the resident size before the call (the pair already loaded,
+freed heap pages first handed back to the kernel with glibc's malloc_trim).
 """
 
 from __future__ import annotations
 
+import ctypes
+import gc
 from pathlib import Path
 
 import numpy as np
@@ -48,6 +51,16 @@ def _status_mb(key: str) -> float | None:
     return None
 
 
+def _trim_heap() -> None:
+    """Give freed heap pages back to the kernel (glibc), so that the resident size before
+    a call is its live data and memory freed by the previous method cannot hide this
+    method's growth."""
+    try:
+        ctypes.CDLL("libc.so.6").malloc_trim(0)
+    except (OSError, AttributeError):
+        pass
+
+
 def _reset_peak() -> bool:
     try:
         Path("/proc/self/clear_refs").write_text("5")  # Linux: VmHWM := current RSS
@@ -61,6 +74,8 @@ def with_peak_memory(run: Runner) -> Runner:
     cannot reset the high-water mark: not Linux)."""
 
     def measured(source, target):
+        gc.collect()
+        _trim_heap()
         before = _status_mb("VmRSS")
         peak = None
         reset = _reset_peak()
