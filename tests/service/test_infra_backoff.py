@@ -9,24 +9,14 @@ import time
 import httpx
 import pytest
 
-from tests.service.conftest import ALICE, service_env, start_api, start_worker, wait_job, wait_until
-from tests.service.harness import RedisServer
+from tests.service.conftest import ALICE, service_env, start_api, wait_job, wait_until
 
 pytestmark = pytest.mark.slow  # starts a server
 
 QUICK = {"stages": ["coarse"], "coarse_iterations": 30, "seed": 0, "outputs": ["result"]}
 
 
-@pytest.mark.parametrize("mode", ["embedded", "redis"])
-def test_a_job_outlives_a_full_storage_quota_and_completes_once_space_frees(tmp_path, pair, mode):
-    """Embedded: the worker thread skips the job until its not_before; Redis: RQ's
-    scheduler (in `gsa worker`) holds the delayed message until then."""
-    redis = worker = None
-    extra = {}
-    if mode == "redis":
-        redis = RedisServer(tmp_path / "redis")
-        redis.start()
-        extra["GSA_REDIS_URL"] = redis.url
+def test_a_job_outlives_a_full_storage_quota_and_completes_once_space_frees(tmp_path, pair):
     sizes = sum(pair[k].stat().st_size for k in ("source", "target", "source2"))
     # Room for the two inputs and a filler upload, not for the job's result.json.
     env = service_env(
@@ -35,11 +25,8 @@ def test_a_job_outlives_a_full_storage_quota_and_completes_once_space_frees(tmp_
         GSA_MIN_FREE_BYTES=1,
         GSA_INFRA_RETRY_BASE_S=2,
         GSA_INFRA_RETRY_MAX_S=30,
-        **extra,
     )
     api, url, _ = start_api(tmp_path, env, name="api-backoff")
-    if redis is not None:
-        worker = start_worker(tmp_path, env, name="worker-backoff")
     try:
         with httpx.Client(base_url=url, headers=ALICE, timeout=60) as c:
             ids = {}
@@ -74,8 +61,4 @@ def test_a_job_outlives_a_full_storage_quota_and_completes_once_space_frees(tmp_
             assert [a["name"] for a in done["artifacts"]] == ["result.json"], done
             print(f"quota full {time.monotonic() - t_full:.1f} s, succeeded on attempt {done['attempts']}")
     finally:
-        if worker is not None:
-            worker.kill()
         api.stop()
-        if redis is not None:
-            redis.stop()
