@@ -10,8 +10,6 @@ import tempfile
 import threading
 import uuid
 from dataclasses import dataclass, field
-from datetime import timedelta
-from functools import partial
 from pathlib import Path
 
 from service.redis_store import RedisJobStore
@@ -36,11 +34,9 @@ class RQQueue:
         self.q = rq.Queue(settings.queue_name, connection=redis_conn)
         self.hooks = rq.Queue(settings.queue_name + "-webhooks", connection=redis_conn)
 
-    def enqueue(self, job_id: str, delay: float = 0.0) -> str:
-        """delay > 0: RQ's scheduler (workers run with_scheduler) queues it that much later."""
+    def enqueue(self, job_id: str) -> str:
         ref = f"{job_id}-{uuid.uuid4().hex[:8]}"
-        put = self.q.enqueue if delay <= 0 else partial(self.q.enqueue_in, timedelta(seconds=delay))
-        put(
+        self.q.enqueue(
             "service.worker.run_job",  # by name: workers of any version resolve it
             job_id,
             job_id=ref,
@@ -92,10 +88,8 @@ class EmbeddedQueue:
         self.store, self.settings = store, settings
         self.wake = threading.Event()
 
-    def enqueue(self, job_id: str, delay: float = 0.0) -> str | None:
-        # A delayed job is picked by the workers' 1 s poll once its not_before passed.
-        if delay <= 0:
-            self.wake.set()
+    def enqueue(self, job_id: str) -> str | None:
+        self.wake.set()
         return None
 
     def lost(self, ref: str) -> bool:

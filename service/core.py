@@ -314,7 +314,6 @@ def cancel_job(b: Backend, owner: str, job_id: str) -> Job:
         cancel_requested=True,
         finished_at=now,
         stage="cancelled",
-        webhook_due_at=now + b.settings.webhook_outbox_grace_s,  # the outbox: see service.leases.webhook_due
     ):
         notify_webhook(b, job_id)
     else:

@@ -28,7 +28,6 @@ from service.leases import (
     LeaseLost,
     finish_attempt,
     heartbeat,
-    webhook_due,
     worker_name,
 )
 from service.models import Job, JobState
@@ -44,15 +43,12 @@ def execute(job_id: str, backend: Backend) -> JobState | None:
     job = store.get(job_id)
     if job is None or job.state != JobState.queued:
         return None
-    if job.not_before is not None and job.not_before > time.time():
-        return None  # backing off after an infrastructure failure; its delayed message comes later
     if job.attempts >= job.max_attempts:
         store.update(
             job_id,
             states={JobState.queued},
             state=JobState.failed,
             finished_at=time.time(),
-            webhook_due_at=webhook_due(backend, time.time()),
             error=Problem(
                 500,
                 "attempts-exhausted",
@@ -76,7 +72,6 @@ def execute(job_id: str, backend: Backend) -> JobState | None:
         stage="loading",
         progress=0.0,
         error=None,
-        not_before=None,
     ):
         return None  # another worker claimed it, or it was cancelled meanwhile
     lost, stop = threading.Event(), threading.Event()
@@ -128,8 +123,7 @@ def execute(job_id: str, backend: Backend) -> JobState | None:
 def _retry_later(backend: Backend, job: Job, token: str, exc: Exception, problem: Problem) -> JobState | None:
     """The attempt failed on the service's own infrastructure (storage full or
     failing, job store unreachable), not on the job: put the job back in the
-    queue for another attempt after a backoff (not_before; an outage should not
-    spend every attempt in seconds), or fail it with that problem (503/507, not
+    queue for another attempt, or fail it with that problem (503/507, not
     alignment-failed) once its attempts are spent. If the store cannot be
     written either, the lease expires and the reaper requeues the job."""
     attempts = job.attempts + 1  # this attempt's number (`job` was read before the claim)
@@ -138,8 +132,6 @@ def _retry_later(backend: Backend, job: Job, token: str, exc: Exception, problem
         if attempts >= job.max_attempts:
             ok = finish_attempt(backend, job.id, token, JobState.failed, error=problem.to_dict())
             return JobState.failed if ok else None
-        s = backend.settings
-        delay = min(s.infra_retry_base_s * 2 ** (attempts - 1), s.infra_retry_max_s)
         if not backend.store.update(
             job.id,
             states={JobState.running},
@@ -149,10 +141,9 @@ def _retry_later(backend: Backend, job: Job, token: str, exc: Exception, problem
             run_token=None,
             lease_until=None,
             worker=None,
-            not_before=time.time() + delay,
         ):
             return None
-        ref = backend.queue.enqueue(job.id, delay=delay)
+        ref = backend.queue.enqueue(job.id)
         backend.store.update(job.id, queue_ref=ref, enqueued_at=time.time())
         return JobState.queued
     except Exception:

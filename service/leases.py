@@ -173,23 +173,15 @@ def finish_attempt(backend: Backend, job_id: str, token: str, state: JobState, *
         job = backend.store.get(job_id)
         if job is not None:
             fields["error"] = redact_problem(fields["error"], job)
-    now = time.time()
     return backend.store.update(
         job_id,
         states={JobState.running},
         token=token,
         state=state,
-        finished_at=now,
+        finished_at=time.time(),
         lease_until=None,
-        webhook_due_at=webhook_due(backend, now),
         **fields,
     )
-
-
-def webhook_due(backend: Backend, now: float) -> float:
-    """When an owed webhook, written with a final state, counts as lost unless delivered:
-    the store keeps it (the outbox) only for jobs that asked for a webhook."""
-    return now + backend.settings.webhook_outbox_grace_s
 
 
 # ------------------------------------------------------------------ reaper
@@ -211,9 +203,7 @@ def reap(backend: Backend, *, force: bool = False) -> list[str]:
             worker=None,
         )
         if job.cancel_requested:
-            ok = backend.store.update(
-                job.id, state=JobState.cancelled, finished_at=now, webhook_due_at=webhook_due(backend, now), **common
-            )
+            ok = backend.store.update(job.id, state=JobState.cancelled, finished_at=now, **common)
         elif job.attempts >= job.max_attempts:
             err = Problem(
                 500,
@@ -221,14 +211,7 @@ def reap(backend: Backend, *, force: bool = False) -> list[str]:
                 "Job failed",
                 f"the worker running this job was lost {job.attempts} times; giving up",
             ).to_dict()
-            ok = backend.store.update(
-                job.id,
-                state=JobState.failed,
-                finished_at=now,
-                error=err,
-                webhook_due_at=webhook_due(backend, now),
-                **common,
-            )
+            ok = backend.store.update(job.id, state=JobState.failed, finished_at=now, error=err, **common)
         else:
             ok = backend.store.update(
                 job.id,
@@ -252,25 +235,9 @@ def reap(backend: Backend, *, force: bool = False) -> list[str]:
     return touched
 
 
-def _requeue(backend: Backend, job: Job) -> None:
-    # A job backing off after an infrastructure failure is re-sent for its not_before time.
-    ref = backend.queue.enqueue(job.id, delay=max(0.0, (job.not_before or 0.0) - time.time()))
-    backend.store.update(job.id, queue_ref=ref, enqueued_at=time.time())
-
-
-def resend_webhooks(backend: Backend) -> list[str]:
-    """The webhook outbox: re-enqueue webhooks still owed after their due time (the
-    process died, or Redis went away, between the final state and the enqueue; a
-    delivery lost with its worker). Claiming one moves its due time on, so one
-    reaper re-sends it, and again only if that delivery is lost too."""
-    now = time.time()
-    out = []
-    for job_id in backend.store.webhooks_due(now):
-        if backend.store.claim_webhook(job_id, now, webhook_due(backend, now)):
-            log.warning("re-sending the owed webhook of job %s", job_id)
-            backend.queue.enqueue_webhook(job_id)
-            out.append(job_id)
-    return out
+def _requeue(backend: Backend, job_id: str) -> None:
+    ref = backend.queue.enqueue(job_id)
+    backend.store.update(job_id, queue_ref=ref, enqueued_at=time.time())
 
 
 def resend_lost(backend: Backend) -> list[str]:
@@ -288,7 +255,7 @@ def resend_lost(backend: Backend) -> list[str]:
             continue
         if backend.queue.lost(job.queue_ref):
             log.warning("re-sending lost queue message for job %s", job_id)
-            _requeue(backend, job)
+            _requeue(backend, job_id)
             out.append(job_id)
     return out
 
@@ -339,7 +306,6 @@ def start_reaper(backend: Backend, stop: threading.Event) -> threading.Thread:
             try:
                 reap(backend)
                 resend_lost(backend)
-                resend_webhooks(backend)
                 sweep_workspaces(backend)
             except Exception as exc:
                 if infrastructure_problem(exc) is not None:  # Redis down, disk trouble: one line, not a traceback

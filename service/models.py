@@ -62,11 +62,6 @@ class Job(BaseModel):
     # reaper notice a queue message lost before any worker claimed the job.
     queue_ref: str | None = None
     enqueued_at: float | None = None
-    # Not to be run before this time (backoff after an infrastructure failure).
-    not_before: float | None = None
-    # Webhook outbox: set with the final state when a webhook is owed, cleared once it
-    # was delivered or given up on; the reaper re-enqueues it once this time passed.
-    webhook_due_at: float | None = None
     version: int = 0
 
     @property

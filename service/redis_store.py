@@ -28,7 +28,7 @@ def _enc(v: Any) -> str:
     return json.dumps(v)
 
 
-# KEYS: the job's hash, the job-key prefix, the state-set prefix, the webhook outbox.
+# KEYS: the job's hash, the job-key prefix, the state-set prefix.
 # ARGV: allowed states ("a,b" or ""), required run_token ("" = any), then field/value pairs.
 _CAS = """
 local st = redis.call('HGET', KEYS[1], 'state')
@@ -40,39 +40,16 @@ if ARGV[1] ~= '' then
 end
 if ARGV[2] ~= '' and redis.call('HGET', KEYS[1], 'run_token') ~= ARGV[2] then return 0 end
 local newst = nil
-local id = string.sub(KEYS[1], string.len(KEYS[2]) + 1)
 for i = 3, #ARGV, 2 do
-  local v = ARGV[i+1]
-  if ARGV[i] == 'webhook_due_at' then
-    -- The webhook outbox (a sorted set by due time), in the same write as the final state.
-    local hook = redis.call('HGET', KEYS[1], 'webhook')
-    if v == 'null' or not hook or hook == 'null' then
-      v = 'null'
-      redis.call('ZREM', KEYS[4], id)
-    else
-      redis.call('ZADD', KEYS[4], tonumber(v), id)
-    end
-  end
-  redis.call('HSET', KEYS[1], ARGV[i], v)
-  if ARGV[i] == 'state' then newst = v end
+  redis.call('HSET', KEYS[1], ARGV[i], ARGV[i+1])
+  if ARGV[i] == 'state' then newst = ARGV[i+1] end
 end
 redis.call('HINCRBY', KEYS[1], 'version', 1)
 if newst and newst ~= st then
+  local id = string.sub(KEYS[1], string.len(KEYS[2]) + 1)
   redis.call('SREM', KEYS[3] .. st, id)
   redis.call('SADD', KEYS[3] .. newst, id)
 end
-return 1
-"""
-
-
-# Take an owed webhook whose due time passed: move its due time to ARGV[3]. Only one
-# reaper wins (the due time is in the future after it). KEYS: outbox, job hash.
-_CLAIM_WEBHOOK = """
-local due = redis.call('ZSCORE', KEYS[1], ARGV[1])
-if not due or tonumber(due) > tonumber(ARGV[2]) then return 0 end
-if redis.call('EXISTS', KEYS[2]) == 0 then redis.call('ZREM', KEYS[1], ARGV[1]) return 0 end
-redis.call('ZADD', KEYS[1], tonumber(ARGV[3]), ARGV[1])
-redis.call('HSET', KEYS[2], 'webhook_due_at', ARGV[3])
 return 1
 """
 
@@ -84,8 +61,6 @@ class RedisJobStore:
         self.r = redis_client
         self.p = prefix
         self._cas = self.r.register_script(_CAS)
-        self._claim_webhook = self.r.register_script(_CLAIM_WEBHOOK)
-        self.outbox = f"{self.p}webhooks-due"
 
     def _jk(self, job_id):
         return f"{self.p}job:{job_id}"
@@ -117,7 +92,7 @@ class RedisJobStore:
         ]
         for k, v in fields.items():
             argv += [k, _enc(v)]
-        keys = [self._jk(job_id), f"{self.p}job:", f"{self.p}state:", self.outbox]
+        keys = [self._jk(job_id), f"{self.p}job:", f"{self.p}state:"]
         return bool(self._cas(keys=keys, args=argv))
 
     def _many(self, ids) -> list[Job]:
@@ -149,12 +124,6 @@ class RedisJobStore:
                     if len(out) == limit:
                         break
         return out
-
-    def webhooks_due(self, now: float) -> list[str]:
-        return [i.decode() for i in self.r.zrangebyscore(self.outbox, "-inf", now, start=0, num=500)]
-
-    def claim_webhook(self, job_id: str, now: float, next_due: float) -> bool:
-        return bool(self._claim_webhook(keys=[self.outbox, self._jk(job_id)], args=[job_id, now, next_due]))
 
     def running(self):
         return self._many(self.r.smembers(f"{self.p}state:{_enc(JobState.running)}"))

@@ -59,11 +59,6 @@ class Settings(BaseSettings):
     # lease expired lost its worker and is requeued by the reaper.
     lease_s: float = 30.0
     reaper_interval_s: float = 5.0
-    # An attempt that fails on the service's own infrastructure (storage full, store
-    # unreachable) is requeued no earlier than min(base * 2**(attempt-1), max) seconds
-    # later, so an outage does not burn every attempt in seconds.
-    infra_retry_base_s: float = 5.0
-    infra_retry_max_s: float = 300.0
     embedded_workers: int = 1
     # `gsa worker` outlives Redis restarts: it retries with exponential backoff
     # from worker_reconnect_min_s, capped at worker_reconnect_max_s.
@@ -97,9 +92,6 @@ class Settings(BaseSettings):
     webhook_secret: str | None = None
     webhook_max_attempts: int = 5
     webhook_timeout_s: float = 5.0
-    # Webhook outbox: a final state records that a webhook is owed, due this many seconds
-    # later; the reaper re-enqueues one not delivered (nor given up on) by then.
-    webhook_outbox_grace_s: float = 120.0
     # Webhook targets are server-side requests: refuse private/loopback hosts
     # unless explicitly allowed (SSRF).
     webhook_allow_private: bool = False

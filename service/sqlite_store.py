@@ -36,7 +36,6 @@ class SQLiteJobStore:
                 CREATE TABLE IF NOT EXISTS idem (k TEXT PRIMARY KEY, job_id TEXT, hash TEXT, at REAL);
                 CREATE TABLE IF NOT EXISTS stages (stage TEXT PRIMARY KEY, n INTEGER, secs REAL);
                 CREATE TABLE IF NOT EXISTS blobrefs (k TEXT, asset_id TEXT, PRIMARY KEY (k, asset_id));
-                CREATE TABLE IF NOT EXISTS webhooks_due (id TEXT PRIMARY KEY, due REAL);
                 """
             )
 
@@ -71,14 +70,6 @@ class SQLiteJobStore:
                 if (states and job.state not in states) or (token and job.run_token != token):
                     self.db.execute("ROLLBACK")
                     return False
-                if "webhook_due_at" in fields:  # the webhook outbox, in the same transaction
-                    if fields["webhook_due_at"] is None or not job.webhook:
-                        fields["webhook_due_at"] = None
-                        self.db.execute("DELETE FROM webhooks_due WHERE id=?", (job_id,))
-                    else:
-                        self.db.execute(
-                            "INSERT OR REPLACE INTO webhooks_due VALUES (?,?)", (job_id, fields["webhook_due_at"])
-                        )
                 job = job.model_validate({**job.model_dump(), **fields, "version": job.version + 1})
                 self.db.execute(
                     "UPDATE jobs SET state=?, data=? WHERE id=?",
@@ -103,32 +94,6 @@ class SQLiteJobStore:
         with self.lock:
             rows = self.db.execute(q, args).fetchall()
         return [Job.model_validate_json(r[0]) for r in rows]
-
-    def webhooks_due(self, now):
-        with self.lock:
-            rows = self.db.execute("SELECT id FROM webhooks_due WHERE due <= ? LIMIT 500", (now,)).fetchall()
-        return [r[0] for r in rows]
-
-    def claim_webhook(self, job_id, now, next_due):
-        with self.lock:
-            self.db.execute("BEGIN IMMEDIATE")
-            try:
-                n = self.db.execute(
-                    "UPDATE webhooks_due SET due=? WHERE id=? AND due<=?", (next_due, job_id, now)
-                ).rowcount
-                row = self.db.execute("SELECT data FROM jobs WHERE id=?", (job_id,)).fetchone()
-                if n and row is None:
-                    self.db.execute("DELETE FROM webhooks_due WHERE id=?", (job_id,))
-                    n = 0
-                elif n:
-                    job = Job.model_validate_json(row[0])
-                    job.webhook_due_at = next_due
-                    self.db.execute("UPDATE jobs SET data=? WHERE id=?", (job.model_dump_json(), job_id))
-                self.db.execute("COMMIT")
-                return bool(n)
-            except BaseException:
-                self.db.execute("ROLLBACK")
-                raise
 
     def running(self):
         with self.lock:

@@ -69,14 +69,6 @@ class JobStore(Protocol):
         False if it was not there. Artifacts are the caller's (service.retention)."""
         ...
 
-    def webhooks_due(self, now: float) -> list[str]:
-        """Ids of jobs whose owed webhook (webhook_due_at) is due by `now` (the outbox)."""
-        ...
-
-    def claim_webhook(self, job_id: str, now: float, next_due: float) -> bool:
-        """Take a due webhook for re-sending (its due time moves to next_due); one caller wins."""
-        ...
-
     def jobs(self) -> Iterator[Job]:
         """Every job, in no particular order (retention sweeps)."""
         ...

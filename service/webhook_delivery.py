@@ -7,11 +7,6 @@ that delivers in distributed mode is service.webhooks.deliver_job.
 Signature: header `X-GSA-Signature: sha256=<hex>` over `<timestamp>.<body>`
 with `X-GSA-Timestamp: <unix seconds>`; receivers recompute it with the
 shared secret and reject stale timestamps (replay protection).
-
-Delivery is at-least-once: the final state records that a webhook is owed
-(Job.webhook_due_at, the outbox); a delivery clears it once sent or given up
-on, and the reaper re-enqueues one still owed after its due time (e.g. the
-process died before enqueueing it). A re-sent event has the same body.
 """
 
 from __future__ import annotations
@@ -25,8 +20,6 @@ import socket
 import time
 from datetime import UTC, datetime
 from urllib.parse import urlparse
-
-from service.models import TERMINAL
 
 log = logging.getLogger("gsa.webhooks")
 
@@ -94,24 +87,6 @@ def post_job_event(store, job_id: str, settings) -> None:
         timeout=settings.webhook_timeout_s,
     )
     r.raise_for_status()
-    settle(store, job_id)
-
-
-def settle(store, job_id: str) -> None:
-    """The webhook is no longer owed (sent, or given up on): out of the outbox."""
-    try:
-        store.update(job_id, webhook_due_at=None)
-    except Exception as exc:  # still owed: the reaper re-sends it (at-least-once)
-        log.warning("could not clear the owed webhook of %s: %s: %s", job_id, type(exc).__name__, exc)
-
-
-def postpone(store, job_id: str, retry_in: float, settings) -> None:
-    """A delivery failed and will be retried in retry_in s: keep the reaper off it until then."""
-    try:
-        due = time.time() + retry_in + settings.webhook_timeout_s + settings.webhook_outbox_grace_s
-        store.update(job_id, states=TERMINAL, webhook_due_at=due)
-    except Exception as exc:
-        log.warning("could not postpone the owed webhook of %s: %s: %s", job_id, type(exc).__name__, exc)
 
 
 def deliver_with_retries(store, job_id: str, settings) -> bool:
@@ -123,9 +98,6 @@ def deliver_with_retries(store, job_id: str, settings) -> bool:
             return True
         except Exception as exc:
             log.warning("webhook for %s failed (attempt %d): %s", job_id, attempt + 1, exc)
-            if attempt + 1 < settings.webhook_max_attempts:
-                postpone(store, job_id, delay, settings)
-                time.sleep(delay)
-                delay = min(delay * 5, 600)
-    settle(store, job_id)  # given up
+            time.sleep(delay)
+            delay = min(delay * 5, 600)
     return False
