@@ -18,6 +18,15 @@ from gsa.sh import rotate_sh
 SH_C0 = 0.28209479177387814
 
 
+# Rows per block where whole-model work is done block by block to bound its temporaries.
+ROW_BLOCK = 1 << 18
+
+
+def _bad_rows(block: np.ndarray) -> int:
+    finite = np.isfinite(block)
+    return 0 if finite.all() else int((~finite).reshape(len(block), -1).any(axis=1).sum())
+
+
 class ModelError(ValueError):
     """A GaussianModel whose arrays are inconsistent or not finite."""
 
@@ -154,14 +163,19 @@ class GaussianModel:
         """Raise ModelError if the model is empty or holds NaN/Inf."""
         if len(self) == 0:
             raise ModelError(f"{source}: the model has zero Gaussians")
+        # In blocks of rows: whole-array temporaries (a mask as large as the SH, the squares
+        # of every quaternion) would add a fifth of a large model to the peak memory.
+        blocks = range(0, len(self), ROW_BLOCK)
         for name in ("means", "quats", "log_scales", "opacity_logits", "sh", "features"):
             arr = getattr(self, name)
-            if arr is not None and not np.isfinite(arr).all():
-                bad = int((~np.isfinite(arr)).reshape(len(self), -1).any(axis=1).sum())
+            if arr is None:
+                continue
+            bad = sum(_bad_rows(arr[lo : lo + ROW_BLOCK]) for lo in blocks)
+            if bad:
                 raise ModelError(f"{source}: {name} holds NaN or Inf in {bad} Gaussian(s)")
-        qn = np.linalg.norm(self.quats, axis=1)
-        if (qn < 1e-12).any():
-            raise ModelError(f"{source}: {(qn < 1e-12).sum()} Gaussian(s) have a zero quaternion")
+        zero = sum(int((np.linalg.norm(self.quats[lo : lo + ROW_BLOCK], axis=1) < 1e-12).sum()) for lo in blocks)
+        if zero:
+            raise ModelError(f"{source}: {zero} Gaussian(s) have a zero quaternion")
 
     def subset(self, index: np.ndarray) -> GaussianModel:
         """The Gaussians selected by a boolean mask or an index array."""
@@ -195,15 +209,28 @@ class GaussianModel:
         (rotated exactly) change; opacities, DC colours and features do not.
         """
         rot = np.asarray(sim3.rotation, np.float64)
-        means = sim3.apply(self.means.astype(np.float64))
         q_r = rotation_to_quat(rot)
-        quats = quat_multiply(np.broadcast_to(q_r, self.quats.shape), self.quats.astype(np.float64))
+        log_s = np.log(sim3.scale)
+        n = len(self)
+        means = np.empty((n, 3), np.float32)
+        quats = np.empty((n, 4), np.float32)
+        log_scales = np.empty((n, 3), np.float32)
+        sh = np.empty(self.sh.shape, np.float32)
+        # Block by block: the float64 intermediates (the SH bands above all) of a whole
+        # 2M-Gaussian SH-3 model would be about twice the model again.
+        for lo in range(0, n, ROW_BLOCK):
+            hi = min(n, lo + ROW_BLOCK)
+            means[lo:hi] = sim3.apply(self.means[lo:hi].astype(np.float64))
+            q = quat_multiply(np.broadcast_to(q_r, (hi - lo, 4)), self.quats[lo:hi].astype(np.float64))
+            quats[lo:hi] = normalize_quats(q)
+            log_scales[lo:hi] = self.log_scales[lo:hi].astype(np.float64) + log_s
+            sh[lo:hi] = rotate_sh(self.sh[lo:hi], rot)
         return GaussianModel(
             means=means,
-            quats=normalize_quats(quats),
-            log_scales=self.log_scales.astype(np.float64) + np.log(sim3.scale),
+            quats=quats,
+            log_scales=log_scales,
             opacity_logits=self.opacity_logits,
-            sh=rotate_sh(self.sh, rot),
+            sh=sh,
             features=self.features,
             metadata=dict(self.metadata),
         )

@@ -128,3 +128,63 @@ def test_nan_values_are_rejected(tmp_path, car_model):
 def test_missing_file_is_a_ply_error(tmp_path):
     with pytest.raises(PlyError, match="cannot open"):
         read_ply(tmp_path / "nope.ply")
+
+
+@pytest.mark.parametrize("fmt", ["binary_little_endian", "binary_big_endian"])
+def test_bodies_are_read_and_written_in_chunks(tmp_path, car_model, monkeypatch, fmt):
+    """Chunk boundaries fall mid-model (chunks of 7 rows, not dividing 200): nothing lost or shifted."""
+    import gsa.io.ply as plymod
+    import gsa.model as modelmod
+
+    m = car_model.subset(np.arange(200)).with_features(np.random.default_rng(1).random((200, 3)))
+    whole = read_ply(write_ply(m, tmp_path / "whole.ply"))
+    monkeypatch.setattr(plymod, "CHUNK_BYTES", 7 * 4 * len(ply_property_names(m.sh_degree, 3)))
+    monkeypatch.setattr(plymod, "ROW_BLOCK", 9)
+    monkeypatch.setattr(modelmod, "ROW_BLOCK", 9)
+    if fmt == "binary_big_endian":
+        _write_custom(tmp_path / "m.ply", m.with_features(None), fmt)
+        _assert_same(m.with_features(None), read_ply(tmp_path / "m.ply"))
+        return
+    path = write_ply(m, tmp_path / "m.ply")
+    assert path.read_bytes() == (tmp_path / "whole.ply").read_bytes()
+    _assert_same(whole, read_ply(path))
+    bad = m.subset(np.arange(200))
+    bad.sh[150, 2, 1] = np.nan  # in a later chunk
+    with pytest.raises(PlyError, match="sh holds NaN or Inf in 1 Gaussian"):
+        read_ply(write_ply(bad, tmp_path / "bad.ply"))
+
+
+def _peak_growth_mb(fn) -> float:
+    """Peak resident memory of fn() above the level before it (VmHWM, reset first)."""
+
+    def status(field):
+        with open("/proc/self/status") as fh:
+            return next(int(line.split()[1]) / 1024 for line in fh if line.startswith(field + ":"))
+
+    before = status("VmRSS")
+    with open("/proc/self/clear_refs", "w") as fh:
+        fh.write("5")  # VmHWM := VmRSS
+    fn()
+    return status("VmHWM") - before
+
+
+def test_large_files_are_held_once_in_memory(tmp_path):
+    """Reading holds the model's arrays plus a chunk, writing the model plus a chunk
+    (no second copy of the data: issue 18's 5M-Gaussian files; scripts/bench_ply_memory.py)."""
+    import gsa.io.ply as plymod
+
+    n = 300_000
+    rng = np.random.default_rng(0)
+    m = GaussianModel(
+        means=rng.standard_normal((n, 3), dtype=np.float32),
+        quats=rng.standard_normal((n, 4), dtype=np.float32) + np.float32(2),
+        log_scales=rng.standard_normal((n, 3), dtype=np.float32),
+        opacity_logits=rng.standard_normal(n, dtype=np.float32),
+        sh=rng.standard_normal((n, 16, 3), dtype=np.float32),
+    )
+    model_mb = n * (3 + 4 + 3 + 1 + 48) * 4 / 2**20  # 67.5 MB
+    chunk_mb = plymod.CHUNK_BYTES / 2**20
+    path = tmp_path / "big.ply"
+    assert _peak_growth_mb(lambda m=m: write_ply(m, path)) < 2 * chunk_mb + 8
+    del m
+    assert _peak_growth_mb(lambda: read_ply(path)) < model_mb + 2 * chunk_mb + 8

@@ -1,7 +1,8 @@
 """INRIA 3DGS PLY files, optionally with Feature-3DGS `semantic_*` properties.
 
-Reading memory-maps binary bodies and copies each column once into the model's
-arrays, so a file is never held twice in memory. ASCII and big-endian bodies
+Reading fills the model's arrays from the binary body in chunks of rows (one reused buffer of
+CHUNK_BYTES), and writing builds the file's rows chunk by chunk, so a 5M-Gaussian file is held
+once in memory (the model's arrays), never twice (scripts/bench_ply_memory.py). ASCII and big-endian bodies
 are read too. Every problem is raised as one `PlyError` naming the file.
 """
 
@@ -14,7 +15,7 @@ from pathlib import Path
 
 import numpy as np
 
-from gsa.model import GaussianModel, ModelError, sh_coeff_count
+from gsa.model import ROW_BLOCK, GaussianModel, ModelError, sh_coeff_count
 
 PLY_TYPES = {
     "char": "i1", "int8": "i1", "uchar": "u1", "uint8": "u1",
@@ -27,6 +28,9 @@ MAX_HEADER_BYTES = 1 << 16
 # Header comment recording where the semantic_* features came from (GaussianModel.metadata["features"]).
 FEATURES_COMMENT = "gsa_features"
 DEFAULT_MAX_GAUSSIANS = 50_000_000
+# Bodies are read and written in chunks of rows of about this size, so a model of millions of
+# Gaussians is held once (its arrays) plus one chunk, never a whole second copy.
+CHUNK_BYTES = 16 << 20
 REQUIRED = ["x", "y", "z", "f_dc_0", "f_dc_1", "f_dc_2", "opacity",
             "scale_0", "scale_1", "scale_2", "rot_0", "rot_1", "rot_2", "rot_3"]  # fmt: skip
 
@@ -134,6 +138,8 @@ def read_ply(path: str | os.PathLike, *, max_gaussians: int = DEFAULT_MAX_GAUSSI
         raise PlyError(path, f"{count} Gaussians exceeds the limit of {max_gaussians}")
 
     body = file_size - header_len
+    k = sh_coeff_count(degree)
+    index = {n: i for i, n in enumerate(names)}
     if FORMATS[fmt] is not None:
         dtype = np.dtype([(n, FORMATS[fmt] + t) for n, t in props])
         need = count * dtype.itemsize
@@ -148,54 +154,76 @@ def read_ply(path: str | os.PathLike, *, max_gaussians: int = DEFAULT_MAX_GAUSSI
                 f"the header declares {count} Gaussians ({need} bytes) but {body} bytes of "
                 f"data follow; the count in the header is wrong",
             )
-        data = np.memmap(path, dtype=dtype, mode="r", offset=header_len, shape=(count,))
-        uniform = all(t == props[0][1] for _, t in props)
-        if uniform:
-            # Fast path (the usual all-float file): a 2-D view, no per-field strides.
-            flat = data.view(np.dtype(FORMATS[fmt] + props[0][1])).reshape(count, len(props))
-            index = {n: i for i, n in enumerate(names)}
-
-            def cols(keys: list[str]) -> np.ndarray:
-                idx = [index[k] for k in keys]
-                if idx == list(range(idx[0], idx[0] + len(idx))):
-                    return flat[:, idx[0] : idx[0] + len(idx)].astype(np.float32)
-                return flat[:, idx].astype(np.float32)
-        else:
-
-            def cols(keys: list[str]) -> np.ndarray:
-                return np.stack([data[k].astype(np.float32) for k in keys], axis=1)
+        chunks = _binary_chunks(path, header_len, dtype, count, props, index)
     else:
         table = _read_ascii(path, header_len, count, len(props))
-        index = {n: i for i, n in enumerate(names)}
+        chunks = iter([(0, count, lambda keys: table[:, [index[key] for key in keys]])])
 
-        def cols(keys: list[str]) -> np.ndarray:
-            return table[:, [index[k] for k in keys]].astype(np.float32)
-
-    k = sh_coeff_count(degree)
+    # The model's arrays are allocated once and filled chunk by chunk (assignment converts
+    # double / big-endian columns in place), so reading holds one copy of the data plus a chunk.
+    means = np.empty((count, 3), np.float32)
+    quats = np.empty((count, 4), np.float32)
+    log_scales = np.empty((count, 3), np.float32)
+    opacity = np.empty(count, np.float32)
     sh = np.empty((count, k, 3), np.float32)
-    sh[:, 0, :] = cols(["f_dc_0", "f_dc_1", "f_dc_2"])
-    if k > 1:
-        rest = cols([f"f_rest_{i}" for i in range(3 * (k - 1))])
-        sh[:, 1:, :] = rest.reshape(count, 3, k - 1).transpose(0, 2, 1)  # channel-major in file
+    features = np.empty((count, feat_dim), np.float32) if feat_dim else None
+    rest_keys = [f"f_rest_{i}" for i in range(3 * (k - 1))]
+    feat_keys = [f"semantic_{i}" for i in range(feat_dim)]
+    for lo, hi, cols in chunks:
+        means[lo:hi] = cols(["x", "y", "z"])
+        quats[lo:hi] = cols(["rot_0", "rot_1", "rot_2", "rot_3"])
+        log_scales[lo:hi] = cols(["scale_0", "scale_1", "scale_2"])
+        opacity[lo:hi] = cols(["opacity"])[:, 0]
+        sh[lo:hi, 0, :] = cols(["f_dc_0", "f_dc_1", "f_dc_2"])
+        if k > 1:  # channel-major in the file
+            sh[lo:hi, 1:, :] = cols(rest_keys).reshape(hi - lo, 3, k - 1).transpose(0, 2, 1)
+        if features is not None:
+            features[lo:hi] = cols(feat_keys)
     try:
         model = GaussianModel(
-            means=cols(["x", "y", "z"]),
-            quats=cols(["rot_0", "rot_1", "rot_2", "rot_3"]),
-            log_scales=cols(["scale_0", "scale_1", "scale_2"]),
-            opacity_logits=cols(["opacity"])[:, 0],
-            sh=sh,
-            features=cols([f"semantic_{i}" for i in range(feat_dim)]) if feat_dim else None,
+            means=means, quats=quats, log_scales=log_scales, opacity_logits=opacity, sh=sh, features=features
         )
         model.validate(source="data")
     except ModelError as exc:
         raise PlyError(path, str(exc)) from None
-    # Stored quaternions are unnormalised by convention; normalise once here.
-    model.quats /= np.linalg.norm(model.quats, axis=1, keepdims=True)
+    # Stored quaternions are unnormalised by convention; normalise once here (in place).
+    for lo in range(0, count, ROW_BLOCK):
+        q = model.quats[lo : lo + ROW_BLOCK]
+        q /= np.linalg.norm(q, axis=1, keepdims=True)
     model.metadata["source_path"] = str(path)
     provenance = next((c.split()[1] for c in comments if c.startswith(FEATURES_COMMENT + " ")), None)
     if provenance and feat_dim:
         model.metadata["features"] = provenance
     return model
+
+
+def _binary_chunks(path: Path, header_len: int, dtype: np.dtype, count: int, props, index: dict[str, int]):
+    """(first row, end row, columns getter) per chunk of about CHUNK_BYTES of the body, read
+    into one reused buffer: no memory map, whose touched pages would count as a second copy."""
+    rows = max(1, min(count, CHUNK_BYTES // dtype.itemsize))
+    buf = np.empty(rows, dtype)
+    raw = buf.view(np.uint8)
+    uniform = all(t == props[0][1] for _, t in props)
+    with open(path, "rb") as fh:
+        fh.seek(header_len)
+        for lo in range(0, count, rows):
+            hi = min(count, lo + rows)
+            nbytes = (hi - lo) * dtype.itemsize
+            if fh.readinto(raw[:nbytes]) != nbytes:  # the file shrank after its size was checked
+                raise PlyError(path, f"truncated: the body ended within the last {count - lo} Gaussians")
+            part = buf[: hi - lo]
+            if uniform:
+                # The usual all-float file: a 2-D view; a run of properties is a slice, not a copy.
+                flat = part.view(dtype[0]).reshape(hi - lo, len(props))
+                yield lo, hi, lambda keys, flat=flat: _slice(flat, [index[key] for key in keys])
+            else:
+                yield lo, hi, lambda keys, part=part: np.stack([part[key] for key in keys], axis=1)
+
+
+def _slice(flat: np.ndarray, idx: list[int]) -> np.ndarray:
+    if idx == list(range(idx[0], idx[0] + len(idx))):
+        return flat[:, idx[0] : idx[0] + len(idx)]
+    return flat[:, idx]
 
 
 def _read_ascii(path: Path, header_len: int, count: int, nprops: int) -> np.ndarray:
@@ -228,26 +256,12 @@ def ply_property_names(degree: int, feature_dim: int) -> list[str]:
 def write_ply(model: GaussianModel, path: str | os.PathLike) -> Path:
     """Write a binary little-endian INRIA PLY atomically (temp file + rename)."""
     path = Path(path)
-    n = len(model)
-    k = model.sh.shape[1]
     names = ply_property_names(model.sh_degree, model.feature_dim)
-    table = np.zeros((n, len(names)), np.float32)
-    table[:, 0:3] = model.means
-    table[:, 6:9] = model.sh[:, 0, :]
-    col = 9
-    if k > 1:
-        table[:, col : col + 3 * (k - 1)] = model.sh[:, 1:, :].transpose(0, 2, 1).reshape(n, -1)
-        col += 3 * (k - 1)
-    table[:, col] = model.opacity_logits
-    table[:, col + 1 : col + 4] = model.log_scales
-    table[:, col + 4 : col + 8] = model.quats
-    if model.feature_dim:
-        table[:, col + 8 :] = model.features
     header = "ply\nformat binary_little_endian 1.0\n"
     provenance = model.metadata.get("features")
     if model.feature_dim and isinstance(provenance, str) and re.fullmatch(r"[\w:.\-]+", provenance):
         header += f"comment {FEATURES_COMMENT} {provenance}\n"
-    header += f"element vertex {n}\n"
+    header += f"element vertex {len(model)}\n"
     header += "".join(f"property float {name}\n" for name in names)
     header += "end_header\n"
     path.parent.mkdir(parents=True, exist_ok=True)
@@ -255,9 +269,31 @@ def write_ply(model: GaussianModel, path: str | os.PathLike) -> Path:
     try:
         with os.fdopen(fd, "wb") as fh:
             fh.write(header.encode("ascii"))
-            table.astype("<f4", copy=False).tofile(fh)
+            rows = max(1, CHUNK_BYTES // (4 * len(names)))
+            table = np.zeros((min(rows, len(model)), len(names)), "<f4")  # normals stay 0
+            for lo in range(0, len(model), rows):
+                part = _rows(model, lo, min(len(model), lo + rows), table)
+                fh.write(memoryview(part).cast("B"))
         os.replace(tmp, path)
     except BaseException:
         Path(tmp).unlink(missing_ok=True)
         raise
     return path
+
+
+def _rows(model: GaussianModel, lo: int, hi: int, table: np.ndarray) -> np.ndarray:
+    """Gaussians lo..hi as the file's rows, in (the first hi - lo rows of) the reused `table`."""
+    n, k = hi - lo, model.sh.shape[1]
+    out = table[:n]
+    out[:, 0:3] = model.means[lo:hi]
+    out[:, 6:9] = model.sh[lo:hi, 0, :]
+    col = 9
+    if k > 1:  # channel-major in the file
+        out[:, col : col + 3 * (k - 1)] = model.sh[lo:hi, 1:, :].transpose(0, 2, 1).reshape(n, -1)
+        col += 3 * (k - 1)
+    out[:, col] = model.opacity_logits[lo:hi]
+    out[:, col + 1 : col + 4] = model.log_scales[lo:hi]
+    out[:, col + 4 : col + 8] = model.quats[lo:hi]
+    if model.feature_dim:
+        out[:, col + 8 :] = model.features[lo:hi]
+    return out
