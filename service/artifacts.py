@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import mimetypes
 import re
+from collections.abc import Callable
 from pathlib import Path
 
 from service.backend import Backend
@@ -54,10 +55,19 @@ def synchronized_renders(backend: Backend, job: Job, target, transforms, work: P
     return [(f"synchronized/{Path(p).name}", Path(p)) for _, p in sorted(paths.items())]
 
 
-def store_artifacts(backend: Backend, files: list[tuple[str, Path]], prefix: str) -> list[Artifact]:
-    """Upload (public name, file) pairs under `prefix` and describe them as artifacts."""
+def store_artifacts(
+    backend: Backend, files: list[tuple[str, Path]], prefix: str, progress: Callable[[str, float], None] | None = None
+) -> list[Artifact]:
+    """Upload (public name, file) pairs under `prefix` and describe them as artifacts.
+    `progress("storing", fraction)` before each: a scene's merged model is gigabytes, so
+    storing it (to S3 above all) is a stage of its own that a cancel can stop."""
     artifacts = []
+    total = sum(path.stat().st_size for _, path in files) or 1
+    done = 0
     for name, path in files:
+        if progress is not None:
+            progress("storing", done / total)
+        done += path.stat().st_size
         key = f"{prefix}/{name}"
         with open(path, "rb") as fh:
             size = backend.storage.put(key, fh)

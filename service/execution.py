@@ -203,6 +203,7 @@ def _run(backend: Backend, job: Job, token: str, prog: JobProgress, art_prefix: 
     with job_workspace(job.id, token) as work:
         prog("loading", 0.0)
         target = load_input(backend, job.target, work, "target", prog, reconstructions, recon_iterations)
+        prog("loading", 0.5)  # a scene model takes seconds to read: report between the inputs
         results, files, transforms = [], [], []
         multi = len(job.sources) > 1
         for i, ref in enumerate(job.sources):
@@ -239,7 +240,7 @@ def _run(backend: Backend, job: Job, token: str, prog: JobProgress, art_prefix: 
         # Models reconstructed from image sets are results in their own right.
         files += [(f"reconstructed/{n}.ply", p) for n, (_, p) in sorted(reconstructions.items())]
         prog.check(force=True)
-        artifacts = store_artifacts(backend, files, art_prefix)
+        artifacts = store_artifacts(backend, files, art_prefix, progress=prog)
     result = dict(results[0]) if len(results) == 1 else {}
     result["results"] = results
     if reconstructions:

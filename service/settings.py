@@ -35,7 +35,9 @@ class Settings(BaseSettings):
     # Dev only: every request is owner "anonymous". Must be set explicitly.
     auth_disabled: bool = False
 
-    max_upload_bytes: int = 512 * 1024 * 1024  # per file
+    # Per file. 1.5 GiB holds a max_gaussians (5M) SH-3 INRIA PLY (248 B a Gaussian: 1.24 GB,
+    # 1.3 GB with 3 feature channels); uploads stream to disk, so this bounds disk, not memory.
+    max_upload_bytes: int = 1536 * 1024 * 1024
     # Any request body that is not multipart/form-data (JSON job specs, …): answered 413 past this.
     max_body_bytes: int = 1024 * 1024
     max_gaussians: int = 5_000_000
