@@ -136,6 +136,7 @@ def _align_options(args: argparse.Namespace):
         "seed": args.seed,
         "refine": args.refine,
         "search": args.search,
+        "scene": args.scene,
     }
     for name in ("fine_iterations", "fine_views", "fine_lr", "fine_image_size", "fine_on"):
         value = getattr(args, name, None)
@@ -207,6 +208,14 @@ def add_align_arguments(p: argparse.ArgumentParser) -> None:
         "floater-free anchors, overlap and colour scored), frames (one canonical frame per "
         "model, the earlier default); auto: global unless --refine off",
     )
+    p.add_argument(
+        "--scene",
+        default=d.scene,
+        choices=["auto", "on", "off"],
+        help="the scene path for rooms and sites (more anchors, no frame relabellings, "
+        "exposure-normalised colours, bounded refinement clouds); auto: when both models "
+        "pass the scene test (README, 'Scenes'); result metrics.scene says whether it ran and why",
+    )
     p.add_argument("--seed", type=int, default=d.seed)
     p.add_argument("--fine-iterations", type=int, default=None)
     p.add_argument("--fine-views", type=int, default=None)
@@ -270,10 +279,14 @@ def _print_transform(result, out: str | None = None) -> None:
     )
     print(f"quaternion   {np.array2string(t.quaternion(), precision=6)} (w, x, y, z)")
     print(f"translation  {np.array2string(t.translation, precision=6)}")
-    print(
-        f"quality      inliers {m['inlier_fraction']:.3f}, rms residual {m['rms_residual']:.4g}, "
-        f"feature agreement {m['feature_agreement']:.3f} ({result.features} features)"
+    features = (
+        f", feature agreement {m['feature_agreement']:.3f} ({result.features} features)"
+        if "feature_agreement" in m
+        else ""  # the scene path compares no features
     )
+    print(f"quality      inliers {m['inlier_fraction']:.3f}, rms residual {m['rms_residual']:.4g}{features}")
+    if (m.get("scene") or {}).get("ran"):
+        print(f"scene path   {m['scene']['reason']}")
     if "confidence" in m:
         verdict = "ambiguous" if m.get("ambiguous") else ("doubtful" if m.get("doubtful") else "confident")
         print(

@@ -12,6 +12,7 @@ FeatureMode = Literal["auto", "file", "canonical", "spheremap", "dinov2"]
 ExtractorMode = Literal["spheremap", "dinov2"]
 SearchMode = Literal["auto", "global", "frames"]
 RefineMode = Literal["auto", "on", "off"]
+SceneMode = Literal["auto", "on", "off"]
 FineLoss = Literal["smooth_l1", "l1", "l2"]
 FineSignal = Literal["features", "colors"]
 RenderBackend = Literal["auto", "cpu", "cuda", "reference"]  # gsa.render.BACKENDS

@@ -16,7 +16,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 from scipy.spatial import cKDTree
 
-from gsa.align import robust
+from gsa.align import robust, scene
 from gsa.align.choices import (
     EXTRACTOR_MODES,
     FEATURE_MODES,
@@ -116,6 +116,15 @@ def align(
         lifting = [r.to_dict() for r in reports]
         timings["lift"] = time.perf_counter() - t
 
+    # Rooms and sites take the scene path (gsa.align.scene).
+    t = time.perf_counter()
+    choice = scene.choose(source, target, opts.scene, _global_search_runs(opts, source, target), opts.anchor_count)
+    timings["scene_test"] = time.perf_counter() - t
+    if choice.run:
+        result = scene.align_scene(source, target, opts, choice, progress)
+        result.lifting, result.timings = lifting, timings | result.timings
+        return result
+
     _report(progress, "features", 0.0)
     t = time.perf_counter()
     pair = _Pair.build(source, target, opts)
@@ -153,6 +162,7 @@ def align(
     metrics = pair.quality(transform, best)
     metrics["hypothesis"] = best.label
     metrics.update(pair.judge(transform, search))
+    metrics["scene"] = choice.to_dict()
     timings["metrics"] = time.perf_counter() - t
     timings["total"] = time.perf_counter() - t_start
     _report(progress, "done", 1.0)
@@ -179,6 +189,16 @@ def _needs_extractor(opts: AlignOptions, source: GaussianModel, target: Gaussian
         return False
     # No settings: the defaults' extractor, canonical (the CLI passes settings from GSA_FEATURES_*).
     return getattr(opts.feature_settings, "extractor", "canonical") in EXTRACTOR_MODES
+
+
+def _global_search_runs(opts: AlignOptions, source: GaussianModel, target: GaussianModel) -> bool:
+    """Whether the object path would run the robust global search (_Pair.global_search)."""
+    if opts.search == "frames" or (opts.search == "auto" and opts.refine == "off"):
+        return False
+    try:
+        return _feature_mode(source, target, opts.features) == "canonical"
+    except AlignmentError:
+        return False  # _Pair.build reports it
 
 
 def _feature_mode(source: GaussianModel, target: GaussianModel, requested: str) -> str:

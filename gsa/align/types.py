@@ -16,6 +16,7 @@ from gsa.align.choices import (
     FineSignal,
     Progress,
     RefineMode,
+    SceneMode,
     SearchMode,
     StageName,
 )
@@ -36,6 +37,7 @@ __all__ = [
     "FineSignal",
     "Progress",
     "RefineMode",
+    "SceneMode",
     "SearchMode",
     "StageName",
 ]
@@ -83,6 +85,11 @@ class AlignOptions:
             frame per model and its plausible relabellings, then the feature-guided stage (the
             earlier default). auto: global, except with refine off, which asks for the
             feature stage alone.
+        scene: auto, on or off: the scene path for rooms and sites (gsa.align.scene: more
+            anchors, no frame relabellings, exposure-normalised colours, refinement on
+            bounded clouds, no fine stage). auto: when both models pass the scene test (large
+            bounding planes holding much of the surface, sampled finely for their extent) and
+            the global search would run; on: always (learned features are then not used).
         anchor_count: anchors per model of the global search (100..20000).
         search_rotations: rotations sampled by the global search (64..20000).
         seed: seed of every random choice (subsamples, search, fine-stage cameras).
@@ -111,6 +118,7 @@ class AlignOptions:
     inlier_threshold: float = 0.03
     hypothesis_truncation: float = 0.1
     search: SearchMode = "auto"
+    scene: SceneMode = "auto"
     anchor_count: int = 2000
     search_rotations: int = 4096
     seed: int = 0
@@ -134,6 +142,8 @@ class AlignOptions:
         # Bounded: both set the size of arrays the search holds at once.
         if not (100 <= self.anchor_count <= 20_000 and 64 <= self.search_rotations <= 20_000):
             raise ValueError("anchor_count must be in 100..20000 and search_rotations in 64..20000")
+        if self.scene not in ("auto", "on", "off"):
+            raise ValueError(f"scene must be auto, on or off, got {self.scene!r}")
         if self.refine not in ("auto", "on", "off"):
             raise ValueError(f"refine must be auto, on or off, got {self.refine!r}")
         if self.coarse_iterations < 1 or self.max_candidates < 1:

@@ -1,0 +1,510 @@
+"""Scene-scale registration (issue 18): the test that tells a room from an object, and
+the scene path align() takes for rooms.
+
+*The test* (`scene_structure`, on each model's floater-free anchors - at least
+TEST_DENSITY Gaussians each, so surfaces stay connected - hence scale-free and
+O(anchors)): a captured room is a shell of large planes (floor, walls, ceiling) with
+separate things standing inside it; an object is its parts alone, or (a bus, a box) a
+shell with nothing inside. Planes are found by sequential RANSAC on the anchors (inliers
+within a quarter voxel that face the plane's way). A *shell plane* is large (its inliers
+span at least SHELL_SPAN of the extent and hold at least SHELL_SHARE of the anchor
+weight) and bounds the model (at most OUTSIDE_SHARE of the weight beyond it). The
+anchors off the shell planes are then grouped into connected *parts* (linked within 1.5
+voxels); a part counts when it holds at least PART_WEIGHT of the weight, has a body (at
+least a voxel thick: not the sliver a plane's band leaves), is at most PART_SIZE of the
+extent long and lies inside every shell plane. The model is a scene with at least
+SHELL_PLANES shell planes holding SHELL_WEIGHT of the weight and at least CONTENT_PARTS
+parts holding CONTENT_WEIGHT. Under `scene="auto"` both models must pass; `"on"`
+forces the path, `"off"` never takes it. Measured (docs/benchmarks.md, "Scenes"): no
+pair of the object protocols (dup, same, category, partial, noisy, deform, symmetric;
+quick and full sizes) passes; the test is conservative, and a room it misses still gets
+the object path.
+
+*The scene path* (`align_scene`) differs from the object path where rooms differ from
+objects:
+- more anchors (SCENE_ANCHORS): 2000 voxels over a 9 m room are 20 cm wide, and the
+  furniture that breaks the shell's symmetries is what the search must see;
+- no canonical-frame relabellings: a room's principal axes carry no meaning for another
+  partial capture of it;
+- colours compared under one exposure (`normalise_exposure`): two captures taken apart
+  differ in exposure and white balance, and the object path's colour trust would drop
+  to zero, leaving geometry alone to tell a room's mirror-like halves apart;
+- the full-resolution refinement (robust.refine: bidirectional trimmed ICP, stopping at
+  the overlap) runs on at most REFINE_CLOUD Gaussians per capture drawn at random from
+  the floater-free ones, with their full-resolution positions: trees and neighbour
+  tables stay bounded, so time and memory grow linearly only through the O(N)
+  anchoring and sampling passes;
+- no canonical features (and no feature metrics) and no fine stage, which renders
+  every Gaussian per view.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, replace
+
+import numpy as np
+from scipy.sparse.csgraph import connected_components
+from scipy.spatial import cKDTree
+
+from gsa.align import robust
+from gsa.align.choices import Progress
+from gsa.align.coarse import AlignmentError, CoarseResult
+from gsa.align.types import AlignmentResult
+from gsa.model import GaussianModel, ModelError
+from gsa.sim3 import Sim3
+
+# The scene test (see the module docstring); every quantity is a fraction of the
+# model's own extent or anchor weight, so the test is scale-free.
+SHELL_SPAN = 0.5
+SHELL_SHARE = 0.03
+OUTSIDE_SHARE = 0.03
+SHELL_PLANES = 3
+SHELL_WEIGHT = 0.4
+CONTENT_PARTS = 3
+CONTENT_WEIGHT = 0.05
+PART_WEIGHT = 0.005
+PART_SIZE = 0.35
+MAX_PLANES = 8
+FACING_DEG = 25.0
+TEST_DENSITY = 16
+
+# The scene path.
+SCENE_ANCHORS = 6000
+REFINE_CLOUD = 400_000
+
+
+@dataclass
+class Structure:
+    """What the scene test saw on one model."""
+
+    shell_planes: int
+    shell_weight: float
+    parts: int  # separate small things inside the shell
+    parts_weight: float
+    planes: list[dict]
+
+    @property
+    def is_scene(self) -> bool:
+        return (
+            self.shell_planes >= SHELL_PLANES
+            and self.shell_weight >= SHELL_WEIGHT
+            and self.parts >= CONTENT_PARTS
+            and self.parts_weight >= CONTENT_WEIGHT
+        )
+
+    def to_dict(self) -> dict:
+        return {
+            "shell_planes": self.shell_planes,
+            "shell_weight": round(self.shell_weight, 4),
+            "parts": self.parts,
+            "parts_weight": round(self.parts_weight, 4),
+            "is_scene": self.is_scene,
+        }
+
+
+def scene_structure(anchors: robust.Anchors, seed: int = 0) -> Structure:
+    """Shell planes and their weight, then the separate parts inside them (module docstring)."""
+    pts = anchors.points
+    w = anchors.weights / anchors.weights.sum()
+    extent = float(np.max(np.ptp(pts, axis=0)))
+    # The anchor voxel. Anchors are voxel means, so those of a plane lie on it to within
+    # noise: a quarter voxel separates them from things standing on it.
+    voxel = extent / np.sqrt(len(pts))
+    band = 0.25 * voxel
+    rng = np.random.default_rng(seed)
+    # Anchors sit on a voxel lattice, so any plane through a row of voxels holds a line of
+    # them on every surface it crosses; a plane's inliers must also face its way.
+    normals = _anchor_normals(pts)
+    free = np.ones(len(pts), bool)
+    planes: list[dict] = []
+    for _ in range(MAX_PLANES):
+        idx = np.flatnonzero(free)
+        if len(idx) < 50:
+            break
+        normal, offset, inliers = _ransac_plane(pts[idx], normals[idx], w[idx], band, rng)
+        if normal is None:
+            break
+        rows = idx[inliers]
+        share = float(w[rows].sum())
+        if share < 0.5 * SHELL_SHARE:
+            break
+        free[rows] = False
+        # Voxel anchors along an edge (a wall's bottom row of voxels holds floor too) form
+        # a second layer beside the plane: it belongs to the plane found first.
+        twin = next((p for p in planes if _same_plane(p, normal, offset, 2 * voxel)), None)
+        if twin is not None:
+            twin["share"] += share
+            twin["shell"] = _is_shell(twin["share"], twin["span"], twin["outside"])
+            continue
+        signed = pts @ normal - offset
+        beyond_pos, beyond_neg = float(w[signed > 2 * voxel].sum()), float(w[signed < -2 * voxel].sum())
+        if beyond_neg > beyond_pos:  # orient the normal inwards (towards the model's weight)
+            normal, offset = -normal, -offset
+            beyond_pos, beyond_neg = beyond_neg, beyond_pos
+        span = _inplane_span(pts[rows], normal) / extent
+        planes.append(
+            {
+                "normal": normal,
+                "offset": offset,
+                "share": share,
+                "span": span,
+                "outside": beyond_neg,
+                "shell": _is_shell(share, span, beyond_neg),
+            }
+        )
+    shell = [p for p in planes if p["shell"]]
+    on_shell = np.zeros(len(pts), bool)
+    for p in shell:
+        on_shell |= np.abs(pts @ p["normal"] - p["offset"]) <= voxel
+    shell_weight = float(w[on_shell].sum()) if shell else 0.0
+    parts, parts_weight = 0, 0.0
+    if len(shell) >= SHELL_PLANES and shell_weight >= SHELL_WEIGHT:  # else decided: skip the parts
+        parts, parts_weight = _inner_parts(pts, w, ~on_shell, shell, voxel, extent)
+    return Structure(len(shell), shell_weight, parts, parts_weight, planes)
+
+
+def _inner_parts(pts, w, rest_mask, shell, voxel: float, extent: float) -> tuple[int, float]:
+    """Separate things inside the shell: connected groups of the anchors off the shell
+    planes (linked within 1.5 voxels), each holding at least PART_WEIGHT of the weight,
+    with a body (at least a voxel thick) and at most PART_SIZE of the extent long, with
+    its centre a voxel inside every shell plane."""
+    rest = np.flatnonzero(rest_mask)
+    if len(rest) < 2:
+        return 0, 0.0
+    x, wx = pts[rest], w[rest]
+    tree = cKDTree(x)
+    n, label = connected_components(tree.sparse_distance_matrix(tree, 1.5 * voxel, output_type="coo_matrix"))
+    weight = np.bincount(label, wx, n)
+    centre = np.stack([np.bincount(label, wx * x[:, k], n) for k in range(3)], 1) / np.maximum(weight, 1e-300)[:, None]
+    inside = np.ones(n, bool)
+    for p in shell:
+        inside &= centre @ p["normal"] - p["offset"] >= voxel
+    part = np.zeros(n, bool)
+    for k in np.flatnonzero((weight >= PART_WEIGHT) & inside):
+        y = x[label == k]
+        if len(y) < 4:
+            continue
+        # Principal extents (4 sigma ~ the full width of a uniform spread): a thing has a
+        # body; what is left of a plane's band after the shell is removed is a sliver.
+        sigma = np.sqrt(np.maximum(np.linalg.eigvalsh(np.cov(y.T)), 0.0))
+        part[k] = 4 * sigma[0] >= voxel and 4 * sigma[2] <= PART_SIZE * extent
+    return int(part.sum()), float(weight[part].sum())
+
+
+def _is_shell(share: float, span: float, outside: float) -> bool:
+    return bool(share >= SHELL_SHARE and span >= SHELL_SPAN and outside <= OUTSIDE_SHARE)
+
+
+def _same_plane(plane: dict, normal: np.ndarray, offset: float, gap: float) -> bool:
+    cos = float(plane["normal"] @ normal)
+    return abs(cos) >= np.cos(np.radians(FACING_DEG)) and abs(plane["offset"] - np.sign(cos) * offset) <= gap
+
+
+def _anchor_normals(pts: np.ndarray, k: int = 10) -> np.ndarray:
+    """Unit normal per anchor: the least-variance axis of its k nearest anchors."""
+    _, nn = cKDTree(pts).query(pts, k=min(k, len(pts)))
+    nb = pts[nn] - pts[nn].mean(axis=1, keepdims=True)
+    _, vecs = np.linalg.eigh(np.einsum("nki,nkj->nij", nb, nb))
+    return vecs[:, :, 0]
+
+
+def _ransac_plane(
+    pts: np.ndarray, normals: np.ndarray, w: np.ndarray, band: float, rng: np.random.Generator, trials: int = 128
+):
+    """The plane through an anchor, along its normal, holding the most anchor weight
+    within `band` among anchors facing its way (within FACING_DEG), refitted to those
+    inliers by least squares; vectorised over all trials."""
+    if len(pts) < 3:
+        return None, 0.0, None
+    seeds = rng.integers(0, len(pts), trials)
+    n, a = normals[seeds], pts[seeds]
+    cos = np.cos(np.radians(FACING_DEG))
+    inl = (np.abs(pts @ n.T - np.sum(n * a, axis=1)) <= band) & (np.abs(normals @ n.T) >= cos)
+    inliers = inl[:, int(np.argmax(w @ inl))]
+    # A seed's normal is a few degrees off, which over the model's extent leaves the band:
+    # refit on the facing anchors within a voxel (4 bands), then count within the band.
+    for grow in (4.0, 2.0, 1.0):
+        if inliers.sum() < 3:
+            return None, 0.0, None
+        # Unweighted: an anchor's weight counts Gaussians, and the heaviest ones near a
+        # floor are the furniture standing on it, whose voxel means sit above it.
+        centre = pts[inliers].mean(0)
+        _, _, vt = np.linalg.svd(pts[inliers] - centre, full_matrices=False)
+        normal = vt[2]
+        offset = float(normal @ centre)
+        inliers = (np.abs(pts @ normal - offset) <= grow * band) & (np.abs(normals @ normal) >= cos)
+    if inliers.sum() < 3:
+        return None, 0.0, None
+    return normal, offset, inliers
+
+
+def _inplane_span(pts: np.ndarray, normal: np.ndarray) -> float:
+    """Longer in-plane extent of a plane's inliers (5th to 95th percentile: robust to strays)."""
+    if len(pts) < 3:
+        return 0.0
+    centred = pts - pts.mean(0)
+    flat = centred - np.outer(centred @ normal, normal)
+    _, _, vt = np.linalg.svd(flat, full_matrices=False)
+    along = flat @ vt[0]
+    lo, hi = np.percentile(along, [5, 95])
+    return float(hi - lo)
+
+
+# --- the choice -------------------------------------------------------------------------
+
+
+@dataclass
+class SceneChoice:
+    """Whether align() takes the scene path, and why (result metrics["scene"])."""
+
+    run: bool
+    reason: str
+    source: Structure | None = None
+    target: Structure | None = None
+
+    def to_dict(self) -> dict:
+        out: dict = {"ran": self.run, "reason": self.reason}
+        if self.source is not None and self.target is not None:
+            out["test"] = {"source": self.source.to_dict(), "target": self.target.to_dict()}
+        return out
+
+
+def check_models(source: GaussianModel, target: GaussianModel) -> None:
+    """The pipeline's input checks (AlignmentError with the reason)."""
+    try:
+        source.validate("source")
+        target.validate("target")
+    except ModelError as exc:
+        raise AlignmentError(str(exc)) from None
+    for name, m in (("source", source), ("target", target)):
+        if len(m) < 3:
+            raise AlignmentError(f"{name} has {len(m)} Gaussians; at least 3 are needed")
+
+
+def choose(source: GaussianModel, target: GaussianModel, mode: str, eligible: bool, anchor_count: int, seed: int = 0):
+    """The scene test under `mode` (auto/on/off). eligible: the object path would run its
+    robust global search (no learned features); auto only tests then."""
+    if mode == "off":
+        return SceneChoice(False, "scene=off")
+    if mode == "on":
+        return SceneChoice(True, "scene=on")
+    if not eligible:
+        return SceneChoice(False, "auto: learned features or a non-global search requested")
+    check_models(source, target)
+    # scene_anchors, not robust.anchors: the same summary, many times faster at millions
+    # of Gaussians; the object path makes its own.
+    s, t = (
+        scene_structure(scene_anchors(m, test_anchor_count(len(m), anchor_count))[0], seed) for m in (source, target)
+    )
+    if s.is_scene and t.is_scene:
+        reason = "auto: both models are shells of large planes with things inside (scene test passed)"
+    else:
+        which = [name for name, st in (("source", s), ("target", t)) if not st.is_scene]
+        reason = f"auto: the {' and '.join(which)} failed the scene test"
+    return SceneChoice(s.is_scene and t.is_scene, reason, s, t)
+
+
+def test_anchor_count(gaussians: int, anchor_count: int) -> int:
+    """The object path's anchor count, but at least TEST_DENSITY Gaussians per anchor: the
+    test follows surfaces through neighbouring anchors, and a voxel of one or two
+    Gaussians leaves holes that break a surface into fragments."""
+    return int(max(min(anchor_count, gaussians // TEST_DENSITY), 100))
+
+
+# --- the scene path ---------------------------------------------------------------------
+
+
+def scene_anchors(model: GaussianModel, count: int = SCENE_ANCHORS, seed: int = 0) -> tuple[robust.Anchors, np.ndarray]:
+    """robust.anchors' summary (floaters dropped, voxel means with CIELAB colour and
+    weight) with per-voxel sums by bincount, which at millions of Gaussians is many
+    times faster than the unbuffered np.add.at. Also returns the anchors' mean sRGB."""
+    pts = model.means
+    kept = robust.floater_mask(model)
+    x = pts[kept].astype(np.float64)
+    lo = x.min(0)
+    extent = float(np.max(x.max(0) - lo))
+    if not extent > 0:
+        raise AlignmentError("all Gaussians coincide; the model has no extent to align")
+    voxel = extent / np.sqrt(count)
+    for _ in range(4):
+        inverse, counts = _voxelise(x, lo, voxel)
+        if 0.7 * count <= len(counts) <= 1.4 * count or len(counts) >= 0.9 * len(x):
+            break
+        voxel *= np.sqrt(len(counts) / count)
+    typical = float(np.median(np.repeat(counts, counts)))
+    solid = counts >= max(2.0, 0.1 * typical) if typical >= 8 else np.ones(len(counts), bool)
+    if solid.sum() < 4:
+        solid = np.ones(len(counts), bool)
+    full_kept = kept.copy()
+    full_kept[np.flatnonzero(kept)[~solid[inverse]]] = False
+    rgb = model.base_colors[kept]
+    n_vox = len(counts)
+    points = np.stack([np.bincount(inverse, x[:, k], n_vox) for k in range(3)], 1) / counts[:, None]
+    colours = np.stack([np.bincount(inverse, rgb[:, k], n_vox) for k in range(3)], 1) / counts[:, None]
+    points, colours = points[solid], colours[solid]
+    weights = counts[solid].astype(np.float64)
+    weights /= weights.mean()
+    w = weights / weights.sum()
+    center = w @ points
+    radius = float(np.sqrt(w @ np.sum((points - center) ** 2, axis=1)))
+    lab = robust.srgb_to_lab(colours)
+    return robust.Anchors(points, lab, weights, center, radius, full_kept, cKDTree(points)), colours
+
+
+def _voxelise(x: np.ndarray, lo: np.ndarray, voxel: float) -> tuple[np.ndarray, np.ndarray]:
+    ijk = np.floor((x - lo) / voxel).astype(np.int64)
+    span = ijk.max(0) + 1
+    keys = (ijk[:, 0] * span[1] + ijk[:, 1]) * span[2] + ijk[:, 2]
+    _, inverse, counts = np.unique(keys, return_inverse=True, return_counts=True)
+    return inverse.ravel(), counts
+
+
+def normalise_exposure(
+    src: robust.Anchors, dst: robust.Anchors, src_rgb: np.ndarray, points: int = 800, seed: int = 0
+) -> tuple[robust.Anchors, list[float]]:
+    """The source's anchor colours under the target's exposure and white balance.
+
+    Exposure and white balance are gains on linear RGB. Global statistics cannot find
+    them (two partial captures of a room hold different walls, each its own colour), so
+    the gains are the ones under which the two palettes agree best, pose-free: the share
+    of source anchors whose gained colour has a target colour within
+    robust.SHARED_DELTA_E, the measure robust.colour_weight trusts colour by, over a grid
+    of exposures (1/2..2, 13 steps) and red and blue balances (±23 %, 5 steps each). The
+    grid holds gains of 1, so captures of one exposure keep their colours.
+    Returns the source anchors with CIELAB colours replaced, and the gains."""
+    rng = np.random.default_rng(seed)
+    rows = _rows(rng, len(src_rgb), points)
+    lin = _linear(src_rgb[rows])
+    exposure = 2.0 ** np.linspace(-1.0, 1.0, 13)
+    balance = 2.0 ** np.linspace(-0.3, 0.3, 5)
+    e, r, b = (g.ravel() for g in np.meshgrid(exposure, balance, balance, indexing="ij"))
+    gains = np.stack([e * r, e, e * b], axis=1)  # (G, 3)
+    trial = robust.srgb_to_lab(_srgb(np.clip(gains[:, None, :] * lin[None], 0.0, 1.0)).reshape(-1, 3))
+    d, _ = cKDTree(dst.lab).query(trial, distance_upper_bound=robust.SHARED_DELTA_E)
+    shared = np.mean(np.isfinite(d).reshape(len(gains), -1), axis=1)
+    # Ties (a flat optimum) go to the gain nearest 1.
+    best = int(np.argmax(shared - 1e-6 * np.sum(np.log(gains) ** 2, axis=1)))
+    g = gains[best]
+    lab = robust.srgb_to_lab(_srgb(np.clip(_linear(src_rgb) * g, 0.0, 1.0)))
+    return replace(src, lab=lab), [float(x) for x in g]
+
+
+def _linear(c: np.ndarray) -> np.ndarray:
+    c = np.clip(c, 0.0, 1.0)
+    return np.where(c <= 0.04045, c / 12.92, ((c + 0.055) / 1.055) ** 2.4)
+
+
+def _srgb(c: np.ndarray) -> np.ndarray:
+    return np.where(c <= 0.0031308, 12.92 * c, 1.055 * np.power(c, 1 / 2.4) - 0.055)
+
+
+def align_scene(
+    source: GaussianModel,
+    target: GaussianModel,
+    opts,
+    choice: SceneChoice,
+    progress: Progress | None = None,
+):
+    """The scene path (module docstring): anchors, global search without frame
+    relabellings, trimmed refinement on thinned full-resolution clouds, verdict."""
+    t_start = time.perf_counter()
+    timings: dict[str, float] = {}
+    check_models(source, target)
+    _report(progress, "features", 0.0)
+    t = time.perf_counter()
+    count = max(opts.anchor_count, SCENE_ANCHORS)
+    (src, src_rgb), (dst, _) = scene_anchors(source, count, opts.seed), scene_anchors(target, count, opts.seed)
+    src_n, gains = normalise_exposure(src, dst, src_rgb, seed=opts.seed)
+    dst_n = dst
+    timings["anchors"] = time.perf_counter() - t
+    _report(progress, "features", 1.0)
+
+    _report(progress, "hypotheses", 0.0)
+    t = time.perf_counter()
+    search = robust.global_search(
+        src_n,
+        dst_n,
+        None,
+        robust.SearchOptions(rotations=opts.search_rotations, seed=opts.seed),
+        widen_if=lambda first: robust.verdict(first.best, first)["doubtful"],
+    )
+    timings["hypotheses"] = time.perf_counter() - t
+    _report(progress, "hypotheses", 1.0)
+    scored = [c.to_dict(search.best.transform) | {"chosen": c is search.best} for c in search.candidates]
+
+    t = time.perf_counter()
+    rng = np.random.default_rng(opts.seed)
+    p_cloud, q_cloud = (_thinned(m.means, a.kept, REFINE_CLOUD, rng) for m, a in ((source, src), (target, dst)))
+    p_tree, q_tree = cKDTree(p_cloud), cKDTree(q_cloud)
+    half = opts.refine_points // 2
+    p = p_cloud[_rows(rng, len(p_cloud), half)]
+    q = q_cloud[_rows(rng, len(q_cloud), half)]
+    transform, history = robust.refine(p, q, p_tree, q_tree, search.best.transform, opts.refine_iterations)
+    coarse = CoarseResult(
+        transform=transform,
+        iterations=len(history),
+        converged=len(history) < opts.refine_iterations,
+        history=history,
+        matched=history[-1]["matched"] if history else 0,
+        seconds=time.perf_counter() - t,
+    )
+    timings["coarse"] = time.perf_counter() - t
+    _report(progress, "coarse", 1.0)
+
+    t = time.perf_counter()
+    metrics = _inliers(transform, p, q, p_tree, q_tree, opts.inlier_threshold * dst.radius)
+    final = robust.score_pose(src_n, dst_n, transform, "final", search.colour_weight)
+    metrics.update(robust.verdict(final, search))
+    metrics["hypothesis"] = search.best.origin
+    metrics["scene"] = choice.to_dict() | {
+        "anchors": [len(src), len(dst)],
+        "refine_cloud": [len(p_cloud), len(q_cloud)],
+        "exposure_gains": gains,  # linear RGB gains that put the source's colours in the target's exposure
+    }
+    timings["metrics"] = time.perf_counter() - t
+    timings["total"] = time.perf_counter() - t_start
+    _report(progress, "done", 1.0)
+    return AlignmentResult(
+        transform=transform,
+        coarse=coarse,
+        features="none",
+        stages=("coarse",),
+        metrics=metrics,
+        timings=timings,
+        hypotheses=scored,
+    )
+
+
+def _report(progress: Progress | None, stage: str, fraction: float) -> None:
+    if progress is not None:
+        progress(stage, fraction)
+
+
+def _rows(rng: np.random.Generator, n: int, k: int) -> np.ndarray:
+    return np.arange(n) if k >= n else np.sort(rng.choice(n, k, replace=False))
+
+
+def _thinned(means: np.ndarray, kept: np.ndarray, limit: int, rng: np.random.Generator) -> np.ndarray:
+    """At most `limit` of the floater-free Gaussians, uniformly at random, as float64: a
+    fixed-size cloud whatever the capture's size, with the full-resolution positions."""
+    idx = np.flatnonzero(kept)
+    if len(idx) > limit:
+        idx = np.sort(rng.choice(idx, limit, replace=False))
+    return means[idx].astype(np.float64)
+
+
+def _inliers(transform: Sim3, p, q, p_tree: cKDTree, q_tree: cKDTree, threshold: float) -> dict:
+    """GT-free inlier fractions both ways (on the refinement's samples) and the forward
+    inliers' RMS residual, in target units."""
+    d_f, _ = q_tree.query(transform.apply(p), workers=-1)
+    d_r, _ = p_tree.query(transform.inverse().apply(q), workers=-1)
+    d_r = d_r * transform.scale
+    fwd, rev = d_f <= threshold, d_r <= threshold
+    return {
+        "inlier_fraction": float(0.5 * (fwd.mean() + rev.mean())),
+        "inlier_fraction_forward": float(fwd.mean()),
+        "inlier_fraction_reverse": float(rev.mean()),
+        "rms_residual": float(np.sqrt(np.mean(d_f[fwd] ** 2))) if fwd.any() else float("inf"),
+        "inlier_threshold": threshold,
+    }
