@@ -6,6 +6,8 @@ that many Gaussians before floaters), GSA's current align() coarse stage and, wi
 medians. Peak RSS per call: gsa.bench.scene.with_peak_memory.
 
     .venv/bin/python scripts/bench_scene_sizes.py --sizes 250000 500000 1000000 --pairs 2
+
+The captures are gsa.bench.pairs.SCENE_HARD's unless --easy (the issue-18 baseline's).
 """
 
 from __future__ import annotations
@@ -29,13 +31,15 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--pairs", type=int, default=2)
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--icp", action="store_true", help="run the plain-ICP peer too")
+    parser.add_argument("--easy", action="store_true", help="the baseline's captures (no SCENE_HARD)")
+    parser.add_argument("--scene", default="auto", choices=["auto", "on", "off"], help="align()'s scene option")
     args = parser.parse_args(argv)
-    runners = [with_peak_memory(gsa_runner(False))]
+    runners = [with_peak_memory(gsa_runner(False, scene=args.scene))]
     if args.icp:
         runners.append(with_peak_memory(peer_runner(PlainICP(), args.seed)))
     table: dict[tuple[int, str], list[dict]] = {}
     for size in args.sizes:
-        for label, make in scene_pairs(True, args.seed, count=args.pairs, capture_size=size):
+        for label, make in scene_pairs(True, args.seed, count=args.pairs, capture_size=size, hard=not args.easy):
             t0 = time.perf_counter()
             source, target, truth = make()
             build = time.perf_counter() - t0
@@ -52,9 +56,9 @@ def main(argv: list[str] | None = None) -> int:
                     print(f"{size:>9,} {label} {method}: {rec}", file=sys.stderr, flush=True)
     print(
         "| capture Gaussians | method | pairs | success | median RRE (°) | median t err (% extent) "
-        "| median s / pair | max peak RSS (MB) | median peak growth (MB) | pair build (s) |"
+        "| median s / pair | max peak RSS (MB) | median peak growth (MB) | pair build (s) | scene path |"
     )
-    print("|---:|---|---:|---:|---:|---:|---:|---:|---:|---:|")
+    print("|---:|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|")
     for (size, method), recs in table.items():
 
         def med(key, recs=recs):
@@ -66,7 +70,8 @@ def main(argv: list[str] | None = None) -> int:
         print(
             f"| {size:,} | {method} | {len(recs)} | {ok}/{len(recs)} | {med('rre_deg'):.3f} | "
             f"{med('translation_error_pct_extent'):.3f} | {med('seconds'):.2f} | {peak:.0f} | "
-            f"{med('peak_growth_mb'):.0f} | {med('build_seconds'):.1f} |"
+            f"{med('peak_growth_mb'):.0f} | {med('build_seconds'):.1f} | "
+            f"{sum(bool(r.get('scene_path')) for r in recs)}/{len(recs)} |"
         )
     return 0
 

@@ -174,7 +174,8 @@ def test_scene_judge():
 
 
 def test_scene_protocol_runs(monkeypatch, tmp_path, capsys):
-    monkeypatch.setattr(P, "scene_pairs", lambda quick, seed: pairs_mod.scene_pairs(quick, seed, 1, 6000))
+    # The baseline captures: 6000 Gaussians are too few for SCENE_HARD (tests/test_scene.py has those).
+    monkeypatch.setattr(P, "scene_pairs", lambda quick, seed: pairs_mod.scene_pairs(quick, seed, 1, 6000, hard=False))
     P.run_protocols(["scene"], quick=True, out=str(tmp_path), peers=["icp"])
     text = capsys.readouterr().out
     assert "success (RRE<2°, t<2% extent)" in text and "max peak RSS (MB)" in text
@@ -188,3 +189,53 @@ def test_scene_protocol_runs(monkeypatch, tmp_path, capsys):
         assert row["scene_success_rate"] == float(rec["scene_success"])
     gsa = rows[P.GSA_COARSE]
     assert gsa["scene_success_rate"] == 1.0 and gsa["median_translation_error_pct_extent"] < 2.0
+
+
+def test_harder_captures(scene):
+    """SCENE_HARD's options: each changes the captures the way it says (issue 18 data)."""
+    plain = scene_captures(scene, np.random.default_rng(3), sizes=(15_000, 15_000))
+    hard = scene_captures(
+        scene,
+        np.random.default_rng(3),
+        sizes=(15_000, 15_000),
+        exposure=0.5,
+        white_balance=0.1,
+        falloff=2.0,
+        wavy=0.05,
+        holes=3,
+        no_ceiling=1.0,
+    )
+    h = scene.metadata["room"][2]
+    for cap in (plain, hard):
+        assert len(cap.source_index) == len(cap.target_index) == 15_000
+    # no ceiling: not one Gaussian of either capture on it; the plain captures have some
+    assert hard.no_ceiling == (True, True)
+    assert (scene.means[plain.source_index, 2] > h - 1e-3).any()
+    assert not (scene.means[hard.source_index, 2] > h - 1e-3).any()
+    assert not (hard.target_sampling.means[hard.target_index, 2] > h - 1e-3).any()
+    assert min(hard.holed) > 0 and plain.holed == (0, 0)
+    # exposure: the colours are the plain DC under the recorded linear gains
+    assert plain.gains == ((1.0, 1.0, 1.0), (1.0, 1.0, 1.0))
+    g = np.array(hard.gains[0])
+    assert not np.allclose(g, 1.0) and np.all((g > 2**-0.5 * 0.89) & (g < 2**0.5 * 1.11))
+    rows = slice(0, len(hard.source_index))
+    c_plain = np.clip(0.5 + 0.28209479177387814 * scene.sh[hard.source_index, 0, :], 0, 1)
+    lin = np.where(c_plain <= 0.04045, c_plain / 12.92, ((c_plain + 0.055) / 1.055) ** 2.4)
+    c_hard = hard.source.base_colors[rows]
+    lin_hard = np.where(c_hard <= 0.04045, c_hard / 12.92, ((c_hard + 0.055) / 1.055) ** 2.4)
+    unclipped = np.all(lin * g < 0.98, axis=1)
+    assert np.allclose(lin_hard[unclipped], (lin * g)[unclipped], atol=2e-3)
+    # wavy cut: the source's lowest projection varies along the cut by about the wave
+    amp, wavelength, phase = hard.wave
+    assert amp == pytest.approx(0.05 * scene.metadata["extent"]) and 0.5 <= wavelength / scene.metadata["extent"] <= 1
+    pts = scene.means.astype(np.float64)
+    cut = pts @ hard.direction + amp * np.sin(
+        2 * np.pi * (pts @ np.array([-hard.direction[1], hard.direction[0], 0])) / wavelength + phase
+    )
+    assert (cut[hard.source_index] >= hard.cuts[0] - 1e-4).all()
+    assert (pts[hard.source_index] @ hard.direction).min() < hard.cuts[0] - 0.5 * amp  # a plane would not hold them
+    # falloff: near the scanner the capture is denser than its half of the room
+    scanner = np.array(hard.scanners[0])
+    d = np.linalg.norm(pts[hard.source_index] - scanner, axis=1)
+    d_half = np.linalg.norm(pts[cut >= hard.cuts[0]] - scanner, axis=1)
+    assert np.median(d) < 0.85 * np.median(d_half)

@@ -173,13 +173,20 @@ def symmetric_judge(est: Sim3, truth: Sim3, source, target) -> dict:
 # Scene pairs (issue 18): (pairs, scene Gaussians, capture size range) for quick and full.
 SCENE_QUICK = (3, 250_000, (80_000, 120_000))
 SCENE_FULL = (20, 3_200_000, (1_000_000, 2_000_000))
+# What makes the captures honest (gsa.synth.scene_captures' harder options): each capture
+# ±0.5 stop of exposure and ±10 % red/blue balance, density falling with the distance from
+# its scanner, a wavy cut, 4 unscanned patches, and a 30 % chance of no ceiling.
+SCENE_HARD = dict(exposure=0.5, white_balance=0.1, falloff=1.0, wavy=0.03, holes=4, no_ceiling=0.3)
 
 
-def scene_pairs(quick: bool, seed: int, count: int | None = None, capture_size: int | None = None) -> list[Pair]:
+def scene_pairs(
+    quick: bool, seed: int, count: int | None = None, capture_size: int | None = None, hard: bool = True
+) -> list[Pair]:
     """Two captures of one generated room each (gsa.synth.scene_captures): 50–80 %
     overlap, each capture's size drawn in the size range (or `capture_size`), floaters,
-    each under its own Sim(3) with scale 0.2–5. Labels 'room-i'; the target's metadata
-    carries the room's extent in its units and the pair's overlap (scene_judge reads them)."""
+    each under its own Sim(3) with scale 0.2–5, and (hard) SCENE_HARD. Labels 'room-i';
+    the target's metadata carries the room's extent in its units and the pair's overlap
+    (scene_judge reads them)."""
     default_count, scene_n, size_range = SCENE_QUICK if quick else SCENE_FULL
     if capture_size is not None:
         scene_n = max(scene_n, int(capture_size / 0.6) + 1)  # each half-space holds ≥ 60 % of the room
@@ -192,7 +199,7 @@ def scene_pairs(quick: bool, seed: int, count: int | None = None, capture_size: 
                 (capture_size, capture_size) if capture_size else tuple(int(x) for x in rng.integers(*size_range, 2))
             )
             scene = make_scene(seed=1800 + i, n_gaussians=scene_n)
-            cap = scene_captures(scene, rng, sizes=sizes)
+            cap = scene_captures(scene, rng, sizes=sizes, **(SCENE_HARD if hard else {}))
             cap.target.metadata.update(pair_overlap=cap.overlap)
             return cap.source, cap.target, cap.truth
 

@@ -179,6 +179,8 @@ def gsa_runner(fine: bool, labels: tuple[str, str] = (GSA_COARSE, GSA_FINE), **o
             "confidence": _float_or_none(result.metrics.get("confidence")),
             "ambiguous": bool(result.metrics.get("ambiguous", False)),
             "doubtful": bool(result.metrics.get("doubtful", False)),
+            # whether align() took the scene path (gsa.align.scene)
+            "scene_path": bool((result.metrics.get("scene") or {}).get("ran", False)),
             # what the confidence is made of, kept for calibration
             **{k: _float_or_none(result.metrics.get(k)) for k in ("margin", "overlap_score", "score", "colour_weight")},
         }

@@ -108,6 +108,7 @@ def add_scene_summary(rows: list[dict]) -> None:
             median_translation_error_pct_extent=median("translation_error_pct_extent"),
             max_peak_rss_mb=max(peaks) if peaks else float("nan"),
             median_peak_growth_mb=median("peak_growth_mb"),
+            scene_path_pairs=sum(bool(r.get("scene_path")) for r in recs),
             median_source_gaussians=median("source_gaussians"),
             median_target_gaussians=median("target_gaussians"),
         )
@@ -120,8 +121,8 @@ def _f(x, digits: int) -> str:
 def format_scene_table(rows: list[dict]) -> str:
     lines = [
         "| method | pairs | success (RRE<2°, t<2% extent) | median RRE (°) | mean RRE (°) | median scale err (%) "
-        "| median t err (% extent) | s / pair | max peak RSS (MB) | median peak growth (MB) |",
-        "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|",
+        "| median t err (% extent) | s / pair | max peak RSS (MB) | median peak growth (MB) | scene path |",
+        "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|",
     ]
     for r in rows:
         failed = f" ({r['failed']} failed)" if r.get("failed") else ""
@@ -129,7 +130,8 @@ def format_scene_table(rows: list[dict]) -> str:
             f"| {r['method']} | {r['pairs']}{failed} | {r['scene_success_rate'] * 100:.0f}% | "
             f"{_f(r['median_rre_deg'], 3)} | {_f(r['mean_rre_deg'], 2)} | {_f(r['median_scale_error_pct'], 3)} | "
             f"{_f(r['median_translation_error_pct_extent'], 3)} | {r['seconds_per_pair']:.2f} | "
-            f"{_f(r['max_peak_rss_mb'], 0)} | {_f(r['median_peak_growth_mb'], 0)} |"
+            f"{_f(r['max_peak_rss_mb'], 0)} | {_f(r['median_peak_growth_mb'], 0)} | "
+            f"{r.get('scene_path_pairs', 0)}/{r['pairs']} |"
         )
     sizes = [r for r in rows if np.isfinite(r.get("median_source_gaussians", float("nan")))]
     if sizes:

@@ -289,6 +289,15 @@ class SceneCaptures:
     floaters: tuple[int, int]
     extent_source: float
     extent_target: float
+    # What scene_captures' harder options did (all empty/1 when they are off): the cut's
+    # wave (amplitude, wavelength, phase; scene units) and, per capture, its linear RGB
+    # gains (exposure x white balance), Gaussians removed by holes, whether it lost the
+    # ceiling, and its scanner position (scene frame; density falls off from it).
+    wave: tuple[float, float, float] | None = None
+    gains: tuple[tuple[float, float, float], tuple[float, float, float]] = ((1.0, 1.0, 1.0), (1.0, 1.0, 1.0))
+    holed: tuple[int, int] = (0, 0)
+    no_ceiling: tuple[bool, bool] = (False, False)
+    scanners: tuple[tuple[float, float, float], tuple[float, float, float]] | None = None
 
 
 def scene_captures(
@@ -300,6 +309,12 @@ def scene_captures(
     floaters: tuple[float, float] = (0.01, 0.05),
     scale_range: tuple[float, float] = (0.2, 5.0),
     independent: bool = True,
+    exposure: float = 0.0,
+    white_balance: float = 0.0,
+    falloff: float = 0.0,
+    wavy: float = 0.0,
+    holes: int = 0,
+    no_ceiling: float = 0.0,
 ) -> SceneCaptures:
     """Two partial, differently dense, noisy captures of `scene`, each under its own Sim(3).
 
@@ -314,6 +329,19 @@ def scene_captures(
     independent: the target comes from a second sampling of the room (make_scene with a
     new sample_seed; real captures never share Gaussians), cut by the same half-space;
     False: both from `scene` (their overlap then holds identical Gaussians).
+
+    Harder captures (each off at its default, and then no random number is drawn for it,
+    so seeds keep their captures):
+    - exposure: each capture's exposure is 2^u stops, u uniform in ±exposure, and
+      white_balance its red and blue gains 1 ± white_balance (linear RGB, on SH DC);
+    - falloff: density falls with the distance d from the capture's scanner (1.5 m above
+      the centroid of the outer 30 % of its part of the room, the part the other capture
+      lacks): Gaussians are kept with weight (1 + d / (0.1·extent))^-falloff;
+    - wavy: the cut is not a plane: its offset along `direction` varies as
+      wavy·extent·sin(2π s/λ + φ) along the horizontal s across it (λ 0.5-1 extent);
+    - holes: each capture misses that many surface patches (balls of 4-10 % of the extent
+      around random Gaussians of it: occluded or unscanned surfaces);
+    - no_ceiling: the probability that a capture misses the ceiling altogether.
     """
     lo_o, hi_o = overlap
     if not 0.0 < lo_o <= hi_o < 1.0:
@@ -321,7 +349,22 @@ def scene_captures(
     extent = float(scene.metadata.get("extent") or np.linalg.norm(np.ptp(scene.means, axis=0)))
     angle = rng.uniform(0, 2 * np.pi)
     direction = np.array([np.cos(angle), np.sin(angle), 0.0])
-    proj = scene.means @ direction.astype(np.float32)
+    wave = None
+    if wavy > 0:
+        wave = (wavy * extent, float(rng.uniform(0.5, 1.0)) * extent, float(rng.uniform(0, 2 * np.pi)))
+    across = np.array([-direction[1], direction[0], 0.0])
+
+    def project(means: np.ndarray) -> np.ndarray:
+        """Where a Gaussian lies along the cut's direction (a wavy cut: offset by the wave)."""
+        out = means @ direction.astype(np.float32)
+        if wave is not None:
+            amp, wavelength, phase = wave
+            out = out + (amp * np.sin(2 * np.pi * (means @ across.astype(np.float32)) / wavelength + phase)).astype(
+                np.float32
+            )
+        return out
+
+    proj = project(scene.means)
     target_overlap = float(rng.uniform(lo_o, hi_o))
     only_target = (1.0 - target_overlap) * float(rng.uniform(0.3, 0.7))  # lowest projections
     cut_src, cut_dst = (float(q) for q in np.quantile(proj, [only_target, only_target + target_overlap]))
@@ -337,24 +380,65 @@ def scene_captures(
             raise ValueError("independent captures need a make_scene model (its metadata says how to resample it)")
         sample_seed = int(rng.integers(1 << 30))
         second = make_scene(meta["seed"], len(scene), sample_seed=sample_seed, **meta["scene_args"])
-        in_dst = (second.means @ direction.astype(np.float32)) <= cut_dst
+        in_dst = project(second.means) <= cut_dst
     captures, poses, indices, n_floaters = [], [], [], []
+    gains, holed, ceilingless, scanners = [], [], [], []
     for side, (base, mask) in enumerate(((scene, in_src), (second, in_dst))):
         index = np.flatnonzero(mask)
-        if sizes is not None:
-            keep = min(int(sizes[side]), len(index))
-            index = np.sort(rng.choice(index, keep, replace=False))
+        n_before = len(index)
+        if holes > 0:
+            index = _punch_holes(base.means, index, holes, extent, rng)
+        holed.append(n_before - len(index))
+        drop_ceiling = bool(no_ceiling > 0 and rng.random() < no_ceiling)
+        if drop_ceiling:
+            index = index[base.means[index, 2] < np.float32(base.metadata["room"][2] - 1e-3)]
+        ceilingless.append(drop_ceiling)
+        weight = None
+        if falloff > 0:
+            # The scanner stands in the part only this capture holds (the two captures' scanners
+            # were in different places): the centroid of its outer 30 % along the cut direction.
+            along = project(base.means[index]) * (1.0 if side == 0 else -1.0)
+            outer = index[along >= np.quantile(along, 0.7)]
+            scanner = np.append(base.means[outer, :2].mean(axis=0, dtype=np.float64), 1.5)
+            scanners.append(tuple(float(v) for v in scanner))
+            d = np.linalg.norm(base.means[index].astype(np.float64) - scanner, axis=1)
+            weight = (1.0 + d / (0.1 * extent)) ** -falloff
+        if weight is None:
+            if sizes is not None:
+                keep = min(int(sizes[side]), len(index))
+                index = np.sort(rng.choice(index, keep, replace=False))
+            else:
+                index = index[rng.random(len(index)) < rng.uniform(*density)]
         else:
-            index = index[rng.random(len(index)) < rng.uniform(*density)]
+            if sizes is not None:
+                keep = min(int(sizes[side]), len(index))
+            else:
+                keep = round(rng.uniform(*density) * len(index))
+            # Weighted sampling without replacement in O(n): the k smallest Exp(1)/w keys.
+            keys = rng.exponential(size=len(index)) / weight
+            if keep < len(index):
+                index = np.sort(index[np.argpartition(keys, max(keep - 1, 0))[:keep]])
         capture = base.subset(index)
         capture = add_floaters(capture, rng, fraction=float(rng.uniform(*floaters)), box_scale=1.0)
+        gain = np.ones(3)
+        if exposure > 0 or white_balance > 0:
+            gain = 2.0 ** rng.uniform(-exposure, exposure) * np.array(
+                [
+                    1.0 + rng.uniform(-white_balance, white_balance),
+                    1.0,
+                    1.0 + rng.uniform(-white_balance, white_balance),
+                ]
+            )
+            capture.sh[:, 0, :] = _gained_dc(capture.sh[:, 0, :], gain)
+        gains.append(tuple(float(g) for g in gain))
         pose = random_sim3(rng, scale_range=scale_range, translation=extent)
         captures.append(capture.transformed(pose))
         poses.append(pose)
         indices.append(index)
         n_floaters.append(len(capture) - len(index))
-    for capture, pose, n_float in zip(captures, poses, n_floaters):
+    for k, (capture, pose, n_float) in enumerate(zip(captures, poses, n_floaters)):
         capture.metadata.update(kind="scene-capture", scene_extent=extent * pose.scale, floaters=n_float)
+        capture.metadata.update(colour_gains=list(gains[k]), holed=holed[k], no_ceiling=ceilingless[k])
     return SceneCaptures(
         source=captures[0],
         target=captures[1],
@@ -372,4 +456,29 @@ def scene_captures(
         floaters=(n_floaters[0], n_floaters[1]),
         extent_source=extent * poses[0].scale,
         extent_target=extent * poses[1].scale,
+        wave=wave,
+        gains=(gains[0], gains[1]),
+        holed=(holed[0], holed[1]),
+        no_ceiling=(ceilingless[0], ceilingless[1]),
+        scanners=(scanners[0], scanners[1]) if scanners else None,
     )
+
+
+def _punch_holes(means: np.ndarray, index: np.ndarray, holes: int, extent: float, rng: np.random.Generator):
+    """`index` less the Gaussians within `holes` balls (radius 4-10 % of the extent)
+    centred on random Gaussians of it."""
+    keep = np.ones(len(index), bool)
+    for _ in range(holes):
+        centre = means[index[rng.integers(len(index))]].astype(np.float64)
+        radius = rng.uniform(0.04, 0.1) * extent
+        keep &= np.sum((means[index].astype(np.float64) - centre) ** 2, axis=1) > radius**2
+    return index[keep]
+
+
+def _gained_dc(dc: np.ndarray, gain: np.ndarray) -> np.ndarray:
+    """SH DC coefficients of the colours under a linear-RGB gain (exposure, white balance)."""
+    c = np.clip(0.5 + SH_C0 * dc.astype(np.float64), 0.0, 1.0)
+    lin = np.where(c <= 0.04045, c / 12.92, ((c + 0.055) / 1.055) ** 2.4) * gain
+    lin = np.clip(lin, 0.0, 1.0)
+    srgb = np.where(lin <= 0.0031308, 12.92 * lin, 1.055 * lin ** (1 / 2.4) - 0.055)
+    return ((srgb - 0.5) / SH_C0).astype(np.float32)
