@@ -8,6 +8,7 @@ from typing import Annotated
 
 from fastapi import APIRouter, Header, Query, Response
 from fastapi.responses import StreamingResponse
+from starlette.background import BackgroundTask
 
 from service import core
 from service.api.deps import B, Owner
@@ -61,9 +62,12 @@ def get_artifact(
 ):
     job, art = core.get_artifact(b, owner, job_id, name)
     if model_format is not None:
-        body, filename, media_type = converted_artifact(b, art, model_format)
-        return Response(
-            body, media_type=media_type, headers={"Content-Disposition": f'attachment; filename="{filename}"'}
+        body, size, filename, media_type, cleanup = converted_artifact(b, art, model_format)
+        return StreamingResponse(
+            body,
+            media_type=media_type,
+            background=BackgroundTask(cleanup),  # also when the client left before the body
+            headers={"Content-Disposition": f'attachment; filename="{filename}"', "Content-Length": str(size)},
         )
     status, headers, start, end = _plan(job, art, range_header, if_range)
     if art.size == 0:

@@ -79,3 +79,34 @@ def test_scene_pair_uploaded_aligned_and_merged(http, scene_pair, tmp_path):
     assert len(merged) == len(source) + len(target)
     np.testing.assert_allclose(merged.means[: len(source)], aligned.means, atol=tol)
     np.testing.assert_array_equal(merged.means[len(source) :], target.means)
+
+    # A converted download streams too, and a merged model may hold more than max_gaussians.
+    r = http.get(arts["merged.ply"]["href"], params={"format": "splat"})
+    assert r.status_code == 200 and int(r.headers["content-length"]) == len(r.content) == 32 * len(merged)
+
+
+def test_a_merged_artifact_over_max_gaussians_still_converts(tmp_path, scene_pair):
+    """The service wrote it: aligned source + target, each within GSA_MAX_GAUSSIANS."""
+    from types import SimpleNamespace
+
+    from gsa.io.formats import read_model
+    from service.convert import converted_artifact
+    from service.models import Artifact
+    from service.settings import Settings
+    from service.storage import LocalStorage
+
+    storage = LocalStorage(tmp_path / "data")
+    with open(scene_pair["source"], "rb") as fh:
+        size = storage.put("jobs/j/t/merged.ply", fh)
+    n = len(scene_pair["cap"].source)
+    b = SimpleNamespace(storage=storage, settings=Settings(max_gaussians=n // 2 + 1))
+    art = Artifact(name="merged.ply", key="jobs/j/t/merged.ply", size=size, content_type="application/x-ply")
+    body, size, name, ctype, cleanup = converted_artifact(b, art, "spz")
+    (tmp_path / name).write_bytes(b"".join(body))
+    cleanup()
+    assert name == "merged.spz" and (tmp_path / name).stat().st_size == size
+    assert len(read_model(tmp_path / name)) == n
+    b.settings = Settings(max_gaussians=n // 2 - 1)  # past twice the limit: refused, one clear problem
+    with pytest.raises(Exception, match="exceeds the limit") as info:
+        converted_artifact(b, art, "spz")
+    assert getattr(info.value, "status", None) == 422
