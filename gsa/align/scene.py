@@ -12,13 +12,18 @@ weight) and bounds the model (at most OUTSIDE_SHARE of the weight beyond it). Th
 anchors off the shell planes are then grouped into connected *parts* (linked within 1.5
 voxels); a part counts when it holds at least PART_WEIGHT of the weight, has a body (at
 least a voxel thick: not the sliver a plane's band leaves), is at most PART_SIZE of the
-extent long and lies inside every shell plane. The model is a scene with at least
-SHELL_PLANES shell planes holding SHELL_WEIGHT of the weight and at least CONTENT_PARTS
-parts holding CONTENT_WEIGHT. Under `scene="auto"` both models must pass; `"on"`
-forces the path, `"off"` never takes it. Measured (docs/benchmarks.md, "Scenes"): no
-pair of the object protocols (dup, same, category, partial, noisy, deform, symmetric;
-quick and full sizes) passes; the test is conservative, and a room it misses still gets
-the object path.
+extent long and lies inside every shell plane. The model is a scene when at least
+SHELL_PLANES shell planes hold SHELL_WEIGHT of the weight and either at least
+CONTENT_PARTS parts hold CONTENT_WEIGHT, or the model holds at least SCENE_GAUSSIANS
+Gaussians: a planar shell that large is a site whichever way its parts fall, and the
+object path's full-resolution trees are what stop scaling there (a large box-like
+object then takes the scene path too, which aligns it without the frame relabellings).
+The test runs on at most TEST_SAMPLE Gaussians, so it costs the same at any size.
+Under `scene="auto"` both models must pass; `"on"` forces the path, `"off"` never
+takes it. Measured (docs/benchmarks.md, "Scenes"): no pair of the object protocols
+(dup, same, category, partial, noisy, deform, symmetric; quick and full sizes) passes;
+on small rooms the parts condition is conservative (a capture holding two or three
+pieces of furniture can miss it), and a room it misses still gets the object path.
 
 *The scene path* (`align_scene`) differs from the object path where rooms differ from
 objects:
@@ -62,12 +67,15 @@ OUTSIDE_SHARE = 0.03
 SHELL_PLANES = 3
 SHELL_WEIGHT = 0.4
 CONTENT_PARTS = 3
-CONTENT_WEIGHT = 0.05
+CONTENT_WEIGHT = 0.03
 PART_WEIGHT = 0.005
 PART_SIZE = 0.35
 MAX_PLANES = 8
 FACING_DEG = 25.0
 TEST_DENSITY = 16
+TEST_SAMPLE = 200_000
+SCENE_GAUSSIANS = 400_000
+VOXEL_PROBE = 200_000
 
 # The scene path.
 SCENE_ANCHORS = 6000
@@ -84,14 +92,16 @@ class Structure:
     parts_weight: float
     planes: list[dict]
 
+    gaussians: int = 0
+
+    @property
+    def shell(self) -> bool:
+        return self.shell_planes >= SHELL_PLANES and self.shell_weight >= SHELL_WEIGHT
+
     @property
     def is_scene(self) -> bool:
-        return (
-            self.shell_planes >= SHELL_PLANES
-            and self.shell_weight >= SHELL_WEIGHT
-            and self.parts >= CONTENT_PARTS
-            and self.parts_weight >= CONTENT_WEIGHT
-        )
+        things_inside = self.parts >= CONTENT_PARTS and self.parts_weight >= CONTENT_WEIGHT
+        return self.shell and (things_inside or self.gaussians >= SCENE_GAUSSIANS)
 
     def to_dict(self) -> dict:
         return {
@@ -99,11 +109,12 @@ class Structure:
             "shell_weight": round(self.shell_weight, 4),
             "parts": self.parts,
             "parts_weight": round(self.parts_weight, 4),
+            "gaussians": self.gaussians,
             "is_scene": self.is_scene,
         }
 
 
-def scene_structure(anchors: robust.Anchors, seed: int = 0) -> Structure:
+def scene_structure(anchors: robust.Anchors, seed: int = 0, gaussians: int = 0) -> Structure:
     """Shell planes and their weight, then the separate parts inside them (module docstring)."""
     pts = anchors.points
     w = anchors.weights / anchors.weights.sum()
@@ -161,7 +172,7 @@ def scene_structure(anchors: robust.Anchors, seed: int = 0) -> Structure:
     parts, parts_weight = 0, 0.0
     if len(shell) >= SHELL_PLANES and shell_weight >= SHELL_WEIGHT:  # else decided: skip the parts
         parts, parts_weight = _inner_parts(pts, w, ~on_shell, shell, voxel, extent)
-    return Structure(len(shell), shell_weight, parts, parts_weight, planes)
+    return Structure(len(shell), shell_weight, parts, parts_weight, planes, gaussians)
 
 
 def _inner_parts(pts, w, rest_mask, shell, voxel: float, extent: float) -> tuple[int, float]:
@@ -294,15 +305,21 @@ def choose(source: GaussianModel, target: GaussianModel, mode: str, eligible: bo
     check_models(source, target)
     # scene_anchors, not robust.anchors: the same summary, many times faster at millions
     # of Gaussians; the object path makes its own.
-    s, t = (
-        scene_structure(scene_anchors(m, test_anchor_count(len(m), anchor_count))[0], seed) for m in (source, target)
-    )
+    s, t = (scene_structure(_test_anchors(m, anchor_count, seed), seed, len(m)) for m in (source, target))
     if s.is_scene and t.is_scene:
         reason = "auto: both models are shells of large planes with things inside (scene test passed)"
     else:
         which = [name for name, st in (("source", s), ("target", t)) if not st.is_scene]
         reason = f"auto: the {' and '.join(which)} failed the scene test"
     return SceneChoice(s.is_scene and t.is_scene, reason, s, t)
+
+
+def _test_anchors(model: GaussianModel, anchor_count: int, seed: int) -> robust.Anchors:
+    """The test's anchors, from at most TEST_SAMPLE Gaussians drawn at random: the test
+    costs the same at any size, and anchors of a few thousand voxels do not change."""
+    if len(model) > TEST_SAMPLE:
+        model = model.subset(np.sort(np.random.default_rng(seed).choice(len(model), TEST_SAMPLE, replace=False)))
+    return scene_anchors(model, test_anchor_count(len(model), anchor_count), seed)[0]
 
 
 def test_anchor_count(gaussians: int, anchor_count: int) -> int:
@@ -327,11 +344,15 @@ def scene_anchors(model: GaussianModel, count: int = SCENE_ANCHORS, seed: int = 
     if not extent > 0:
         raise AlignmentError("all Gaussians coincide; the model has no extent to align")
     voxel = extent / np.sqrt(count)
+    # The voxel size is searched on a sample (occupancy at a few thousand voxels is the
+    # same on 200k Gaussians as on millions); one pass over all of them follows.
+    probe = x if len(x) <= VOXEL_PROBE else x[np.random.default_rng(seed).choice(len(x), VOXEL_PROBE, replace=False)]
     for _ in range(4):
-        inverse, counts = _voxelise(x, lo, voxel)
-        if 0.7 * count <= len(counts) <= 1.4 * count or len(counts) >= 0.9 * len(x):
+        _, counts = _voxelise(probe, lo, voxel)
+        if 0.7 * count <= len(counts) <= 1.4 * count or len(counts) >= 0.9 * len(probe):
             break
         voxel *= np.sqrt(len(counts) / count)
+    inverse, counts = _voxelise(x, lo, voxel)
     typical = float(np.median(np.repeat(counts, counts)))
     solid = counts >= max(2.0, 0.1 * typical) if typical >= 8 else np.ones(len(counts), bool)
     if solid.sum() < 4:
@@ -367,9 +388,9 @@ def normalise_exposure(
 
     Exposure and white balance are gains on linear RGB. Global statistics cannot find
     them (two partial captures of a room hold different walls, each its own colour), so
-    the gains are the ones under which the two palettes agree best, pose-free: the share
-    of source anchors whose gained colour has a target colour within
-    robust.SHARED_DELTA_E, the measure robust.colour_weight trusts colour by, over a grid
+    the gains are the ones under which the two palettes agree best, pose-free: the mean
+    over source anchors of exp(-ΔE²/2δ²) to the nearest target colour (δ =
+    robust.SHARED_DELTA_E, the ΔE robust.colour_weight trusts colour by), over a grid
     of exposures (1/2..2, 13 steps) and red and blue balances (±23 %, 5 steps each). The
     grid holds gains of 1, so captures of one exposure keep their colours.
     Returns the source anchors with CIELAB colours replaced, and the gains."""
@@ -381,8 +402,11 @@ def normalise_exposure(
     e, r, b = (g.ravel() for g in np.meshgrid(exposure, balance, balance, indexing="ij"))
     gains = np.stack([e * r, e, e * b], axis=1)  # (G, 3)
     trial = robust.srgb_to_lab(_srgb(np.clip(gains[:, None, :] * lin[None], 0.0, 1.0)).reshape(-1, 3))
-    d, _ = cKDTree(dst.lab).query(trial, distance_upper_bound=robust.SHARED_DELTA_E)
-    shared = np.mean(np.isfinite(d).reshape(len(gains), -1), axis=1)
+    # Soft agreement (a Gaussian of ΔE, width SHARED_DELTA_E): the share within a hard
+    # threshold is flat around its optimum.
+    d, _ = cKDTree(dst.lab).query(trial, distance_upper_bound=3 * robust.SHARED_DELTA_E)
+    close = np.exp(-0.5 * (np.where(np.isfinite(d), d, np.inf) / robust.SHARED_DELTA_E) ** 2)
+    shared = np.mean(close.reshape(len(gains), -1), axis=1)
     # Ties (a flat optimum) go to the gain nearest 1.
     best = int(np.argmax(shared - 1e-6 * np.sum(np.log(gains) ** 2, axis=1)))
     g = gains[best]
