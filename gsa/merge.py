@@ -48,7 +48,8 @@ def merge_dedup(
     keep_t = np.ones(len(target), bool)
     keep_s[i[~source_wins]] = False
     keep_t[j[source_wins]] = False
-    return merge_models(source.subset(keep_s), target.subset(keep_t)), int(len(i))
+    # Rows selected while merging: subsets first would hold the merged data twice.
+    return merge_models(source, target, keep=(keep_s, keep_t)), int(len(i))
 
 
 def merge(source: GaussianModel, target: GaussianModel, mode: str = "concat") -> tuple[GaussianModel, int]:

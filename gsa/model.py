@@ -236,20 +236,44 @@ class GaussianModel:
         )
 
 
-def merge_models(*models: GaussianModel) -> GaussianModel:
+def merge_models(*models: GaussianModel, keep: tuple[np.ndarray | None, ...] | None = None) -> GaussianModel:
     """Concatenate models. SH is padded to the highest degree; features are kept
-    when every model has them with one dimension, else dropped for all."""
+    when every model has them with one dimension, else dropped for all. `keep` (one
+    boolean mask or index array per model, None for all) selects the rows taken from each.
+
+    The result's arrays are allocated once and filled block by block, so merging two
+    scene-size models holds the result and no concatenated or padded intermediates."""
     if not models:
         raise ModelError("merge needs at least one model")
-    degree = max(m.sh_degree for m in models)
-    models = tuple(m if m.sh_degree == degree else m.with_sh_degree(degree) for m in models)
+    keep = keep or (None,) * len(models)
+    if len(keep) != len(models):
+        raise ModelError(f"{len(keep)} row selections for {len(models)} models")
+    # Whole models are copied by slices (no index arrays, no gathered temporaries).
+    rows = [None if sel is None else np.asarray(sel) for sel in keep]
+    rows = [r if r is None or r.dtype != bool else np.flatnonzero(r) for r in rows]
+    k = sh_coeff_count(max(m.sh_degree for m in models))
     dims = {m.feature_dim for m in models}
     keep_features = len(dims) == 1 and 0 not in dims
-    return GaussianModel(
-        means=np.concatenate([m.means for m in models]),
-        quats=np.concatenate([m.quats for m in models]),
-        log_scales=np.concatenate([m.log_scales for m in models]),
-        opacity_logits=np.concatenate([m.opacity_logits for m in models]),
-        sh=np.concatenate([m.sh for m in models]),
-        features=np.concatenate([m.features for m in models]) if keep_features else None,
-    )
+    counts = [len(m) if r is None else len(r) for m, r in zip(models, rows)]
+    n = sum(counts)
+    out = {
+        "means": np.empty((n, 3), np.float32),
+        "quats": np.empty((n, 4), np.float32),
+        "log_scales": np.empty((n, 3), np.float32),
+        "opacity_logits": np.empty(n, np.float32),
+    }
+    sh = np.zeros((n, k, 3), np.float32)  # bands a model lacks stay zero
+    features = np.empty((n, dims.pop()), np.float32) if keep_features else None
+    lo = 0
+    for m, idx, count in zip(models, rows, counts):
+        mk = m.sh.shape[1]
+        for a in range(0, count, ROW_BLOCK):
+            block = slice(a, min(count, a + ROW_BLOCK)) if idx is None else idx[a : a + ROW_BLOCK]
+            at = slice(lo + a, lo + min(count, a + ROW_BLOCK))
+            for name, arr in out.items():
+                arr[at] = getattr(m, name)[block]
+            sh[at, : min(k, mk)] = m.sh[block, : min(k, mk)]
+            if features is not None:
+                features[at] = m.features[block]
+        lo += count
+    return GaussianModel(sh=sh, features=features, **out)

@@ -66,3 +66,29 @@ def test_validate_rejects_nan_and_empty():
         m.validate()
     with pytest.raises(ModelError, match="zero Gaussians"):
         m.subset(np.zeros(2, bool)).validate()
+
+
+def test_merge_models_selects_rows_pads_sh_and_matches_concatenation(car_model):
+    """Filled block by block (blocks of 7 rows here), with per-model row selections."""
+    import gsa.model as modelmod
+
+    a = car_model.subset(np.arange(40)).with_features(np.arange(120.0).reshape(40, 3))
+    b = car_model.subset(np.arange(40, 70)).with_sh_degree(1).with_features(-np.arange(90.0).reshape(30, 3))
+    mask = np.zeros(40, bool)
+    mask[[0, 5, 6, 7, 8, 9, 10, 11, 12, 39]] = True
+    idx = np.array([29, 3, 4, 17])
+    old = modelmod.ROW_BLOCK
+    modelmod.ROW_BLOCK = 7
+    try:
+        whole = merge_models(a, b)
+        picked = merge_models(a, b, keep=(mask, idx))
+    finally:
+        modelmod.ROW_BLOCK = old
+    assert whole.sh_degree == a.sh_degree and len(whole) == 70
+    np.testing.assert_array_equal(whole.means, np.concatenate([a.means, b.means]))
+    np.testing.assert_array_equal(whole.sh[40:, :4], b.sh)
+    assert not whole.sh[40:, 4:].any()  # padded bands are zero
+    np.testing.assert_array_equal(whole.features, np.concatenate([a.features, b.features]))
+    sub = merge_models(a.subset(mask), b.subset(idx))
+    for name in ("means", "quats", "log_scales", "opacity_logits", "sh", "features"):
+        np.testing.assert_array_equal(getattr(picked, name), getattr(sub, name))
