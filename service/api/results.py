@@ -47,6 +47,35 @@ class Pose(_Open):
     chosen: bool | None = None
 
 
+class SceneStructure(_Open):
+    """What the scene test saw on one model (gsa.align.scene.Structure)."""
+
+    shell_planes: int | None = Field(None, description="large planes of the enclosing shell (floor, walls, ceiling)")
+    shell_weight: float | None = None
+    parts: int | None = Field(None, description="separate small things inside the shell")
+    parts_weight: float | None = None
+    gaussians: int | None = None
+    is_scene: bool | None = None
+
+
+class SceneTest(_Open):
+    source: SceneStructure | None = None
+    target: SceneStructure | None = None
+
+
+class SceneMetrics(_Open):
+    """Whether align() took the scene path (rooms, sites: issue 18) and why."""
+
+    ran: bool | None = None
+    reason: str | None = None
+    test: SceneTest | None = None
+    anchors: list[int] | None = Field(None, description="(source, target) anchors of the scene path")
+    refine_cloud: list[int] | None = Field(None, description="(source, target) points of its refinement")
+    exposure_gains: list[float] | None = Field(
+        None, description="linear RGB gains that put the source's colours in the target's exposure"
+    )
+
+
 class Metrics(_Open):
     """GT-free quality numbers; trust the transform only when `doubtful` is false."""
 
@@ -68,6 +97,7 @@ class Metrics(_Open):
     rms_residual: float | None = None
     feature_agreement: float | None = None
     feature_distance_median: float | None = None
+    scene: SceneMetrics | None = None
 
 
 class CoarseStage(Sim3Out):

@@ -62,6 +62,11 @@ def test_scene_pair_uploaded_aligned_and_merged(http, scene_pair, tmp_path):
     assert rre_deg(est.rotation, truth.rotation) < 2.0
     assert np.linalg.norm(est.apply(centre) - truth.apply(centre)) < 0.02 * cap.extent_target
     assert abs(est.scale / truth.scale - 1) < 0.01
+    # The scene path's report is part of the typed result (service/api/results.py).
+    from service.api.results import JobResult
+
+    scene = JobResult.model_validate(res).metrics.scene
+    assert scene is not None and isinstance(scene.ran, bool) and scene.reason
 
     # The artifacts load, and are the source moved by the job's transform and source + target.
     arts = {a["name"]: a for a in job["artifacts"]}
