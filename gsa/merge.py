@@ -37,24 +37,42 @@ def duplicate_pairs(
     return i[first], j[first]
 
 
-def merge_dedup(
-    source: GaussianModel, target: GaussianModel, *, radius: float = 0.5, colour_tol: float = 0.1
-) -> tuple[GaussianModel, int]:
-    """source + target with each duplicated pair reduced to its more opaque Gaussian;
-    returns the merged model and how many Gaussians were removed."""
+def merge_plan(
+    source: GaussianModel, target: GaussianModel, mode: str = "concat"
+) -> tuple[tuple[np.ndarray | None, np.ndarray | None], int]:
+    """Which rows of (source, target) the merged model keeps (None: all), and how many
+    duplicates were removed. `merge_models(source, target, keep=...)` builds the merged
+    model; `gsa.io.ply.write_ply((source, target), path, keep=...)` writes it without
+    building it (scene-size merges)."""
+    if mode == "concat":
+        return (None, None), 0
+    if mode != "dedup":
+        raise ValueError(f"unknown merge mode {mode!r}; choose from {', '.join(MERGE_MODES)}")
+    return _dedup_keep(source, target)
+
+
+def _dedup_keep(
+    source: GaussianModel, target: GaussianModel, radius: float = 0.5, colour_tol: float = 0.1
+) -> tuple[tuple[np.ndarray, np.ndarray], int]:
     i, j = duplicate_pairs(source, target, radius=radius, colour_tol=colour_tol)
     source_wins = source.opacity_logits[i] >= target.opacity_logits[j]
     keep_s = np.ones(len(source), bool)
     keep_t = np.ones(len(target), bool)
     keep_s[i[~source_wins]] = False
     keep_t[j[source_wins]] = False
+    return (keep_s, keep_t), int(len(i))
+
+
+def merge_dedup(
+    source: GaussianModel, target: GaussianModel, *, radius: float = 0.5, colour_tol: float = 0.1
+) -> tuple[GaussianModel, int]:
+    """source + target with each duplicated pair reduced to its more opaque Gaussian;
+    returns the merged model and how many Gaussians were removed."""
+    keep, removed = _dedup_keep(source, target, radius, colour_tol)
     # Rows selected while merging: subsets first would hold the merged data twice.
-    return merge_models(source, target, keep=(keep_s, keep_t)), int(len(i))
+    return merge_models(source, target, keep=keep), removed
 
 
 def merge(source: GaussianModel, target: GaussianModel, mode: str = "concat") -> tuple[GaussianModel, int]:
-    if mode == "concat":
-        return merge_models(source, target), 0
-    if mode == "dedup":
-        return merge_dedup(source, target)
-    raise ValueError(f"unknown merge mode {mode!r}; choose from {', '.join(MERGE_MODES)}")
+    keep, removed = merge_plan(source, target, mode)
+    return merge_models(source, target, keep=keep), removed

@@ -3,6 +3,7 @@ import pytest
 
 from gsa.io.ply import PlyError, ply_property_names, read_ply, write_ply
 from gsa.model import GaussianModel
+from gsa.sim3 import Sim3
 
 
 def _assert_same(a: GaussianModel, b: GaussianModel):
@@ -188,3 +189,23 @@ def test_large_files_are_held_once_in_memory(tmp_path):
     assert _peak_growth_mb(lambda m=m: write_ply(m, path)) < 2 * chunk_mb + 8
     del m
     assert _peak_growth_mb(lambda: read_ply(path)) < model_mb + 2 * chunk_mb + 8
+
+
+def test_parts_are_written_as_their_merge_without_building_it(tmp_path, car_model, monkeypatch):
+    """write_ply(models, keep=...) gives the bytes of write_ply(merge_models(models, keep=...)):
+    SH padded to the highest degree, features only when all have them, chunks across parts."""
+    import gsa.io.ply as plymod
+    from gsa.merge import merge_plan
+    from gsa.model import merge_models
+
+    a = car_model.subset(np.arange(60)).with_features(np.random.default_rng(2).random((60, 3)))
+    b = car_model.subset(np.arange(60, 100)).with_sh_degree(1).with_features(np.ones((40, 3)))
+    c = car_model.subset(np.arange(100, 130)).with_sh_degree(0)
+    monkeypatch.setattr(plymod, "CHUNK_BYTES", 11 * 4 * len(ply_property_names(3, 3)))
+    mask = np.random.default_rng(3).random(60) < 0.5
+    for parts, keep in (((a, b), (mask, np.array([39, 0, 7]))), ((b, a), None), ((c, b, a), (None, None, mask))):
+        whole = write_ply(merge_models(*parts, keep=keep), tmp_path / "whole.ply").read_bytes()
+        assert write_ply(parts, tmp_path / "parts.ply", keep=keep).read_bytes() == whole
+    keep, removed = merge_plan(a, a.transformed(Sim3.identity()), "dedup")
+    assert removed == 60 and write_ply((a, a), tmp_path / "dedup.ply", keep=keep)
+    assert len(read_ply(tmp_path / "dedup.ply")) == 60

@@ -11,6 +11,7 @@ from __future__ import annotations
 import os
 import re
 import tempfile
+from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
@@ -253,15 +254,38 @@ def ply_property_names(degree: int, feature_dim: int) -> list[str]:
     return names
 
 
-def write_ply(model: GaussianModel, path: str | os.PathLike) -> Path:
-    """Write a binary little-endian INRIA PLY atomically (temp file + rename)."""
+def write_ply(
+    model: GaussianModel | Sequence[GaussianModel],
+    path: str | os.PathLike,
+    *,
+    keep: tuple[np.ndarray | None, ...] | None = None,
+) -> Path:
+    """Write a binary little-endian INRIA PLY atomically (temp file + rename).
+
+    A sequence of models is written as their concatenation under gsa.model.merge_models's
+    rules (SH padded to the highest degree; features kept when all have one dimension;
+    `keep` selects each model's rows) without building it: a merged scene model is written
+    from its parts, chunk by chunk, holding no copy of them (gsa.merge.merge_plan)."""
     path = Path(path)
-    names = ply_property_names(model.sh_degree, model.feature_dim)
+    models = [model] if isinstance(model, GaussianModel) else list(model)
+    if not models:
+        raise ValueError("write_ply needs at least one model")
+    keep = keep or (None,) * len(models)
+    if len(keep) != len(models):
+        raise ValueError(f"{len(keep)} row selections for {len(models)} models")
+    rows_of = [None if sel is None else np.asarray(sel) for sel in keep]
+    rows_of = [r if r is None or r.dtype != bool else np.flatnonzero(r) for r in rows_of]
+    counts = [len(m) if r is None else len(r) for m, r in zip(models, rows_of)]
+    degree = max(m.sh_degree for m in models)
+    dims = {m.feature_dim for m in models}
+    feature_dim = dims.pop() if len(dims) == 1 else 0
+    names = ply_property_names(degree, feature_dim)
     header = "ply\nformat binary_little_endian 1.0\n"
-    provenance = model.metadata.get("features")
-    if model.feature_dim and isinstance(provenance, str) and re.fullmatch(r"[\w:.\-]+", provenance):
+    provenances = {m.metadata.get("features") for m in models}
+    provenance = provenances.pop() if len(provenances) == 1 else None
+    if feature_dim and isinstance(provenance, str) and re.fullmatch(r"[\w:.\-]+", provenance):
         header += f"comment {FEATURES_COMMENT} {provenance}\n"
-    header += f"element vertex {len(model)}\n"
+    header += f"element vertex {sum(counts)}\n"
     header += "".join(f"property float {name}\n" for name in names)
     header += "end_header\n"
     path.parent.mkdir(parents=True, exist_ok=True)
@@ -270,10 +294,13 @@ def write_ply(model: GaussianModel, path: str | os.PathLike) -> Path:
         with os.fdopen(fd, "wb") as fh:
             fh.write(header.encode("ascii"))
             rows = max(1, CHUNK_BYTES // (4 * len(names)))
-            table = np.zeros((min(rows, len(model)), len(names)), "<f4")  # normals stay 0
-            for lo in range(0, len(model), rows):
-                part = _rows(model, lo, min(len(model), lo + rows), table)
-                fh.write(memoryview(part).cast("B"))
+            table = np.zeros((min(rows, max(counts)), len(names)), "<f4")  # normals stay 0
+            for m, idx, count in zip(models, rows_of, counts):
+                for lo in range(0, count, rows):
+                    hi = min(count, lo + rows)
+                    sel = slice(lo, hi) if idx is None else idx[lo:hi]
+                    part = _rows(m, sel, hi - lo, degree, feature_dim, table)
+                    fh.write(memoryview(part).cast("B"))
         os.replace(tmp, path)
     except BaseException:
         Path(tmp).unlink(missing_ok=True)
@@ -281,19 +308,23 @@ def write_ply(model: GaussianModel, path: str | os.PathLike) -> Path:
     return path
 
 
-def _rows(model: GaussianModel, lo: int, hi: int, table: np.ndarray) -> np.ndarray:
-    """Gaussians lo..hi as the file's rows, in (the first hi - lo rows of) the reused `table`."""
-    n, k = hi - lo, model.sh.shape[1]
+def _rows(model: GaussianModel, sel, n: int, degree: int, feature_dim: int, table: np.ndarray) -> np.ndarray:
+    """The model's Gaussians `sel` (a slice or indices, n of them) as the file's rows with SH
+    padded to `degree`, in (the first n rows of) the reused `table`."""
+    k, km = sh_coeff_count(degree), model.sh.shape[1]
     out = table[:n]
-    out[:, 0:3] = model.means[lo:hi]
-    out[:, 6:9] = model.sh[lo:hi, 0, :]
+    out[:, 0:3] = model.means[sel]
+    out[:, 6:9] = model.sh[sel, 0, :]
     col = 9
-    if k > 1:  # channel-major in the file
-        out[:, col : col + 3 * (k - 1)] = model.sh[lo:hi, 1:, :].transpose(0, 2, 1).reshape(n, -1)
+    if k > 1:  # channel-major in the file: f_rest_{c·(k-1) + j-1} is channel c, coefficient j
+        if km < k:
+            out[:, col : col + 3 * (k - 1)] = 0  # bands this model lacks (the table is reused)
+        for c in range(3):
+            out[:, col + c * (k - 1) : col + c * (k - 1) + km - 1] = model.sh[sel, 1:, c]
         col += 3 * (k - 1)
-    out[:, col] = model.opacity_logits[lo:hi]
-    out[:, col + 1 : col + 4] = model.log_scales[lo:hi]
-    out[:, col + 4 : col + 8] = model.quats[lo:hi]
-    if model.feature_dim:
-        out[:, col + 8 :] = model.features[lo:hi]
+    out[:, col] = model.opacity_logits[sel]
+    out[:, col + 1 : col + 4] = model.log_scales[sel]
+    out[:, col + 4 : col + 8] = model.quats[sel]
+    if feature_dim:
+        out[:, col + 8 :] = model.features[sel]
     return out
