@@ -16,7 +16,14 @@ from gsa.geometry import quat_to_rotation, super_fibonacci_rotations
 from gsa.metrics import accuracy, rre_deg
 from gsa.sim3 import Sim3
 from gsa.synth import make_object, random_sim3
-from gsa.synth.variants import add_floaters, cut_by_plane, deform, make_symmetric_object, symmetry_rotations
+from gsa.synth.variants import (
+    add_floaters,
+    cut_by_plane,
+    deform,
+    make_symmetric_object,
+    shift_exposure,
+    symmetry_rotations,
+)
 
 
 def _grey(model):
@@ -79,6 +86,36 @@ def test_colour_weight_trusts_shared_palettes_only():
     other = robust.anchors(make_object("car", seed=4, n_gaussians=8000))
     assert robust.colour_weight(a, same) > 0.9
     assert robust.colour_weight(a, other) < robust.colour_weight(a, same) - 0.3
+
+
+def test_match_exposure_recovers_the_gain_between_captures_and_leaves_other_paint_alone():
+    gain = np.array([0.4, 0.5, 0.6])  # over a stop darker, and warmer
+    a = robust.anchors(make_object("car", seed=3, n_gaussians=8000, sample_seed=1))
+    shifted = robust.anchors(shift_exposure(make_object("car", seed=3, n_gaussians=8000, sample_seed=2), gain))
+    assert robust.colour_weight(a, shifted) < 0.6  # as recorded, the palettes hardly match
+    matched = robust.match_exposure(a, shifted)
+    assert np.allclose(matched.colour_gain, gain, rtol=0.05)
+    assert robust.colour_weight(matched, shifted) > 0.9
+    assert np.array_equal(matched.points, a.points) and np.array_equal(matched.rgb, a.rgb)
+    # Another instance (its own paint) keeps its colours unless a gain makes it share the palette.
+    other = robust.anchors(make_object("car", seed=4, n_gaussians=8000))
+    kept = robust.match_exposure(a, other)
+    assert robust.colour_weight(kept, other) < robust.colour_weight(matched, shifted) - 0.3
+    # Unchanged colours stay unchanged.
+    same = robust.anchors(make_object("car", seed=3, n_gaussians=8000, sample_seed=2))
+    assert robust.match_exposure(a, same).colour_gain == (1.0, 1.0, 1.0)
+
+
+def test_symmetric_shape_is_resolved_by_colour_under_another_exposure():
+    truth = random_sim3(np.random.default_rng([2, 8]))
+    source = make_symmetric_object(seed=2, n_gaussians=8000, sample_seed=11)
+    target = make_symmetric_object(seed=2, n_gaussians=8000, sample_seed=12)
+    target = shift_exposure(target, [0.45, 0.5, 0.4]).transformed(truth)
+    result = align(source, target)
+    assert rre_deg(result.transform.rotation, truth.rotation) < 5.0
+    assert not result.metrics["doubtful"]
+    assert result.metrics["colour_weight"] > 0.9
+    assert np.allclose(result.metrics["colour_gain"], [0.45, 0.5, 0.4], rtol=0.1)  # source onto target
 
 
 def test_overlap_trim_stops_at_the_overlap_and_keeps_smooth_residuals():

@@ -272,8 +272,10 @@ class _Pair:
 
     def anchors(self) -> tuple[robust.Anchors, robust.Anchors]:
         if self.src_anchors is None or self.dst_anchors is None:
-            self.src_anchors = robust.anchors(self.source, self.opts.anchor_count)
             self.dst_anchors = robust.anchors(self.target, self.opts.anchor_count)
+            self.src_anchors = robust.match_exposure(
+                robust.anchors(self.source, self.opts.anchor_count), self.dst_anchors
+            )
         return self.src_anchors, self.dst_anchors
 
     def search(self, progress: Progress | None) -> robust.SearchResult:
@@ -317,7 +319,9 @@ class _Pair:
         """Confidence in [0, 1], ambiguity and the alternative poses (GT-free)."""
         src, dst = self.anchors()
         w_colour = search.colour_weight if search is not None else robust.colour_weight(src, dst)
-        return robust.verdict(robust.score_pose(src, dst, transform, "final", w_colour), search)
+        out = robust.verdict(robust.score_pose(src, dst, transform, "final", w_colour), search)
+        out["colour_gain"] = list(src.colour_gain)  # exposure/white balance matched onto the target's
+        return out
 
     @property
     def refine(self) -> bool:

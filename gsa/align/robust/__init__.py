@@ -36,6 +36,7 @@ from gsa.align.robust.anchoring import (
     anchors,
     colour_weight,
     floater_mask,
+    match_exposure,
     srgb_to_lab,
 )
 from gsa.align.robust.poses import (
@@ -91,6 +92,7 @@ __all__ = [
     "decide",
     "floater_mask",
     "frame_relabellings",
+    "match_exposure",
     "global_search",
     "overlap_fraction",
     "overlap_trim",
