@@ -303,8 +303,18 @@ class _Pair:
         dst_tree = self.dst_tree if dst.kept.all() else cKDTree(self.dst_pts[dst.kept])
         half = self.opts.refine_points // 2
         p = src_tree.data[_subsample(self.rng, src_tree.n, half)]
-        q = dst_tree.data[_subsample(self.rng, dst_tree.n, half)]
-        transform, history = robust.refine(p, q, src_tree, dst_tree, init, self.opts.refine_iterations)
+        q_rows = _subsample(self.rng, dst_tree.n, half)
+        q = dst_tree.data[q_rows]
+        normals, flatness = self.target.surface_normals(slice(None) if dst.kept.all() else dst.kept)
+        transform, history = robust.refine(
+            p,
+            q,
+            src_tree,
+            dst_tree,
+            init,
+            self.opts.refine_iterations,
+            target_normals=(normals, flatness, normals[q_rows], flatness[q_rows]),
+        )
         _report(progress, "coarse", 1.0)
         return CoarseResult(
             transform=transform,
