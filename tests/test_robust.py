@@ -12,6 +12,7 @@ from scipy.spatial import cKDTree
 
 from gsa.align import robust
 from gsa.align.pipeline import align
+from gsa.align.robust.refine import _plane_step
 from gsa.geometry import quat_to_rotation, super_fibonacci_rotations
 from gsa.metrics import accuracy, rre_deg
 from gsa.sim3 import Sim3
@@ -223,3 +224,46 @@ def test_fitting_every_pair_averages_a_deformation_better_than_trimming(monkeypa
     monkeypatch.setattr(sys.modules["gsa.align.robust.refine"], "WHOLE_OVERLAP", 2.0)  # never: trim only
     trimmed = [rre_deg(_refine(s, t)[0].rotation, np.eye(3)) for s, t in pairs]
     assert np.mean(every_pair) < np.mean(trimmed), (every_pair, trimmed)
+
+
+def test_plane_step_recovers_a_small_similarity_from_points_on_planes():
+    rng = np.random.default_rng(21)
+    normals = rng.normal(size=(400, 3))
+    normals /= np.linalg.norm(normals, axis=1, keepdims=True)
+    y = rng.normal(size=(400, 3))
+    truth = Sim3(1.01, quat_to_rotation(np.array([1.0, 0.004, -0.003, 0.002])), np.array([0.01, -0.02, 0.005]))
+    # Each x lies anywhere on its target's plane, moved by the inverse of the truth: only
+    # the distance along the normal carries information, as between two samplings of a surface.
+    slide = rng.normal(size=(400, 3))
+    slide -= np.einsum("ij,ij->i", slide, normals)[:, None] * normals
+    x = truth.inverse().apply(y + 0.05 * slide)
+    step = Sim3.identity()
+    for _ in range(3):
+        step = _plane_step(step.apply(x), y, normals, np.ones(len(x))) @ step
+    assert rre_deg(step.rotation, truth.rotation) < 1e-3
+    assert abs(step.scale / truth.scale - 1) < 1e-5
+    assert np.allclose(step.translation, truth.translation, atol=1e-5)
+
+
+def test_point_to_plane_polish_sharpens_independent_samplings():
+    """Two samplings of one surface share no points: point-to-point pairs carry the
+    sampling's offsets, the distance along the target's normals does not."""
+    errors = {True: [], False: []}
+    for seed, category in enumerate(["car", "chair", "boat"]):
+        truth = random_sim3(np.random.default_rng([22, seed]))
+        source = make_object(category, seed=seed, n_gaussians=8000, sample_seed=1)
+        target = make_object(category, seed=seed, n_gaussians=12_000, sample_seed=2).transformed(truth)
+        p, q = source.means.astype(np.float64), target.means.astype(np.float64)
+        normals, flatness = target.surface_normals()
+        for polish in (True, False):
+            found, history = robust.refine(
+                p,
+                q,
+                cKDTree(p),
+                cKDTree(q),
+                truth,
+                target_normals=(normals, flatness, normals, flatness) if polish else None,
+            )
+            errors[polish].append(rre_deg(found.rotation, truth.rotation))
+            assert polish == any(h["stage"] == "refine-plane" for h in history)
+    assert np.mean(errors[True]) < 0.5 * np.mean(errors[False]), errors

@@ -189,7 +189,6 @@ class _Fit:
         tab_r = np.ascontiguousarray(tab_r.reshape(len(self.q), -1), np.int64)
         history: list[dict] = []
         fraction = None
-        best = None
         for it in range(iterations):
             d, a, b, j = self._pairs(transform, tab_f, tab_r, with_rows=True)
             if fraction is None:
@@ -200,9 +199,6 @@ class _Fit:
             x = transform.apply(a[keep])
             r = np.einsum("ij,ij->i", n, x - b[keep])
             cost = float(np.sqrt(np.average(r**2, weights=w))) if w.sum() > 0 else np.inf
-            if best is not None and cost >= best[1] * (1 - 1e-4):
-                return best[0], history
-            best = (transform, cost)
             step = _plane_step(x, b[keep], n, w)
             if step is None:
                 return transform, history
