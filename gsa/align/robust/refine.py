@@ -7,7 +7,13 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from gsa.align.nearest import nearest_candidate
-from gsa.align.robust.poses import Candidate, SearchResult
+from gsa.align.robust.poses import (
+    COLOUR_MISMATCH_LIMIT,
+    COLOUR_TRUSTED,
+    Candidate,
+    SearchResult,
+    colour_mismatch,
+)
 from gsa.canonical import SIGNED_PERMUTATIONS, CanonicalFrame, relabelling_label
 from gsa.geometry import axis_rotation, rotation_distance_deg
 from gsa.sim3 import DegenerateCorrespondencesError, Sim3, solve_sim3
@@ -54,6 +60,14 @@ def verdict(final: Candidate, search: SearchResult | None) -> dict:
     confidence = min(fit, separation)
     if ambiguous:
         confidence = min(confidence, 0.25)
+    # Colour contradiction: where the models share a palette, aligned captures of one
+    # object disagree in colour about as much as neighbouring samples of one capture
+    # (colour_noise); a pose that pairs unlike parts (a flip that overlaps well) does not.
+    mismatch = None
+    if search is not None and search.colour_noise is not None and search.colour_weight >= COLOUR_TRUSTED:
+        mismatch = colour_mismatch(final, search.colour_noise)
+        if mismatch > COLOUR_MISMATCH_LIMIT:
+            confidence = min(confidence, 0.25)
     out = {
         "confidence": confidence,
         "ambiguous": ambiguous,
@@ -63,6 +77,7 @@ def verdict(final: Candidate, search: SearchResult | None) -> dict:
         "overlap_score": final.geometry,
         "overlap_fraction": final.overlap,
         "colour_agreement": final.colour,
+        "colour_mismatch": mismatch,
     }
     if search is not None:
         out["colour_weight"] = search.colour_weight
