@@ -267,3 +267,32 @@ def test_point_to_plane_polish_sharpens_independent_samplings():
             errors[polish].append(rre_deg(found.rotation, truth.rotation))
             assert polish == any(h["stage"] == "refine-plane" for h in history)
     assert np.mean(errors[True]) < 0.5 * np.mean(errors[False]), errors
+
+
+def _candidate(score: float, colour: float, degrees: float) -> robust.Candidate:
+    rot = quat_to_rotation(np.array([np.cos(np.radians(degrees) / 2), 0.0, 0.0, np.sin(np.radians(degrees) / 2)]))
+    return robust.Candidate(Sim3(1.0, rot, np.zeros(3)), "grid", score=score, geometry=score, colour=colour)
+
+
+def test_decide_prefers_a_colour_consistent_pose_to_a_better_overlapping_contradicted_one():
+    flip, truth = _candidate(0.40, 0.85, 180.0), _candidate(0.36, 0.96, 0.0)
+    noise = 0.06  # the models' own neighbour-to-neighbour colour disagreement
+    chosen = robust.decide([flip, truth], w_colour=1.0, noise=noise)
+    assert chosen.best is truth and not chosen.ambiguous and chosen.margin == float("inf")
+    # Without a shared palette, or beyond the switch window, the score decides.
+    assert robust.decide([flip, truth], w_colour=0.2, noise=noise).best is flip
+    far_behind = _candidate(0.30, 0.96, 0.0)
+    assert robust.decide([flip, far_behind], w_colour=1.0, noise=noise).best is flip
+    # Two poses whose colours both agree within the noise: the score decides, a tie stays a tie.
+    near = _candidate(0.39, 0.95, 90.0)
+    tie = robust.decide([_candidate(0.40, 0.955, 0.0), near], w_colour=1.0, noise=noise)
+    assert tie.best is not near and tie.ambiguous
+
+
+def test_verdict_doubts_a_pose_whose_colours_contradict_each_other():
+    noise = 0.05
+    right, wrong = _candidate(0.7, 0.96, 0.0), _candidate(0.7, 0.86, 180.0)
+    for pose, doubtful in ((right, False), (wrong, True)):
+        search = robust.SearchResult([pose], 1.0, float("inf"), [], noise)
+        out = robust.verdict(pose, search)
+        assert out["doubtful"] == doubtful and out["colour_mismatch"] == pytest.approx((1 - pose.colour) / noise)
