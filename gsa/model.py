@@ -12,7 +12,7 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-from gsa.geometry import normalize_quats, quat_multiply, rotation_to_quat
+from gsa.geometry import normalize_quats, quat_multiply, quat_to_rotation, rotation_to_quat
 from gsa.sh import rotate_sh
 
 SH_C0 = 0.28209479177387814
@@ -126,6 +126,19 @@ class GaussianModel:
     def base_colors(self) -> np.ndarray:
         """(N, 3) view-independent RGB from the DC coefficient, clipped to [0, 1]."""
         return np.clip(0.5 + SH_C0 * self.sh[:, 0, :], 0.0, 1.0)
+
+    def surface_normals(self, rows: np.ndarray | slice = slice(None)) -> tuple[np.ndarray, np.ndarray]:
+        """((N, 3) unit normals, (N,) flatness in [0, 1]) of the Gaussians at `rows`: a
+        3DGS surface Gaussian is a flat disc whose shortest axis is the surface normal;
+        flatness = 1 − shortest/middle scale says how far that axis can be trusted
+        (0 for a ball, whose shortest axis is arbitrary)."""
+        scales = self.log_scales[rows].astype(np.float64)
+        order = np.argsort(scales, axis=1)
+        rot = quat_to_rotation(normalize_quats(self.quats[rows].astype(np.float64)))
+        normals = np.take_along_axis(rot, order[:, None, :1], axis=2)[:, :, 0]
+        ranked = np.take_along_axis(scales, order, axis=1)
+        flatness = 1.0 - np.exp(ranked[:, 0] - ranked[:, 1])
+        return normals, flatness
 
     # ------------------------------------------------------------ constructors
     @classmethod

@@ -12,11 +12,19 @@ from scipy.spatial import cKDTree
 
 from gsa.align import robust
 from gsa.align.pipeline import align
+from gsa.align.robust.refine import _plane_step
 from gsa.geometry import quat_to_rotation, super_fibonacci_rotations
 from gsa.metrics import accuracy, rre_deg
 from gsa.sim3 import Sim3
 from gsa.synth import make_object, random_sim3
-from gsa.synth.variants import add_floaters, cut_by_plane, deform, make_symmetric_object, symmetry_rotations
+from gsa.synth.variants import (
+    add_floaters,
+    cut_by_plane,
+    deform,
+    make_symmetric_object,
+    shift_exposure,
+    symmetry_rotations,
+)
 
 
 def _grey(model):
@@ -79,6 +87,36 @@ def test_colour_weight_trusts_shared_palettes_only():
     other = robust.anchors(make_object("car", seed=4, n_gaussians=8000))
     assert robust.colour_weight(a, same) > 0.9
     assert robust.colour_weight(a, other) < robust.colour_weight(a, same) - 0.3
+
+
+def test_match_exposure_recovers_the_gain_between_captures_and_leaves_other_paint_alone():
+    gain = np.array([0.4, 0.5, 0.6])  # over a stop darker, and warmer
+    a = robust.anchors(make_object("car", seed=3, n_gaussians=8000, sample_seed=1))
+    shifted = robust.anchors(shift_exposure(make_object("car", seed=3, n_gaussians=8000, sample_seed=2), gain))
+    assert robust.colour_weight(a, shifted) < 0.6  # as recorded, the palettes hardly match
+    matched = robust.match_exposure(a, shifted)
+    assert np.allclose(matched.colour_gain, gain, rtol=0.05)
+    assert robust.colour_weight(matched, shifted) > 0.9
+    assert np.array_equal(matched.points, a.points) and np.array_equal(matched.rgb, a.rgb)
+    # Another instance (its own paint) keeps its colours unless a gain makes it share the palette.
+    other = robust.anchors(make_object("car", seed=4, n_gaussians=8000))
+    kept = robust.match_exposure(a, other)
+    assert robust.colour_weight(kept, other) < robust.colour_weight(matched, shifted) - 0.3
+    # Unchanged colours stay unchanged.
+    same = robust.anchors(make_object("car", seed=3, n_gaussians=8000, sample_seed=2))
+    assert robust.match_exposure(a, same).colour_gain == (1.0, 1.0, 1.0)
+
+
+def test_symmetric_shape_is_resolved_by_colour_under_another_exposure():
+    truth = random_sim3(np.random.default_rng([2, 8]))
+    source = make_symmetric_object(seed=2, n_gaussians=8000, sample_seed=11)
+    target = make_symmetric_object(seed=2, n_gaussians=8000, sample_seed=12)
+    target = shift_exposure(target, [0.45, 0.5, 0.4]).transformed(truth)
+    result = align(source, target)
+    assert rre_deg(result.transform.rotation, truth.rotation) < 5.0
+    assert not result.metrics["doubtful"]
+    assert result.metrics["colour_weight"] > 0.9
+    assert np.allclose(result.metrics["colour_gain"], [0.45, 0.5, 0.4], rtol=0.1)  # source onto target
 
 
 def test_overlap_trim_stops_at_the_overlap_and_keeps_smooth_residuals():
@@ -186,3 +224,75 @@ def test_fitting_every_pair_averages_a_deformation_better_than_trimming(monkeypa
     monkeypatch.setattr(sys.modules["gsa.align.robust.refine"], "WHOLE_OVERLAP", 2.0)  # never: trim only
     trimmed = [rre_deg(_refine(s, t)[0].rotation, np.eye(3)) for s, t in pairs]
     assert np.mean(every_pair) < np.mean(trimmed), (every_pair, trimmed)
+
+
+def test_plane_step_recovers_a_small_similarity_from_points_on_planes():
+    rng = np.random.default_rng(21)
+    normals = rng.normal(size=(400, 3))
+    normals /= np.linalg.norm(normals, axis=1, keepdims=True)
+    y = rng.normal(size=(400, 3))
+    truth = Sim3(1.01, quat_to_rotation(np.array([1.0, 0.004, -0.003, 0.002])), np.array([0.01, -0.02, 0.005]))
+    # Each x lies anywhere on its target's plane, moved by the inverse of the truth: only
+    # the distance along the normal carries information, as between two samplings of a surface.
+    slide = rng.normal(size=(400, 3))
+    slide -= np.einsum("ij,ij->i", slide, normals)[:, None] * normals
+    x = truth.inverse().apply(y + 0.05 * slide)
+    step = Sim3.identity()
+    for _ in range(3):
+        step = _plane_step(step.apply(x), y, normals, np.ones(len(x))) @ step
+    assert rre_deg(step.rotation, truth.rotation) < 1e-3
+    assert abs(step.scale / truth.scale - 1) < 1e-5
+    assert np.allclose(step.translation, truth.translation, atol=1e-5)
+
+
+def test_point_to_plane_polish_sharpens_independent_samplings():
+    """Two samplings of one surface share no points: point-to-point pairs carry the
+    sampling's offsets, the distance along the target's normals does not."""
+    errors = {True: [], False: []}
+    for seed, category in enumerate(["car", "chair", "boat"]):
+        truth = random_sim3(np.random.default_rng([22, seed]))
+        source = make_object(category, seed=seed, n_gaussians=8000, sample_seed=1)
+        target = make_object(category, seed=seed, n_gaussians=12_000, sample_seed=2).transformed(truth)
+        p, q = source.means.astype(np.float64), target.means.astype(np.float64)
+        normals, flatness = target.surface_normals()
+        for polish in (True, False):
+            found, history = robust.refine(
+                p,
+                q,
+                cKDTree(p),
+                cKDTree(q),
+                truth,
+                target_normals=(normals, flatness, normals, flatness) if polish else None,
+            )
+            errors[polish].append(rre_deg(found.rotation, truth.rotation))
+            assert polish == any(h["stage"] == "refine-plane" for h in history)
+    assert np.mean(errors[True]) < 0.5 * np.mean(errors[False]), errors
+
+
+def _candidate(score: float, colour: float, degrees: float) -> robust.Candidate:
+    rot = quat_to_rotation(np.array([np.cos(np.radians(degrees) / 2), 0.0, 0.0, np.sin(np.radians(degrees) / 2)]))
+    return robust.Candidate(Sim3(1.0, rot, np.zeros(3)), "grid", score=score, geometry=score, colour=colour)
+
+
+def test_decide_prefers_a_colour_consistent_pose_to_a_better_overlapping_contradicted_one():
+    flip, truth = _candidate(0.40, 0.85, 180.0), _candidate(0.36, 0.96, 0.0)
+    noise = 0.06  # the models' own neighbour-to-neighbour colour disagreement
+    chosen = robust.decide([flip, truth], w_colour=1.0, noise=noise)
+    assert chosen.best is truth and not chosen.ambiguous and chosen.margin == float("inf")
+    # Without a shared palette, or beyond the switch window, the score decides.
+    assert robust.decide([flip, truth], w_colour=0.2, noise=noise).best is flip
+    far_behind = _candidate(0.30, 0.96, 0.0)
+    assert robust.decide([flip, far_behind], w_colour=1.0, noise=noise).best is flip
+    # Two poses whose colours both agree within the noise: the score decides, a tie stays a tie.
+    near = _candidate(0.39, 0.95, 90.0)
+    tie = robust.decide([_candidate(0.40, 0.955, 0.0), near], w_colour=1.0, noise=noise)
+    assert tie.best is not near and tie.ambiguous
+
+
+def test_verdict_doubts_a_pose_whose_colours_contradict_each_other():
+    noise = 0.05
+    right, wrong = _candidate(0.7, 0.96, 0.0), _candidate(0.7, 0.86, 180.0)
+    for pose, doubtful in ((right, False), (wrong, True)):
+        search = robust.SearchResult([pose], 1.0, float("inf"), [], noise)
+        out = robust.verdict(pose, search)
+        assert out["doubtful"] == doubtful and out["colour_mismatch"] == pytest.approx((1 - pose.colour) / noise)

@@ -292,8 +292,10 @@ class _Pair:
 
     def anchors(self) -> tuple[robust.Anchors, robust.Anchors]:
         if self.src_anchors is None or self.dst_anchors is None:
-            self.src_anchors = robust.anchors(self.source, self.opts.anchor_count)
             self.dst_anchors = robust.anchors(self.target, self.opts.anchor_count)
+            self.src_anchors = robust.match_exposure(
+                robust.anchors(self.source, self.opts.anchor_count), self.dst_anchors
+            )
         return self.src_anchors, self.dst_anchors
 
     def search(self, progress: Progress | None) -> robust.SearchResult:
@@ -321,8 +323,18 @@ class _Pair:
         dst_tree = self.dst_tree if dst.kept.all() else cKDTree(self.dst_pts[dst.kept])
         half = self.opts.refine_points // 2
         p = src_tree.data[_subsample(self.rng, src_tree.n, half)]
-        q = dst_tree.data[_subsample(self.rng, dst_tree.n, half)]
-        transform, history = robust.refine(p, q, src_tree, dst_tree, init, self.opts.refine_iterations)
+        q_rows = _subsample(self.rng, dst_tree.n, half)
+        q = dst_tree.data[q_rows]
+        normals, flatness = self.target.surface_normals(slice(None) if dst.kept.all() else dst.kept)
+        transform, history = robust.refine(
+            p,
+            q,
+            src_tree,
+            dst_tree,
+            init,
+            self.opts.refine_iterations,
+            target_normals=(normals, flatness, normals[q_rows], flatness[q_rows]),
+        )
         _report(progress, "coarse", 1.0)
         return CoarseResult(
             transform=transform,
@@ -337,7 +349,9 @@ class _Pair:
         """Confidence in [0, 1], ambiguity and the alternative poses (GT-free)."""
         src, dst = self.anchors()
         w_colour = search.colour_weight if search is not None else robust.colour_weight(src, dst)
-        return robust.verdict(robust.score_pose(src, dst, transform, "final", w_colour), search)
+        out = robust.verdict(robust.score_pose(src, dst, transform, "final", w_colour), search)
+        out["colour_gain"] = list(src.colour_gain)  # exposure/white balance matched onto the target's
+        return out
 
     @property
     def refine(self) -> bool:

@@ -25,8 +25,10 @@ from gsa.synth import (
     make_scene,
     make_symmetric_object,
     paper_perturbation,
+    random_exposure,
     random_sim3,
     scene_captures,
+    shift_exposure,
     symmetric_spec,
     symmetry_rotations,
 )
@@ -137,8 +139,9 @@ def deform_pairs(quick: bool, seed: int) -> list[Pair]:
     return _variant_pairs(quick, seed, 93, 600, lambda m, rng, side: deform(m, rng) if side == "target" else m)
 
 
-def symmetric_pairs(quick: bool, seed: int) -> list[Pair]:
-    """Symmetric instances (families cycling prism, wheel, bottle); labels 'family-kK-i'."""
+def symmetric_pairs(quick: bool, seed: int, exposure: bool = False) -> list[Pair]:
+    """Symmetric instances (families cycling prism, wheel, bottle); labels 'family-kK-i'.
+    exposure: each capture also under its own exposure (±1 stop) and white balance."""
     count, n_src, n_dst = _robust_sizes(quick)
     pairs = []
     for i in range(count):
@@ -149,10 +152,20 @@ def symmetric_pairs(quick: bool, seed: int) -> list[Pair]:
             truth = random_sim3(rng)
             source = make_symmetric_object(700 + i, n_src, sample_seed=7000 + i)
             target = make_symmetric_object(700 + i, n_dst, sample_seed=14_000 + i)
+            if exposure:
+                light = np.random.default_rng([seed, 96, i])
+                source = shift_exposure(source, random_exposure(light))
+                target = shift_exposure(target, random_exposure(light))
             return source, target.transformed(truth), truth
 
         pairs.append((f"{family}-k{k}-{i}", make))
     return pairs
+
+
+def exposure_pairs(quick: bool, seed: int) -> list[Pair]:
+    """The symmetric pairs, each capture under its own exposure and white balance: colour
+    is the only cue to the true pose, and it no longer matches as recorded."""
+    return symmetric_pairs(quick, seed, exposure=True)
 
 
 def symmetric_fields(label: str) -> dict:

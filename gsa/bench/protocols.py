@@ -22,6 +22,9 @@ symmetric 4- to 8-fold symmetric objects (prism, wheel, bottle) whose colour
           marks one sector; strict success against the true pose, plus
           `rre_any_symmetric_deg` (the best of the k symmetric poses)
 deform    target = a stretched, tapered and bent copy of the instance
+exposure  the symmetric pairs, each capture under its own exposure (±1 stop) and
+          white balance (gsa.synth.shift_exposure): colour must be compared through
+          the gains between the captures (strict success, as symmetric)
 
 scene     issue 18: two partial captures of a generated furnished room (gsa.synth.scenes;
           50–80 % overlap, floaters, each capture under its own Sim(3), scale 0.2–5).
@@ -59,6 +62,7 @@ from gsa.bench.pairs import (
     category_pairs,
     deform_pairs,
     dup_pairs,
+    exposure_pairs,
     noisy_pairs,
     partial_pairs,
     same_pairs,
@@ -118,6 +122,7 @@ __all__ = [
     "deform_pairs",
     "dup_pairs",
     "evaluate",
+    "exposure_pairs",
     "format_table",
     "gsa_runner",
     "io_child",
@@ -129,6 +134,7 @@ __all__ = [
     "protocol_category",
     "protocol_deform",
     "protocol_dup",
+    "protocol_exposure",
     "protocol_io",
     "protocol_noisy",
     "protocol_partial",
@@ -265,17 +271,23 @@ protocol_noisy = _capture_protocol("noisy")
 protocol_deform = _capture_protocol("deform")
 
 
-def protocol_symmetric(quick: bool, seed: int, out: Path, peers: list[str] | None = None) -> list[dict]:
-    rows = evaluate(
-        "symmetric",
-        symmetric_pairs(quick, seed),
-        default_runners(seed, peers, quick),
-        symmetric_fields,
-        out=out,
-        judge=symmetric_judge,
-    )
-    save_rows(out, "symmetric", rows)
-    return rows
+def _symmetric_protocol(name: str):
+    """symmetric and exposure: strict success, plus the best of the k symmetric poses."""
+
+    def protocol(quick: bool, seed: int, out: Path, peers: list[str] | None = None) -> list[dict]:
+        pairs = globals()[f"{name}_pairs"](quick, seed)
+        rows = evaluate(
+            name, pairs, default_runners(seed, peers, quick), symmetric_fields, out=out, judge=symmetric_judge
+        )
+        save_rows(out, name, rows)
+        return rows
+
+    protocol.__name__ = f"protocol_{name}"
+    return protocol
+
+
+protocol_symmetric = _symmetric_protocol("symmetric")
+protocol_exposure = _symmetric_protocol("exposure")
 
 
 def protocol_ablation(quick: bool, seed: int, out: Path, peers: list[str] | None = None) -> list[dict]:
@@ -319,6 +331,7 @@ PROTOCOLS = {
     "noisy": protocol_noisy,
     "symmetric": protocol_symmetric,
     "deform": protocol_deform,
+    "exposure": protocol_exposure,
     "scene": protocol_scene,
 }
 

@@ -9,6 +9,8 @@ from gsa.synth.variants import (
     cut_by_plane,
     deform,
     make_symmetric_object,
+    random_exposure,
+    shift_exposure,
     symmetric_spec,
     symmetry_rotations,
 )
@@ -24,8 +26,10 @@ __all__ = [
     "make_scene",
     "make_symmetric_object",
     "paper_perturbation",
+    "random_exposure",
     "random_sim3",
     "scene_captures",
+    "shift_exposure",
     "symmetric_spec",
     "symmetry_rotations",
 ]

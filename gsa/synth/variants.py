@@ -6,6 +6,8 @@ add_floaters           faint, brightly coloured floaters around the object
 make_symmetric_object  k-fold rotationally symmetric geometry (k = 4..8) whose
                        colours break the symmetry on one sector
 deform                 a cross-instance proxy: stretch, taper and bend
+shift_exposure         the colours another camera or day would record: an exposure
+                       and white-balance gain per channel in linear RGB
 
 Everything is deterministic given the numpy Generator (or seed) passed in.
 """
@@ -16,8 +18,9 @@ import colorsys
 
 import numpy as np
 
+from gsa.colour import linear_to_srgb, srgb_to_linear
 from gsa.geometry import axis_rotation, normalize_quats
-from gsa.model import GaussianModel, merge_models
+from gsa.model import SH_C0, GaussianModel, merge_models
 from gsa.synth.objects import _quats_from_normals
 from gsa.synth.shapes import Cylinder, Primitive, RegularPrism, Torus, _frame
 
@@ -347,4 +350,29 @@ def deform(
         "bend": float(bend),
         "bend_direction": b.tolist(),
     }
+    return out
+
+
+def random_exposure(rng: np.random.Generator, stops: float = 1.0, white_balance: float = 0.2) -> np.ndarray:
+    """Per-channel linear-RGB gains of another capture: an exposure change of up to
+    ±`stops` and a white-balance tilt of up to ±`white_balance` (log gain) per channel."""
+    return 2.0 ** rng.uniform(-stops, stops) * np.exp(rng.uniform(-white_balance, white_balance, 3))
+
+
+def shift_exposure(model: GaussianModel, gain) -> GaussianModel:
+    """The model as a camera with other exposure and white balance would record it:
+    base colours (SH DC, taken as sRGB) multiplied by `gain` per channel in linear RGB
+    and clipped at white, as a sensor saturates; the view-dependent SH bands scaled by
+    each Gaussian's DC ratio per channel. metadata gains `exposure_gain`."""
+    gain = np.broadcast_to(np.asarray(gain, np.float64), (3,))
+    if not np.all(gain > 0):
+        raise ValueError("exposure gains must be positive")
+    old = model.base_colors.astype(np.float64)
+    new = linear_to_srgb(srgb_to_linear(old) * gain)
+    out = model.subset(np.arange(len(model)))
+    out.sh[:, 0, :] = (new - 0.5) / SH_C0
+    if out.sh.shape[1] > 1:
+        ratio = np.where(old > 1e-3, new / np.maximum(old, 1e-3), 1.0)
+        out.sh[:, 1:, :] *= ratio[:, None, :].astype(out.sh.dtype)
+    out.metadata["exposure_gain"] = gain.tolist()
     return out

@@ -36,6 +36,7 @@ from gsa.align.robust.anchoring import (
     anchors,
     colour_weight,
     floater_mask,
+    match_exposure,
     srgb_to_lab,
 )
 from gsa.align.robust.poses import (
@@ -48,6 +49,7 @@ from gsa.align.robust.poses import (
     Candidate,
     SearchResult,
     bidirectional_icp,
+    colour_noise,
     decide,
     rotation_offset_deg,
     score_pose,
@@ -87,10 +89,12 @@ __all__ = [
     "TRUNCATION",
     "anchors",
     "bidirectional_icp",
+    "colour_noise",
     "colour_weight",
     "decide",
     "floater_mask",
     "frame_relabellings",
+    "match_exposure",
     "global_search",
     "overlap_fraction",
     "overlap_trim",

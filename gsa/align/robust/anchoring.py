@@ -4,17 +4,27 @@ how far two models' palettes agree."""
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numba
 import numpy as np
 from scipy import ndimage
 from scipy.spatial import cKDTree
 
+from gsa.colour import linear_to_lab, srgb_to_lab, srgb_to_linear
 from gsa.model import GaussianModel
 
 # A colour of one model is "shared" when the other has one within this ΔE.
 SHARED_DELTA_E = 8.0
+# match_exposure: gains between two captures of one object stay within this factor per
+# channel (two stops of exposure), their white balance within MAX_WHITE_BALANCE
+# (channel gains' max/min), and are used only if they bring the palettes this much closer
+# (mean nearest-colour ΔE). EXPOSURE_STEPS refinement steps on EXPOSURE_SAMPLE anchors converge to ~1 %.
+MAX_EXPOSURE_GAIN = 4.0
+MAX_WHITE_BALANCE = 1.8
+EXPOSURE_CLOSER = 0.25
+EXPOSURE_STEPS = 8
+EXPOSURE_SAMPLE = 512
 
 
 @dataclass
@@ -28,21 +38,11 @@ class Anchors:
     radius: float  # weighted RMS distance from the centroid
     kept: np.ndarray  # (N,) bool: Gaussians that are not floaters
     tree: cKDTree = field(repr=False)
+    rgb: np.ndarray | None = field(default=None, repr=False)  # (A, 3) mean sRGB, before any correction
+    colour_gain: tuple[float, float, float] = (1.0, 1.0, 1.0)  # linear-RGB gains applied to `lab` (match_exposure)
 
     def __len__(self) -> int:
         return len(self.points)
-
-
-def srgb_to_lab(rgb: np.ndarray) -> np.ndarray:
-    """sRGB in [0, 1] -> CIELAB (D65): distances approximate perceived differences."""
-    c = np.clip(np.asarray(rgb, np.float64), 0.0, 1.0)
-    lin = np.where(c <= 0.04045, c / 12.92, ((c + 0.055) / 1.055) ** 2.4)
-    m = np.array(
-        [[0.4124564, 0.3575761, 0.1804375], [0.2126729, 0.7151522, 0.0721750], [0.0193339, 0.1191920, 0.9503041]]
-    )
-    xyz = lin @ m.T / np.array([0.95047, 1.0, 1.08883])
-    f = np.where(xyz > (6 / 29) ** 3, np.cbrt(xyz), xyz / (3 * (6 / 29) ** 2) + 4 / 29)
-    return np.stack([116 * f[:, 1] - 16, 500 * (f[:, 0] - f[:, 1]), 200 * (f[:, 1] - f[:, 2])], axis=1)
 
 
 def floater_mask(model: GaussianModel) -> np.ndarray:
@@ -97,7 +97,7 @@ def anchors(model: GaussianModel, count: int = 2000, seed: int = 0) -> Anchors:
     radius = float(np.sqrt(w @ np.sum((points - center) ** 2, axis=1)))
     if not radius > 0:
         raise ValueError("all Gaussians coincide; the model has no extent to align")
-    return Anchors(points, srgb_to_lab(colours), weights, center, radius, full_kept, cKDTree(points))
+    return Anchors(points, srgb_to_lab(colours), weights, center, radius, full_kept, cKDTree(points), colours)
 
 
 def _voxelise(x: np.ndarray, lo: np.ndarray, voxel: float):
@@ -143,12 +143,89 @@ def colour_weight(src: Anchors, dst: Anchors) -> float:
     tells a symmetric object's sides apart; two different instances (another paint)
     do not, and then only geometry counts. Fraction of each model's anchors with a
     colour the other also has, both ways, mapped from [0.5, 0.9] to [0, 1]."""
-    d1, _ = cKDTree(dst.lab).query(src.lab, k=1)
-    d2, _ = cKDTree(src.lab).query(dst.lab, k=1)
-    shared = 0.5 * (
-        np.average(d1 <= SHARED_DELTA_E, weights=src.weights) + np.average(d2 <= SHARED_DELTA_E, weights=dst.weights)
-    )
-    return float(np.clip((shared - 0.5) / 0.4, 0.0, 1.0))
+    return float(np.clip((_shared_fraction(src.lab, src.weights, dst.lab, dst.weights) - 0.5) / 0.4, 0.0, 1.0))
+
+
+def _shared_fraction(lab_a: np.ndarray, w_a: np.ndarray, lab_b: np.ndarray, w_b: np.ndarray) -> float:
+    d1, _ = cKDTree(lab_b).query(lab_a, k=1)
+    d2, _ = cKDTree(lab_a).query(lab_b, k=1)
+    return float(0.5 * (np.average(d1 <= SHARED_DELTA_E, weights=w_a) + np.average(d2 <= SHARED_DELTA_E, weights=w_b)))
+
+
+def match_exposure(src: Anchors, dst: Anchors) -> Anchors:
+    """The source anchors with their colours corrected for an exposure or white-balance
+    change between the two captures (another day, camera or auto-exposure): per-channel
+    gains in linear RGB, the physical model of both, found from the palettes alone (no
+    pose). Starts: no gain, the ratios of the two palettes' quantiles per channel and in
+    luminance; each is refined by matching every colour to its nearest in the other
+    palette. The gains are kept only if they bring the palettes markedly closer
+    (EXPOSURE_CLOSER) without sharing less of them, stay within MAX_EXPOSURE_GAIN and
+    leave a plausible white balance, so two differently painted instances keep their
+    own colours."""
+    if src.rgb is None or dst.rgb is None:
+        return src
+    lin_s, lin_d = srgb_to_linear(src.rgb), srgb_to_linear(dst.rgb)
+    # Anchors' colours cluster (a few paints), and a k-d tree over thousands of near-duplicates
+    # is slow to query: the target palette is kept to one colour per 0.5 ΔE cell.
+    _, distinct = np.unique(np.round(dst.lab * 2.0), axis=0, return_index=True)
+    dst_tree = cKDTree(dst.lab[distinct])
+    lin_d = lin_d[distinct]
+    src_w, dst_w = src.weights, dst.weights
+
+    def judge(lab_s: np.ndarray) -> tuple[float, float]:
+        """(truncated mean nearest-colour ΔE both ways, shared fraction)."""
+        d1, _ = dst_tree.query(lab_s, k=1)
+        d2, _ = cKDTree(np.unique(np.round(lab_s * 2.0), axis=0) / 2.0).query(dst.lab, k=1)
+        cap = 2 * SHARED_DELTA_E
+        distance = 0.5 * (
+            np.average(np.minimum(d1, cap), weights=src_w) + np.average(np.minimum(d2, cap), weights=dst_w)
+        )
+        shared = 0.5 * (
+            np.average(d1 <= SHARED_DELTA_E, weights=src_w) + np.average(d2 <= SHARED_DELTA_E, weights=dst_w)
+        )
+        return float(distance), float(shared)
+
+    base_distance, base_shared = judge(src.lab)
+    q = np.array([0.25, 0.5, 0.75, 0.9])
+    qs = np.stack([_weighted_quantiles(lin_s[:, c], src_w, q) for c in range(3)], 1)
+    qd = np.stack([_weighted_quantiles(lin_d[:, c], dst_w, q) for c in range(3)], 1)
+    ratio = np.median(qd / np.maximum(qs, 1e-4), axis=0)
+    lum = np.array([0.2126, 0.7152, 0.0722])
+    grey = float(np.median((qd @ lum) / np.maximum(qs @ lum, 1e-4)))
+    best_gain, best_distance = None, (1.0 - EXPOSURE_CLOSER) * base_distance
+    rows = _sample(np.random.default_rng(0), len(src), EXPOSURE_SAMPLE)  # the gains' fit needs few colours
+    for start in (np.ones(3), ratio, np.full(3, grey)):
+        gain = np.clip(start, 1 / MAX_EXPOSURE_GAIN, MAX_EXPOSURE_GAIN)
+        for _ in range(EXPOSURE_STEPS):
+            step = _refine_gain(lin_s[rows] * gain, lin_d, src_w[rows], dst_tree)
+            gain = np.clip(step * gain, 1 / MAX_EXPOSURE_GAIN, MAX_EXPOSURE_GAIN)
+            if np.max(np.abs(np.log(step))) < 1e-3:
+                break
+        if gain.max() / gain.min() > MAX_WHITE_BALANCE:
+            continue
+        distance, shared = judge(linear_to_lab(lin_s * gain))
+        if distance < best_distance and shared >= base_shared:
+            best_gain, best_distance = gain, distance
+    if best_gain is None:
+        return src
+    return replace(src, lab=linear_to_lab(lin_s * best_gain), colour_gain=tuple(float(g) for g in best_gain))
+
+
+def _refine_gain(lin_s: np.ndarray, lin_d: np.ndarray, w_s: np.ndarray, dst_tree: cKDTree) -> np.ndarray:
+    """One step: each source colour's nearest target colour (CIELAB), pairs within
+    2·SHARED_DELTA_E, gain per channel = Σ w·target / Σ w·source over them."""
+    d, j = dst_tree.query(linear_to_lab(lin_s), k=1)
+    near = d <= 2 * SHARED_DELTA_E
+    if near.sum() < 8:
+        return np.ones(3)
+    w = w_s[near, None]
+    return np.sum(w * lin_d[j[near]], 0) / np.maximum(np.sum(w * lin_s[near], 0), 1e-9)
+
+
+def _weighted_quantiles(x: np.ndarray, w: np.ndarray, q: np.ndarray) -> np.ndarray:
+    order = np.argsort(x)
+    cum = np.cumsum(w[order])
+    return x[order][np.minimum(np.searchsorted(cum, q * cum[-1]), len(x) - 1)]
 
 
 @numba.njit(cache=True, inline="always")

@@ -28,6 +28,18 @@ COLOUR_MATCH = 0.5
 SCORE_TIE = 0.03
 # Rotations closer than this are one pose, not alternatives.
 DISTINCT_DEG = 15.0
+# The colour check (colour_mismatch), where the models share a palette (colour weight at
+# least COLOUR_TRUSTED): a pose whose overlapping pairs disagree in colour more than
+# COLOUR_MISMATCH_LIMIT times the models' own neighbour-to-neighbour colour noise (floored
+# at COLOUR_NOISE_FLOOR) pairs unlike parts. Measured (docs/benchmarks.md): 0.3-1.3 at right
+# poses of every protocol, 2.3-2.5 at the partial airplanes' 180° flips (verdict). decide()
+# prefers a pose to one scoring at most COLOUR_SWITCH_WINDOW more whose mismatch is beyond the
+# noise and COLOUR_SWITCH_RATIO times its own.
+COLOUR_TRUSTED = 0.5
+COLOUR_MISMATCH_LIMIT = 2.0
+COLOUR_NOISE_FLOOR = 0.02
+COLOUR_SWITCH_WINDOW = 2 * SCORE_TIE
+COLOUR_SWITCH_RATIO = 2.0
 
 
 @dataclass
@@ -64,6 +76,7 @@ class SearchResult:
     colour_weight: float  # how far colour counted in the scores (0: not shared by the models)
     margin: float  # lead over the best distinct alternative, in units of SCORE_TIE
     rivals: list[Candidate]  # the poses tied with the best
+    colour_noise: float | None = None  # the models' own colour noise (colour_noise), when colour was checked
 
     @property
     def best(self) -> Candidate:
@@ -183,6 +196,18 @@ def score_pose(src: Anchors, dst: Anchors, transform: Sim3, origin: str = "", w_
     return Candidate(transform, origin, score, geometry, colour, overlap)
 
 
+def colour_noise(a: Anchors) -> float:
+    """1 − the colour agreement (as in score_pose) of each anchor with its nearest
+    neighbour in its own model: how much one capture's colour varies between
+    neighbouring samples of its surface. Two captures of one object, aligned, disagree
+    about as much; a wrong pose pairs different parts and disagrees more (verdict)."""
+    if len(a) < 2:
+        return 0.0
+    _, j = a.tree.query(a.points, k=2)
+    de2 = np.sum((a.lab - a.lab[j[:, 1]]) ** 2, axis=1)
+    return float(1.0 - np.average(np.exp(-0.5 * de2 / COLOUR_SIGMA**2), weights=a.weights))
+
+
 def _dedupe(cands: list[Candidate]) -> list[Candidate]:
     """Several starts converge to one pose: keep the best-scoring copy of each."""
     cands = sorted(cands, key=lambda c: -c.score)
@@ -197,9 +222,36 @@ def _dedupe(cands: list[Candidate]) -> list[Candidate]:
     return out
 
 
-def decide(cands: list[Candidate], w_colour: float) -> SearchResult:
-    """The best score wins; a distinct pose within SCORE_TIE of it makes the result ambiguous."""
-    best = cands[0]
-    rivals = [c for c in cands[1:] if c.score >= best.score - SCORE_TIE]
-    margin = (best.score - cands[1].score) / SCORE_TIE if len(cands) > 1 else float("inf")
-    return SearchResult(cands, w_colour, float(margin), rivals)
+def colour_mismatch(c: Candidate, noise: float) -> float:
+    """How many times the models' own colour noise (colour_noise) the pose's overlapping
+    pairs disagree in colour: about 1 or less for captures of one object aligned."""
+    return (1.0 - c.colour) / max(noise, COLOUR_NOISE_FLOOR)
+
+
+def decide(cands: list[Candidate], w_colour: float, noise: float | None = None) -> SearchResult:
+    """The best score wins; a distinct pose within SCORE_TIE of it makes the result ambiguous.
+
+    With a shared palette and the models' colour noise, colour also vetoes: a pose whose
+    pairs disagree beyond the noise, COLOUR_SWITCH_RATIO times more than another pose
+    within COLOUR_SWITCH_WINDOW of its score, yields to that pose, and such contradicted
+    poses are no rivals. A partial capture's flip can overlap the other capture better
+    than the truth does, but one object does not disagree with itself."""
+    if noise is not None and w_colour >= COLOUR_TRUSTED and len(cands) > 1:
+        near = [c for c in cands if c.score >= cands[0].score - COLOUR_SWITCH_WINDOW]
+        cleanest = min(near, key=lambda c: colour_mismatch(c, noise))
+        if _contradicted(cands[0], cleanest, noise):
+            cands = [cleanest] + [c for c in cands if c is not cleanest]
+        best = cands[0]
+        others = [c for c in cands[1:] if not _contradicted(c, best, noise)]
+    else:
+        best, others = cands[0], cands[1:]
+    rivals = [c for c in others if c.score >= best.score - SCORE_TIE]
+    margin = (best.score - max(c.score for c in others)) / SCORE_TIE if others else float("inf")
+    return SearchResult(cands, w_colour, float(margin), rivals, noise)
+
+
+def _contradicted(pose: Candidate, reference: Candidate, noise: float) -> bool:
+    """Whether `pose` disagrees in colour beyond the noise and COLOUR_SWITCH_RATIO times
+    more than `reference`."""
+    m = colour_mismatch(pose, noise)
+    return m > 1.0 and m >= COLOUR_SWITCH_RATIO * colour_mismatch(reference, noise)

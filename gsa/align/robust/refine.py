@@ -7,9 +7,15 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from gsa.align.nearest import nearest_candidate
-from gsa.align.robust.poses import Candidate, SearchResult
+from gsa.align.robust.poses import (
+    COLOUR_MISMATCH_LIMIT,
+    COLOUR_TRUSTED,
+    Candidate,
+    SearchResult,
+    colour_mismatch,
+)
 from gsa.canonical import SIGNED_PERMUTATIONS, CanonicalFrame, relabelling_label
-from gsa.geometry import rotation_distance_deg
+from gsa.geometry import axis_rotation, rotation_distance_deg
 from gsa.sim3 import DegenerateCorrespondencesError, Sim3, solve_sim3
 
 # Overlap estimation in the final refinement (see overlap_trim): Chetverikov et al. use
@@ -27,6 +33,9 @@ WHOLE_OVERLAP = 0.875  # between the estimate's grid values 0.85 and 0.9
 COINCIDENT_SPACINGS = 2.0
 COINCIDENT_SHARE = 0.5
 
+
+# Point-to-plane polish steps after the point-to-point fit converged (refine).
+PLANE_ITERATIONS = 8
 
 # A result is reported doubtful below this confidence.
 CONFIDENCE_THRESHOLD = 0.5
@@ -51,6 +60,14 @@ def verdict(final: Candidate, search: SearchResult | None) -> dict:
     confidence = min(fit, separation)
     if ambiguous:
         confidence = min(confidence, 0.25)
+    # Colour contradiction: where the models share a palette, aligned captures of one
+    # object disagree in colour about as much as neighbouring samples of one capture
+    # (colour_noise); a pose that pairs unlike parts (a flip that overlaps well) does not.
+    mismatch = None
+    if search is not None and search.colour_noise is not None and search.colour_weight >= COLOUR_TRUSTED:
+        mismatch = colour_mismatch(final, search.colour_noise)
+        if mismatch > COLOUR_MISMATCH_LIMIT:
+            confidence = min(confidence, 0.25)
     out = {
         "confidence": confidence,
         "ambiguous": ambiguous,
@@ -60,6 +77,7 @@ def verdict(final: Candidate, search: SearchResult | None) -> dict:
         "overlap_score": final.geometry,
         "overlap_fraction": final.overlap,
         "colour_agreement": final.colour,
+        "colour_mismatch": mismatch,
     }
     if search is not None:
         out["colour_weight"] = search.colour_weight
@@ -83,6 +101,7 @@ def refine(
     init: Sim3,
     iterations: int = 40,
     neighbours: int = 6,
+    target_normals: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None = None,
 ) -> tuple[Sim3, list[dict]]:
     """Full-resolution trimmed ICP on correspondences from both directions.
 
@@ -95,7 +114,13 @@ def refine(
 
     Where the converged pose shows two models that coincide nowhere (see
     `coincide`: another instance, a deformed copy), the fit goes on with every
-    pair, so that it averages the difference instead of locking onto one part."""
+    pair, so that it averages the difference instead of locking onto one part.
+
+    target_normals: (normals, flatness) of the target tree's points and of
+    `target_points` (Gaussian.surface_normals). With them, a converged fit of two captures
+    of one surface is polished point-to-plane: two independent samplings of a surface
+    never share points, and point-to-point pairs between them carry the sampling's
+    offsets, which a pair's distance along the normal does not."""
     fit = _Fit(source_points, target_points, source_tree, target_tree, neighbours)
     transform, history = fit.run(init, iterations, overlap_fraction)
     if fit.differ_everywhere(transform):
@@ -103,6 +128,9 @@ def refine(
         transform, more = fit.run(transform, iterations, lambda d: 1.0, start=len(history))
         for step in more:
             step["stage"] = "refine-all-pairs"
+        history += more
+    elif target_normals is not None:
+        transform, more = fit.polish(transform, target_normals, PLANE_ITERATIONS, start=len(history))
         history += more
     return transform, history
 
@@ -164,13 +192,54 @@ class _Fit:
                     break
         return transform, history
 
-    def _pairs(self, transform: Sim3, tab_f: np.ndarray, tab_r: np.ndarray):
+    def polish(self, transform: Sim3, normals, iterations: int, start: int = 0) -> tuple[Sim3, list[dict]]:
+        """Point-to-plane Gauss-Newton steps on the trimmed pairs (overlap estimate held),
+        each pair along its target Gaussian's normal weighted by its flatness; a step
+        that does not lower the trimmed plane residual ends the polish."""
+        n_all, flat_all, n_q, flat_q = normals
+        k_f, k_s = min(self.neighbours, len(self.dst_all)), min(self.neighbours, len(self.src_all))
+        _, tab_f = self.dst_tree.query(transform.apply(self.p), k=k_f, workers=_workers(len(self.p)))
+        _, tab_r = self.src_tree.query(transform.inverse().apply(self.q), k=k_s, workers=_workers(len(self.q)))
+        tab_f = np.ascontiguousarray(tab_f.reshape(len(self.p), -1), np.int64)
+        tab_r = np.ascontiguousarray(tab_r.reshape(len(self.q), -1), np.int64)
+        history: list[dict] = []
+        fraction = None
+        for it in range(iterations):
+            d, a, b, j = self._pairs(transform, tab_f, tab_r, with_rows=True)
+            if fraction is None:
+                fraction = overlap_fraction(d)
+            keep = _smallest(d, fraction)
+            n = np.concatenate([n_all[j], n_q])[keep]
+            w = np.concatenate([flat_all[j], flat_q])[keep]
+            x = transform.apply(a[keep])
+            r = np.einsum("ij,ij->i", n, x - b[keep])
+            cost = float(np.sqrt(np.average(r**2, weights=w))) if w.sum() > 0 else np.inf
+            step = _plane_step(x, b[keep], n, w)
+            if step is None:
+                return transform, history
+            transform = step @ transform
+            angle = rotation_distance_deg(step.rotation, np.eye(3))
+            history.append(
+                {
+                    "stage": "refine-plane",
+                    "iteration": start + it + 1,
+                    "matched": int(keep.sum()),
+                    "rms_residual": cost,
+                    "delta_rotation_deg": angle,
+                    "scale": transform.scale,
+                }
+            )
+            if angle < 1e-4 and abs(np.log(step.scale)) < 1e-6:
+                break
+        return transform, history
+
+    def _pairs(self, transform: Sim3, tab_f: np.ndarray, tab_r: np.ndarray, with_rows: bool = False):
         d_f, j = nearest_candidate(np.ascontiguousarray(transform.apply(self.p)), self.dst_all, tab_f)
         d_r, i = nearest_candidate(np.ascontiguousarray(transform.inverse().apply(self.q)), self.src_all, tab_r)
         d = np.concatenate([d_f, d_r * transform.scale])
         a = np.concatenate([self.p, self.src_all[i]])
         b = np.concatenate([self.dst_all[j], self.q])
-        return d, a, b
+        return (d, a, b, j) if with_rows else (d, a, b)
 
     def differ_everywhere(self, transform: Sim3) -> bool:
         """Whether, at this pose, the overlap estimate keeps (nearly) every pair yet most
@@ -187,6 +256,29 @@ class _Fit:
             return False
         kept = np.sort(d)[: max(int(fraction * len(d)), 3)]
         return bool(np.mean(kept < COINCIDENT_SPACINGS * spacing) < COINCIDENT_SHARE)
+
+
+def _plane_step(x: np.ndarray, y: np.ndarray, n: np.ndarray, w: np.ndarray) -> Sim3 | None:
+    """The small Sim(3) S (rotation ω, translation τ, log-scale σ about the pairs' centroid)
+    minimising Σ w (n·(S(x) − y))², linearised: one Gauss-Newton step of point-to-plane
+    alignment. None where the normals leave a direction undetermined (a single plane)."""
+    if w.sum() <= 0:
+        return None
+    c = np.average(x, axis=0, weights=w)
+    u = x - c
+    jac = np.hstack([np.cross(u, n), n, np.einsum("ij,ij->i", n, u)[:, None]])
+    r = np.einsum("ij,ij->i", n, x - y)
+    a = (jac * w[:, None]).T @ jac
+    g = (jac * w[:, None]).T @ r
+    eig = np.linalg.eigvalsh(a)
+    if eig[0] <= 1e-9 * eig[-1]:
+        return None
+    delta = -np.linalg.solve(a, g)
+    omega, tau, sigma = delta[:3], delta[3:6], delta[6]
+    angle = float(np.linalg.norm(omega))
+    rot = axis_rotation(omega / angle, angle) if angle > 0 else np.eye(3)
+    s = float(np.exp(sigma))
+    return Sim3(s, rot, c + tau - s * rot @ c)
 
 
 def sampling_spacing(points: np.ndarray, probes: int = 2000) -> float:

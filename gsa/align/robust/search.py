@@ -20,6 +20,7 @@ from gsa.align.robust.poses import (
     SearchResult,
     _dedupe,
     bidirectional_icp,
+    colour_noise,
     decide,
     score_pose,
 )
@@ -81,6 +82,7 @@ def global_search(
     src_grid = NearestGrid(src.points, 0.5 * tau / scale0, src.radius)
 
     w_colour = colour_weight(src, dst)
+    noise = 0.5 * (colour_noise(src) + colour_noise(dst))
     scorer = _GridScorer(src, dst, dst_grid, src_grid, rng, opts.score_points, tau, w_colour)
     # Centres and RMS radii are only a first guess: a capture that missed a side has
     # its centroid moved by up to a radius and its radius off by up to ~40 %.
@@ -105,7 +107,7 @@ def global_search(
         (origins[i], Sim3(float(scale[i]), rotations[i], t[i] - scale[i] * rotations[i] @ src.center)) for i in chosen
     ]
     refined = _refine_starts(src, dst, starts, w_colour, rng, opts)
-    result = decide(_dedupe(refined), w_colour)
+    result = decide(_dedupe(refined), w_colour, noise)
     if widen_if is None or not widen_if(result):
         return result
     # Placed starts begin up to ~20° off and look poor after a few iterations (a partial
@@ -131,7 +133,7 @@ def global_search(
             src, dst, init, src_rows, dst_rows, opts.early_iterations + opts.refine_iterations, w_colour
         )
         refined.append(score_pose(src, dst, transform, "placed", w_colour))
-    return decide(_dedupe(refined), w_colour)
+    return decide(_dedupe(refined), w_colour, noise)
 
 
 def _try_offsets(
