@@ -90,6 +90,13 @@ class Metrics(_Open):
     overlap_fraction: float | None = None
     colour_agreement: float | None = None
     colour_weight: float | None = None
+    colour_gain: list[float] | None = Field(
+        None, description="linear-RGB gains that put the source's colours in the target's exposure and white balance"
+    )
+    colour_mismatch: float | None = Field(
+        None,
+        description="colour disagreement of the overlapping pairs over the models' own colour noise; > 2: doubtful",
+    )
     inlier_fraction: float | None = None
     inlier_fraction_forward: float | None = None
     inlier_fraction_reverse: float | None = None
