@@ -31,6 +31,9 @@ objects:
   furniture that breaks the shell's symmetries is what the search must see;
 - no canonical-frame relabellings: a room's principal axes carry no meaning for another
   partial capture of it;
+- a translation sweep after the search (`translation_sweep`): the best rotations slide
+  over the whole target, since partial captures' centroids lie far apart and planes let
+  a pose slide;
 - colours compared under one exposure (`normalise_exposure`): two captures taken apart
   differ in exposure and white balance, and the object path's colour trust would drop
   to zero, leaving geometry alone to tell a room's mirror-like halves apart;
@@ -80,6 +83,15 @@ VOXEL_PROBE = 200_000
 # The scene path.
 SCENE_ANCHORS = 6000
 REFINE_CLOUD = 400_000
+# translation_sweep: rotations swept, lattice step and score truncation (fractions of the
+# target's anchor radius; the step below the truncation so no offset falls between),
+# source anchors scored, offsets refined per rotation, their ICP iterations.
+SWEEP_TOP = 3
+SWEEP_STEP = 0.15
+SWEEP_TRUNCATION = 0.3
+SWEEP_POINTS = 128
+SWEEP_KEEP = 2
+SWEEP_ICP = 60
 
 
 @dataclass
@@ -453,6 +465,7 @@ def align_scene(
         robust.SearchOptions(rotations=opts.search_rotations, seed=opts.seed),
         widen_if=lambda first: robust.verdict(first.best, first)["doubtful"],
     )
+    search = translation_sweep(src_n, dst_n, search, opts.seed)
     timings["hypotheses"] = time.perf_counter() - t
     _report(progress, "hypotheses", 1.0)
     scored = [c.to_dict(search.best.transform) | {"chosen": c is search.best} for c in search.candidates]
@@ -498,6 +511,72 @@ def align_scene(
         timings=timings,
         hypotheses=scored,
     )
+
+
+def translation_sweep(
+    src: robust.Anchors, dst: robust.Anchors, search: robust.SearchResult, seed: int = 0
+) -> robust.SearchResult:
+    """The search's best distinct rotations, each slid over a lattice of translations
+    covering the target, then refined; the best of all poses wins.
+
+    The object search places a rotation by centres and radii and corrects it within
+    about half a radius; two captures of a room overlapping in 50-80 % have centroids a
+    good part of the room apart, and their planes (floor, walls) let a pose slide along
+    them: the right rotation then ends a metre or two off, scoring low in colour. Here
+    the source's mapped centre runs over the target's box grown by half its radius, in
+    steps of SWEEP_STEP radii; each offset is scored one way (source anchors onto the
+    target's nearest-anchor grid, truncated at SWEEP_TRUNCATION radii, with the colour
+    term of robust's score), and the SWEEP_KEEP best distinct offsets per rotation run
+    the anchor ICP and robust's score like the search's own candidates."""
+    rng = np.random.default_rng(seed)
+    w_colour = search.colour_weight
+    tau = SWEEP_TRUNCATION * dst.radius
+    grid = robust.NearestGrid(dst.points, 0.25 * tau, tau)
+    rows = _rows(rng, len(src), SWEEP_POINTS)
+    p, p_lab = src.points[rows] - src.center, src.lab[rows]
+    step = SWEEP_STEP * dst.radius
+    lo, hi = dst.points.min(0) - 0.5 * dst.radius, dst.points.max(0) + 0.5 * dst.radius
+    axes = [np.arange(a, b + step, step) for a, b in zip(lo, hi)]
+    centres = np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3)
+    src_rows, dst_rows = _rows(rng, len(src), 800), _rows(rng, len(dst), 800)
+    found = list(search.candidates)
+    for cand in search.candidates[:SWEEP_TOP]:
+        u = cand.transform.scale * p @ cand.transform.rotation.T
+        score = np.empty(len(centres))
+        for a in range(0, len(centres), 1024):
+            c = centres[a : a + 1024]
+            idx, d = grid.lookup(c[:, None, :] + u[None])
+            closeness = np.where(idx >= 0, 1.0 - np.minimum(d, tau) / tau, 0.0)
+            if w_colour > 0:
+                de2 = np.sum((p_lab[None] - dst.lab[np.maximum(idx, 0)]) ** 2, axis=-1)
+                closeness *= 1.0 - 2.0 * w_colour * (1.0 - np.exp(-0.5 * de2 / robust.COLOUR_SIGMA**2))
+            score[a : a + 1024] = closeness.mean(axis=1)
+        kept: list[np.ndarray] = []
+        for k in np.argsort(-score):
+            if len(kept) == SWEEP_KEEP:
+                break
+            if all(np.linalg.norm(centres[k] - o) > 3 * step for o in kept):
+                kept.append(centres[k])
+        for centre in kept:
+            r, sc = cand.transform.rotation, cand.transform.scale
+            init = Sim3(sc, r, centre - sc * r @ src.center)
+            pose = robust.bidirectional_icp(src, dst, init, src_rows, dst_rows, SWEEP_ICP, w_colour)
+            found.append(robust.score_pose(src, dst, pose, "sweep", w_colour))
+    return robust.decide(_distinct_poses(found), w_colour)
+
+
+def _distinct_poses(cands: list) -> list:
+    """Best first, one per pose (rotation within robust.DISTINCT_DEG and scale within
+    20 %: robust's rule, under which a slid copy of a pose is that pose)."""
+    out: list = []
+    for c in sorted(cands, key=lambda c: -c.score):
+        if all(
+            robust.rotation_offset_deg(c.transform, o.transform) > robust.DISTINCT_DEG
+            or abs(np.log(c.transform.scale / o.transform.scale)) > 0.2
+            for o in out
+        ):
+            out.append(c)
+    return out
 
 
 def _report(progress: Progress | None, stage: str, fraction: float) -> None:
