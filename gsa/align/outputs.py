@@ -10,11 +10,14 @@ import os
 import tempfile
 from pathlib import Path
 
+import numpy as np
+
 from gsa.align.contract import transform_contract
 from gsa.align.pipeline import AlignmentResult
 from gsa.io.formats import EXTENSIONS, write_model
-from gsa.merge import merge
-from gsa.model import GaussianModel
+from gsa.io.ply import write_ply
+from gsa.merge import merge_plan
+from gsa.model import GaussianModel, merge_models
 from gsa.sim3 import Sim3
 
 OUTPUTS = ("result", "aligned", "merged", "renders", "preview")
@@ -70,9 +73,15 @@ def write_outputs(
     if "aligned" in outputs:
         paths[f"aligned{ext}"] = write_model(aligned, out / f"aligned{ext}", model_format)
     if "merged" in outputs:
-        merged, removed = merge(aligned, target, merge_mode)
-        merge_report = {"mode": merge_mode, "removed": removed, "gaussians": len(merged)}
-        paths[f"merged{ext}"] = write_model(merged, out / f"merged{ext}", model_format)
+        keep, removed = merge_plan(aligned, target, merge_mode)
+        count = sum(len(m) if k is None else int(np.count_nonzero(k)) for m, k in zip((aligned, target), keep))
+        merge_report = {"mode": merge_mode, "removed": removed, "gaussians": count}
+        if model_format == "ply":
+            # Written from its parts, chunk by chunk: a scene-size merged model is never held whole.
+            paths[f"merged{ext}"] = write_ply((aligned, target), out / f"merged{ext}", keep=keep)
+        else:
+            merged = merge_models(aligned, target, keep=keep)
+            paths[f"merged{ext}"] = write_model(merged, out / f"merged{ext}", model_format)
     if "renders" in outputs:
         from gsa.render.views import write_alignment_renders  # lazy: loads torch, only renders need it
 
