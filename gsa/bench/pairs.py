@@ -134,6 +134,14 @@ def noisy_pairs(quick: bool, seed: int) -> list[Pair]:
     return _variant_pairs(quick, seed, 92, 500, lambda m, rng, side: add_floaters(m, rng, fraction=0.2))
 
 
+def opaque_pairs(quick: bool, seed: int) -> list[Pair]:
+    """Each model with 10 % floaters as opaque as its surface (0.7–0.99): an unpruned
+    capture whose floaters no opacity threshold removes."""
+    return _variant_pairs(
+        quick, seed, 95, 550, lambda m, rng, side: add_floaters(m, rng, fraction=0.1, opacity=(0.7, 0.99))
+    )
+
+
 def deform_pairs(quick: bool, seed: int) -> list[Pair]:
     """Source: the instance; target: a deformed sampling of it (stretch, taper, bend)."""
     return _variant_pairs(quick, seed, 93, 600, lambda m, rng, side: deform(m, rng) if side == "target" else m)

@@ -18,6 +18,7 @@ Robustness (real captures; gsa.synth.variants). Each: 30 pairs, 20k/30k Gaussian
 target moved by a random Sim(3) (≤180° per axis, 0.1–10× scale):
 partial   each model cut by its own random plane, 60–80 % of it kept
 noisy     each model with 20 % bright, faint floaters around it
+opaque    each model with 10 % floaters as opaque as its surface (no opacity cut removes them)
 symmetric 4- to 8-fold symmetric objects (prism, wheel, bottle) whose colour
           marks one sector; strict success against the true pose, plus
           `rre_any_symmetric_deg` (the best of the k symmetric poses)
@@ -64,6 +65,7 @@ from gsa.bench.pairs import (
     dup_pairs,
     exposure_pairs,
     noisy_pairs,
+    opaque_pairs,
     partial_pairs,
     same_pairs,
     scene_pairs,
@@ -127,6 +129,7 @@ __all__ = [
     "gsa_runner",
     "io_child",
     "noisy_pairs",
+    "opaque_pairs",
     "partial_pairs",
     "peer_runner",
     "per_category",
@@ -137,6 +140,7 @@ __all__ = [
     "protocol_exposure",
     "protocol_io",
     "protocol_noisy",
+    "protocol_opaque",
     "protocol_partial",
     "protocol_same",
     "protocol_scene",
@@ -268,6 +272,7 @@ def _capture_protocol(name: str):
 
 protocol_partial = _capture_protocol("partial")
 protocol_noisy = _capture_protocol("noisy")
+protocol_opaque = _capture_protocol("opaque")
 protocol_deform = _capture_protocol("deform")
 
 
@@ -329,6 +334,7 @@ PROTOCOLS = {
     "io": protocol_io,
     "partial": protocol_partial,
     "noisy": protocol_noisy,
+    "opaque": protocol_opaque,
     "symmetric": protocol_symmetric,
     "deform": protocol_deform,
     "exposure": protocol_exposure,

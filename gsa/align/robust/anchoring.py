@@ -69,17 +69,15 @@ def anchors(model: GaussianModel, count: int = 2000, seed: int = 0) -> Anchors:
     if not extent > 0:
         raise ValueError("all Gaussians coincide; the model has no extent to align")
     voxel = extent / np.sqrt(count)
-    for _ in range(4):
+    for _ in range(6):
         keys, inverse, counts = _voxelise(x, lo, voxel)
-        occupied = len(counts)
-        if 0.7 * count <= occupied <= 1.4 * count or occupied >= len(x) * 0.9:
+        solid = _solid_voxels(counts)
+        # Sized by surface voxels only: opaque floaters each fill a voxel of their own, and
+        # counting them would coarsen the surface's anchors by as many.
+        occupied = int(solid.sum())
+        if 0.7 * count <= occupied <= 1.4 * count or len(counts) >= len(x) * 0.9:
             break
         voxel *= np.sqrt(occupied / count)
-    # Surface voxels hold many Gaussians; a floater's voxel one or two.
-    typical = float(np.median(np.repeat(counts, counts)))
-    solid = counts >= max(2.0, 0.1 * typical) if typical >= 8 else np.ones(len(counts), bool)
-    if solid.sum() < 4:
-        solid = np.ones(len(counts), bool)
     gaussian_solid = solid[inverse]
     full_kept = kept.copy()
     full_kept[np.flatnonzero(kept)[~gaussian_solid]] = False
@@ -98,6 +96,14 @@ def anchors(model: GaussianModel, count: int = 2000, seed: int = 0) -> Anchors:
     if not radius > 0:
         raise ValueError("all Gaussians coincide; the model has no extent to align")
     return Anchors(points, srgb_to_lab(colours), weights, center, radius, full_kept, cKDTree(points), colours)
+
+
+def _solid_voxels(counts: np.ndarray) -> np.ndarray:
+    """Surface voxels hold many Gaussians, a floater's voxel one or two: voxels with fewer
+    than a tenth of a typical (Gaussian-weighted median) voxel's count are floaters."""
+    typical = float(np.median(np.repeat(counts, counts)))
+    solid = counts >= max(2.0, 0.1 * typical) if typical >= 8 else np.ones(len(counts), bool)
+    return solid if solid.sum() >= 4 else np.ones(len(counts), bool)
 
 
 def _voxelise(x: np.ndarray, lo: np.ndarray, voxel: float):
