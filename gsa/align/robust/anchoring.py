@@ -16,6 +16,9 @@ from gsa.model import GaussianModel
 
 # A colour of one model is "shared" when the other has one within this ΔE.
 SHARED_DELTA_E = 8.0
+# anchors: share of occupied voxels that are a floater's (sparse) above which the voxel size
+# is set by the surface's voxels alone.
+FLOATER_VOXEL_SHARE = 0.1
 # match_exposure: gains between two captures of one object stay within this factor per
 # channel (two stops of exposure), their white balance within MAX_WHITE_BALANCE
 # (channel gains' max/min), and are used only if they bring the palettes this much closer
@@ -72,9 +75,12 @@ def anchors(model: GaussianModel, count: int = 2000, seed: int = 0) -> Anchors:
     for _ in range(6):
         keys, inverse, counts = _voxelise(x, lo, voxel)
         solid = _solid_voxels(counts)
-        # Sized by surface voxels only: opaque floaters each fill a voxel of their own, and
-        # counting them would coarsen the surface's anchors by as many.
-        occupied = int(solid.sum())
+        # Opaque floaters each fill a voxel of their own: where they are many, counting them
+        # would coarsen the surface's anchors by as many, so the surface's voxels alone set
+        # the size. Where they are few, the sparse voxels are mostly thin parts and cut edges
+        # of the surface itself, and every occupied voxel counts (as calibrated).
+        floaters_many = np.mean(~solid) > FLOATER_VOXEL_SHARE
+        occupied = int(solid.sum()) if floaters_many else len(counts)
         if 0.7 * count <= occupied <= 1.4 * count or len(counts) >= len(x) * 0.9:
             break
         voxel *= np.sqrt(occupied / count)
