@@ -21,11 +21,13 @@ SHARED_DELTA_E = 8.0
 FLOATER_VOXEL_SHARE = 0.1
 # match_exposure: gains between two captures of one object stay within this factor per
 # channel (two stops of exposure), their white balance within MAX_WHITE_BALANCE
-# (channel gains' max/min), and are used only if they bring the palettes this much closer
-# (mean nearest-colour ΔE). EXPOSURE_STEPS refinement steps on EXPOSURE_SAMPLE anchors converge to ~1 %.
+# (channel gains' max/min: daylight against tungsten light), and are used only if they bring
+# the palettes this much closer (mean nearest-colour ΔE) and make them agree as captures of
+# one object do (EXPOSURE_EXPLAINS). EXPOSURE_STEPS refinement steps on EXPOSURE_SAMPLE anchors converge to ~1 %.
 MAX_EXPOSURE_GAIN = 4.0
-MAX_WHITE_BALANCE = 1.8
+MAX_WHITE_BALANCE = 2.5
 EXPOSURE_CLOSER = 0.25
+EXPOSURE_EXPLAINS = 0.86  # shared fraction: colour_weight 0.9
 EXPOSURE_STEPS = 8
 EXPOSURE_SAMPLE = 512
 
@@ -216,7 +218,9 @@ def match_exposure(src: Anchors, dst: Anchors) -> Anchors:
         if gain.max() / gain.min() > MAX_WHITE_BALANCE:
             continue
         distance, shared = judge(linear_to_lab(lin_s * gain))
-        if distance < best_distance and shared >= base_shared:
+        # A gain explains the difference only if under it the palettes agree as two
+        # captures of one object do; two instances of other paints may come closer, never that close.
+        if distance < best_distance and shared >= max(base_shared, EXPOSURE_EXPLAINS):
             best_gain, best_distance = gain, distance
     if best_gain is None:
         return src
