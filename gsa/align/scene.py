@@ -34,7 +34,7 @@ objects:
 - a translation sweep after the search (`translation_sweep`): the best rotations slide
   over the whole target, since partial captures' centroids lie far apart and planes let
   a pose slide;
-- colours compared under one exposure (`normalise_exposure`): two captures taken apart
+- colours compared under one exposure (`robust.match_exposure`, as on the object path): two captures taken apart
   differ in exposure and white balance, and the object path's colour trust would drop
   to zero, leaving geometry alone to tell a room's mirror-like halves apart;
 - the full-resolution refinement (robust.refine: bidirectional trimmed ICP, stopping at
@@ -49,7 +49,7 @@ objects:
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 
 import numpy as np
 from scipy.sparse.csgraph import connected_components
@@ -331,7 +331,7 @@ def _test_anchors(model: GaussianModel, anchor_count: int, seed: int) -> robust.
     costs the same at any size, and anchors of a few thousand voxels do not change."""
     if len(model) > TEST_SAMPLE:
         model = model.subset(np.sort(np.random.default_rng(seed).choice(len(model), TEST_SAMPLE, replace=False)))
-    return scene_anchors(model, test_anchor_count(len(model), anchor_count), seed)[0]
+    return scene_anchors(model, test_anchor_count(len(model), anchor_count), seed)
 
 
 def test_anchor_count(gaussians: int, anchor_count: int) -> int:
@@ -344,10 +344,10 @@ def test_anchor_count(gaussians: int, anchor_count: int) -> int:
 # --- the scene path ---------------------------------------------------------------------
 
 
-def scene_anchors(model: GaussianModel, count: int = SCENE_ANCHORS, seed: int = 0) -> tuple[robust.Anchors, np.ndarray]:
+def scene_anchors(model: GaussianModel, count: int = SCENE_ANCHORS, seed: int = 0) -> robust.Anchors:
     """robust.anchors' summary (floaters dropped, voxel means with CIELAB colour and
-    weight) with per-voxel sums by bincount, which at millions of Gaussians is many
-    times faster than the unbuffered np.add.at. Also returns the anchors' mean sRGB."""
+    weight, mean sRGB) with per-voxel sums by bincount, which at millions of Gaussians is
+    many times faster than the unbuffered np.add.at."""
     pts = model.means
     kept = robust.floater_mask(model)
     x = pts[kept].astype(np.float64)
@@ -382,7 +382,7 @@ def scene_anchors(model: GaussianModel, count: int = SCENE_ANCHORS, seed: int = 
     center = w @ points
     radius = float(np.sqrt(w @ np.sum((points - center) ** 2, axis=1)))
     lab = robust.srgb_to_lab(colours)
-    return robust.Anchors(points, lab, weights, center, radius, full_kept, cKDTree(points)), colours
+    return robust.Anchors(points, lab, weights, center, radius, full_kept, cKDTree(points), colours)
 
 
 def _voxelise(x: np.ndarray, lo: np.ndarray, voxel: float) -> tuple[np.ndarray, np.ndarray]:
@@ -391,48 +391,6 @@ def _voxelise(x: np.ndarray, lo: np.ndarray, voxel: float) -> tuple[np.ndarray, 
     keys = (ijk[:, 0] * span[1] + ijk[:, 1]) * span[2] + ijk[:, 2]
     _, inverse, counts = np.unique(keys, return_inverse=True, return_counts=True)
     return inverse.ravel(), counts
-
-
-def normalise_exposure(
-    src: robust.Anchors, dst: robust.Anchors, src_rgb: np.ndarray, points: int = 800, seed: int = 0
-) -> tuple[robust.Anchors, list[float]]:
-    """The source's anchor colours under the target's exposure and white balance.
-
-    Exposure and white balance are gains on linear RGB. Global statistics cannot find
-    them (two partial captures of a room hold different walls, each its own colour), so
-    the gains are the ones under which the two palettes agree best, pose-free: the mean
-    over source anchors of exp(-ΔE²/2δ²) to the nearest target colour (δ =
-    robust.SHARED_DELTA_E, the ΔE robust.colour_weight trusts colour by), over a grid
-    of exposures (1/2..2, 13 steps) and red and blue balances (±23 %, 5 steps each). The
-    grid holds gains of 1, so captures of one exposure keep their colours.
-    Returns the source anchors with CIELAB colours replaced, and the gains."""
-    rng = np.random.default_rng(seed)
-    rows = _rows(rng, len(src_rgb), points)
-    lin = _linear(src_rgb[rows])
-    exposure = 2.0 ** np.linspace(-1.0, 1.0, 13)
-    balance = 2.0 ** np.linspace(-0.3, 0.3, 5)
-    e, r, b = (g.ravel() for g in np.meshgrid(exposure, balance, balance, indexing="ij"))
-    gains = np.stack([e * r, e, e * b], axis=1)  # (G, 3)
-    trial = robust.srgb_to_lab(_srgb(np.clip(gains[:, None, :] * lin[None], 0.0, 1.0)).reshape(-1, 3))
-    # Soft agreement (a Gaussian of ΔE, width SHARED_DELTA_E): the share within a hard
-    # threshold is flat around its optimum.
-    d, _ = cKDTree(dst.lab).query(trial, distance_upper_bound=3 * robust.SHARED_DELTA_E)
-    close = np.exp(-0.5 * (np.where(np.isfinite(d), d, np.inf) / robust.SHARED_DELTA_E) ** 2)
-    shared = np.mean(close.reshape(len(gains), -1), axis=1)
-    # Ties (a flat optimum) go to the gain nearest 1.
-    best = int(np.argmax(shared - 1e-6 * np.sum(np.log(gains) ** 2, axis=1)))
-    g = gains[best]
-    lab = robust.srgb_to_lab(_srgb(np.clip(_linear(src_rgb) * g, 0.0, 1.0)))
-    return replace(src, lab=lab), [float(x) for x in g]
-
-
-def _linear(c: np.ndarray) -> np.ndarray:
-    c = np.clip(c, 0.0, 1.0)
-    return np.where(c <= 0.04045, c / 12.92, ((c + 0.055) / 1.055) ** 2.4)
-
-
-def _srgb(c: np.ndarray) -> np.ndarray:
-    return np.where(c <= 0.0031308, 12.92 * c, 1.055 * np.power(c, 1 / 2.4) - 0.055)
 
 
 def align_scene(
@@ -450,22 +408,21 @@ def align_scene(
     _report(progress, "features", 0.0)
     t = time.perf_counter()
     count = max(opts.anchor_count, SCENE_ANCHORS)
-    (src, src_rgb), (dst, _) = scene_anchors(source, count, opts.seed), scene_anchors(target, count, opts.seed)
-    src_n, gains = normalise_exposure(src, dst, src_rgb, seed=opts.seed)
-    dst_n = dst
+    dst = scene_anchors(target, count, opts.seed)
+    src = robust.match_exposure(scene_anchors(source, count, opts.seed), dst)
     timings["anchors"] = time.perf_counter() - t
     _report(progress, "features", 1.0)
 
     _report(progress, "hypotheses", 0.0)
     t = time.perf_counter()
     search = robust.global_search(
-        src_n,
-        dst_n,
+        src,
+        dst,
         None,
         robust.SearchOptions(rotations=opts.search_rotations, seed=opts.seed),
         widen_if=lambda first: robust.verdict(first.best, first)["doubtful"],
     )
-    search = translation_sweep(src_n, dst_n, search, opts.seed)
+    search = translation_sweep(src, dst, search, opts.seed)
     timings["hypotheses"] = time.perf_counter() - t
     _report(progress, "hypotheses", 1.0)
     scored = [c.to_dict(search.best.transform) | {"chosen": c is search.best} for c in search.candidates]
@@ -491,13 +448,13 @@ def align_scene(
 
     t = time.perf_counter()
     metrics = _inliers(transform, p, q, p_tree, q_tree, opts.inlier_threshold * dst.radius)
-    final = robust.score_pose(src_n, dst_n, transform, "final", search.colour_weight)
+    final = robust.score_pose(src, dst, transform, "final", search.colour_weight)
     metrics.update(robust.verdict(final, search))
     metrics["hypothesis"] = search.best.origin
     metrics["scene"] = choice.to_dict() | {
         "anchors": [len(src), len(dst)],
         "refine_cloud": [len(p_cloud), len(q_cloud)],
-        "exposure_gains": gains,  # linear RGB gains that put the source's colours in the target's exposure
+        "exposure_gains": list(src.colour_gain),  # linear RGB gains: the source's colours in the target's exposure
     }
     timings["metrics"] = time.perf_counter() - t
     timings["total"] = time.perf_counter() - t_start
