@@ -31,8 +31,8 @@ DISTINCT_DEG = 15.0
 # The colour check (colour_mismatch), where the models share a palette (colour weight at
 # least COLOUR_TRUSTED): a pose whose overlapping pairs disagree in colour more than
 # COLOUR_MISMATCH_LIMIT times the models' own neighbour-to-neighbour colour noise (floored
-# at COLOUR_NOISE_FLOOR) pairs unlike parts. Measured (docs/benchmarks.md): 0.3-1.3 at right
-# poses of every protocol, 2.3-2.5 at the partial airplanes' 180° flips (verdict). decide()
+# at COLOUR_NOISE_FLOOR) pairs unlike parts. Measured on 11 sampled pairs (docs/benchmarks.md): 0.35-1.24 at right
+# poses, 2.27-2.49 at two partial airplane flips (verdict). decide()
 # prefers a pose to one scoring at most COLOUR_SWITCH_WINDOW more whose mismatch is beyond the
 # noise and COLOUR_SWITCH_RATIO times its own.
 COLOUR_TRUSTED = 0.5
