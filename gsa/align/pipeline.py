@@ -45,7 +45,7 @@ from gsa.canonical import (
     model_frame,
     relabelling_label,
 )
-from gsa.model import GaussianModel, ModelError
+from gsa.model import GaussianModel
 from gsa.sim3 import Sim3
 
 if TYPE_CHECKING:
@@ -249,14 +249,7 @@ class _Pair:
 
     @classmethod
     def build(cls, source: GaussianModel, target: GaussianModel, opts: AlignOptions) -> _Pair:
-        try:
-            source.validate("source")
-            target.validate("target")
-        except ModelError as exc:
-            raise AlignmentError(str(exc)) from None
-        for name, m in (("source", source), ("target", target)):
-            if len(m) < 3:
-                raise AlignmentError(f"{name} has {len(m)} Gaussians; at least 3 are needed")
+        scene.check_models(source, target)
         mode = _feature_mode(source, target, opts.features)
         src_frame, dst_frame = model_frame(source), model_frame(target)
         src_pts = source.means.astype(np.float64)

@@ -256,13 +256,14 @@ def protocol_category(quick: bool, seed: int, out: Path, peers: list[str] | None
     return rows
 
 
-def _capture_protocol(name: str):
-    """partial, noisy and deform: pairs from NAME_pairs (looked up when run), categories
-    cycled, default runners."""
+def _pair_protocol(name: str, fields=category_of, judge=None):
+    """A protocol over NAME_pairs (looked up when run) with the default runners: partial,
+    noisy, opaque and deform (categories cycled); symmetric and exposure (strict success,
+    plus the best of the k symmetric poses)."""
 
     def protocol(quick: bool, seed: int, out: Path, peers: list[str] | None = None) -> list[dict]:
         pairs = globals()[f"{name}_pairs"](quick, seed)
-        rows = evaluate(name, pairs, default_runners(seed, peers, quick), category_of, out=out)
+        rows = evaluate(name, pairs, default_runners(seed, peers, quick), fields, out=out, judge=judge)
         save_rows(out, name, rows)
         return rows
 
@@ -270,29 +271,12 @@ def _capture_protocol(name: str):
     return protocol
 
 
-protocol_partial = _capture_protocol("partial")
-protocol_noisy = _capture_protocol("noisy")
-protocol_opaque = _capture_protocol("opaque")
-protocol_deform = _capture_protocol("deform")
-
-
-def _symmetric_protocol(name: str):
-    """symmetric and exposure: strict success, plus the best of the k symmetric poses."""
-
-    def protocol(quick: bool, seed: int, out: Path, peers: list[str] | None = None) -> list[dict]:
-        pairs = globals()[f"{name}_pairs"](quick, seed)
-        rows = evaluate(
-            name, pairs, default_runners(seed, peers, quick), symmetric_fields, out=out, judge=symmetric_judge
-        )
-        save_rows(out, name, rows)
-        return rows
-
-    protocol.__name__ = f"protocol_{name}"
-    return protocol
-
-
-protocol_symmetric = _symmetric_protocol("symmetric")
-protocol_exposure = _symmetric_protocol("exposure")
+protocol_partial = _pair_protocol("partial")
+protocol_noisy = _pair_protocol("noisy")
+protocol_opaque = _pair_protocol("opaque")
+protocol_deform = _pair_protocol("deform")
+protocol_symmetric = _pair_protocol("symmetric", symmetric_fields, symmetric_judge)
+protocol_exposure = _pair_protocol("exposure", symmetric_fields, symmetric_judge)
 
 
 def protocol_ablation(quick: bool, seed: int, out: Path, peers: list[str] | None = None) -> list[dict]:
