@@ -21,7 +21,13 @@ part in it. This module does not trust any single frame:
    a pose as far as the two models share a palette: colour is what tells the sides of
    a symmetric object apart.
 4. The margin to the best distinct alternative and the overlap itself give a
-   confidence; near-ties are reported as ambiguous with their poses.
+   confidence; near-ties are reported as ambiguous with their poses. Where the palettes
+   are shared, a pose whose colours disagree beyond the models' own colour noise yields to
+   a consistent one and is doubtful (`colour_mismatch`).
+
+Colours are compared after `match_exposure` (the source's anchors under the target's
+exposure and white balance), and the full-resolution refinement ends point-to-plane on the
+target Gaussians' normals where the two captures coincide.
 
 Modules: anchoring (1, and the colour trust), search (2-3, with the numba scoring and
 capture kernels), placement (the widened search for doubtful answers), poses (one
