@@ -306,6 +306,12 @@ def _number(value) -> float | None:
     return float(value) if isinstance(value, (int, float)) and not isinstance(value, bool) else None
 
 
+def _colour_mismatch_limit() -> float:
+    from gsa.align.robust.poses import COLOUR_MISMATCH_LIMIT  # lazy: the robust stage loads numba
+
+    return COLOUR_MISMATCH_LIMIT
+
+
 def doubt_warning(metrics: dict | None, out: str | None = None) -> str | None:
     """One stderr line when align() judged its own result doubtful (metrics "doubtful":
     a tie between distinct poses, or low confidence), else None. Only `.get`: results
@@ -328,7 +334,11 @@ def doubt_warning(metrics: dict | None, out: str | None = None) -> str | None:
             f"gsa: warning: ambiguous alignment: {len(alternatives) + 1} poses score{within} "
             f"(confidence {conf}{away}){where}"
         )
-    return f"gsa: warning: low confidence ({conf}): the alignment may be wrong{where}"
+    mismatch = _number(metrics.get("colour_mismatch"))
+    why = ""
+    if mismatch is not None and mismatch > _colour_mismatch_limit():
+        why = f" (the two models' colours disagree at this pose, {mismatch:.1f}x their own colour noise)"
+    return f"gsa: warning: low confidence ({conf}): the alignment may be wrong{why}{where}"
 
 
 def cmd_demo(args: argparse.Namespace) -> int:

@@ -154,10 +154,14 @@ def _doubtful(**extra):
         ),
         (_doubtful(ambiguous=False, confidence=0.32), ["low confidence (0.32)", '"alternatives" in r.json']),
         ({"doubtful": True, "confidence": 0.1}, ["low confidence (0.10)"]),
+        (
+            {"doubtful": True, "confidence": 0.25, "colour_mismatch": 2.49},
+            ["low confidence (0.25)", "colours disagree", "2.5x their own colour noise"],
+        ),
         (_doubtful(doubtful=False), None),
         ({"inlier_fraction": 0.9}, None),  # a result from before these keys existed
     ],
-    ids=["ambiguous", "low-confidence", "no-alternatives", "confident", "old-metrics"],
+    ids=["ambiguous", "low-confidence", "no-alternatives", "colour-mismatch", "confident", "old-metrics"],
 )
 def test_doubt_warning(metrics, expected):
     from gsa.cli import doubt_warning
