@@ -300,3 +300,18 @@ def test_verdict_doubts_a_pose_whose_colours_contradict_each_other():
         search = robust.SearchResult([pose], 1.0, float("inf"), [], noise)
         out = robust.verdict(pose, search)
         assert out["doubtful"] == doubtful and out["colour_mismatch"] == pytest.approx((1 - pose.colour) / noise)
+
+
+def test_decide_ranks_by_geometry_where_no_pose_agrees_in_colour():
+    # Another instance with another paint: no pose makes the colours agree (mismatch > 2
+    # at both), so the colour-weighted score must not pick the pose.
+    noise = 0.05
+    flip = robust.Candidate(Sim3.identity(), "grid", score=0.40, geometry=0.50, colour=0.85)
+    truth = _candidate(0.30, 0.80, 180.0)
+    truth.geometry = 0.60
+    chosen = robust.decide([flip, truth], w_colour=0.7, noise=noise)
+    assert chosen.ranked_by == "geometry" and chosen.best.transform is truth.transform
+    assert chosen.best.score == 0.60 and not chosen.ambiguous
+    # One pose whose colours agree within the noise: colour still counts.
+    agreeing = robust.Candidate(Sim3.identity(), "grid", score=0.40, geometry=0.50, colour=0.97)
+    assert robust.decide([agreeing, truth], w_colour=0.7, noise=noise).ranked_by == "score"

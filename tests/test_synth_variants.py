@@ -11,8 +11,8 @@ import pytest
 from scipy.spatial import cKDTree
 
 from gsa.bench import protocols as P
-from gsa.geometry import axis_rotation, euler_xyz
-from gsa.sim3 import Sim3
+from gsa.geometry import axis_rotation, euler_xyz, rotation_distance_deg
+from gsa.sim3 import Sim3, solve_sim3
 from gsa.synth import (
     SYMMETRIC_FAMILIES,
     add_floaters,
@@ -194,6 +194,10 @@ def test_deform(car):
     size = np.linalg.norm(np.ptp(car.means, 0))
     assert np.median(moved) > 0.01 * size and moved.max() < 0.5 * size
     assert np.allclose(out.means.mean(0), car.means.mean(0), atol=1e-4 * size)
+    # the identity is the best similarity onto the deformed copy: nothing left to undo
+    best = solve_sim3(car.means.astype(np.float64), out.means.astype(np.float64))
+    assert rotation_distance_deg(best.rotation, np.eye(3)) < 1e-3 and abs(best.scale - 1) < 1e-5
+    assert info["undone_rotation_deg"] > 0.01
     for name in ("quats", "log_scales", "opacity_logits", "sh"):
         assert np.array_equal(getattr(out, name), getattr(car, name))
     assert np.array_equal(deform(car, np.random.default_rng(0)).means, out.means)

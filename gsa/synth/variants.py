@@ -19,8 +19,9 @@ import colorsys
 import numpy as np
 
 from gsa.colour import linear_to_srgb, srgb_to_linear
-from gsa.geometry import axis_rotation, normalize_quats
+from gsa.geometry import axis_rotation, normalize_quats, rotation_distance_deg
 from gsa.model import SH_C0, GaussianModel, merge_models
+from gsa.sim3 import Sim3, solve_sim3
 from gsa.synth.objects import _quats_from_normals
 from gsa.synth.shapes import Cylinder, Primitive, RegularPrism, Torus, _frame
 
@@ -299,8 +300,11 @@ def deform(
        one end to 1+taper at the other;
     3. bend: one coordinate perpendicular to a is displaced by
        bend·extent·(2τ−1)², τ∈[0, 1] the position along a (extent: a's span);
-    then the result is shifted so that its centroid is c again: the identity
-    stays the natural alignment to the undeformed model.
+    then the similarity that best maps the model onto its deformed copy (least
+    squares over corresponding Gaussians) is undone, so that the identity is the
+    natural alignment to the undeformed model: a taper or bend of an off-centre
+    mass turns and scales the copy as a whole (up to 11° on a motorcycle), and a
+    protocol judged against the identity would mark the best alignment wrong.
 
     Only positions change: quaternions, scales, opacities, SH and features are
     kept as they are (Gaussians are not re-oriented to the deformed surface).
@@ -339,7 +343,9 @@ def deform(
     span = max(float(t.max() - t.min()), 1e-12)
     tau = (t - t.min()) / span
     x = x + (bend * span * (2 * tau - 1) ** 2)[:, None] * b
-    x = x - x.mean(0) + c
+    original = model.means.astype(np.float64) - c
+    implied = solve_sim3(original, x) if len(x) >= 3 else Sim3.identity()
+    x = implied.inverse().apply(x) + c
     out = model.subset(np.arange(len(model)))
     out.means = np.ascontiguousarray(x, dtype=np.float32)
     out.metadata["deform"] = {
@@ -349,6 +355,8 @@ def deform(
         "taper_axis": a.tolist(),
         "bend": float(bend),
         "bend_direction": b.tolist(),
+        "undone_rotation_deg": rotation_distance_deg(implied.rotation, np.eye(3)),
+        "undone_scale": implied.scale,
     }
     return out
 

@@ -7,7 +7,7 @@ the stored dict if one does not validate)."""
 
 from __future__ import annotations
 
-from typing import Any
+from typing import Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, model_serializer
 
@@ -96,6 +96,11 @@ class Metrics(_Open):
     colour_mismatch: float | None = Field(
         None,
         description="colour disagreement of the overlapping pairs over the models' own colour noise; > 2: doubtful",
+    )
+    ranked_by: Literal["score", "geometry"] | None = Field(
+        None,
+        description="what chose among the poses: 'score' (overlap, with colour as far as the palettes are shared) "
+        "or 'geometry' (no pose made the colours agree: another instance or another paint)",
     )
     inlier_fraction: float | None = None
     inlier_fraction_forward: float | None = None

@@ -4,7 +4,7 @@ ICP on the anchors, and the decision between refined poses (ties -> ambiguous)."
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 from scipy.spatial import cKDTree
@@ -77,6 +77,8 @@ class SearchResult:
     margin: float  # lead over the best distinct alternative, in units of SCORE_TIE
     rivals: list[Candidate]  # the poses tied with the best
     colour_noise: float | None = None  # the models' own colour noise (colour_noise), when colour was checked
+    # "score", or "geometry" where no pose made the colours agree (decide): colour told nothing apart
+    ranked_by: str = "score"
 
     @property
     def best(self) -> Candidate:
@@ -235,8 +237,21 @@ def decide(cands: list[Candidate], w_colour: float, noise: float | None = None) 
     pairs disagree beyond the noise, COLOUR_SWITCH_RATIO times more than another pose
     within COLOUR_SWITCH_WINDOW of its score, yields to that pose, and such contradicted
     poses are no rivals. A partial capture's flip can overlap the other capture better
-    than the truth does, but one object does not disagree with itself."""
-    if noise is not None and w_colour >= COLOUR_TRUSTED and len(cands) > 1:
+    than the truth does, but one object does not disagree with itself.
+
+    Where even the pose whose colours agree best disagrees beyond the noise, the models
+    do not share their colours where they overlap (another instance with another paint,
+    a repainted object) whatever their palettes share: poses are ranked by geometry."""
+    ranked_by = "score"
+    if (
+        noise is not None
+        and w_colour > 0
+        and cands
+        and min(colour_mismatch(c, noise) for c in cands) > COLOUR_MISMATCH_LIMIT
+    ):
+        cands = sorted((replace(c, score=c.geometry) for c in cands), key=lambda c: -c.score)
+        ranked_by = "geometry"
+    if ranked_by == "score" and noise is not None and w_colour >= COLOUR_TRUSTED and len(cands) > 1:
         near = [c for c in cands if c.score >= cands[0].score - COLOUR_SWITCH_WINDOW]
         cleanest = min(near, key=lambda c: colour_mismatch(c, noise))
         if _contradicted(cands[0], cleanest, noise):
@@ -247,7 +262,7 @@ def decide(cands: list[Candidate], w_colour: float, noise: float | None = None) 
         best, others = cands[0], cands[1:]
     rivals = [c for c in others if c.score >= best.score - SCORE_TIE]
     margin = (best.score - max(c.score for c in others)) / SCORE_TIE if others else float("inf")
-    return SearchResult(cands, w_colour, float(margin), rivals, noise)
+    return SearchResult(cands, w_colour, float(margin), rivals, noise, ranked_by)
 
 
 def _contradicted(pose: Candidate, reference: Candidate, noise: float) -> bool:

@@ -81,6 +81,7 @@ def verdict(final: Candidate, search: SearchResult | None) -> dict:
     }
     if search is not None:
         out["colour_weight"] = search.colour_weight
+        out["ranked_by"] = search.ranked_by
         shown = search.rivals if ambiguous else search.candidates[1:4]
         out["alternatives"] = [c.to_dict(final.transform) for c in shown]
     return out
