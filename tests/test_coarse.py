@@ -202,6 +202,11 @@ def test_pipeline_runs_the_fine_stage_after_coarse():
     assert d["stages"]["fine"]["best_loss"] <= d["stages"]["fine"]["loss_history"][0]
     assert rre_deg(result.transform.rotation, truth.rotation) < 1.0
     assert "fine" in result.timings
+    # Both verdicts: at the coarse pose, and the final one at the fine pose.
+    coarse_verdict = d["metrics"]["coarse_verdict"]
+    assert set(coarse_verdict) == {"confidence", "ambiguous", "doubtful"}
+    assert 0.0 <= coarse_verdict["confidence"] <= 1.0
+    assert "coarse_verdict" not in align(source, target, AlignOptions(stages=("coarse",))).metrics
 
 
 def test_auto_stages_add_fine_only_after_the_feature_stage():

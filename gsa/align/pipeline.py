@@ -176,6 +176,10 @@ def _align(
     metrics = pair.quality(transform, best)
     metrics["hypothesis"] = best.label
     metrics.update(pair.judge(transform, search))
+    if fine_result is not None:
+        # The fine stage can move a right coarse pose off (docs/benchmarks.md): both verdicts, to compare.
+        coarse_verdict = pair.judge(coarse.transform, search)
+        metrics["coarse_verdict"] = {k: coarse_verdict[k] for k in ("confidence", "ambiguous", "doubtful")}
     metrics["scene"] = choice.to_dict()
     timings["metrics"] = time.perf_counter() - t
     timings["total"] = time.perf_counter() - t_start

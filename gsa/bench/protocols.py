@@ -194,7 +194,15 @@ def gsa_runner(fine: bool, labels: tuple[str, str] = (GSA_COARSE, GSA_FINE), **o
             # what the confidence is made of, kept for calibration
             **{k: _float_or_none(result.metrics.get(k)) for k in ("margin", "overlap_score", "score", "colour_weight")},
         }
-        out = {coarse_label: (result.coarse.transform, total - result.timings.get("fine", 0.0), flags)}
+        # The coarse row is judged at the coarse pose (align() reports that verdict beside the final one).
+        coarse_flags = dict(flags)
+        if verdict := result.metrics.get("coarse_verdict"):
+            coarse_flags.update(
+                confidence=_float_or_none(verdict["confidence"]),
+                ambiguous=bool(verdict["ambiguous"]),
+                doubtful=bool(verdict["doubtful"]),
+            )
+        out = {coarse_label: (result.coarse.transform, total - result.timings.get("fine", 0.0), coarse_flags)}
         if fine:
             out[fine_label] = (result.transform, total, dict(flags))
         return out

@@ -76,6 +76,14 @@ class SceneMetrics(_Open):
     )
 
 
+class CoarseVerdict(_Open):
+    """The verdict at the coarse pose, where the fine stage ran after it."""
+
+    confidence: float | None = None
+    ambiguous: bool | None = None
+    doubtful: bool | None = None
+
+
 class Metrics(_Open):
     """GT-free quality numbers; trust the transform only when `doubtful` is false."""
 
@@ -109,6 +117,9 @@ class Metrics(_Open):
     rms_residual: float | None = None
     feature_agreement: float | None = None
     feature_distance_median: float | None = None
+    coarse_verdict: CoarseVerdict | None = Field(
+        None, description="confidence, ambiguous, doubtful at the coarse pose, where the fine stage ran"
+    )
     scene: SceneMetrics | None = None
 
 
