@@ -172,6 +172,20 @@ def test_partial_captures_align_with_scale_from_the_overlap():
     result = align(source, target)
     acc = accuracy(result.transform, truth, source.means, target.means)
     assert acc["rre_deg"] < 2.0 and acc["scale_error_pct"] < 2.0, acc
+    # Each capture missed a side, so their overlap score is low; where they overlap they coincide.
+    m = result.metrics
+    assert m["overlap_estimate"] < 0.95 and m["coincident_share"] > 0.8, m
+
+
+def test_verdict_reads_how_well_an_overlap_coincides_where_the_overlap_is_large_enough():
+    partial = robust.Candidate(Sim3.identity(), "grid", score=0.42, geometry=0.42, colour=0.9, overlap=0.5)
+    search = robust.SearchResult([partial], 0.0, float("inf"), [])
+    assert robust.verdict(partial, search)["doubtful"]  # overlap score alone: too little overlaps
+    assert not robust.verdict(partial, search, (0.7, 0.93))["doubtful"]
+    assert robust.verdict(partial, search, (0.7, 0.6))["doubtful"]  # near, but not coinciding
+    assert robust.verdict(partial, search, (0.4, 0.95))["doubtful"]  # a sliver that coincides
+    tied = robust.SearchResult([partial], 0.0, 0.5, [])
+    assert robust.verdict(partial, tied, (0.7, 0.93))["doubtful"]  # coinciding does not make a margin
 
 
 def test_duplicates_stay_exact_and_confident():

@@ -52,6 +52,9 @@ from gsa.sim3 import Sim3
 if TYPE_CHECKING:
     from gsa.render.cameras import Cameras
 
+# Points per model sampled for the verdict's coincidence test (robust.coincidence).
+JUDGE_POINTS = 6000
+
 __all__ = [
     "EXTRACTOR_MODES",
     "FEATURE_MODES",
@@ -325,13 +328,20 @@ class _Pair:
         _report(progress, "hypotheses", 1.0)
         return result
 
+    @functools.cached_property
+    def kept_trees(self) -> tuple[cKDTree, cKDTree]:
+        """KD-trees of the Gaussians that are not floaters (robust.anchors), source and target."""
+        src, dst = self.anchors()
+        src_tree = self.src_tree if src.kept.all() else cKDTree(self.src_pts[src.kept])
+        dst_tree = self.dst_tree if dst.kept.all() else cKDTree(self.dst_pts[dst.kept])
+        return src_tree, dst_tree
+
     def refine_global(self, init: Sim3, progress: Progress | None) -> CoarseResult:
         """Trimmed ICP at full resolution from the search's pose, on the Gaussians that
         are not floaters, with correspondences both ways (gsa.align.robust.refine)."""
         t0 = time.perf_counter()
         src, dst = self.anchors()
-        src_tree = self.src_tree if src.kept.all() else cKDTree(self.src_pts[src.kept])
-        dst_tree = self.dst_tree if dst.kept.all() else cKDTree(self.dst_pts[dst.kept])
+        src_tree, dst_tree = self.kept_trees
         half = self.opts.refine_points // 2
         p = src_tree.data[_subsample(self.rng, src_tree.n, half)]
         q_rows = _subsample(self.rng, dst_tree.n, half)
@@ -360,7 +370,12 @@ class _Pair:
         """Confidence in [0, 1], ambiguity and the alternative poses (GT-free)."""
         src, dst = self.anchors()
         w_colour = search.colour_weight if search is not None else robust.colour_weight(src, dst)
-        out = robust.verdict(robust.score_pose(src, dst, transform, "final", w_colour), search)
+        src_tree, dst_tree = self.kept_trees
+        rng = np.random.default_rng(self.opts.seed)
+        p = src_tree.data[_subsample(rng, src_tree.n, JUDGE_POINTS)]
+        q = dst_tree.data[_subsample(rng, dst_tree.n, JUDGE_POINTS)]
+        coincide = robust.coincidence(p, q, src_tree, dst_tree, transform)
+        out = robust.verdict(robust.score_pose(src, dst, transform, "final", w_colour), search, coincide)
         out["colour_gain"] = list(src.colour_gain)  # exposure/white balance matched onto the target's
         return out
 

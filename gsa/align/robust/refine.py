@@ -47,14 +47,29 @@ CONFIDENCE_THRESHOLD = 0.5
 # Calibrated on all benchmark protocols together (docs/benchmarks.md, "confidence").
 FIT_FLOOR, FIT_SPAN = 0.45, 0.2
 MARGIN_SPAN = 4.0
+# The overlap's coincidence (verdict's `coincide`) maps COINCIDE_FLOOR..+COINCIDE_SPAN onto 0..1
+# where the trimmed overlap estimate keeps at least COINCIDE_MIN_OVERLAP of the pairs. Measured
+# at final poses (docs/benchmarks.md, "fifth pass"): share 0.81-0.96 for 27 of 30 right
+# partial captures (ξ 0.55-0.95), 0.92-0.95 for complete ones, 0.25-0.6 for deformed copies;
+# wrong poses reach 0.77-0.93 too, so it only tells how well the models overlap: the
+# margin, ties and the colour check are what catch wrong poses.
+COINCIDE_FLOOR, COINCIDE_SPAN = 0.7, 0.2
+COINCIDE_MIN_OVERLAP = 0.5
 
 
-def verdict(final: Candidate, search: SearchResult | None) -> dict:
+def verdict(final: Candidate, search: SearchResult | None, coincide: tuple[float, float] | None = None) -> dict:
     """GT-free judgement of a final pose: `confidence` in [0, 1] combines how well the
     two models overlap there with how clearly the pose beat the best distinct
     alternative of the search; `ambiguous` marks a tie nothing could break
-    (a colourless symmetric object), with the tied poses as `alternatives`."""
+    (a colourless symmetric object), with the tied poses as `alternatives`.
+
+    coincide: (ξ, share) of `coincidence` at full resolution. How well the models overlap
+    is the larger of the overlap score (how much of both models lies close) and how much
+    of their overlap coincides, where the overlap is at least COINCIDE_MIN_OVERLAP of the
+    pairs: two captures that each missed a side overlap in part, and coincide there."""
     fit = float(np.clip((final.geometry - FIT_FLOOR) / FIT_SPAN, 0.0, 1.0))
+    if coincide is not None and coincide[0] >= COINCIDE_MIN_OVERLAP:
+        fit = max(fit, float(np.clip((coincide[1] - COINCIDE_FLOOR) / COINCIDE_SPAN, 0.0, 1.0)))
     ambiguous = bool(search is not None and search.ambiguous)
     separation = 1.0 if search is None else float(np.clip(search.margin / MARGIN_SPAN, 0.0, 1.0))
     confidence = min(fit, separation)
@@ -78,6 +93,8 @@ def verdict(final: Candidate, search: SearchResult | None) -> dict:
         "overlap_fraction": final.overlap,
         "colour_agreement": final.colour,
         "colour_mismatch": mismatch,
+        "overlap_estimate": None if coincide is None else coincide[0],
+        "coincident_share": None if coincide is None else coincide[1],
     }
     if search is not None:
         out["colour_weight"] = search.colour_weight
@@ -248,15 +265,26 @@ class _Fit:
         their overlap, and where one of them misses a part the estimate stops at the
         overlap instead; another instance or a deformed copy is near everywhere and
         coincides nowhere."""
-        d_f, _ = self.dst_tree.query(transform.apply(self.p), workers=_workers(len(self.p)))
-        d_r, _ = self.src_tree.query(transform.inverse().apply(self.q), workers=_workers(len(self.q)))
-        d = np.concatenate([d_f, d_r * transform.scale])
-        spacing = max(sampling_spacing(self.dst_all), sampling_spacing(self.src_all) * transform.scale)
-        fraction = overlap_fraction(d)
-        if spacing <= 0 or fraction < WHOLE_OVERLAP:
-            return False
-        kept = np.sort(d)[: max(int(fraction * len(d)), 3)]
-        return bool(np.mean(kept < COINCIDENT_SPACINGS * spacing) < COINCIDENT_SHARE)
+        fraction, share = coincidence(self.p, self.q, self.src_tree, self.dst_tree, transform)
+        return fraction >= WHOLE_OVERLAP and share < COINCIDENT_SHARE
+
+
+def coincidence(
+    source_points: np.ndarray, target_points: np.ndarray, source_tree: cKDTree, target_tree: cKDTree, transform: Sim3
+) -> tuple[float, float]:
+    """(ξ, share) at a pose: the overlap estimate (overlap_fraction) of the pairs both ways
+    between the sampled points and the other model's tree, and the share of those overlapping
+    pairs closer than COINCIDENT_SPACINGS sampling spacings: how much of the overlap
+    coincides, whatever the share of each model the overlap is."""
+    d_f, _ = target_tree.query(transform.apply(source_points), workers=_workers(len(source_points)))
+    d_r, _ = source_tree.query(transform.inverse().apply(target_points), workers=_workers(len(target_points)))
+    d = np.concatenate([d_f, d_r * transform.scale])
+    spacing = max(sampling_spacing(target_tree), sampling_spacing(source_tree) * transform.scale)
+    fraction = overlap_fraction(d)
+    if spacing <= 0:
+        return fraction, 0.0
+    kept = np.sort(d)[: max(int(fraction * len(d)), 3)]
+    return fraction, float(np.mean(kept < COINCIDENT_SPACINGS * spacing))
 
 
 def _plane_step(x: np.ndarray, y: np.ndarray, n: np.ndarray, w: np.ndarray) -> Sim3 | None:
@@ -282,13 +310,15 @@ def _plane_step(x: np.ndarray, y: np.ndarray, n: np.ndarray, w: np.ndarray) -> S
     return Sim3(s, rot, c + tau - s * rot @ c)
 
 
-def sampling_spacing(points: np.ndarray, probes: int = 2000) -> float:
-    """Median distance from a Gaussian to its nearest neighbour in its own model: the
-    scale of sampling noise, within which two captures of one surface coincide."""
-    if len(points) < 2:
+def sampling_spacing(points: np.ndarray | cKDTree, probes: int = 2000) -> float:
+    """Median distance from a Gaussian to its nearest neighbour in its own model (its
+    points, or a KD-tree of them): the scale of sampling noise, within which two captures
+    of one surface coincide."""
+    tree = points if isinstance(points, cKDTree) else cKDTree(points)
+    if tree.n < 2:
         return 0.0
-    step = max(len(points) // probes, 1)
-    d, _ = cKDTree(points).query(points[::step], k=2)
+    step = max(tree.n // probes, 1)
+    d, _ = tree.query(tree.data[::step], k=2)
     return float(np.median(d[:, 1]))
 
 
