@@ -105,6 +105,12 @@ class Metrics(_Open):
         None,
         description="colour disagreement of the overlapping pairs over the models' own colour noise; > 2: doubtful",
     )
+    overlap_estimate: float | None = Field(
+        None, description="trimmed share of the pairs (both ways, full resolution) that overlap at the pose"
+    )
+    coincident_share: float | None = Field(
+        None, description="share of the overlapping pairs within two sampling spacings: how well the overlap coincides"
+    )
     ranked_by: Literal["score", "geometry"] | None = Field(
         None,
         description="what chose among the poses: 'score' (overlap, with colour as far as the palettes are shared) "
