@@ -345,52 +345,24 @@ def test_anchor_count(gaussians: int, anchor_count: int) -> int:
 
 
 def scene_anchors(model: GaussianModel, count: int = SCENE_ANCHORS, seed: int = 0) -> robust.Anchors:
-    """robust.anchors' summary (floaters dropped, voxel means with CIELAB colour and
-    weight, mean sRGB) with per-voxel sums by bincount, which at millions of Gaussians is
-    many times faster than the unbuffered np.add.at."""
-    pts = model.means
+    """robust.anchors' summary (robust.voxel_anchors), with the voxel size searched on a
+    sample: occupancy at a few thousand voxels is the same on 200k Gaussians as on millions,
+    and one pass over all of them follows."""
     kept = robust.floater_mask(model)
-    x = pts[kept].astype(np.float64)
+    x = model.means[kept].astype(np.float64)
     lo = x.min(0)
     extent = float(np.max(x.max(0) - lo))
     if not extent > 0:
         raise AlignmentError("all Gaussians coincide; the model has no extent to align")
     voxel = extent / np.sqrt(count)
-    # The voxel size is searched on a sample (occupancy at a few thousand voxels is the
-    # same on 200k Gaussians as on millions); one pass over all of them follows.
     probe = x if len(x) <= VOXEL_PROBE else x[np.random.default_rng(seed).choice(len(x), VOXEL_PROBE, replace=False)]
     for _ in range(4):
-        _, counts = _voxelise(probe, lo, voxel)
+        _, counts = robust.voxelise(probe, lo, voxel)
         if 0.7 * count <= len(counts) <= 1.4 * count or len(counts) >= 0.9 * len(probe):
             break
         voxel *= np.sqrt(len(counts) / count)
-    inverse, counts = _voxelise(x, lo, voxel)
-    typical = float(np.median(np.repeat(counts, counts)))
-    solid = counts >= max(2.0, 0.1 * typical) if typical >= 8 else np.ones(len(counts), bool)
-    if solid.sum() < 4:
-        solid = np.ones(len(counts), bool)
-    full_kept = kept.copy()
-    full_kept[np.flatnonzero(kept)[~solid[inverse]]] = False
-    rgb = model.base_colors[kept]
-    n_vox = len(counts)
-    points = np.stack([np.bincount(inverse, x[:, k], n_vox) for k in range(3)], 1) / counts[:, None]
-    colours = np.stack([np.bincount(inverse, rgb[:, k], n_vox) for k in range(3)], 1) / counts[:, None]
-    points, colours = points[solid], colours[solid]
-    weights = counts[solid].astype(np.float64)
-    weights /= weights.mean()
-    w = weights / weights.sum()
-    center = w @ points
-    radius = float(np.sqrt(w @ np.sum((points - center) ** 2, axis=1)))
-    lab = robust.srgb_to_lab(colours)
-    return robust.Anchors(points, lab, weights, center, radius, full_kept, cKDTree(points), colours)
-
-
-def _voxelise(x: np.ndarray, lo: np.ndarray, voxel: float) -> tuple[np.ndarray, np.ndarray]:
-    ijk = np.floor((x - lo) / voxel).astype(np.int64)
-    span = ijk.max(0) + 1
-    keys = (ijk[:, 0] * span[1] + ijk[:, 1]) * span[2] + ijk[:, 2]
-    _, inverse, counts = np.unique(keys, return_inverse=True, return_counts=True)
-    return inverse.ravel(), counts
+    inverse, counts = robust.voxelise(x, lo, voxel)
+    return robust.voxel_anchors(model, kept, x, inverse, counts, robust.solid_voxels(counts))
 
 
 def align_scene(

@@ -68,15 +68,14 @@ def anchors(model: GaussianModel, count: int = 2000, seed: int = 0) -> Anchors:
     pts = model.means.astype(np.float64)
     kept = floater_mask(model)
     x = pts[kept]
-    rgb = model.base_colors[kept]
     lo, hi = x.min(0), x.max(0)
     extent = float(np.max(hi - lo))
     if not extent > 0:
         raise ValueError("all Gaussians coincide; the model has no extent to align")
     voxel = extent / np.sqrt(count)
     for _ in range(6):
-        keys, inverse, counts = _voxelise(x, lo, voxel)
-        solid = _solid_voxels(counts)
+        inverse, counts = voxelise(x, lo, voxel)
+        solid = solid_voxels(counts)
         # Opaque floaters each fill a voxel of their own: where they are many, counting them
         # would coarsen the surface's anchors by as many, so the surface's voxels alone set
         # the size. Where they are few, the sparse voxels are mostly thin parts and cut edges
@@ -86,16 +85,21 @@ def anchors(model: GaussianModel, count: int = 2000, seed: int = 0) -> Anchors:
         if 0.7 * count <= occupied <= 1.4 * count or len(counts) >= len(x) * 0.9:
             break
         voxel *= np.sqrt(occupied / count)
-    gaussian_solid = solid[inverse]
+    return voxel_anchors(model, kept, x, inverse, counts, solid)
+
+
+def voxel_anchors(
+    model: GaussianModel, kept: np.ndarray, x: np.ndarray, inverse: np.ndarray, counts: np.ndarray, solid: np.ndarray
+) -> Anchors:
+    """The Anchors of voxelised Gaussians: x (the kept Gaussians' means) in voxels `inverse`
+    holding `counts` each, of which the `solid` ones are surface. Per-voxel sums by
+    bincount: at millions of Gaussians many times faster than np.add.at."""
     full_kept = kept.copy()
-    full_kept[np.flatnonzero(kept)[~gaussian_solid]] = False
+    full_kept[np.flatnonzero(kept)[~solid[inverse]]] = False
+    rgb = model.base_colors[kept]
     n_vox = len(counts)
-    sums = np.zeros((n_vox, 3))
-    np.add.at(sums, inverse, x)
-    csum = np.zeros((n_vox, 3))
-    np.add.at(csum, inverse, rgb)
-    points = (sums / counts[:, None])[solid]
-    colours = (csum / counts[:, None])[solid]
+    points = np.stack([np.bincount(inverse, x[:, k], n_vox) for k in range(3)], 1)[solid] / counts[solid, None]
+    colours = np.stack([np.bincount(inverse, rgb[:, k], n_vox) for k in range(3)], 1)[solid] / counts[solid, None]
     weights = counts[solid].astype(np.float64)
     weights /= weights.mean()
     w = weights / weights.sum()
@@ -106,7 +110,7 @@ def anchors(model: GaussianModel, count: int = 2000, seed: int = 0) -> Anchors:
     return Anchors(points, srgb_to_lab(colours), weights, center, radius, full_kept, cKDTree(points), colours)
 
 
-def _solid_voxels(counts: np.ndarray) -> np.ndarray:
+def solid_voxels(counts: np.ndarray) -> np.ndarray:
     """Surface voxels hold many Gaussians, a floater's voxel one or two: voxels with fewer
     than a tenth of a typical (Gaussian-weighted median) voxel's count are floaters."""
     typical = float(np.median(np.repeat(counts, counts)))
@@ -114,12 +118,13 @@ def _solid_voxels(counts: np.ndarray) -> np.ndarray:
     return solid if solid.sum() >= 4 else np.ones(len(counts), bool)
 
 
-def _voxelise(x: np.ndarray, lo: np.ndarray, voxel: float):
+def voxelise(x: np.ndarray, lo: np.ndarray, voxel: float) -> tuple[np.ndarray, np.ndarray]:
+    """(voxel of each point, points per occupied voxel) on a grid of `voxel` cells from `lo`."""
     ijk = np.floor((x - lo) / voxel).astype(np.int64)
     span = ijk.max(0) + 1
     keys = (ijk[:, 0] * span[1] + ijk[:, 1]) * span[2] + ijk[:, 2]
-    uniq, inverse, counts = np.unique(keys, return_inverse=True, return_counts=True)
-    return uniq, inverse.ravel(), counts
+    _, inverse, counts = np.unique(keys, return_inverse=True, return_counts=True)
+    return inverse.ravel(), counts
 
 
 class NearestGrid:
