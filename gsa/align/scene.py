@@ -41,7 +41,8 @@ objects:
   the overlap) runs on at most REFINE_CLOUD Gaussians per capture drawn at random from
   the floater-free ones, with their full-resolution positions: trees and neighbour
   tables stay bounded, so time and memory grow linearly only through the O(N)
-  anchoring and sampling passes;
+  anchoring and sampling passes; it ends point-to-plane on the target Gaussians' normals
+  where the captures coincide, as on the object path;
 - no canonical features (and no feature metrics) and no fine stage, which renders
   every Gaussian per view.
 """
@@ -401,12 +402,23 @@ def align_scene(
 
     t = time.perf_counter()
     rng = np.random.default_rng(opts.seed)
-    p_cloud, q_cloud = (_thinned(m.means, a.kept, REFINE_CLOUD, rng) for m, a in ((source, src), (target, dst)))
+    p_idx, q_idx = (_thinned(a.kept, REFINE_CLOUD, rng) for a in (src, dst))
+    p_cloud, q_cloud = source.means[p_idx].astype(np.float64), target.means[q_idx].astype(np.float64)
     p_tree, q_tree = cKDTree(p_cloud), cKDTree(q_cloud)
     half = opts.refine_points // 2
     p = p_cloud[_rows(rng, len(p_cloud), half)]
-    q = q_cloud[_rows(rng, len(q_cloud), half)]
-    transform, history = robust.refine(p, q, p_tree, q_tree, search.best.transform, opts.refine_iterations)
+    q_rows = _rows(rng, len(q_cloud), half)
+    q = q_cloud[q_rows]
+    normals, flatness = target.surface_normals(q_idx)
+    transform, history = robust.refine(
+        p,
+        q,
+        p_tree,
+        q_tree,
+        search.best.transform,
+        opts.refine_iterations,
+        target_normals=(normals, flatness, normals[q_rows], flatness[q_rows]),
+    )
     coarse = CoarseResult(
         transform=transform,
         iterations=len(history),
@@ -517,13 +529,13 @@ def _rows(rng: np.random.Generator, n: int, k: int) -> np.ndarray:
     return np.arange(n) if k >= n else np.sort(rng.choice(n, k, replace=False))
 
 
-def _thinned(means: np.ndarray, kept: np.ndarray, limit: int, rng: np.random.Generator) -> np.ndarray:
-    """At most `limit` of the floater-free Gaussians, uniformly at random, as float64: a
+def _thinned(kept: np.ndarray, limit: int, rng: np.random.Generator) -> np.ndarray:
+    """Rows of at most `limit` of the floater-free Gaussians, uniformly at random: a
     fixed-size cloud whatever the capture's size, with the full-resolution positions."""
     idx = np.flatnonzero(kept)
     if len(idx) > limit:
         idx = np.sort(rng.choice(idx, limit, replace=False))
-    return means[idx].astype(np.float64)
+    return idx
 
 
 def _inliers(transform: Sim3, p, q, p_tree: cKDTree, q_tree: cKDTree, threshold: float) -> dict:
