@@ -19,11 +19,13 @@ part in it. This module does not trust any single frame:
    cannot shrink into the other), and scored by how much of the two models overlap
    (truncated distances both ways), a close pair of the wrong colour counting against
    a pose as far as the two models share a palette: colour is what tells the sides of
-   a symmetric object apart.
-4. The margin to the best distinct alternative and the overlap itself give a
-   confidence; near-ties are reported as ambiguous with their poses. Where the palettes
-   are shared, a pose whose colours disagree beyond the models' own colour noise yields to
-   a consistent one and is doubtful (`colour_mismatch`).
+   a symmetric object apart. Where poses tie in geometry (a symmetric shape), the best
+   also try small turns by their coloured score, which the ICP's pull misses.
+4. The margin to the best distinct alternative and the overlap itself (how much, and how
+   well it coincides at full resolution) give a confidence; near-ties are reported as
+   ambiguous with their poses. Where the palettes are shared, a pose whose colours disagree
+   beyond the models' own colour noise yields to a consistent one and is doubtful
+   (`colour_mismatch`); where no pose makes them agree (another paint), geometry ranks.
 
 Colours are compared after `match_exposure` (the source's anchors under the target's
 exposure and white balance), and the full-resolution refinement ends point-to-plane on the
