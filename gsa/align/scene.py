@@ -433,7 +433,7 @@ def align_scene(
     t = time.perf_counter()
     metrics = _inliers(transform, p, q, p_tree, q_tree, opts.inlier_threshold * dst.radius)
     final = robust.score_pose(src, dst, transform, "final", search.colour_weight)
-    metrics.update(robust.verdict(final, search))
+    metrics.update(robust.verdict(final, search, robust.coincidence(p, q, p_tree, q_tree, transform)))
     metrics["hypothesis"] = search.best.origin
     metrics["scene"] = choice.to_dict() | {
         "anchors": [len(src), len(dst)],
