@@ -281,10 +281,9 @@ def coincidence(
     d = np.concatenate([d_f, d_r * transform.scale])
     spacing = max(sampling_spacing(target_tree), sampling_spacing(source_tree) * transform.scale)
     fraction = overlap_fraction(d)
-    if spacing <= 0:
-        return fraction, 0.0
     kept = np.sort(d)[: max(int(fraction * len(d)), 3)]
-    return fraction, float(np.mean(kept < COINCIDENT_SPACINGS * spacing))
+    # ≤: where a model's median spacing is 0 (stacked duplicate Gaussians), pairs at 0 coincide.
+    return fraction, float(np.mean(kept <= COINCIDENT_SPACINGS * spacing))
 
 
 def _plane_step(x: np.ndarray, y: np.ndarray, n: np.ndarray, w: np.ndarray) -> Sim3 | None:

@@ -249,6 +249,9 @@ def _sweep_turns() -> np.ndarray:
     return np.array([axis_rotation(axis, a) for axis in np.eye(3) for a in angles])
 
 
+_SWEEP_TURNS = _sweep_turns()
+
+
 def _distinct(order: np.ndarray, rotations: np.ndarray, count: int, min_deg: float) -> list[int]:
     """The first `count` indices of `order` whose rotations are min_deg apart."""
     chosen: list[int] = []
@@ -415,6 +418,3 @@ def _capture_step(u, scale, t, nearest, lo, inv_cell, shape, other, reach):  # p
         scale[k] = s_new
         for a in range(3):
             t[k, a] = sy[a] / cnt - s_new * su[a] / cnt
-
-
-_SWEEP_TURNS = _sweep_turns()
