@@ -4,6 +4,7 @@ and print the numbers: requests, unexpected 5xx, hangs, peak server RSS, and
 whether what was stored before is byte-identical after.
 
     PYTHONPATH=. python scripts/fuzz_service.py [--requests 3000] [--outages 3] [--bound 10] [--worker]
+        [--seed N] [--save out/fuzz-found]
 
 Starts its own redis-server (free loopback port, append-only file), `gsa serve`
 and, for the baseline (and with --worker for the whole run), a `gsa worker`, in a
@@ -11,6 +12,13 @@ temp dir. The generators and checks are tests/service/fuzz_requests.py (the
 pytest version is tests/service/test_fuzz_service.py). Every --outages-th part of
 the run happens with Redis stopped: there, and only there, 503 is expected.
 Exit status 1 when anything broke the contract.
+
+This is the random search (new cases on every run unless --seed is given); the test
+suite only replays fixed ones. Every request that broke the contract is written to
+--save as a .http file (tests/service/fuzz_requests.dump_http): what this finds joins
+the stored corpus, tests/service/corpus/, which tests/service/test_fuzz_corpus.py
+replays on every test run (check its "# expect:" line; ids of this run's baseline
+jobs and assets will not exist there).
 """
 
 from __future__ import annotations
@@ -23,7 +31,7 @@ import tempfile
 import time
 from pathlib import Path
 
-from hypothesis import HealthCheck, Phase, given, settings
+from hypothesis import HealthCheck, Phase, given, seed, settings
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
@@ -51,11 +59,16 @@ def main() -> int:
     ap.add_argument("--bound", type=float, default=10.0, help="seconds one request may take")
     ap.add_argument("--worker", action="store_true", help="keep a worker running the fuzzed jobs")
     ap.add_argument("--keep", action="store_true", help="keep the temp folder (logs)")
+    ap.add_argument("--seed", type=int, default=None, help="replay one run's draws (default: new ones every run)")
+    ap.add_argument(
+        "--save", type=Path, default=ROOT / "out" / "fuzz-found", help="where requests that broke the contract go"
+    )
     a = ap.parse_args()
     tmp = Path(tempfile.mkdtemp(prefix="gsa-fuzz-"))
     t0 = time.monotonic()
     src, tgt = make_pair(tmp)
-    s = FuzzSession(tmp / "dep", src.read_bytes(), worker=a.worker, bound_s=a.bound)
+    s = FuzzSession(tmp / "dep", src.read_bytes(), worker=a.worker, bound_s=a.bound, save_dir=a.save)
+    batches = iter(range(1 << 30))
     try:
         targets = s.store_baseline(src, tgt)
         strategy = requests(s.corpus, targets, s.names)
@@ -72,6 +85,8 @@ def main() -> int:
             def one(req):
                 s.run(req)
 
+            if a.seed is not None:  # each batch its own draws, the same ones for the same --seed
+                one = seed(a.seed * 1000 + next(batches))(one)
             one()
 
         normal = a.requests - a.outages * a.outage_requests
@@ -100,6 +115,8 @@ def main() -> int:
         print(dumps(summary))
         for f in s.stats.failures:
             print("FAIL", f)
+        if s.stats.failures:
+            print(f"requests that broke the contract: {a.save} (copy them to tests/service/corpus/)")
         for c in changed:
             print("CHANGED", c)
         broken = s.stats.unexpected_5xx + s.stats.hangs + s.stats.no_answer + s.stats.other + len(changed)

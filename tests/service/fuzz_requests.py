@@ -81,6 +81,35 @@ def send(host: str, port: int, req: Req, timeout: float) -> Resp:
         sock.close()
 
 
+# ---- stored failing requests (tests/service/corpus/*.http) -------------------------------------
+# One request per file, as it goes on the wire minus what `send` adds (Host, Connection and,
+# when the request has none, Content-Length): "METHOD TARGET", header lines, an empty line,
+# the body bytes. Leading "# key: value" lines are notes; "# expect: 4xx" (the default) is
+# what the server must answer. scripts/fuzz_service.py --save writes what it finds this way.
+
+
+def dump_http(req: Req, notes: dict[str, str] | None = None) -> bytes:
+    head = [f"# {k}: {v}".encode() for k, v in (notes or {}).items()]
+    head.append(req.method.encode() + b" " + req.target)
+    head += [k + b": " + v for k, v in req.headers]
+    return CRLF.join(head) + CRLF + CRLF + req.body
+
+
+def load_http(data: bytes, kind: str = "corpus") -> tuple[Req, dict[str, str]]:
+    """A stored request and its notes (dump_http's inverse)."""
+    head, sep, body = data.partition(CRLF + CRLF)
+    if not sep:
+        raise ValueError("no empty line after the request head")
+    lines = head.split(CRLF)
+    notes = {}
+    while lines and lines[0].startswith(b"#"):
+        key, _, value = lines.pop(0)[1:].decode().partition(":")
+        notes[key.strip()] = value.strip()
+    method, _, target = lines[0].partition(b" ")
+    headers = [(k, v.lstrip(b" ")) for k, _, v in (line.partition(b":") for line in lines[1:])]
+    return Req(kind, method.decode(), target, headers, body), notes
+
+
 # ---- corpus: valid inputs, and known-bad ones, built once --------------------------------------
 
 

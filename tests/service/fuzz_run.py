@@ -15,7 +15,16 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from tests.service.conftest import ALICE, BOB, KEYS, service_env, wait_job
-from tests.service.fuzz_requests import Req, Resp, Targets, build_corpus, option_names, problems_with, send
+from tests.service.fuzz_requests import (
+    Req,
+    Resp,
+    Targets,
+    build_corpus,
+    dump_http,
+    option_names,
+    problems_with,
+    send,
+)
 from tests.service.harness import Deployment, RedisServer
 
 MAX_UPLOAD = 4 * 1024 * 1024  # the fuzz deployment's per-file cap (the "big" requests pass it)
@@ -61,8 +70,12 @@ def _blob_digests(root: Path) -> dict[str, str]:
 
 
 class FuzzSession:
-    def __init__(self, tmp: Path, ply_bytes: bytes, worker: bool = False, bound_s: float = 10.0):
-        self.tmp, self.bound_s = tmp, bound_s
+    def __init__(
+        self, tmp: Path, ply_bytes: bytes, worker: bool = False, bound_s: float = 10.0, save_dir: Path | None = None
+    ):
+        """save_dir: where each request that broke the contract is written (one .http file,
+        fuzz_requests.dump_http), ready to join tests/service/corpus/."""
+        self.tmp, self.bound_s, self.save_dir = tmp, bound_s, save_dir
         env = service_env(
             tmp,
             GSA_MAX_UPLOAD_BYTES=MAX_UPLOAD,
@@ -149,8 +162,19 @@ class FuzzSession:
         problems = problems_with(req, resp, self.bound_s, self.outage)
         problems += self._artifact_oracle(req, resp)
         self.stats.record(req, resp, problems, self.bound_s)
+        if problems and self.save_dir is not None:
+            self.save(req, problems)
         self.stats.rss_peak = max(self.stats.rss_peak, self.dep.api_rss("VmHWM"))
         return problems
+
+    def save(self, req: Req, problems: list[str]) -> Path:
+        self.save_dir.mkdir(parents=True, exist_ok=True)
+        digest = hashlib.sha256(req.method.encode() + req.target + req.body).hexdigest()[:12]
+        path = self.save_dir / f"{req.kind}-{digest}.http"
+        why = "; ".join(problems).replace("\r", " ").replace("\n", " ")[:300]
+        note = {"found": f"scripts/fuzz_service.py {time.strftime('%Y-%m-%d')}: {why}", "expect": "4xx"}
+        path.write_bytes(dump_http(req, note))
+        return path
 
     def _artifact_oracle(self, req: Req, resp: Resp) -> list[str]:
         """A 200/206 for a baseline artifact must carry exactly its bytes (or the range asked for)."""
