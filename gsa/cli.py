@@ -16,6 +16,7 @@ import importlib
 import json
 import os
 import sys
+import warnings
 from collections.abc import Sequence
 from importlib.metadata import entry_points
 from pathlib import Path
@@ -554,6 +555,17 @@ def _use_workqueue_threads() -> None:
         os.environ["NUMBA_THREADING_LAYER"] = "workqueue"
 
 
+def _show_warning(message, category, filename, lineno, file=None, line=None) -> None:
+    """A reader's warning (gsa.io.ply.ReaderWarning: what it changed to read a file) as one
+    `gsa: warning:` line; any other warning as Python shows it."""
+    ply = sys.modules.get("gsa.io.ply")
+    reader_warning = getattr(ply, "ReaderWarning", None) if ply is not None else None
+    if isinstance(reader_warning, type) and issubclass(category, reader_warning):
+        print(f"gsa: warning: {message}", file=sys.stderr, flush=True)
+    else:
+        sys.stderr.write(warnings.formatwarning(message, category, filename, lineno, line))
+
+
 def main(argv: list[str] | None = None) -> int:
     # argv None: this is the `gsa` process itself (console script, python -m gsa.cli).
     program = argv is None
@@ -565,7 +577,9 @@ def main(argv: list[str] | None = None) -> int:
         # the garbage collector from walking them again in every full collection.
         gc.freeze()
     try:
-        return int(args.func(args) or 0)
+        with warnings.catch_warnings():
+            warnings.showwarning = _show_warning
+            return int(args.func(args) or 0)
     except KeyboardInterrupt:
         print("gsa: interrupted", file=sys.stderr)
         return 130

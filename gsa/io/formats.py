@@ -11,12 +11,22 @@ from __future__ import annotations
 import os
 import struct
 import tempfile
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
 
 from gsa.io import frames
-from gsa.io.ply import DEFAULT_MAX_GAUSSIANS, MAX_HEADER_BYTES, PlyError, read_ply, write_ply
+from gsa.io.ply import (
+    DEFAULT_MAX_GAUSSIANS,
+    LOG_SCALE_BOUND,
+    MAX_HEADER_BYTES,
+    MAX_OPACITY_LOGIT,
+    PlyError,
+    clamp_infinite,
+    read_ply,
+    write_ply,
+)
 from gsa.model import GaussianModel, ModelError
 
 FORMATS = ("ply", "compressed-ply", "splat", "ksplat", "spz", "sog", "glb")
@@ -49,6 +59,13 @@ ROUNDTRIP_BOUNDS = {
 }
 
 
+# Formats that store alpha in 8 bits. Stored 0 and 255 are read as ALPHA_EPS and 1 − ALPHA_EPS
+# in all of them (gaussforge's decoders give ±Inf for SPZ, alpha clamped to [0.001, 0.999] for
+# compressed PLY, [1e-6, 1 − 1e-6] for .ksplat), and counted in the reader's warning.
+EIGHT_BIT_ALPHA = ("compressed-ply", "splat", "ksplat", "spz", "sog")
+_SATURATED_LOGIT = float(np.log(254.5 / 0.5))  # beyond it, the stored alpha was 0 or 255
+
+
 class FormatError(PlyError):
     """A model file that is not readable in any supported format; one line naming the file."""
 
@@ -79,13 +96,13 @@ def sniff_bytes(head: bytes, size: int) -> str | None:
 
 def _plausible_splat(first: np.ndarray) -> bool:
     """Headerless .splat: the first records must look like Gaussians (finite positions within
-    1e6, sizes 1e-8..1e4, not all at one point), so that arbitrary bytes whose length is a
+    1e6, sizes 0 or 1e-14..1e14 — writers keep them within e^±30 —, not all at one point), so that arbitrary bytes whose length is a
     multiple of 32 are not taken for one."""
     with np.errstate(invalid="ignore", over="ignore"):
         pos, scale = first["pos"].astype(np.float64), first["scale"].astype(np.float64)
         if not (np.isfinite(pos).all() and (np.abs(pos) < 1e6).all()):
             return False
-        sized = ((scale >= 1e-8) & (scale <= 1e4)).all(axis=1).mean()
+        sized = ((scale == 0) | ((scale >= 1e-14) & (scale <= 1e14))).all(axis=1).mean()
     return bool(sized >= 0.9 and (len(first) == 1 or np.ptp(pos, axis=0).max() > 0))
 
 
@@ -142,6 +159,11 @@ def _read_other(path: Path, fmt: str, max_gaussians: int) -> GaussianModel:
             model = packed.decode(fmt, data)
         if len(model) > max_gaussians:
             raise FormatError(path, f"{len(model)} Gaussians exceeds the limit of {max_gaussians}")
+        # alpha stored as exactly 0 or 1 (an infinite logit), a scale of 0: finite, with a warning
+        clamped = model.metadata.pop("clamped_opacity", 0)
+        if fmt in EIGHT_BIT_ALPHA:
+            clamped += _saturated_alpha(model)
+        clamp_infinite(model, path, clamped_opacity=clamped)
         model.validate(source="data")
     except FormatError:
         raise
@@ -153,6 +175,18 @@ def _read_other(path: Path, fmt: str, max_gaussians: int) -> GaussianModel:
         raise FormatError(path, f"{fmt}: cannot decode ({type(exc).__name__}: {exc})") from None
     model.quats = model.quats / np.linalg.norm(model.quats, axis=1, keepdims=True)  # buffers may be read-only
     return model
+
+
+def _saturated_alpha(model: GaussianModel) -> int:
+    """Opacity logits of alpha stored as 0 or 255 set to ±MAX_OPACITY_LOGIT, in place; their count."""
+    logits = model.opacity_logits
+    saturated = np.abs(logits) > _SATURATED_LOGIT  # ±Inf too (NaN is not: validate refuses it)
+    count = int(np.count_nonzero(saturated))
+    if count:
+        if not logits.flags.writeable:
+            logits = model.opacity_logits = logits.copy()
+        logits[saturated] = np.copysign(MAX_OPACITY_LOGIT, logits[saturated])
+    return count
 
 
 def format_for_path(path: str | os.PathLike) -> str | None:
@@ -176,6 +210,10 @@ def write_model(
     if degree != model.sh_degree:
         model = model.with_sh_degree(degree)
     model = frames.from_internal(model, fmt)
+    if fmt != "ply" and np.abs(model.log_scales).max(initial=0.0) > LOG_SCALE_BOUND:
+        # Linear scales past e^±30 overflow float32 once squared (e^±89: the number itself);
+        # every format but PLY (which stores the logarithm) gets them within ±LOG_SCALE_BOUND.
+        model = replace(model, log_scales=np.clip(model.log_scales, -LOG_SCALE_BOUND, LOG_SCALE_BOUND))
     if fmt == "ply":
         return write_ply(model, path)
     if fmt == "splat":

@@ -17,6 +17,7 @@ import struct
 
 import numpy as np
 
+from gsa.io.ply import ALPHA_EPS
 from gsa.model import GaussianModel, sh_coeff_count
 from gsa.sim3 import Sim3
 
@@ -201,7 +202,10 @@ def _decode_primitive(doc: dict, binary: memoryview, prim: dict, mesh_index: int
     n = len(means)
     quats = _accessor(doc, binary, attrs[f"{EXT}:ROTATION"], "VEC4", n)[:, [3, 0, 1, 2]]
     scales = _accessor(doc, binary, attrs[f"{EXT}:SCALE"], "VEC3", n)
-    opacity = np.clip(_accessor(doc, binary, attrs[f"{EXT}:OPACITY"], "SCALAR", n)[:, 0], 1e-6, 1 - 1e-6)
+    stored = _accessor(doc, binary, attrs[f"{EXT}:OPACITY"], "SCALAR", n)[:, 0].astype(np.float64)
+    # alpha 0 and 1 (an infinite logit) are read as ALPHA_EPS and 1 − ALPHA_EPS, and counted
+    opacity = np.clip(stored, ALPHA_EPS, 1.0 - ALPHA_EPS)
+    clamped = int(np.count_nonzero((stored <= 0.0) | (stored >= 1.0)))
     degree = 0
     while degree < 3 and all(a in attrs for a in sh_attribute_names(degree + 1)):
         degree += 1
@@ -215,5 +219,6 @@ def _decode_primitive(doc: dict, binary: memoryview, prim: dict, mesh_index: int
     model = GaussianModel(
         means=means, quats=quats, log_scales=log_scales, opacity_logits=np.log(opacity / (1 - opacity)), sh=sh
     )
+    model.metadata["clamped_opacity"] = clamped
     node = _node_transform(doc, mesh_index)
     return model if node is None else model.transformed(node)

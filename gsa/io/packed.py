@@ -11,6 +11,7 @@ debug line off our stdout.
 
 from __future__ import annotations
 
+import gzip
 import io
 import json
 import struct
@@ -73,12 +74,16 @@ def _check_spz(data: bytes, max_gaussians: int) -> None:
         raise PackedError(f"{count} Gaussians exceeds the limit of {max_gaussians}")
     if degree > 3:
         raise PackedError(f"SH degree {degree} in the header (0..3 exist)")
+    per = 9 + 1 + 3 + 3 + (4 if version == 3 else 3) + 3 * (sh_coeff_count(degree) - 1)
+    need = 16 + count * per
+    if not gz and version <= 3 and len(data) < need:
+        raise PackedError(
+            f"truncated: the header declares {count} Gaussians ({need} bytes), the stream holds {len(data)}"
+        )
     if gz and version <= 3:
         # The whole stream, at most one byte past what the header implies: a truncated or
         # corrupt stream is named here (gaussforge says only "std::bad_cast"), and a stream
         # that would inflate far beyond its header's count is never inflated.
-        per = 9 + 1 + 3 + 3 + (4 if version == 3 else 3) + 3 * (sh_coeff_count(degree) - 1)
-        need = 16 + count * per
         inflater = zlib.decompressobj(16 + zlib.MAX_WBITS)
         try:
             got = len(inflater.decompress(data, need + (1 << 20)))
@@ -136,6 +141,10 @@ def decode(fmt: str, data: bytes) -> GaussianModel:
     (values still unchecked). Its `read` returns a dict of arrays but fails with std::bad_cast
     on every SH-degree-0 model (0.6.0); `convert` has no such gap. The child: some corrupt SOG
     archives crash gaussforge (SIGSEGV) — tests/test_formats.py mutates files of every format."""
+    if fmt == "spz" and data[:4] == b"NGSP" and struct.unpack_from("<I", data, 4)[0] <= 3:
+        # An SPZ v1-v3 stream saved without its gzip wrapper (v4 has none): gaussforge reads
+        # v1-v3 only gzipped, so wrap it (level 1: seconds at most).
+        data = gzip.compress(data, compresslevel=1)
     proc = subprocess.run(
         [sys.executable, "-m", "gsa.io.packed_child", GAUSSFORGE_NAMES[fmt]],
         input=data,

@@ -3,7 +3,13 @@
 Reading fills the model's arrays from the binary body in chunks of rows (one reused buffer of
 CHUNK_BYTES), and writing builds the file's rows chunk by chunk, so a 5M-Gaussian file is held
 once in memory (the model's arrays), never twice (scripts/bench_ply_memory.py). ASCII and big-endian bodies
-are read too. Every problem is raised as one `PlyError` naming the file.
+are read too, extra properties (normals, colours, ...) are ignored, and Mip-Splatting's `filter_3D`
+is folded into the scales and opacities. Every problem is raised as one `PlyError` naming the file.
+
+What real exporters write but the model cannot hold is changed on read and said in one
+`ReaderWarning` per file (the CLI prints it as one `gsa: warning:` line): an infinite opacity
+logit (alpha stored as exactly 1 or 0) becomes ±MAX_OPACITY_LOGIT, an infinite log-scale (a
+scale of 0, or one past float range) ±LOG_SCALE_BOUND (`clamp_infinite`, used by every reader).
 """
 
 from __future__ import annotations
@@ -11,6 +17,7 @@ from __future__ import annotations
 import os
 import re
 import tempfile
+import warnings
 from collections.abc import Sequence
 from pathlib import Path
 
@@ -32,8 +39,21 @@ DEFAULT_MAX_GAUSSIANS = 50_000_000
 # Bodies are read and written in chunks of rows of about this size, so a model of millions of
 # Gaussians is held once (its arrays) plus one chunk, never a whole second copy.
 CHUNK_BYTES = 16 << 20
+# Alpha is read within [ALPHA_EPS, 1 − ALPHA_EPS]: exporters store exactly 0 and 1, whose logit
+# is infinite. The bound is float32-safe (its logit, ±13.8, and back round-trip) and below any
+# 8-bit format's step, so a clamped Gaussian still writes as alpha 0 or 255.
+ALPHA_EPS = 1e-6
+MAX_OPACITY_LOGIT = float(np.log((1.0 - ALPHA_EPS) / ALPHA_EPS))
+# An infinite log-scale is read as ±LOG_SCALE_BOUND (scales e^±30: their squares, the
+# covariances, stay normal float32 numbers). Finite values are kept as the file has them.
+LOG_SCALE_BOUND = 30.0
 REQUIRED = ["x", "y", "z", "f_dc_0", "f_dc_1", "f_dc_2", "opacity",
             "scale_0", "scale_1", "scale_2", "rot_0", "rot_1", "rot_2", "rot_3"]  # fmt: skip
+
+
+class ReaderWarning(UserWarning):
+    """A model file read with values changed so that the model can hold them; the message
+    names the file and says what changed (one line)."""
 
 
 class PlyError(ValueError):
@@ -43,6 +63,50 @@ class PlyError(ValueError):
         self.path = str(path)
         self.problem = problem
         super().__init__(f"{self.path}: {problem}")
+
+
+def clamp_infinite(model: GaussianModel, path: str | os.PathLike, *, clamped_opacity: int = 0) -> dict[str, int]:
+    """Make infinite opacity logits and log-scales finite, in place, and warn once.
+
+    ±Inf opacity logits (alpha exactly 1 or 0) become ±MAX_OPACITY_LOGIT and ±Inf log-scales
+    ±LOG_SCALE_BOUND; NaN stays (validate refuses it). `clamped_opacity`: Gaussians whose alpha
+    a decoder already clamped (formats that store alpha, not its logit). Returns the counts
+    ({"opacity": n, "scale": m}, Gaussians), also kept in metadata["clamped"] when not zero."""
+    n_opacity = int(clamped_opacity)
+    n_scale = 0
+    for lo in range(0, len(model), ROW_BLOCK):
+        op = model.opacity_logits[lo : lo + ROW_BLOCK]
+        inf = np.isinf(op)
+        if inf.any():
+            if not model.opacity_logits.flags.writeable:
+                model.opacity_logits = model.opacity_logits.copy()
+                op = model.opacity_logits[lo : lo + ROW_BLOCK]
+            op[inf] = np.copysign(MAX_OPACITY_LOGIT, op[inf])
+            n_opacity += int(inf.sum())
+        ls = model.log_scales[lo : lo + ROW_BLOCK]
+        inf = np.isinf(ls)
+        if inf.any():
+            if not model.log_scales.flags.writeable:
+                model.log_scales = model.log_scales.copy()
+                ls = model.log_scales[lo : lo + ROW_BLOCK]
+            ls[inf] = np.copysign(LOG_SCALE_BOUND, ls[inf])
+            n_scale += int(inf.any(axis=1).sum())
+    counts = {"opacity": n_opacity, "scale": n_scale}
+    if n_opacity or n_scale:
+        model.metadata["clamped"] = counts
+        parts = []
+        if n_opacity:
+            parts.append(
+                f"{n_opacity} Gaussian(s) with opacity 0 or 1 (an infinite logit) read as "
+                f"{ALPHA_EPS:g} or 1 - {ALPHA_EPS:g}"
+            )
+        if n_scale:
+            parts.append(
+                f"{n_scale} Gaussian(s) with a scale of 0 or past float range read as "
+                f"e^-{LOG_SCALE_BOUND:g} or e^{LOG_SCALE_BOUND:g}"
+            )
+        warnings.warn(f"{path}: {'; '.join(parts)}", ReaderWarning, stacklevel=2)
+    return counts
 
 
 def _parse_header(
@@ -97,7 +161,7 @@ def _sh_and_feature_layout(path: Path, names: list[str]) -> tuple[int, int]:
     present = set(names)
     missing = [n for n in REQUIRED if n not in present]
     if missing:
-        known = set(REQUIRED) | {"nx", "ny", "nz"}
+        known = set(REQUIRED) | {"nx", "ny", "nz", "filter_3D"}
         unknown = [n for n in names if n not in known and not re.fullmatch(r"(f_rest|semantic)_\d+", n)]
         hint = f"; unrecognised properties: {', '.join(unknown[:8])}" if unknown else ""
         raise PlyError(path, f"not a 3DGS PLY: missing properties {', '.join(missing)}{hint}")
@@ -170,6 +234,7 @@ def read_ply(path: str | os.PathLike, *, max_gaussians: int = DEFAULT_MAX_GAUSSI
     features = np.empty((count, feat_dim), np.float32) if feat_dim else None
     rest_keys = [f"f_rest_{i}" for i in range(3 * (k - 1))]
     feat_keys = [f"semantic_{i}" for i in range(feat_dim)]
+    filter_3d = np.empty(count, np.float32) if "filter_3D" in index else None
     for lo, hi, cols in chunks:
         means[lo:hi] = cols(["x", "y", "z"])
         quats[lo:hi] = cols(["rot_0", "rot_1", "rot_2", "rot_3"])
@@ -180,10 +245,15 @@ def read_ply(path: str | os.PathLike, *, max_gaussians: int = DEFAULT_MAX_GAUSSI
             sh[lo:hi, 1:, :] = cols(rest_keys).reshape(hi - lo, 3, k - 1).transpose(0, 2, 1)
         if features is not None:
             features[lo:hi] = cols(feat_keys)
+        if filter_3d is not None:
+            filter_3d[lo:hi] = cols(["filter_3D"])[:, 0]
     try:
         model = GaussianModel(
             means=means, quats=quats, log_scales=log_scales, opacity_logits=opacity, sh=sh, features=features
         )
+        clamp_infinite(model, path)
+        if filter_3d is not None:
+            _apply_3d_filter(path, model, filter_3d)
         model.validate(source="data")
     except ModelError as exc:
         raise PlyError(path, str(exc)) from None
@@ -196,6 +266,30 @@ def read_ply(path: str | os.PathLike, *, max_gaussians: int = DEFAULT_MAX_GAUSSI
     if provenance and feat_dim:
         model.metadata["features"] = provenance
     return model
+
+
+def _apply_3d_filter(path: Path, model: GaussianModel, filter_3d: np.ndarray) -> None:
+    """Fold Mip-Splatting's 3D smoothing filter into the model, in place, as its renderer
+    does: scales s → √(s² + f²), alpha × √(Π s² / Π (s² + f²)). The result is a plain 3DGS."""
+    if not np.isfinite(filter_3d).all() or (filter_3d < 0).any():
+        raise PlyError(path, "filter_3D holds negative, NaN or Inf values")
+    for lo in range(0, len(model), ROW_BLOCK):
+        rows = slice(lo, lo + ROW_BLOCK)
+        s2 = np.exp(2.0 * model.log_scales[rows].astype(np.float64))
+        f2 = np.square(filter_3d[rows].astype(np.float64))[:, None]
+        filtered = s2 + f2
+        with np.errstate(divide="ignore", invalid="ignore"):
+            coef = np.sqrt(np.prod(s2 / filtered, axis=1))
+        alpha = coef / (1.0 + np.exp(-model.opacity_logits[rows].astype(np.float64)))
+        alpha = np.clip(np.nan_to_num(alpha), ALPHA_EPS, 1.0 - ALPHA_EPS)
+        model.opacity_logits[rows] = np.log(alpha / (1.0 - alpha))
+        model.log_scales[rows] = 0.5 * np.log(filtered)
+    model.metadata["filter_3D"] = "applied"
+    warnings.warn(
+        f"{path}: Mip-Splatting's filter_3D folded into the scales and opacities of {len(model)} Gaussians",
+        ReaderWarning,
+        stacklevel=3,
+    )
 
 
 def _binary_chunks(path: Path, header_len: int, dtype: np.dtype, count: int, props, index: dict[str, int]):

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from gsa.io.ply import ALPHA_EPS
 from gsa.model import SH_C0, GaussianModel
 
 SPLAT_DTYPE = np.dtype([("pos", "<f4", 3), ("scale", "<f4", 3), ("rgba", "u1", 4), ("rot", "u1", 4)])
@@ -18,11 +19,12 @@ SPLAT_DTYPE = np.dtype([("pos", "<f4", 3), ("scale", "<f4", 3), ("rgba", "u1", 4
 def decode_splat(buf: np.ndarray) -> GaussianModel:
     """A model from a (N,) SPLAT_DTYPE array (values not yet checked)."""
     rgba = buf["rgba"].astype(np.float32) / 255.0
-    alpha = np.clip(rgba[:, 3], 0.5 / 255.0, 1.0 - 0.5 / 255.0)
+    # alpha 0 and 255 (an infinite logit) are read as ALPHA_EPS and 1 − ALPHA_EPS (counted by read_model)
+    alpha = np.clip(rgba[:, 3].astype(np.float64), ALPHA_EPS, 1.0 - ALPHA_EPS)
     quats = (buf["rot"].astype(np.float32) - 128.0) / 128.0
     norm = np.linalg.norm(quats, axis=1, keepdims=True)
     quats = np.where(norm > 0, quats / np.maximum(norm, 1e-12), np.array([1.0, 0, 0, 0], np.float32))
-    with np.errstate(divide="ignore"):
+    with np.errstate(divide="ignore", invalid="ignore"):
         log_scales = np.log(buf["scale"].astype(np.float32))
     sh = ((rgba[:, :3] - 0.5) / SH_C0)[:, None, :]
     return GaussianModel(
