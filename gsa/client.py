@@ -27,10 +27,33 @@ TERMINAL = ("succeeded", "failed", "cancelled")
 class GSAError(Exception):
     """An error answer from the service; `.problem` holds the RFC 9457 body."""
 
-    def __init__(self, status: int, problem: dict):
+    def __init__(self, status: int, problem: dict, request_id: str | None = None):
         self.status = status
         self.problem = problem
-        super().__init__(f"{status} {problem.get('title', '')}: {problem.get('detail', '')}".strip())
+        self.request_id = request_id
+        super().__init__(self.describe())
+
+    def describe(self) -> str:
+        """One line: the problem's title and status, its detail, and the request id that
+        finds the answer in the server's log ("Invalid input (422): photos.zip: ... (request 3f2a...)")."""
+        p = self.problem if isinstance(self.problem, dict) else {}
+        title = str(p.get("title") or "").strip() or _reason(self.status)
+        text = f"{title} ({self.status})"
+        detail = " ".join(str(p.get("detail") or "").split())
+        if detail:
+            text += f": {detail}"
+        if self.request_id:
+            text += f" (request {self.request_id})"
+        return text
+
+
+def _reason(status: int) -> str:
+    from http import HTTPStatus
+
+    try:
+        return HTTPStatus(status).phrase
+    except ValueError:
+        return "Error"
 
 
 class ServiceUnreachable(ConnectionError):
@@ -114,8 +137,10 @@ class GSAClient:
             try:
                 body = r.json()
             except ValueError:
+                body = None
+            if not isinstance(body, dict):  # not problem+json: a proxy's page, plain text
                 body = {"title": r.reason_phrase, "detail": r.text[:500]}
-            raise GSAError(r.status_code, body)
+            raise GSAError(r.status_code, body, r.headers.get("x-request-id"))
         return r
 
     # ---------------------------------------------------------------- assets

@@ -210,7 +210,7 @@ def _errors(fn):
             _silence_stdout()
             return EXIT_BROKEN_PIPE
         except GSAError as exc:
-            print(f"error: {exc}", file=sys.stderr)
+            print(f"gsa: error: {exc}", file=sys.stderr)  # one line: title (status): detail (request id)
             _print_quietly(exc.problem)
             return 1
         except ServiceUnreachable as exc:

@@ -8,14 +8,18 @@ extracted before it has passed the limits, so a hostile upload (zip bomb,
 
 from __future__ import annotations
 
+import lzma
 import re
 import struct
 import zipfile
+import zlib
 from collections.abc import Callable
-from pathlib import Path, PurePosixPath, PureWindowsPath
+from pathlib import Path, PurePosixPath
 
 import numpy as np
 
+from gsa.ziparchive import ZipArchiveError, ZipLimits, check_zip
+from gsa.ziparchive import unsafe_member_name as unsafe_member_name  # re-exported: one rule for zip names
 from service.backend import Backend
 from service.models import InputRef, Job
 from service.problems import Problem, invalid_input, too_large
@@ -84,7 +88,9 @@ def model_format(head: bytes, size: int, path: Path | None = None) -> str | None
         try:
             with zipfile.ZipFile(path) as zf:
                 return "sog" if "meta.json" in zf.namelist() else None
-        except (zipfile.BadZipFile, OSError):
+        except MemoryError:
+            raise
+        except Exception:  # BadZipFile, OSError, ValueError, ...: not a SOG; validate_zip says why
             return None
     return fmt
 
@@ -162,46 +168,39 @@ def check_image(head: bytes, name: str, settings) -> None:
         raise too_large(f"{name}: {wh[0]}x{wh[1]} exceeds the limit of {settings.max_image_pixels} pixels")
 
 
-def unsafe_member_name(name: str) -> bool:
-    if not name or "\x00" in name or "\\" in name:
-        return True
-    p = PurePosixPath(name)
-    return p.is_absolute() or PureWindowsPath(name).drive != "" or ".." in p.parts
+def zip_limits(settings) -> ZipLimits:
+    return ZipLimits(
+        max_entries=settings.max_zip_entries,
+        max_bytes=settings.max_zip_uncompressed_bytes,
+        max_ratio=settings.max_zip_ratio,
+    )
+
+
+def _zip_problem(exc: ZipArchiveError) -> Problem:
+    return too_large(str(exc)) if exc.limit else invalid_input(str(exc))
 
 
 def validate_zip(path: Path, settings, display_name: str) -> int:
-    """Check an image-set zip's central directory; returns the image count."""
+    """Check an image-set zip with the library's validator (gsa.ziparchive: directory,
+    names, sizes, and every entry read through), plus the service's image limits;
+    returns the image count. Every defect is a 422 (a limit passed: 413)."""
+    images = 0
+
+    def on_file(info: zipfile.ZipInfo, head: bytes) -> None:
+        nonlocal images
+        if PurePosixPath(info.filename).suffix.lower() in IMAGE_EXTS:
+            images += 1
+            if images > settings.max_images:
+                raise too_large(f"{display_name}: more than {settings.max_images} images (the limit)")
+            check_image(head, f"{display_name}:{info.filename}", settings)  # dimensions from the first 64 KiB
+
     try:
-        zf = zipfile.ZipFile(path)
-    except (zipfile.BadZipFile, OSError) as exc:
-        raise invalid_input(f"{display_name}: not a readable zip archive ({exc})") from None
-    with zf:
-        infos = zf.infolist()
-        if len(infos) > settings.max_zip_entries:
-            raise too_large(f"{display_name}: {len(infos)} entries exceeds the limit of {settings.max_zip_entries}")
-        total = 0
-        images = 0
-        for info in infos:
-            if unsafe_member_name(info.filename):
-                raise invalid_input(f"{display_name}: unsafe path in archive: {info.filename!r}")
-            if info.is_dir():
-                continue
-            total += info.file_size
-            if total > settings.max_zip_uncompressed_bytes:
-                raise too_large(
-                    f"{display_name}: uncompressed size exceeds the limit of {settings.max_zip_uncompressed_bytes} bytes"
-                )
-            if info.file_size > 1024 and info.file_size > settings.max_zip_ratio * max(info.compress_size, 1):
-                raise invalid_input(f"{display_name}: {info.filename!r} has a suspicious compression ratio")
-            if PurePosixPath(info.filename).suffix.lower() in IMAGE_EXTS:
-                images += 1
-                with zf.open(info) as fh:  # only the first 64 KiB, for dimensions
-                    check_image(fh.read(65536), f"{display_name}:{info.filename}", settings)
-        if images == 0:
-            raise invalid_input(f"{display_name}: the archive holds no PNG/JPEG images")
-        if images > settings.max_images:
-            raise too_large(f"{display_name}: {images} images exceeds the limit of {settings.max_images}")
-        return images
+        check_zip(path, zip_limits(settings), label=display_name, head_bytes=65536, on_file=on_file)
+    except ZipArchiveError as exc:
+        raise _zip_problem(exc) from None
+    if images == 0:
+        raise invalid_input(f"{display_name}: the archive holds no PNG/JPEG images")
+    return images
 
 
 def safe_extract(path: Path, dest: Path, settings) -> Path:
@@ -209,7 +208,8 @@ def safe_extract(path: Path, dest: Path, settings) -> Path:
 
     Files are flattened to numbered names: the reconstruction reads one folder,
     and no archive path is ever used as a filesystem path."""
-    validate_zip(path, settings, path.name)
+    display_name = path.name
+    validate_zip(path, settings, display_name)
     dest.mkdir(parents=True, exist_ok=True)
     root = dest.resolve()
     n = 0
@@ -222,13 +222,17 @@ def safe_extract(path: Path, dest: Path, settings) -> Path:
                 continue
             out = root / f"{n:05d}{name.suffix.lower()}"
             n += 1
-            with zf.open(info) as src, open(out, "wb") as dst:
-                remaining = info.file_size + 1
-                while chunk := src.read(1 << 20):
-                    remaining -= len(chunk)
-                    if remaining < 0:  # the directory lied about the size
-                        raise invalid_input(f"{info.filename!r} is larger than its declared size")
-                    dst.write(chunk)
+            try:
+                with zf.open(info) as src, open(out, "wb") as dst:
+                    remaining = info.file_size + 1
+                    while chunk := src.read(1 << 20):
+                        remaining -= len(chunk)
+                        if remaining < 0:  # the directory lied about the size
+                            raise invalid_input(f"{display_name}: {info.filename!r} is larger than its declared size")
+                        dst.write(chunk)
+            except (zipfile.BadZipFile, EOFError, zlib.error, lzma.LZMAError) as exc:
+                # validated just above: only an archive changed since could get here
+                raise invalid_input(f"{display_name}: entry {info.filename!r} is corrupt ({exc})") from None
     return dest
 
 

@@ -8,7 +8,6 @@ symlinks), because they come from users of the service.
 from __future__ import annotations
 
 import os
-import stat
 import tempfile
 import zipfile
 from dataclasses import dataclass, field
@@ -16,6 +15,9 @@ from pathlib import Path, PurePosixPath
 
 import cv2
 import numpy as np
+
+from gsa.ziparchive import ZipArchiveError, ZipLimits
+from gsa.ziparchive import check_zip as _check_zip
 
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".webp")
 MIN_IMAGES = 3
@@ -81,37 +83,12 @@ def write_rgb(path: str | os.PathLike, rgb: np.ndarray) -> None:
 def check_zip(
     path: Path, *, max_entries: int = MAX_ZIP_ENTRIES, max_bytes: int = MAX_ZIP_BYTES, max_ratio: float = MAX_ZIP_RATIO
 ) -> list[zipfile.ZipInfo]:
-    """Validate a zip archive without extracting it; returns its file entries."""
+    """Validate a zip archive without extracting it (gsa.ziparchive: the one validator,
+    shared with the service; every entry is read through); returns its file entries."""
     try:
-        zf = zipfile.ZipFile(path)
-    except (zipfile.BadZipFile, OSError) as exc:
-        raise ImageSetError(f"{path.name}: not a readable zip archive ({exc})") from None
-    with zf:
-        infos = zf.infolist()
-    if len(infos) > max_entries:
-        raise ImageSetError(f"{path.name}: {len(infos)} entries exceed the limit of {max_entries}")
-    total = 0
-    files = []
-    for info in infos:
-        name = info.filename
-        pure = PurePosixPath(name.replace("\\", "/"))
-        if pure.is_absolute() or ".." in pure.parts or (len(name) > 1 and name[1] == ":"):
-            raise ImageSetError(f"{path.name}: unsafe path in archive: {name!r}")
-        mode = info.external_attr >> 16
-        if stat.S_ISLNK(mode):
-            raise ImageSetError(f"{path.name}: symbolic link in archive: {name!r}")
-        if info.is_dir():
-            continue
-        total += info.file_size
-        if total > max_bytes:
-            raise ImageSetError(f"{path.name}: uncompressed size exceeds {max_bytes} bytes")
-        if info.file_size > 1024 * 1024 and info.file_size > max_ratio * max(info.compress_size, 1):
-            raise ImageSetError(
-                f"{path.name}: entry {name!r} has a suspicious compression ratio "
-                f"({info.file_size}/{info.compress_size})"
-            )
-        files.append(info)
-    return files
+        return _check_zip(Path(path), ZipLimits(max_entries=max_entries, max_bytes=max_bytes, max_ratio=max_ratio))
+    except ZipArchiveError as exc:
+        raise ImageSetError(str(exc)) from None
 
 
 def _is_hidden(name: str) -> bool:

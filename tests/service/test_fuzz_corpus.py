@@ -33,7 +33,6 @@ def test_the_corpus_is_there():
     assert CASES, f"no stored requests in {CORPUS}"
 
 
-@pytest.mark.xfail(strict=True, reason="issue 28: validate_zip lets BadZipFile escape (fixed next)")
 @pytest.mark.parametrize("case", CASES, ids=[p.stem for p in CASES])
 def test_stored_request_keeps_the_contract(stack, case):
     req, notes = load_http(case.read_bytes(), kind=case.stem)

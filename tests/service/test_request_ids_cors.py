@@ -55,3 +55,25 @@ def test_no_cors_headers_without_configured_origins(stack):
     r = httpx.get(stack["url"] + "/healthz", headers={"Origin": "https://assets.example"})
     assert r.status_code == 200 and "access-control-allow-origin" not in r.headers
     assert r.headers.get("x-request-id")
+
+
+def test_an_unhandled_error_is_a_500_problem_with_the_request_id(tmp_path, caplog):
+    # Starlette's catch-all answers outside every middleware, so its 500 had no id
+    # (issue 28: a zip error escaped as exactly that). RequestIds answers it now.
+    from fastapi.testclient import TestClient
+
+    from service.api.app import create_app
+    from service.settings import Settings
+
+    app = create_app(Settings(storage_root=tmp_path, auth_disabled=True), run_workers=False)
+
+    def boom():
+        raise RuntimeError("a defect")
+
+    app.add_api_route("/boom", boom)
+    with TestClient(app, raise_server_exceptions=False) as c:
+        r = c.get("/boom", headers={"X-Request-Id": "client-500"})
+    assert r.status_code == 500 and r.headers["x-request-id"] == "client-500"
+    assert r.headers["content-type"].startswith("application/problem+json")
+    assert r.json()["type"].endswith("/internal-error") and "defect" not in r.text
+    assert any("unhandled error on GET /boom" in m for m in caplog.messages)

@@ -1,0 +1,175 @@
+"""One validator for zip archives that come from users (image sets), shared by the
+library (gsa.recon.images.check_zip: `gsa align photos.zip`, `gsa reconstruct`) and
+the service (service.inputs.validate_zip: uploads, multipart jobs, the worker).
+
+Everything is checked before anything is extracted, and everything that is refused
+raises one ZipArchiveError (a ValueError) with a one-line message, never zipfile's
+own exceptions:
+
+- the central directory: readable, at most `max_entries` entries;
+- every name: not empty, no NUL, no backslash, not absolute, no drive, no `..`; no
+  symbolic links; no name twice;
+- every entry: not encrypted, a compression method zipfile can read, the declared
+  sizes within `max_bytes` in total and not a suspicious compression ratio (above
+  `ratio_floor` bytes, more than `max_ratio` x its compressed size);
+- with verify (the default): every file entry is read through, streaming, so its
+  local header must agree with the central directory (name, method), its data must
+  decompress, and its size and CRC-32 must be the declared ones. An archive whose
+  entries lie about their sizes is refused here, not half-way through an extraction.
+  The work is bounded: no entry yields more than its declared size.
+
+Stdlib only: the service imports this at start-up.
+"""
+
+from __future__ import annotations
+
+import stat
+import zipfile
+from collections.abc import Callable
+from contextlib import contextmanager
+from dataclasses import dataclass
+from pathlib import Path, PurePosixPath, PureWindowsPath
+
+SUPPORTED_METHODS = frozenset({zipfile.ZIP_STORED, zipfile.ZIP_DEFLATED, zipfile.ZIP_BZIP2, zipfile.ZIP_LZMA})
+CHUNK = 1 << 20
+
+
+class ZipArchiveError(ValueError):
+    """A zip archive refused. `limit` is True when it is well-formed but over a size
+    limit (the service answers 413), False for a defect (422)."""
+
+    def __init__(self, message: str, *, limit: bool = False):
+        super().__init__(message)
+        self.limit = limit
+
+
+@dataclass(frozen=True)
+class ZipLimits:
+    max_entries: int = 2000
+    max_bytes: int = 2 * 1024**3  # total uncompressed, as declared (and, with verify, as read)
+    max_ratio: float = 200.0  # uncompressed / compressed per entry: zip bombs go far beyond
+    ratio_floor: int = 1024  # entries up to this size are not held to the ratio
+
+
+def unsafe_member_name(name: str) -> str | None:
+    """Why an archive member name is unsafe to use anywhere near a file system, or None."""
+    if not name:
+        return "empty name"
+    if "\x00" in name:
+        return "NUL in name"
+    if "\\" in name:
+        return "backslash in name"
+    p = PurePosixPath(name)
+    if p.is_absolute() or PureWindowsPath(name).drive or PureWindowsPath(name).root or name[1:2] == ":":
+        return "absolute path"
+    if ".." in p.parts:
+        return "'..' in path"
+    return None
+
+
+def _is_symlink(info: zipfile.ZipInfo) -> bool:
+    return stat.S_ISLNK(info.external_attr >> 16)
+
+
+def check_zip(
+    path: str | Path,
+    limits: ZipLimits = ZipLimits(),
+    *,
+    label: str | None = None,
+    verify: bool = True,
+    head_bytes: int = 0,
+    on_file: Callable[[zipfile.ZipInfo, bytes], None] | None = None,
+) -> list[zipfile.ZipInfo]:
+    """Validate a zip archive without extracting it; returns its file entries (no
+    directories) in archive order. label: how messages name the archive (default: the
+    file name). With verify, on_file(info, head) is called for every file entry with its
+    first head_bytes bytes (already checked for nothing but being readable so far; the
+    rest of the entry is checked after the call)."""
+    path = Path(path)
+    label = label or path.name
+    try:
+        zf = zipfile.ZipFile(path)
+    except MemoryError:
+        raise
+    except Exception as exc:  # BadZipFile, OSError, ValueError, struct.error, ...: all hostile bytes
+        raise ZipArchiveError(f"{label}: not a readable zip archive ({_reason(exc)})") from None
+    with zf:
+        infos = zf.infolist()
+        if len(infos) > limits.max_entries:
+            raise ZipArchiveError(
+                f"{label}: {len(infos)} entries exceeds the limit of {limits.max_entries}", limit=True
+            )
+        files: list[zipfile.ZipInfo] = []
+        seen: set[str] = set()
+        total = 0
+        for info in infos:
+            name = info.filename
+            why = unsafe_member_name(info.orig_filename)  # zipfile cuts `filename` at a NUL
+            if why:
+                raise ZipArchiveError(f"{label}: unsafe path in archive ({why}): {name!r}")
+            if _is_symlink(info):
+                raise ZipArchiveError(f"{label}: symbolic link in archive: {name!r}")
+            if name in seen:
+                raise ZipArchiveError(f"{label}: two entries named {name!r}")
+            seen.add(name)
+            if info.is_dir():
+                continue
+            if info.flag_bits & 0x1:
+                raise ZipArchiveError(f"{label}: entry {name!r} is encrypted")
+            if info.compress_type not in SUPPORTED_METHODS:
+                raise ZipArchiveError(
+                    f"{label}: entry {name!r} uses unsupported compression method {info.compress_type}"
+                )
+            total += info.file_size
+            if total > limits.max_bytes:
+                raise ZipArchiveError(
+                    f"{label}: uncompressed size exceeds the limit of {limits.max_bytes} bytes", limit=True
+                )
+            if info.file_size > limits.ratio_floor and info.file_size > limits.max_ratio * max(info.compress_size, 1):
+                raise ZipArchiveError(
+                    f"{label}: entry {name!r} has a suspicious compression ratio "
+                    f"({info.file_size}/{info.compress_size})"
+                )
+            files.append(info)
+        if verify:
+            for info in files:
+                _verify_entry(zf, info, label, head_bytes, on_file)
+    return files
+
+
+def _verify_entry(zf: zipfile.ZipFile, info: zipfile.ZipInfo, label: str, head_bytes: int, on_file) -> None:
+    """Read one entry through: local header, decompression, size and CRC (zipfile checks
+    the CRC once the declared size has been read, and never yields more than that)."""
+    name = info.filename
+    with _reading(label, name):
+        fh = zf.open(info)
+    try:
+        with _reading(label, name):
+            head = fh.read(head_bytes) if head_bytes else b""
+        if on_file is not None:  # its own errors are the caller's, not the archive's
+            on_file(info, head)
+        n = len(head)
+        with _reading(label, name):
+            while chunk := fh.read(CHUNK):
+                n += len(chunk)
+    finally:
+        fh.close()
+    if n != info.file_size:
+        raise ZipArchiveError(f"{label}: entry {name!r} declares {info.file_size} bytes but holds {n}")
+
+
+@contextmanager
+def _reading(label: str, name: str):
+    try:
+        yield
+    except MemoryError:
+        raise
+    except Exception as exc:  # BadZipFile (CRC, header), EOFError, zlib.error, LZMAError, OSError (bz2), ...
+        raise ZipArchiveError(
+            f"{label}: entry {name!r} is corrupt or does not hold what the archive declares ({_reason(exc)})"
+        ) from None
+
+
+def _reason(exc: BaseException) -> str:
+    text = str(exc).strip() or type(exc).__name__
+    return text if len(text) <= 200 else text[:200] + "..."
