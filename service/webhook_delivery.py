@@ -19,7 +19,7 @@ import logging
 import socket
 import time
 from datetime import UTC, datetime
-from urllib.parse import urlparse
+from urllib.parse import unquote, urlparse, urlunparse
 
 log = logging.getLogger("gsa.webhooks")
 
@@ -33,21 +33,108 @@ def verify(secret: str, timestamp: str, body: bytes, signature: str) -> bool:
     return hmac.compare_digest(sign(secret, timestamp, body), signature)
 
 
-def check_url(url: str, allow_private: bool) -> None:
-    """Refuse non-http(s) and, unless allowed, private/loopback targets (SSRF)."""
+_NAT64 = ipaddress.ip_network("64:ff9b::/96")
+# IANA special-purpose blocks that are not globally reachable, spelled out because older
+# Pythons' is_global misses some of them (192.0.0.0/24 beyond /29, for one).
+_NOT_GLOBAL = tuple(
+    ipaddress.ip_network(n)
+    for n in (
+        "0.0.0.0/8",
+        "10.0.0.0/8",
+        "100.64.0.0/10",
+        "127.0.0.0/8",
+        "169.254.0.0/16",
+        "172.16.0.0/12",
+        "192.0.0.0/24",
+        "192.0.2.0/24",
+        "192.168.0.0/16",
+        "198.18.0.0/15",
+        "198.51.100.0/24",
+        "203.0.113.0/24",
+        "240.0.0.0/4",
+        "::/127",
+        "100::/64",
+        "2001::/23",
+        "2001:db8::/32",
+        "fc00::/7",
+        "fe80::/10",
+    )
+)
+
+
+def non_global(ip: ipaddress.IPv4Address | ipaddress.IPv6Address) -> bool:
+    """True for every address a webhook must not reach: anything not globally routable
+    (private, loopback, link-local, shared 100.64.0.0/10 such as the metadata address
+    100.100.100.200, benchmarking, documentation, reserved, unspecified), multicast, and
+    IPv6 forms that embed such an IPv4 address (mapped, 6to4, Teredo, NAT64)."""
+    if not ip.is_global or ip.is_multicast or any(ip in n for n in _NOT_GLOBAL if n.version == ip.version):
+        return True
+    if ip.version == 6:
+        embedded = [ip.ipv4_mapped, ip.sixtofour, *(ip.teredo or ())]
+        if ip in _NAT64:
+            embedded.append(ipaddress.IPv4Address(int(ip) & 0xFFFFFFFF))
+        return any(e is not None and non_global(e) for e in embedded)
+    return False
+
+
+def check_url(url: str, allow_private: bool) -> list[str]:
+    """Refuse non-http(s) URLs and, unless allow_private, a host with any address that
+    is not global (SSRF). Returns the addresses it resolved, once: delivery connects to
+    one of these (deliver_to), never resolving the name again (no DNS-rebinding window)."""
     u = urlparse(url)
     if u.scheme not in ("http", "https") or not u.hostname:
         raise ValueError("webhook url must be an absolute http(s) URL")
-    if allow_private:
-        return
     try:
-        addrs = {ai[4][0] for ai in socket.getaddrinfo(u.hostname, u.port or 443)}
-    except socket.gaierror:
-        raise ValueError(f"webhook host {u.hostname!r} does not resolve") from None
-    for a in addrs:
-        ip = ipaddress.ip_address(a)
-        if ip.is_private or ip.is_loopback or ip.is_link_local or ip.is_reserved or ip.is_multicast:
-            raise ValueError(f"webhook host {u.hostname!r} resolves to a non-public address")
+        port = u.port or (443 if u.scheme == "https" else 80)
+        host = u.hostname.encode("idna").decode("ascii")
+    except (ValueError, UnicodeError):
+        raise ValueError("webhook url has an invalid host or port") from None
+    try:
+        addrs = [ipaddress.ip_address(host)]  # a literal: nothing to resolve
+    except ValueError:
+        try:
+            infos = socket.getaddrinfo(host, port, type=socket.SOCK_STREAM)
+        except (socket.gaierror, UnicodeError, OSError):
+            raise ValueError(f"webhook host {u.hostname!r} does not resolve") from None
+        addrs = list(dict.fromkeys(ipaddress.ip_address(ai[4][0].split("%", 1)[0]) for ai in infos))
+    if not addrs:
+        raise ValueError(f"webhook host {u.hostname!r} does not resolve")
+    if not allow_private and any(non_global(ip) for ip in addrs):
+        raise ValueError(f"webhook host {u.hostname!r} resolves to a non-public address")
+    return [str(ip) for ip in addrs]
+
+
+def pinned_request(url: str, addr: str) -> tuple[str, dict[str, str], dict[str, str]]:
+    """(url, headers, httpx extensions) that send a request for `url` to the address
+    `addr`: the URL names the address, the Host header keeps the URL's host and port,
+    and for https the TLS server name (SNI and certificate check) stays the host name."""
+    u = urlparse(url)
+    literal = f"[{addr}]" if ":" in addr else addr
+    netloc = literal + (f":{u.port}" if u.port else "")
+    headers = {"Host": u.netloc.rpartition("@")[2]}
+    if u.username is not None:  # userinfo would be lost with the host: send it as Basic auth
+        import base64
+
+        cred = f"{unquote(u.username)}:{unquote(u.password or '')}".encode()
+        headers["Authorization"] = "Basic " + base64.b64encode(cred).decode()
+    extensions = {"sni_hostname": u.hostname} if u.scheme == "https" else {}
+    return urlunparse(u._replace(netloc=netloc)), headers, extensions
+
+
+def deliver_to(url: str, addrs: list[str], body: bytes, headers: dict[str, str], timeout: float):
+    """POST to the first of the checked addresses that accepts a connection. No proxy
+    from the environment (it would connect elsewhere), no redirects."""
+    import httpx  # lazy: only processes that send webhooks pay for loading it
+
+    last: Exception | None = None
+    with httpx.Client(timeout=timeout, trust_env=False, follow_redirects=False) as client:
+        for addr in addrs:
+            target, extra, extensions = pinned_request(url, addr)
+            try:
+                return client.post(target, content=body, headers={**headers, **extra}, extensions=extensions)
+            except (httpx.ConnectError, httpx.ConnectTimeout) as exc:
+                last = exc
+    raise last if last is not None else ValueError("no address to deliver to")
 
 
 def iso_time(t: float | None) -> str | None:
@@ -56,8 +143,6 @@ def iso_time(t: float | None) -> str | None:
 
 
 def post_job_event(store, job_id: str, settings) -> None:
-    import httpx  # lazy: only processes that send webhooks pay for loading it
-
     job = store.get(job_id)
     if job is None or not job.webhook:
         return
@@ -79,13 +164,9 @@ def post_job_event(store, job_id: str, settings) -> None:
     secret = job.webhook.get("secret") or settings.webhook_secret
     if secret:
         headers["X-GSA-Signature"] = sign(secret, ts, body)
-    check_url(job.webhook["url"], settings.webhook_allow_private)
-    r = httpx.post(
-        job.webhook["url"],
-        content=body,
-        headers=headers,
-        timeout=settings.webhook_timeout_s,
-    )
+    url = job.webhook["url"]
+    addrs = check_url(url, settings.webhook_allow_private)  # resolved once, here; checked again
+    r = deliver_to(url, addrs, body, headers, settings.webhook_timeout_s)
     r.raise_for_status()
 
 
