@@ -170,6 +170,28 @@ def fine_work(options: dict[str, Any]) -> int:
     return int(v["fine_views"]) * int(v["fine_image_size"]) ** 2 * int(v["fine_iterations"])
 
 
+# Learned feature extractors and the weights each needs (the workers read them from these
+# settings: server_options); canonical, file and auto need none.
+FEATURE_WEIGHTS = {"dinov2": ("dinov2_weights",), "spheremap": ("dinov2_weights", "spheremap_weights")}
+
+
+def check_feature_weights(options: dict[str, Any], settings) -> None:
+    """`features: dinov2 | spheremap` on a deployment without those weights: a 422 at
+    submission, not a job that fails in the worker (the message names no server paths)."""
+    mode = options.get("features")
+    needs = FEATURE_WEIGHTS.get(mode) if isinstance(mode, str) else None
+    if needs and not all(getattr(settings, n, None) for n in needs):
+        available = ["auto", "file", "canonical"] + [
+            m for m, ns in FEATURE_WEIGHTS.items() if all(getattr(settings, n, None) for n in ns)
+        ]
+        raise invalid_input(
+            f"option 'features': {mode!r} needs model weights this server does not have; "
+            f"available: {', '.join(available)}",
+            option="features",
+            allowed=available,
+        )
+
+
 def validate_options(options: dict[str, Any], settings=None) -> dict[str, Any]:
     """The one check of a job's options (HTTP JSON and multipart, gRPC): server-only
     and unknown names, types and bounds, the library's own consistency checks and,
@@ -198,6 +220,8 @@ def validate_options(options: dict[str, Any], settings=None) -> dict[str, Any]:
         AlignOptions(**{k: v for k, v in options.items() if k in known})
     except (TypeError, ValueError) as exc:
         raise invalid_input(f"invalid options: {exc}") from None
+    if settings is not None:
+        check_feature_weights(options, settings)
     budget = getattr(settings, "max_fine_work", None)
     if budget is not None:
         work = fine_work(options)
