@@ -77,10 +77,12 @@ def non_global(ip: ipaddress.IPv4Address | ipaddress.IPv6Address) -> bool:
     return False
 
 
-def check_url(url: str, allow_private: bool) -> list[str]:
+def check_url(url: str, allow_private: bool, *, resolve: bool | None = None) -> list[str]:
     """Refuse non-http(s) URLs and, unless allow_private, a host with any address that
     is not global (SSRF). Returns the addresses it resolved, once: delivery connects to
-    one of these (deliver_to), never resolving the name again (no DNS-rebinding window)."""
+    one of these (deliver_to), never resolving the name again (no DNS-rebinding window).
+    resolve: look the name up even when allow_private (delivery does; a submission to a
+    deployment that allows private hosts is not held up by DNS): default not allow_private."""
     u = urlparse(url)
     if u.scheme not in ("http", "https") or not u.hostname:
         raise ValueError("webhook url must be an absolute http(s) URL")
@@ -89,6 +91,8 @@ def check_url(url: str, allow_private: bool) -> list[str]:
         host = u.hostname.encode("idna").decode("ascii")
     except (ValueError, UnicodeError):
         raise ValueError("webhook url has an invalid host or port") from None
+    if not (resolve if resolve is not None else not allow_private):
+        return []  # nothing to check, and the name is looked up when it is used
     try:
         addrs = [ipaddress.ip_address(host)]  # a literal: nothing to resolve
     except ValueError:
@@ -165,7 +169,7 @@ def post_job_event(store, job_id: str, settings) -> None:
     if secret:
         headers["X-GSA-Signature"] = sign(secret, ts, body)
     url = job.webhook["url"]
-    addrs = check_url(url, settings.webhook_allow_private)  # resolved once, here; checked again
+    addrs = check_url(url, settings.webhook_allow_private, resolve=True)  # resolved once, here; checked again
     r = deliver_to(url, addrs, body, headers, settings.webhook_timeout_s)
     r.raise_for_status()
 

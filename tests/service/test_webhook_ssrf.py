@@ -197,3 +197,13 @@ def test_submission_refuses_shared_address_space_over_rest_and_grpc(strict_api, 
         assert "non-public address" in json.loads(dict(e.value.trailing_metadata())["gsa-problem"])["detail"]
     finally:
         ch.close()
+
+
+def test_a_deployment_that_allows_private_hosts_does_not_resolve_at_submission(monkeypatch):
+    def no_dns(*a, **k):
+        raise AssertionError("no lookup at submission when private hosts are allowed")
+
+    monkeypatch.setattr(socket, "getaddrinfo", no_dns)
+    assert check_url("http://hooks.test:8080/x", allow_private=True) == []
+    with pytest.raises(ValueError, match="absolute http"):
+        check_url("ftp://hooks.test/x", allow_private=True)
