@@ -36,7 +36,11 @@ def run_reconstruct(args) -> int:
     from gsa.recon.pipeline import reconstruct
     from gsa.settings_env import sam_paths_env
 
+    line_open = False  # a progress line is on stderr (ended before an error line)
+
     def progress(stage, frac):
+        nonlocal line_open
+        line_open = True
         print(f"\r{stage:14s} {100 * frac:5.1f}%", end="", file=sys.stderr, flush=True)
 
     sam_encoder, sam_decoder = sam_paths_env(args.sam_encoder, args.sam_decoder)
@@ -54,8 +58,8 @@ def run_reconstruct(args) -> int:
             sam_decoder=sam_decoder,
         )
     except (ImageSetError, SfMError, MaskError) as exc:
-        print(f"\nerror: {exc}", file=sys.stderr)
-        return 2
+        print(("\n" if line_open else "") + f"gsa: error: {exc}", file=sys.stderr)
+        return 1
     print(file=sys.stderr)
     print(json.dumps(res.summary(), indent=1))
     return 0

@@ -28,19 +28,24 @@ MAX_IMAGE_PIXELS = 64_000_000
 
 
 class ImageSetError(ValueError):
-    """An image set that cannot be reconstructed (too few, unreadable, mixed sizes, unsafe archive)."""
+    """An image set that cannot be reconstructed (too few readable images, an image over the pixel limit, unsafe archive)."""
 
 
 @dataclass
 class ImageSet:
-    """Images sharing one size. directory: where the files are (a temp dir for zips);
-    names: file names relative to it (sorted); width, height: pixels."""
+    """Images sharing one size. directory: where the files are (a temp dir for zips, or for a
+    set prepared by gsa.recon.photos: EXIF-rotated, mixed orientations or sizes); names: file
+    names relative to it (sorted); width, height: pixels; camera_groups: each image's SfM
+    camera (None: one camera); notes: what preparing the set changed (report.json)."""
 
     directory: Path
     names: list[str]
     width: int
     height: int
     _tmp: object | None = field(default=None, repr=False)  # keeps an extracted zip alive
+    camera_groups: list[int] | None = None
+    notes: dict = field(default_factory=dict)
+    _prepared: object | None = field(default=None, repr=False)  # keeps a prepared copy alive
 
     def __len__(self) -> int:
         return len(self.names)
@@ -58,18 +63,14 @@ class ImageSet:
 
 
 def read_rgb(path: str | os.PathLike) -> np.ndarray:
-    """(H, W, 3) float32 RGB in [0, 1]; alpha is dropped, grey is expanded."""
-    img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    """(H, W, 3) float32 RGB in [0, 1], as the image is meant to be seen (EXIF orientation
+    applied); alpha is dropped, grey is expanded."""
+    img = cv2.imread(str(path), cv2.IMREAD_COLOR | cv2.IMREAD_ANYDEPTH)
     if img is None:
         raise ImageSetError(f"{Path(path).name}: not a readable image")
     if img.dtype == np.uint16:
         img = (img / 257.0).astype(np.uint8)
-    if img.ndim == 2:
-        img = cv2.cvtColor(img, cv2.COLOR_GRAY2RGB)
-    elif img.shape[2] == 4:
-        img = cv2.cvtColor(img, cv2.COLOR_BGRA2RGB)
-    else:
-        img = cv2.cvtColor(img, cv2.COLOR_BGR2RGB)
+    img = cv2.cvtColor(img, cv2.COLOR_BGR2RGB)
     return img.astype(np.float32) / 255.0
 
 
@@ -101,7 +102,9 @@ def load_image_set(
     """Open a directory (flat; sub-directories are ignored) or a .zip of images.
 
     Every non-hidden file must be an image: a stray non-image file is an error,
-    not something silently skipped, so that a user learns what was used.
+    not something silently skipped, so that a user learns what was used. Photo sets as
+    people take them (EXIF rotation, portrait and landscape, several camera sizes, a few
+    files that do not decode) are brought to one size by gsa.recon.photos.
     """
     path = Path(path)
     tmp = None
@@ -134,18 +137,9 @@ def load_image_set(
         )
     if len(names) < min_images:
         raise ImageSetError(f"{len(names)} image(s) found in {path.name}; at least {min_images} are needed")
-    sizes: dict[tuple[int, int], list[str]] = {}
-    for n in names:
-        # Decode fully: a truncated or mislabelled file must fail here, not inside SfM.
-        img = cv2.imread(str(directory / n), cv2.IMREAD_UNCHANGED)
-        if img is None or img.size == 0:
-            raise ImageSetError(f"{n}: not a readable image")
-        h, w = img.shape[:2]
-        if h * w > max_pixels:
-            raise ImageSetError(f"{n}: {w}x{h} exceeds the {max_pixels}-pixel limit")
-        sizes.setdefault((w, h), []).append(n)
-    if len(sizes) > 1:
-        desc = "; ".join(f"{w}x{h}: {len(v)} (e.g. {v[0]})" for (w, h), v in sizes.items())
-        raise ImageSetError(f"images have mixed sizes ({desc}); all images must share one size")
-    ((w, h),) = sizes.keys()
-    return ImageSet(directory, names, w, h, tmp)
+    from gsa.recon.photos import prepare_photos
+
+    ready = prepare_photos(directory, names, min_images=min_images, max_pixels=max_pixels, error=ImageSetError)
+    return ImageSet(
+        ready.directory, ready.names, ready.width, ready.height, tmp, ready.camera_groups, ready.notes, ready.tmp
+    )

@@ -37,6 +37,7 @@ class ReconstructionResult:
     train: TrainResult
     mask_methods: list[str]
     timings: dict = field(default_factory=dict)
+    image_notes: dict = field(default_factory=dict)  # what loading changed (gsa.recon.photos)
 
     @property
     def n_images(self) -> int:
@@ -49,6 +50,7 @@ class ReconstructionResult:
     def summary(self) -> dict:
         return {
             "images": self.sfm.n_images,
+            "image_set": self.image_notes,
             "registered": self.sfm.n_registered,
             "unregistered": self.sfm.unregistered,
             "mapping_attempts": self.sfm.mapping_attempts,
@@ -100,8 +102,8 @@ def reconstruct(
     t0 = time.perf_counter()
 
     t = time.perf_counter()
-    report("images", 0.0)
-    imset = load_image_set(images_path)
+    imset = load_image_set(images_path)  # before any progress line: its warnings are lines of their own
+    report("images", 1.0)
     timings["load"] = time.perf_counter() - t
 
     t = time.perf_counter()
@@ -142,7 +144,7 @@ def reconstruct(
     cameras_path = write_cameras_json(out / "cameras.json", sfm.cameras, sfm.names)
     (out / "training_curve.json").write_text(json.dumps(tr.curve))
     timings["total"] = time.perf_counter() - t0
-    res = ReconstructionResult(tr.model, Path(model_path), cameras_path, out, sfm, tr, used, timings)
+    res = ReconstructionResult(tr.model, Path(model_path), cameras_path, out, sfm, tr, used, timings, imset.notes)
     (out / "report.json").write_text(json.dumps(res.summary(), indent=1))
     report("done", 1.0)
     return res

@@ -1,7 +1,8 @@
 """Structure from motion with pycolmap on CPU: SIFT -> matching -> incremental mapping.
 
-One shared PINHOLE camera is estimated (object captures come from one camera;
-the rasterizer is a pinhole renderer, so no distortion model is fitted).
+One shared PINHOLE camera is estimated per camera size (object captures usually come from one
+camera; a phone set's portrait and landscape shots share theirs, gsa.recon.photos; the
+rasterizer is a pinhole renderer, so no distortion model is fitted).
 Poses are returned as OpenCV world-to-camera matrices, the convention of
 gsa.render.cameras (COLMAP's cam_from_world is already x right, y down, z forward).
 """
@@ -115,15 +116,19 @@ def run_sfm(
     # first octave find enough keypoints on a few-hundred-pixel object.
     ext.sift.peak_threshold = peak_threshold
     ext.sift.first_octave = -1
-    pycolmap.extract_features(
-        db,
-        images.directory,
-        image_names=list(images.names),
-        camera_mode=pycolmap.CameraMode.SINGLE,
-        reader_options=reader,
-        extraction_options=ext,
-        device=pycolmap.Device.cpu,
-    )
+    # One camera per camera size (gsa.recon.photos groups them; one group when all share one):
+    # each extraction run in SINGLE mode adds its own camera.
+    groups = images.camera_groups or [0] * len(images)
+    for group in sorted(set(groups)):
+        pycolmap.extract_features(
+            db,
+            images.directory,
+            image_names=[n for n, g in zip(images.names, groups) if g == group],
+            camera_mode=pycolmap.CameraMode.SINGLE,
+            reader_options=reader,
+            extraction_options=ext,
+            device=pycolmap.Device.cpu,
+        )
     timings["features"] = time.perf_counter() - t
 
     t = time.perf_counter()

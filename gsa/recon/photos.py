@@ -1,0 +1,200 @@
+"""Photo sets as people take them: EXIF-rotated JPEGs, portrait and landscape mixed, more than
+one camera size, a few files that do not decode.
+
+Every image is decoded as it is meant to be seen: the EXIF orientation applied (OpenCV's
+IMREAD_COLOR does so for JPEG; IMREAD_UNCHANGED does not). A set whose images already share
+one size and carry no EXIF rotation is used where it lies, as before. Any other set is
+prepared once into a temporary folder, under the same file names, so that SfM and training
+read the same pixels:
+
+- the canvas is the most common size in the majority orientation (landscape or portrait);
+- an image of the other orientation is turned by 90° (a pinhole image turned by 90° is the
+  image of a camera rolled by 90°, and SfM recovers the roll);
+- an image of another size is scaled to cover the canvas, keeping its aspect, and cropped
+  about its centre (pixels stay square, the crop only moves the principal point);
+- each camera size (long × short side, before scaling) is its own SfM camera: the portrait and
+  landscape shots of one phone share one, a second phone gets its own (gsa.recon.sfm).
+
+Files that do not decode are left out with one warning, as long as at least `min_images`
+remain; otherwise the set is refused (ImageSetError, one line).
+"""
+
+from __future__ import annotations
+
+import os
+import shutil
+import struct
+import tempfile
+import warnings
+from collections import Counter
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from gsa.io.ply import ReaderWarning
+
+# Flags that decode an image as it is meant to be seen: EXIF orientation applied, colour,
+# 16-bit kept (alpha is dropped, grey expanded to three channels).
+READ_FLAGS = cv2.IMREAD_COLOR | cv2.IMREAD_ANYDEPTH
+JPEG_SUFFIXES = (".jpg", ".jpeg")
+_WRITE_PARAMS = {
+    ".jpg": [cv2.IMWRITE_JPEG_QUALITY, 98],
+    ".jpeg": [cv2.IMWRITE_JPEG_QUALITY, 98],
+    ".webp": [cv2.IMWRITE_WEBP_QUALITY, 101],  # lossless
+}
+
+
+class ImageSetWarning(ReaderWarning):
+    """An image set used with changes (files left out); the CLI prints it as one line."""
+
+
+@dataclass
+class PreparedSet:
+    """directory: where the images to use are (the original folder, or a temporary copy);
+    names: the images used (sorted; unreadable files left out); width, height: one size for
+    all; camera_groups: each image's SfM camera (None: one camera for all); notes: what was
+    changed, by file name (for report.json)."""
+
+    directory: Path
+    names: list[str]
+    width: int
+    height: int
+    camera_groups: list[int] | None = None
+    notes: dict = field(default_factory=dict)
+    tmp: object | None = None
+
+
+def exif_orientation(path: str | os.PathLike) -> int:
+    """The EXIF orientation (1-8) of a JPEG, 1 when it has none or is not a JPEG."""
+    if Path(path).suffix.lower() not in JPEG_SUFFIXES:
+        return 1
+    try:
+        with open(path, "rb") as fh:
+            data = fh.read(1 << 16)  # APP1 comes first and is at most 64 KiB
+    except OSError:
+        return 1
+    if data[:2] != b"\xff\xd8":
+        return 1
+    at = 2
+    while at + 4 <= len(data) and data[at] == 0xFF:
+        marker, size = data[at + 1], struct.unpack_from(">H", data, at + 2)[0]
+        if marker == 0xE1 and data[at + 4 : at + 10] == b"Exif\x00\x00":
+            return _tiff_orientation(data[at + 10 : at + 2 + size])
+        if marker in (0xDA, 0xD9):  # start of scan, end of image: no EXIF before the pixels
+            return 1
+        at += 2 + size
+    return 1
+
+
+def _tiff_orientation(tiff: bytes) -> int:
+    if len(tiff) < 8 or tiff[:2] not in (b"II", b"MM"):
+        return 1
+    order = "<" if tiff[:2] == b"II" else ">"
+    ifd = struct.unpack_from(order + "I", tiff, 4)[0]
+    if ifd + 2 > len(tiff):
+        return 1
+    for i in range(struct.unpack_from(order + "H", tiff, ifd)[0]):
+        entry = ifd + 2 + 12 * i
+        if entry + 12 > len(tiff):
+            break
+        tag, kind = struct.unpack_from(order + "HH", tiff, entry)
+        if tag == 0x0112 and kind == 3:
+            value = struct.unpack_from(order + "H", tiff, entry + 8)[0]
+            return value if 1 <= value <= 8 else 1
+    return 1
+
+
+def read_oriented(path: str | os.PathLike) -> np.ndarray | None:
+    """(H, W, 3) BGR, 8 or 16 bit, EXIF orientation applied; None when it does not decode."""
+    img = cv2.imread(str(path), READ_FLAGS)
+    return None if img is None or img.size == 0 else img
+
+
+def prepare_photos(
+    directory: Path, names: list[str], *, min_images: int, max_pixels: int, error: type[Exception]
+) -> PreparedSet:
+    """The set's images at one size (see the module's docstring); `error` is raised, one line,
+    when the set cannot be used."""
+    sizes: dict[str, tuple[int, int]] = {}
+    rotated_by_exif, unreadable = [], []
+    for n in names:
+        # Decode fully: a truncated or mislabelled file must show here, not inside SfM.
+        img = read_oriented(directory / n)
+        if img is None:
+            unreadable.append(n)
+            continue
+        h, w = img.shape[:2]
+        if h * w > max_pixels:
+            raise error(f"{n}: {w}x{h} exceeds the {max_pixels}-pixel limit")
+        sizes[n] = (w, h)
+        if exif_orientation(directory / n) != 1:
+            rotated_by_exif.append(n)
+    used = [n for n in names if n in sizes]
+    if len(used) < min_images:
+        bad = f"; not readable images: {_listing(unreadable)}" if unreadable else ""
+        raise error(f"{len(used)} readable image(s) in {directory.name}; at least {min_images} are needed{bad}")
+    notes: dict = {}
+    if unreadable:
+        notes["unreadable"] = unreadable
+        warnings.warn(
+            f"{directory.name}: {len(unreadable)} file(s) are not readable images and are left out: "
+            f"{_listing(unreadable)}",
+            ImageSetWarning,
+            stacklevel=3,
+        )
+    if len(set(sizes.values())) == 1 and not rotated_by_exif:
+        ((w, h),) = set(sizes.values())
+        return PreparedSet(directory, used, w, h, None, notes)
+
+    # One canvas: the majority orientation, its most common size.
+    landscape = sum(w > h for w, h in sizes.values()) >= sum(h > w for w, h in sizes.values())
+    turn = {n: w != h and (w > h) != landscape for n, (w, h) in sizes.items()}
+    upright = {n: (h, w) if turn[n] else (w, h) for n, (w, h) in sizes.items()}
+    counts = Counter(upright.values())
+    width, height = max(counts, key=lambda s: (counts[s], s[0] * s[1]))
+    # One SfM camera per camera size (long x short side): turned shots share their camera.
+    kinds = sorted({tuple(sorted(s, reverse=True)) for s in sizes.values()})
+    groups = [kinds.index(tuple(sorted(sizes[n], reverse=True))) for n in used]
+
+    tmp = tempfile.TemporaryDirectory(prefix="gsa-photos-")
+    out = Path(tmp.name)
+    turned, rescaled = [], []
+    for n in used:
+        if not turn[n] and upright[n] == (width, height) and n not in rotated_by_exif:
+            shutil.copyfile(directory / n, out / n)
+            continue
+        img = read_oriented(directory / n)
+        if turn[n]:
+            img = cv2.rotate(img, cv2.ROTATE_90_CLOCKWISE)
+            turned.append(n)
+        if img.shape[1] != width or img.shape[0] != height:
+            img = _cover(img, width, height)
+            rescaled.append(n)
+        if not cv2.imwrite(str(out / n), img, _WRITE_PARAMS.get(Path(n).suffix.lower(), [])):
+            raise OSError(f"could not write a prepared copy of {n} in {out}")
+    notes.update(
+        {
+            "size": [width, height],
+            "cameras": len(kinds),
+            "exif_rotated": rotated_by_exif,
+            "turned_90": turned,
+            "rescaled": rescaled,
+        }
+    )
+    return PreparedSet(out, used, width, height, groups if len(kinds) > 1 else None, notes, tmp)
+
+
+def _cover(img: np.ndarray, width: int, height: int) -> np.ndarray:
+    """`img` scaled (aspect kept) to cover width x height, cropped about its centre."""
+    h, w = img.shape[:2]
+    s = max(width / w, height / h)
+    sw, sh = max(width, round(w * s)), max(height, round(h * s))
+    scaled = cv2.resize(img, (sw, sh), interpolation=cv2.INTER_AREA if s < 1 else cv2.INTER_LINEAR)
+    x0, y0 = (sw - width) // 2, (sh - height) // 2
+    return np.ascontiguousarray(scaled[y0 : y0 + height, x0 : x0 + width])
+
+
+def _listing(names: list[str], limit: int = 5) -> str:
+    return ", ".join(names[:limit]) + (f" and {len(names) - limit} more" if len(names) > limit else "")
