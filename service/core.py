@@ -246,7 +246,7 @@ def check_request(b: Backend, n_sources: int, options: dict[str, Any], webhook: 
     validate_options(options, s)
     if webhook:
         try:
-            check_url(webhook["url"], s.webhook_allow_private)
+            check_url(webhook["url"], s.webhook_allow_private, loopback_only=s.webhook_loopback_only)
         except ValueError as exc:
             raise invalid_input(str(exc)) from None
 

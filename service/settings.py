@@ -97,6 +97,9 @@ class Settings(BaseSettings):
     # Webhook targets are server-side requests: refuse private/loopback hosts
     # unless explicitly allowed (SSRF).
     webhook_allow_private: bool = False
+    # Test and fuzz deployments: webhooks may name only loopback hosts (127.0.0.0/8, ::1,
+    # localhost), checked without DNS, so nothing a test submits is ever sent off the machine.
+    webhook_loopback_only: bool = False
 
     # /docs and /openapi.json hold no data; serve them without a key unless turned off.
     public_docs: bool = True

@@ -77,12 +77,35 @@ def non_global(ip: ipaddress.IPv4Address | ipaddress.IPv6Address) -> bool:
     return False
 
 
-def check_url(url: str, allow_private: bool, *, resolve: bool | None = None) -> list[str]:
+_LOCALHOST = ("127.0.0.1", "::1")
+
+
+def _loopback_only(host: str, allow_private: bool) -> list[str]:
+    """The addresses of a loopback-only deployment's webhook host, never from DNS: a
+    loopback literal, or `localhost` (pinned to 127.0.0.1 and ::1); anything else is refused."""
+    try:
+        ip = ipaddress.ip_address(host)
+    except ValueError:
+        if host.lower().rstrip(".") != "localhost":
+            raise ValueError(
+                f"webhook host {host!r} is not a loopback address (this deployment is loopback-only)"
+            ) from None
+        return list(_LOCALHOST)
+    if not allow_private and non_global(ip):
+        raise ValueError(f"webhook host {host!r} resolves to a non-public address")
+    if not ip.is_loopback:
+        raise ValueError(f"webhook host {host!r} is not a loopback address (this deployment is loopback-only)")
+    return [str(ip)]
+
+
+def check_url(url: str, allow_private: bool, *, resolve: bool | None = None, loopback_only: bool = False) -> list[str]:
     """Refuse non-http(s) URLs and, unless allow_private, a host with any address that
     is not global (SSRF). Returns the addresses it resolved, once: delivery connects to
     one of these (deliver_to), never resolving the name again (no DNS-rebinding window).
     resolve: look the name up even when allow_private (delivery does; a submission to a
-    deployment that allows private hosts is not held up by DNS): default not allow_private."""
+    deployment that allows private hosts is not held up by DNS): default not allow_private.
+    loopback_only (GSA_WEBHOOK_LOOPBACK_ONLY, test and fuzz deployments): only loopback
+    literals and `localhost`, checked without DNS at submission and delivery alike."""
     u = urlparse(url)
     if u.scheme not in ("http", "https") or not u.hostname:
         raise ValueError("webhook url must be an absolute http(s) URL")
@@ -91,6 +114,8 @@ def check_url(url: str, allow_private: bool, *, resolve: bool | None = None) -> 
         host = u.hostname.encode("idna").decode("ascii")
     except (ValueError, UnicodeError):
         raise ValueError("webhook url has an invalid host or port") from None
+    if loopback_only:
+        return _loopback_only(host, allow_private)
     if not (resolve if resolve is not None else not allow_private):
         return []  # nothing to check, and the name is looked up when it is used
     try:
@@ -169,7 +194,12 @@ def post_job_event(store, job_id: str, settings) -> None:
     if secret:
         headers["X-GSA-Signature"] = sign(secret, ts, body)
     url = job.webhook["url"]
-    addrs = check_url(url, settings.webhook_allow_private, resolve=True)  # resolved once, here; checked again
+    addrs = check_url(  # resolved once, here; checked again
+        url,
+        settings.webhook_allow_private,
+        resolve=True,
+        loopback_only=getattr(settings, "webhook_loopback_only", False),
+    )
     r = deliver_to(url, addrs, body, headers, settings.webhook_timeout_s)
     r.raise_for_status()
 

@@ -83,6 +83,9 @@ class FuzzSession:
             GSA_JOB_TIMEOUT_S=120,
             GSA_UNAVAILABLE_RETRY_AFTER_S=1,
         )
+        # Fuzzed jobs carry fuzzed webhook URLs: the deployment must refuse every host
+        # outside loopback at submission, and never look names up (issue 28).
+        assert env.get("GSA_WEBHOOK_LOOPBACK_ONLY") == "true", "fuzz deployments are loopback-only"
         self.redis = RedisServer(tmp / "redis")
         self.redis.start()
         env["GSA_REDIS_URL"] = self.redis.url
