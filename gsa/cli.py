@@ -437,7 +437,7 @@ def cmd_bench(args: argparse.Namespace) -> int:
 
     names = {"all": list(PEERS), "default": None, "none": []}
     peers = names[args.peers] if args.peers in names else [p for p in args.peers.split(",") if p]
-    return run_protocols(args.protocols, quick=args.quick, out=args.out, seed=args.seed, peers=peers)
+    return run_protocols(args.protocols, quick=args.quick, out=args.out, seed=args.seed, peers=peers, data=args.data)
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -507,6 +507,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--quick", action="store_true", help="small sizes, a few minutes")
     p.add_argument("--out", default="out/bench", help="folder for the JSON results")
     p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--data", help="category-real: a folder of <category>_<i>.npz meshes (V, F, optional C)")
     p.add_argument(
         "--peers", default="default", help="comma list of icp,open3d,splatreg, or default (icp,open3d), all, none"
     )

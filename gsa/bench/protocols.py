@@ -56,6 +56,8 @@ from pathlib import Path
 from gsa.align.pipeline import AlignOptions, align
 from gsa.bench import speed as _speed
 from gsa.bench.ablation import ABLATION_COARSE, ABLATION_REFERENCE, FINE_BASE, ablation_runner, similar_cameras
+from gsa.bench.category_real import category_of as real_category_of
+from gsa.bench.category_real import category_real_judge, category_real_pairs, default_align_runner, per_class
 from gsa.bench.pairs import (
     ROBUST_COUNT,
     ROBUST_SIZES,
@@ -313,6 +315,21 @@ def protocol_scene(quick: bool, seed: int, out: Path, peers: list[str] | None = 
     return rows
 
 
+def protocol_category_real(
+    quick: bool, seed: int, out: Path, peers: list[str] | None = None, data: str | Path | None = None
+) -> list[dict]:
+    """Cross-instance pairs of real category meshes from `data` (gsa.bench.category_real)."""
+    if data is None:
+        raise ValueError("category-real needs --data DIR (a folder of <category>_<i>.npz meshes)")
+    runners = [default_align_runner()] + [peer_runner(p, seed) for p in available_peers(peers)]
+    pairs = category_real_pairs(data, quick, seed)
+    rows = evaluate("category-real", pairs, runners, real_category_of, out=out, judge=category_real_judge)
+    for row in rows:
+        row["per_class"] = per_class(row["records"])
+    save_rows(out, "category-real", rows)
+    return rows
+
+
 def protocol_speed(quick: bool, seed: int, out: Path, peers: list[str] | None = None) -> list[dict]:
     return _speed.protocol_speed(quick, seed, out, peers, fine=FINE_ROWS)
 
@@ -331,11 +348,19 @@ PROTOCOLS = {
     "deform": protocol_deform,
     "exposure": protocol_exposure,
     "scene": protocol_scene,
+    "category-real": protocol_category_real,
 }
+# Protocols over the user's own data (--data DIR).
+DATA_PROTOCOLS = {"category-real"}
 
 
 def run_protocols(
-    names: list[str], quick: bool = False, out: str = "out/bench", seed: int = 0, peers: list[str] | None = None
+    names: list[str],
+    quick: bool = False,
+    out: str = "out/bench",
+    seed: int = 0,
+    peers: list[str] | None = None,
+    data: str | None = None,
 ) -> int:
     unknown = [n for n in names if n not in PROTOCOLS]
     if unknown:
@@ -349,7 +374,8 @@ def run_protocols(
     results = {}
     for name in names:
         t0 = time.perf_counter()
-        rows = results[name] = PROTOCOLS[name](quick, seed, out_dir, peers)
+        extra = {"data": data} if name in DATA_PROTOCOLS else {}
+        rows = results[name] = PROTOCOLS[name](quick, seed, out_dir, peers, **extra)
         print(f"\n### {name} ({time.perf_counter() - t0:.0f} s wall)\n")
         print(format_table(name, rows))
         sys.stdout.flush()

@@ -15,11 +15,8 @@ from pathlib import Path
 
 import numpy as np
 
-from gsa.metrics import accuracy
+from gsa.metrics import accuracy, rre_deg
 from gsa.sim3 import Sim3
-from gsa.synth import (
-    CATEGORIES,
-)
 
 SUCCESS_RRE_DEG = 5.0
 GSA_COARSE = "GSA coarse"
@@ -60,10 +57,15 @@ def evaluate(
                 rec = {"pair": label, "seconds": seconds, **(extra(label) if extra else {})}
                 if fields:
                     rec.update(fields[0])
+                alternatives = rec.pop("alternatives", None)
                 if isinstance(est, Sim3):
                     rec.update(accuracy(est, truth, source.means, target.means))
                     if judge is not None:
                         rec.update(judge(est, truth, source, target))
+                    if alternatives:
+                        rec["closest_alternative_rre_deg"] = _closest_alternative(
+                            alternatives, truth, source, target, judge
+                        )
                 else:
                     rec.update(
                         error=f"{type(est).__name__}: {est}",
@@ -83,6 +85,17 @@ def evaluate(
     if out is not None:
         (out / f"{name}.partial.json").unlink(missing_ok=True)
     return rows
+
+
+def _closest_alternative(alternatives: list, truth: Sim3, source, target, judge) -> float:
+    """RRE of the alternative pose nearest the truth (as the judge measures it, if any): can a
+    person who is shown the alternatives pick the right one?"""
+    errors = []
+    for matrix in alternatives:
+        alt = Sim3.from_matrix(np.asarray(matrix, np.float64))
+        judged = judge(alt, truth, source, target) if judge is not None else {}
+        errors.append(float(judged.get("rre_deg", rre_deg(alt.rotation, truth.rotation))))
+    return min(errors)
 
 
 def summarise(protocol: str, method: str, records: list[dict]) -> dict:
@@ -153,11 +166,10 @@ def add_time_ratio(rows: list[dict], reference: str = GSA_COARSE) -> None:
 
 
 def per_category(records: list[dict]) -> dict:
+    """Mean RRE per category, in the order the categories first appear."""
     out = {}
-    for cat in CATEGORIES:
-        rre = [r["rre_deg"] for r in records if r.get("category") == cat]
-        if rre:
-            out[cat] = float(np.mean(rre))
+    for cat in dict.fromkeys(r["category"] for r in records if "category" in r):
+        out[cat] = float(np.mean([r["rre_deg"] for r in records if r.get("category") == cat]))
     return out
 
 

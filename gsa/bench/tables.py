@@ -21,6 +21,10 @@ def format_table(name: str, rows: list[dict]) -> str:
         from gsa.bench.scene import format_scene_table
 
         return format_scene_table(rows)
+    if name == "category-real":
+        from gsa.bench.category_real import format_category_real
+
+        return format_category_real(rows)
     if name == "io":
         lines = [
             "| Gaussians (SH degree 3) | file (MB) | write (s) | read (s) | RSS growth after read (MB) |",
