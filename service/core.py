@@ -251,6 +251,26 @@ def check_request(b: Backend, n_sources: int, options: dict[str, Any], webhook: 
             raise invalid_input(str(exc)) from None
 
 
+def check_memory(b: Backend, sources: list[Asset], target: Asset, options: dict[str, Any]) -> None:
+    """Refuse (422) a job whose predicted peak memory is above the workers' budget."""
+    budget_mb = b.settings.worker_memory_mb
+    if not budget_mb:
+        return
+    from service.memory import MB, predict_for_assets
+
+    predicted = predict_for_assets(options, sources, target)
+    if predicted > budget_mb * MB:
+        mb = -(-predicted // MB)
+        raise invalid_input(
+            f"this job is predicted to need {mb} MB of worker memory, above the workers' budget of "
+            f"{budget_mb} MB (GSA_WORKER_MEMORY_MB): fewer fine_views, a smaller fine_image_size "
+            f"or smaller inputs",
+            option="memory",
+            value=mb,
+            maximum=budget_mb,
+        )
+
+
 def create_job(
     b: Backend,
     owner: str,
@@ -261,6 +281,7 @@ def create_job(
     webhook: dict | None,
     idempotency_key: str | None,
 ) -> Job:
+    check_memory(b, sources, target, options)
     now = time.time()
 
     def ref(a):

@@ -50,6 +50,9 @@ class Settings(BaseSettings):
     # Per-job work of the fine stage: fine_views × fine_image_size² × fine_iterations
     # (the per-option bounds are in service.options.OPTION_BOUNDS).
     max_fine_work: int = 2_000_000_000
+    # Memory a job may take on a worker: a job whose predicted peak (service.memory: its
+    # options and its inputs' sizes) is above this is refused at submission (422). 0 = no check.
+    worker_memory_mb: int = 8192
 
     worker_device: str = "cpu"
     spheremap_weights: Path | None = None

@@ -80,6 +80,7 @@ async def create_job(
         core.check_request(b, len(ids), options, webhook)
         sources = [core.get_asset(b, owner, i) for i in ids]
         target = core.get_asset(b, owner, spec.target)
+        core.check_memory(b, sources, target, options)  # before the Idempotency-Key is claimed
         fp = _fingerprint(
             {
                 "sources": ids,
