@@ -229,7 +229,10 @@ def claim(b: Backend, owner: str, idempotency_key: str | None, fingerprint: str)
 def release(b: Backend, owner: str, idempotency_key: str | None) -> None:
     """Forget a claimed key whose request failed, so the client can retry it."""
     if idempotency_key:
-        b.store.release_idempotency(owner, idempotency_key)
+        try:
+            b.store.release_idempotency(owner, idempotency_key)
+        except Exception:  # never hides the request's own error; an unreleased claim lapses (IDEM_PENDING_S)
+            pass
 
 
 def discard_asset(b: Backend, asset: Asset) -> None:
@@ -302,8 +305,17 @@ def create_job(
     b.store.create(job)
     # Enqueue after the record exists (a worker may start at once); remember the
     # queue's handle so a lost message can be detected and re-sent.
-    ref = b.queue.enqueue(job.id)
-    b.store.update(job.id, queue_ref=ref, enqueued_at=time.time())
+    try:
+        ref = b.queue.enqueue(job.id)
+        b.store.update(job.id, queue_ref=ref, enqueued_at=time.time())
+    except BaseException:
+        # A full disk or a lost store between the two writes: answer the error with no
+        # half-created job behind it (a worker that got the message finds no record).
+        try:
+            b.store.delete(job.id)
+        except Exception:
+            pass
+        raise
     return job
 
 

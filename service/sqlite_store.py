@@ -6,6 +6,7 @@ survives API restarts.
 
 from __future__ import annotations
 
+import os
 import sqlite3
 import threading
 import time
@@ -14,12 +15,22 @@ from pathlib import Path
 from service.models import Asset, Job, JobState
 from service.store import IDEM_PENDING_S, IDEM_TTL_S
 
+RESERVE_BYTES = 4 << 20
+
+
+def _disk_full(exc: BaseException) -> bool:
+    return isinstance(exc, sqlite3.OperationalError) and "full" in str(exc).lower()
+
 
 class SQLiteJobStore:
     """Embedded mode: one process owns the file; a lock serialises writers."""
 
-    def __init__(self, path: str | Path):
+    def __init__(self, path: str | Path, reserve_bytes: int = RESERVE_BYTES):
         Path(path).parent.mkdir(parents=True, exist_ok=True)
+        # Room kept on the database's disk for deletes: on a full disk SQLite cannot even
+        # append a DELETE to its write-ahead log, so the API could not free the space it needs.
+        self.reserve, self.reserve_bytes = Path(str(path) + ".reserve"), reserve_bytes
+        self._ensure_reserve()
         self.db = sqlite3.connect(str(path), check_same_thread=False, isolation_level=None, timeout=30)
         self.lock = threading.RLock()
         self._blob_lock = threading.Lock()
@@ -64,11 +75,11 @@ class SQLiteJobStore:
             try:
                 row = self.db.execute("SELECT data FROM jobs WHERE id=?", (job_id,)).fetchone()
                 if row is None:
-                    self.db.execute("ROLLBACK")
+                    self._rollback()
                     return False
                 job = Job.model_validate_json(row[0])
                 if (states and job.state not in states) or (token and job.run_token != token):
-                    self.db.execute("ROLLBACK")
+                    self._rollback()
                     return False
                 job = job.model_validate({**job.model_dump(), **fields, "version": job.version + 1})
                 self.db.execute(
@@ -78,8 +89,45 @@ class SQLiteJobStore:
                 self.db.execute("COMMIT")
                 return True
             except BaseException:
-                self.db.execute("ROLLBACK")
+                self._rollback()  # never hides the error (a failed COMMIT may have rolled back already)
                 raise
+
+    def _rollback(self) -> None:
+        if self.db.in_transaction:
+            try:
+                self.db.execute("ROLLBACK")
+            except sqlite3.Error:
+                pass
+
+    def _ensure_reserve(self) -> None:
+        """Keep the reserve file at its size; where the disk has no room for it, go without."""
+        if not self.reserve_bytes:
+            return
+        try:
+            if self.reserve.exists() and self.reserve.stat().st_size >= self.reserve_bytes:
+                return
+            with open(self.reserve, "wb") as fh:
+                for _ in range(-(-self.reserve_bytes // (1 << 20))):
+                    fh.write(bytes(1 << 20))
+                fh.flush()
+                os.fsync(fh.fileno())
+        except OSError:
+            self.reserve.unlink(missing_ok=True)
+
+    def _freeing(self, fn):
+        """Run a write that frees space (a delete); on a full disk, give up the reserve and
+        run it again, then take the reserve back if the freed space allows."""
+        try:
+            return fn()
+        except sqlite3.OperationalError as exc:
+            if not _disk_full(exc):
+                raise
+            self._rollback()
+            self.reserve.unlink(missing_ok=True)
+            return fn()
+        finally:
+            if not self.reserve.exists():
+                self._ensure_reserve()
 
     def list(self, owner, state, limit, cursor):
         q, args = "SELECT data FROM jobs WHERE owner=?", [owner]
@@ -131,7 +179,7 @@ class SQLiteJobStore:
 
     def release_idempotency(self, owner, key):
         with self.lock:
-            self.db.execute("DELETE FROM idem WHERE k=?", (f"{owner}:{key}",))
+            self._freeing(lambda: self.db.execute("DELETE FROM idem WHERE k=?", (f"{owner}:{key}",)))
 
     def delete(self, job_id):
         with self.lock:
@@ -139,10 +187,20 @@ class SQLiteJobStore:
             if row is None:
                 return False
             job = Job.model_validate_json(row[0])
-            self.db.execute("DELETE FROM jobs WHERE id=?", (job_id,))
-            if job.idempotency_key:
-                k = f"{job.owner}:{job.idempotency_key}"
-                self.db.execute("DELETE FROM idem WHERE k=? AND job_id=?", (k, job_id))
+
+            def delete():
+                self.db.execute("BEGIN IMMEDIATE")
+                try:
+                    self.db.execute("DELETE FROM jobs WHERE id=?", (job_id,))
+                    if job.idempotency_key:
+                        k = f"{job.owner}:{job.idempotency_key}"
+                        self.db.execute("DELETE FROM idem WHERE k=? AND job_id=?", (k, job_id))
+                    self.db.execute("COMMIT")
+                except BaseException:
+                    self._rollback()
+                    raise
+
+            self._freeing(delete)
         return True
 
     def jobs(self):
@@ -161,7 +219,7 @@ class SQLiteJobStore:
 
     def remove_blob_ref(self, key, asset_id):
         with self.lock:
-            self.db.execute("DELETE FROM blobrefs WHERE k=? AND asset_id=?", (key, asset_id))
+            self._freeing(lambda: self.db.execute("DELETE FROM blobrefs WHERE k=? AND asset_id=?", (key, asset_id)))
             return self.db.execute("SELECT COUNT(*) FROM blobrefs WHERE k=?", (key,)).fetchone()[0]
 
     def blob_lock(self, key):
@@ -173,7 +231,7 @@ class SQLiteJobStore:
 
     def delete_asset(self, asset_id):
         with self.lock:
-            self.db.execute("DELETE FROM assets WHERE id=?", (asset_id,))
+            self._freeing(lambda: self.db.execute("DELETE FROM assets WHERE id=?", (asset_id,)))
 
     def put_asset(self, asset):
         with self.lock:

@@ -92,7 +92,11 @@ async def create_job(
         job_id, existing = core.claim(b, owner, idempotency_key, fp)
         if existing is not None:
             return _job_response(existing, False)
-        job = core.create_job(b, owner, job_id, sources, target, options, webhook, idempotency_key)
+        try:
+            job = core.create_job(b, owner, job_id, sources, target, options, webhook, idempotency_key)
+        except BaseException:
+            core.release(b, owner, idempotency_key)  # a retry with the key must not find it claimed
+            raise
         request.app.state.metrics.jobs_created.labels("http").inc()
         return _job_response(job, True)
     if not ctype.startswith("multipart/form-data"):
