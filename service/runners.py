@@ -122,6 +122,53 @@ def _warm_up() -> None:
     log.info("worker warm-up took %.2f s", time.perf_counter() - t)
 
 
+PR_SET_PDEATHSIG = 1
+
+
+def _die_with_parent(parent: int, sig: int = signal.SIGTERM) -> None:
+    """In a child process: get `sig` when `parent` dies. Linux: prctl(PR_SET_PDEATHSIG);
+    elsewhere (or if prctl fails) a daemon thread that watches the parent pid. Either way the
+    parent may have died before this ran: then the signal is sent now."""
+    armed = False
+    if sys.platform.startswith("linux"):
+        try:
+            import ctypes
+
+            libc = ctypes.CDLL(None, use_errno=True)
+            armed = libc.prctl(PR_SET_PDEATHSIG, int(sig), 0, 0, 0) == 0
+        except (OSError, AttributeError):
+            armed = False
+    if not armed:
+
+        def watch():
+            while os.getppid() == parent:
+                time.sleep(1.0)
+            os.kill(os.getpid(), sig)
+
+        threading.Thread(target=watch, name="parent-watch", daemon=True).start()
+    if os.getppid() != parent:
+        os.kill(os.getpid(), sig)
+
+
+def _scheduler_dies_with_its_worker() -> None:
+    """RQ forks its scheduler (which holds `rq:scheduler-lock:<queue>`) as a child of the
+    worker; a SIGKILLed worker left it orphaned, holding the lock. Wrap the child's entry
+    point so it gets SIGTERM when the worker dies: RQ's scheduler handles SIGTERM by
+    releasing its locks and stopping."""
+    import rq.scheduler as rq_scheduler
+
+    if getattr(rq_scheduler.run, "_gsa_wrapped", False):
+        return
+    original, parent = rq_scheduler.run, os.getpid()
+
+    def run(scheduler):
+        _die_with_parent(parent)
+        return original(scheduler)
+
+    run._gsa_wrapped = True
+    rq_scheduler.run = run
+
+
 def run_rq_worker(burst: bool = False, name: str | None = None) -> None:
     """A worker process: RQ worker on the job + webhook queues, plus a reaper.
 
@@ -146,6 +193,7 @@ def run_rq_worker(burst: bool = False, name: str | None = None) -> None:
         log.warning("start-up sweep of job temp folders skipped: %s", exc)
     stop = threading.Event()
     start_reaper(backend, stop)
+    _scheduler_dies_with_its_worker()
     queues = [backend.queue.hooks, backend.queue.q]  # webhooks first: they are tiny
     base = name or f"gsa-{uuid.uuid4().hex[:8]}"
     delay, retry = s.worker_reconnect_min_s, 0
