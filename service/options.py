@@ -15,6 +15,9 @@ SERVICE_OPTIONS = {"outputs", "renders", "recon_iterations"}
 # validation and the worker's default all come from it).
 OutputName = Literal["result", "aligned", "merged", "renders", "preview"]
 OUTPUT_NAMES: tuple[str, ...] = get_args(OutputName)
+# A request may name an output more than once (deduplicated), but not without end: 100,000
+# duplicates made a 923 KB job record.
+MAX_OUTPUT_ENTRIES = 64
 DEFAULT_OUTPUTS = OUTPUT_NAMES  # a job that names no outputs gets all of them
 
 
@@ -209,9 +212,17 @@ def validate_options(options: dict[str, Any], settings=None) -> dict[str, Any]:
         )
     outs = options.get("outputs")
     if outs is not None:
+        if isinstance(outs, (list, tuple)) and len(outs) > MAX_OUTPUT_ENTRIES:
+            raise invalid_input(
+                f"'outputs' has {len(outs)} entries; at most {MAX_OUTPUT_ENTRIES} (each of "
+                f"{', '.join(OUTPUT_NAMES)} once)",
+                option="outputs",
+                maximum=MAX_OUTPUT_ENTRIES,
+            )
         bad = sorted(set(outs) - set(OUTPUT_NAMES))
         if bad:
             raise invalid_input(f"unknown output(s): {', '.join(bad)}")
+        options["outputs"] = list(dict.fromkeys(outs))  # stored once each, in the order given
     check_option_values(options)
     # The library's own checks (AlignOptions.__post_init__) at submission, not in the worker.
     from gsa.align.pipeline import AlignOptions  # lazy, as in align_option_names

@@ -79,6 +79,9 @@ class Settings(BaseSettings):
     # Browser origins allowed to call the API (CORS), e.g. GSA_CORS_ORIGINS='["https://assets.example"]';
     # empty: no CORS headers, browsers on other origins are refused.
     cors_origins: list[str] = []
+    # Owners (values of API_KEYS) whose keys may read /metrics, which counts every tenant's
+    # jobs; empty: nobody (with authentication on).
+    metrics_owners: list[str] = []
     # Results pages in the browser (service.api.view): the HMAC key of their signed links
     # (unset: a random key per process, so links work only on the process that made them)
     # and how long a link stays valid.

@@ -40,11 +40,21 @@ def readyz(b: B):
     "/metrics",
     operation_id="getMetrics",
     tags=["ops"],
-    summary="Prometheus metrics (any valid API key)",
-    responses={200: {"content": {CONTENT_TYPE_LATEST: {}}}},
+    summary="Prometheus metrics (operators: GSA_METRICS_OWNERS)",
+    description="Service-wide numbers (every tenant's job counts): only keys whose owner is in "
+    "GSA_METRICS_OWNERS may read them; any other key is 403.",
+    responses={200: {"content": {CONTENT_TYPE_LATEST: {}}}, **problem_responses(401, 403)},
     response_class=Response,
 )
-def metrics(request: Request, owner: Owner):
+def metrics(request: Request, owner: Owner, b: B):
+    s = b.settings
+    if not s.auth_disabled and owner not in s.metrics_owners:
+        raise ProblemError(
+            403,
+            "forbidden",
+            "Forbidden",
+            "/metrics shows every tenant's numbers: it is for operators (owners in GSA_METRICS_OWNERS)",
+        )
     return Response(
         generate_latest(request.app.state.metrics.registry),
         media_type=CONTENT_TYPE_LATEST,
