@@ -302,7 +302,16 @@ class AlignmentServicer(pbg.AlignmentServiceServicer):
             lambda: core.get_artifact(self.b, owner, request.job_id, request.name),
             context,
         )
-        start = max(int(request.offset), 0)
+        if request.offset < 0 or request.length < 0:  # not read as 0 / "to the end"
+            self._abort(
+                context,
+                invalid_input(
+                    f"offset ({request.offset}) and length ({request.length}) must not be negative",
+                    option="offset" if request.offset < 0 else "length",
+                    minimum=0,
+                ),
+            )
+        start = int(request.offset)
         if start >= art.size and art.size > 0:
             self._abort(
                 context,
@@ -313,7 +322,7 @@ class AlignmentServicer(pbg.AlignmentServiceServicer):
                     f"offset {start} is past the end ({art.size} bytes)",
                 ),
             )
-        end = art.size - 1 if request.length <= 0 else min(art.size - 1, start + int(request.length) - 1)
+        end = art.size - 1 if request.length == 0 else min(art.size - 1, start + int(request.length) - 1)
         pos = start
         for chunk in self.b.storage.open(art.key, start, end):
             yield pb.ArtifactChunk(

@@ -98,6 +98,7 @@ def create_app(
                 "Content-Type",
                 "Idempotency-Key",
                 "If-None-Match",
+                "If-Range",
                 "Range",
                 "X-Request-Id",
             ],

@@ -77,3 +77,18 @@ def test_an_unhandled_error_is_a_500_problem_with_the_request_id(tmp_path, caplo
     assert r.headers["content-type"].startswith("application/problem+json")
     assert r.json()["type"].endswith("/internal-error") and "defect" not in r.text
     assert any("unhandled error on GET /boom" in m for m in caplog.messages)
+
+
+def test_cors_preflight_allows_the_conditional_range_headers(api):
+    """A browser resuming a download sends Range with If-Range: the preflight must allow both
+    (If-Range was missing from the allowed headers; issue 28)."""
+    _, url = api
+    pre = {
+        "Origin": "https://assets.example",
+        "Access-Control-Request-Method": "GET",
+        "Access-Control-Request-Headers": "authorization, range, if-range, if-none-match",
+    }
+    r = httpx.options(url + "/v1/jobs/j/artifacts/aligned.ply", headers=pre)
+    assert r.status_code == 200, r.text
+    allowed = {h.strip().lower() for h in r.headers["access-control-allow-headers"].split(",")}
+    assert {"range", "if-range", "if-none-match"} <= allowed, allowed
