@@ -143,7 +143,80 @@ def _align_options(args: argparse.Namespace):
         value = getattr(args, name, None)
         if value is not None:
             fields[name] = value
-    return AlignOptions(**fields)
+    fields.update(_guidance_fields(args))
+    try:
+        return AlignOptions(**fields)
+    except ValueError as exc:
+        raise CliError(str(exc)) from None
+
+
+def _read_json_arg(path: str, flag: str):
+    try:
+        return json.loads(Path(path).read_text())
+    except (OSError, ValueError) as exc:
+        raise CliError(f"{flag} {path}: {exc}") from None
+
+
+def _guidance_fields(args: argparse.Namespace) -> dict:
+    """--pairs / --up / --scale in each file's own coordinates (converted once the files are
+    read, gsa.align.contract.hints_from_files); --init is resolved in `_init_transform`."""
+    fields: dict = {}
+    if getattr(args, "pairs", None):
+        data = _read_json_arg(args.pairs, "--pairs")
+        if not isinstance(data, dict) or "source" not in data or "target" not in data:
+            raise CliError(f'--pairs {args.pairs}: expected {{"source": [[x, y, z], …], "target": [[x, y, z], …]}}')
+        fields["point_pairs"] = (data["source"], data["target"])
+    if getattr(args, "up", None):
+        try:
+            fields["up_axes"] = tuple(tuple(float(x) for x in part.split(",")) for part in args.up.split(":"))
+        except ValueError:
+            raise CliError(f"--up {args.up}: expected X,Y,Z:X,Y,Z (source up : target up)") from None
+        if len(fields["up_axes"]) != 2:
+            raise CliError(f"--up {args.up}: expected X,Y,Z:X,Y,Z (source up : target up)")
+    if getattr(args, "scale", None) is not None:
+        fields["fixed_scale"] = args.scale
+    return fields
+
+
+def _init_transform(args: argparse.Namespace) -> tuple[list | None, bool]:
+    """(4×4, internal?) from --init [--alternative N]: a result.json (its `transform_internal`
+    when present, an alternative's `transform` with --alternative: both in align()'s internal
+    frame) or any JSON with a 4×4 `transform` in the files' own coordinates."""
+    if not getattr(args, "init", None):
+        if getattr(args, "alternative", None) is not None:
+            raise CliError("--alternative needs --init RESULT_JSON")
+        return None, False
+    data = _read_json_arg(args.init, "--init")
+    if not isinstance(data, dict):
+        raise CliError(f"--init {args.init}: expected a JSON object with a 4×4 `transform`")
+    if args.alternative is not None:
+        alternatives = (data.get("metrics") or {}).get("alternatives") or []
+        if not 0 <= args.alternative < len(alternatives):
+            raise CliError(f"--alternative {args.alternative}: {args.init} lists {len(alternatives)} alternative(s)")
+        return alternatives[args.alternative]["transform"], True
+    if "transform_internal" in data:
+        return data["transform_internal"], True
+    if "transform" not in data:
+        raise CliError(f"--init {args.init}: no `transform` (a 4×4 source → target matrix) in it")
+    return data["transform"], False
+
+
+def _options_for_files(options, args: argparse.Namespace, source, target):
+    """The guidance re-expressed from the files' coordinates into the internal frame."""
+    from dataclasses import replace
+
+    from gsa.align.contract import hints_from_files
+
+    matrix, internal = _init_transform(args)
+    try:
+        if matrix is not None and not internal:
+            options = replace(options, init_transform=matrix)
+        options = hints_from_files(options, source.metadata.get("format", "ply"), target.metadata.get("format", "ply"))
+        if matrix is not None and internal:
+            options = replace(options, init_transform=matrix)
+    except ValueError as exc:
+        raise CliError(str(exc)) from None
+    return options
 
 
 def _feature_settings(args: argparse.Namespace):
@@ -223,6 +296,16 @@ def add_align_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--fine-lr", type=float, default=None)
     p.add_argument("--fine-image-size", type=int, default=None)
     p.add_argument("--fine-on", choices=["features", "colors"], default=None)
+    g = p.add_argument_group("guidance (when the automatic answer is doubtful; README 'Guided alignment')")
+    g.add_argument(
+        "--init", metavar="JSON", help="start from this pose (a result.json or a JSON with a 4×4 `transform`)"
+    )
+    g.add_argument("--alternative", type=int, metavar="N", help="with --init RESULT: start from its alternative N")
+    g.add_argument(
+        "--pairs", metavar="JSON", help='≥ 3 picked point pairs: {"source": [[x,y,z],…], "target": [[x,y,z],…]}'
+    )
+    g.add_argument("--up", metavar="X,Y,Z:X,Y,Z", help="the up vector in the source's and in the target's coordinates")
+    g.add_argument("--scale", type=float, metavar="S", help="fix the scale of the answer")
 
 
 def cmd_align(args: argparse.Namespace) -> int:
@@ -234,6 +317,7 @@ def cmd_align(args: argparse.Namespace) -> int:
     options = _align_options(args)
     source = _load_model(args.source, "source", args)
     target = _load_model(args.target, "target", args)
+    options = _options_for_files(options, args, source, target)
     cameras = None
     if args.target_cameras:
         from gsa.render.cameras import read_cameras_json

@@ -46,3 +46,26 @@ def transform_contract(internal: Sim3, source_format: str = "ply", target_format
     if not np.allclose(t.matrix(), internal.matrix()):
         out["transform_internal"] = internal.matrix().tolist()
     return out
+
+
+def hints_from_files(options, source_format: str = "ply", target_format: str = "ply"):
+    """AlignOptions whose guidance (gsa.align.guided) was given in each input FILE's own
+    coordinates, as result.json states transforms, re-expressed in the internal convention
+    align() works in: a previous result.json's `transform` (or an alternative's) is then a
+    valid init_transform for the same files."""
+    from dataclasses import replace
+
+    to_src, to_dst = frames.internal_to_file(source_format), frames.internal_to_file(target_format)
+    if np.allclose(to_src.rotation, np.eye(3)) and np.allclose(to_dst.rotation, np.eye(3)):
+        return options
+    changes = {}
+    if options.init_transform is not None:
+        t = Sim3.from_matrix(np.asarray(options.init_transform))
+        changes["init_transform"] = to_dst.inverse().compose(t).compose(to_src).matrix()
+    if options.point_pairs is not None:
+        src, dst = (np.asarray(p, np.float64) for p in options.point_pairs)
+        changes["point_pairs"] = (to_src.inverse().apply(src), to_dst.inverse().apply(dst))
+    if options.up_axes is not None:
+        src_up, dst_up = (np.asarray(v, np.float64) for v in options.up_axes)
+        changes["up_axes"] = (to_src.rotation.T @ src_up, to_dst.rotation.T @ dst_up)
+    return replace(options, **changes) if changes else options

@@ -17,7 +17,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 from threadpoolctl import threadpool_limits
 
-from gsa.align import robust, scene
+from gsa.align import guided, robust, scene
 from gsa.align.choices import (
     EXTRACTOR_MODES,
     FEATURE_MODES,
@@ -135,7 +135,9 @@ def _align(
 
     # Rooms and sites take the scene path (gsa.align.scene).
     t = time.perf_counter()
-    choice = scene.choose(source, target, opts.scene, _global_search_runs(opts, source, target), opts.anchor_count)
+    # Hints (gsa.align.guided) are honoured on the object path, which takes them all.
+    scene_mode = "off" if guided.is_guided(opts) else opts.scene
+    choice = scene.choose(source, target, scene_mode, _global_search_runs(opts, source, target), opts.anchor_count)
     timings["scene_test"] = time.perf_counter() - t
     if choice.run:
         result = scene.align_scene(source, target, opts, choice, progress)
@@ -149,10 +151,24 @@ def _align(
     _report(progress, "features", 1.0)
 
     search = None
-    if pair.global_search:
+    start = guided.start_transform(opts)  # a pose the user gave or picked pairs for
+    guidance = guided.describe(opts) | ({"start": start[1]} if start else {}) if guided.is_guided(opts) else None
+    if start is not None:
+        # Only a local refinement from the user's pose: never a jump to a far one.
+        best = _Hypothesis(f"guided:{start[1]['from']}", pair.src_frame, pair.constrain(start[0]))
+        scored = []
+        t = time.perf_counter()
+        coarse = pair.refine_global(best.init, progress) if pair.global_search else pair.coarse(best, progress)
+        timings["coarse"] = time.perf_counter() - t
+        if pair.global_search:
+            # The verdict weighs the user's pose against what the search finds on its own.
+            t = time.perf_counter()
+            search = pair.check_given(pair.constrain(coarse.transform), progress)
+            timings["hypotheses"] = time.perf_counter() - t
+    elif pair.global_search:
         t = time.perf_counter()
         search = pair.search(progress)
-        best = _Hypothesis(search.best.origin, pair.src_frame, search.best.transform)
+        best = _Hypothesis(search.best.origin, pair.src_frame, pair.constrain(search.best.transform))
         scored = [c.to_dict(search.best.transform) | {"chosen": c is search.best} for c in search.candidates]
         timings["hypotheses"] = time.perf_counter() - t
         t = time.perf_counter()
@@ -165,6 +181,8 @@ def _align(
         t = time.perf_counter()
         coarse = pair.coarse(best, progress)
         timings["coarse"] = time.perf_counter() - t
+    if guidance is not None:
+        coarse = replace(coarse, transform=pair.constrain(coarse.transform))
 
     transform = coarse.transform
     fine_result = None
@@ -172,7 +190,7 @@ def _align(
     if "fine" in stages:
         t = time.perf_counter()
         fine_result = pair.fine(best, transform, progress, target_cameras)
-        transform = fine_result.transform
+        transform = pair.constrain(fine_result.transform)
         timings["fine"] = time.perf_counter() - t
 
     t = time.perf_counter()
@@ -184,6 +202,8 @@ def _align(
         coarse_verdict = pair.judge(coarse.transform, search)
         metrics["coarse_verdict"] = {k: coarse_verdict[k] for k in ("confidence", "ambiguous", "doubtful")}
     metrics["scene"] = choice.to_dict()
+    if guidance is not None:
+        metrics["guidance"] = guidance
     timings["metrics"] = time.perf_counter() - t
     timings["total"] = time.perf_counter() - t_start
     _report(progress, "done", 1.0)
@@ -317,16 +337,33 @@ class _Pair:
         with every relabelling of the two canonical frames."""
         src, dst = self.anchors()
         _report(progress, "hypotheses", 0.0)
-        options = robust.SearchOptions(rotations=self.opts.search_rotations, seed=self.opts.seed)
-        result = robust.global_search(
-            src,
-            dst,
-            robust.frame_relabellings(self.src_frame, self.dst_frame),
-            options,
-            widen_if=lambda first: robust.verdict(first.best, first)["doubtful"],
-        )
+        if self.opts.up_axes is not None:
+            # Known up axes: only turns about them (and no widened search, which would tilt).
+            options = robust.SearchOptions(rotations=0, seed=self.opts.seed)
+            result = robust.global_search(src, dst, guided.up_rotations(*self.opts.up_axes), options)
+        else:
+            options = robust.SearchOptions(rotations=self.opts.search_rotations, seed=self.opts.seed)
+            result = robust.global_search(
+                src,
+                dst,
+                robust.frame_relabellings(self.src_frame, self.dst_frame),
+                options,
+                widen_if=lambda first: robust.verdict(first.best, first)["doubtful"],
+            )
         _report(progress, "hypotheses", 1.0)
         return result
+
+    def check_given(self, transform: Sim3, progress: Progress | None) -> robust.SearchResult:
+        """The automatic search's poses, with the given one first (robust.with_given_pose)."""
+        found = self.search(progress)
+        src, dst = self.anchors()
+        given = robust.score_pose(src, dst, transform, "guided", found.colour_weight)
+        return robust.with_given_pose(given, found)
+
+    def constrain(self, transform: Sim3) -> Sim3:
+        """The pose brought back onto the user's up axes and scale (gsa.align.guided), pivoting
+        about the source's centre."""
+        return guided.constrain(transform, self.opts, self.src_frame.center)
 
     @functools.cached_property
     def kept_trees(self) -> tuple[cKDTree, cKDTree]:

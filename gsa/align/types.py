@@ -99,6 +99,16 @@ class AlignOptions:
         fine_image_size: side of the fine stage's rendered images, in pixels.
         fine_loss: smooth_l1, l1 or l2: the fine stage's image loss.
         fine_on: "features" or "colors" (paper Table 4 ablation): what the fine stage renders.
+
+    Guidance (gsa.align.guided), for when the automatic answer is doubtful; each is optional:
+        init_transform: 4×4 source → target Sim(3) to start from (a previous result, or one of
+            its alternatives): only a local refinement runs from it, never a global search.
+        point_pairs: ((source points), (target points)), ≥ 3 pairs of [x, y, z] in each model's
+            own coordinates: closed-form Sim(3) (Umeyama; with ≥ 4 pairs one wrong pair is
+            found and left out), then the same local refinement.
+        up_axes: (source up, target up), one vector each in its model's coordinates: every pose
+            keeps them aligned (the search turns about the up axis only).
+        fixed_scale: the scale s of the answer, when the user knows it.
     """
 
     stages: tuple[StageName, ...] = ("auto",)
@@ -128,8 +138,15 @@ class AlignOptions:
     fine_image_size: int = 128
     fine_loss: FineLoss = "smooth_l1"
     fine_on: FineSignal = "features"
+    init_transform: tuple | None = None
+    point_pairs: tuple | None = None
+    up_axes: tuple | None = None
+    fixed_scale: float | None = None
 
     def __post_init__(self) -> None:
+        from gsa.align.guided import check_guidance  # one place checks every hint's shape
+
+        check_guidance(self)
         self.stages = tuple(self.stages)
         if self.stages not in STAGE_CHOICES:
             raise ValueError(f"stages must be auto, coarse or coarse,fine, got {','.join(self.stages) or 'nothing'}")

@@ -32,6 +32,9 @@ from gsa.synth.perturb import random_sim3
 
 # Sizes (source, target) per model: full and --quick.
 SIZES = ((20_000, 30_000), (4_000, 5_000))
+# The guided rows' simulated clicks: pairs per model, and how far off each click lands.
+PICKED_PAIRS = 4
+PICK_NOISE = 0.02
 FLOATERS = 0.02
 # An instance counts as symmetric under a turn about one of its canonical axes when the turn
 # moves its surface by less than this share of its bounding-box diagonal (mean nearest
@@ -89,12 +92,34 @@ def category_real_pairs(data: str | Path, quick: bool, seed: int) -> list[Pair]:
                 # A pose that maps the source onto the same surface as the truth is right:
                 # the truth composed with a symmetry of either instance (canonical axes are shared).
                 symmetries = _symmetries(source) + _symmetries(target)
+                hints = _hints(source, target, truth, np.random.default_rng([seed, 28, c, a, b]))
                 target = target.transformed(truth)
                 target.metadata["symmetry_rotations"] = symmetries
+                target.metadata["hints"] = hints
                 return source, target, truth
 
             pairs.append((f"{category}-{a}-{b}", make))
     return pairs
+
+
+def _hints(source, target, truth: Sim3, rng: np.random.Generator) -> dict:
+    """What a person would tell the guided path (gsa.align.guided): the up axis in each model's
+    coordinates (the meshes' shared canonical +Y), and PICKED_PAIRS point pairs clicked on
+    corresponding parts (the source's extreme points along the canonical axes, each paired
+    with the other instance's surface point nearest it in the shared canonical frame), each
+    click off by up to PICK_NOISE of the model's size."""
+    up = np.array([0.0, 1.0, 0.0])
+    src = source.means[source.opacities > 0.5].astype(np.float64)
+    dst = target.means[target.opacities > 0.5].astype(np.float64)
+    ends = [int(np.argmax(sign * src[:, axis])) for axis in range(3) for sign in (1, -1)]
+    picks = src[rng.choice(ends, PICKED_PAIRS, replace=False)]
+    partners = dst[cKDTree(dst).query(picks)[1]]
+    size = float(np.linalg.norm(dst.max(0) - dst.min(0)))
+    partners = partners + rng.normal(0, PICK_NOISE * size / np.sqrt(3), partners.shape)
+    return {
+        "up_axes": (up.tolist(), (truth.rotation @ up).tolist()),
+        "point_pairs": (picks.tolist(), truth.apply(partners).tolist()),
+    }
 
 
 def _symmetries(model) -> list[np.ndarray]:
@@ -118,20 +143,24 @@ def category_of(label: str) -> dict:
     return {"category": label.rsplit("-", 2)[0]}
 
 
-def default_align_runner():
-    """`gsa align`'s defaults (stages auto), one row."""
+def default_align_runner(hint: str | None = None):
+    """`gsa align`'s defaults (stages auto), one row; with `hint` (up_axes or point_pairs), the
+    guided path given the pair's hint of that kind (target.metadata['hints'])."""
     from gsa.align.pipeline import AlignOptions, align
+
+    label = {None: "GSA (default align)", "up_axes": "GSA, up axes given", "point_pairs": "GSA, 4 picked pairs"}[hint]
 
     def run(source, target):
         t0 = time.perf_counter()
-        result = align(source, target, AlignOptions())
+        options = {hint: target.metadata["hints"][hint]} if hint else {}
+        result = align(source, target, AlignOptions(**options))
         flags = {
             "confidence": float(result.metrics.get("confidence", float("nan"))),
             "ambiguous": bool(result.metrics.get("ambiguous", False)),
             "doubtful": bool(result.metrics.get("doubtful", False)),
             "alternatives": [alt["transform"] for alt in result.metrics.get("alternatives") or []],
         }
-        return {"GSA (default align)": (result.transform, time.perf_counter() - t0, flags)}
+        return {label: (result.transform, time.perf_counter() - t0, flags)}
 
     return run
 

@@ -321,7 +321,8 @@ def protocol_category_real(
     """Cross-instance pairs of real category meshes from `data` (gsa.bench.category_real)."""
     if data is None:
         raise ValueError("category-real needs --data DIR (a folder of <category>_<i>.npz meshes)")
-    runners = [default_align_runner()] + [peer_runner(p, seed) for p in available_peers(peers)]
+    runners = [default_align_runner(hint) for hint in (None, "up_axes", "point_pairs")]
+    runners += [peer_runner(p, seed) for p in available_peers(peers)]
     pairs = category_real_pairs(data, quick, seed)
     rows = evaluate("category-real", pairs, runners, real_category_of, out=out, judge=category_real_judge)
     for row in rows:

@@ -64,6 +64,7 @@ from gsa.align.robust.poses import (
     decide,
     rotation_offset_deg,
     score_pose,
+    with_given_pose,
 )
 from gsa.align.robust.refine import (
     CONFIDENCE_THRESHOLD,

@@ -265,6 +265,22 @@ def decide(cands: list[Candidate], w_colour: float, noise: float | None = None) 
     return SearchResult(cands, w_colour, float(margin), rivals, noise, ranked_by)
 
 
+def with_given_pose(given: Candidate, found: SearchResult) -> SearchResult:
+    """The search's result re-judged around a pose the user gave (gsa.align.guided): `given`
+    comes first whatever it scores, and its margin over the distinct poses the search found
+    is negative where one of them beats it, so the verdict says so (and lists it)."""
+    others = [c for c in found.candidates if rotation_offset_deg(c.transform, given.transform) > DISTINCT_DEG]
+
+    def key(c: Candidate) -> float:
+        return c.geometry if found.ranked_by == "geometry" else c.score
+
+    rivals = [c for c in others if key(c) >= key(given) - SCORE_TIE]
+    margin = (key(given) - max(key(c) for c in others)) / SCORE_TIE if others else float("inf")
+    return SearchResult(
+        [given, *others], found.colour_weight, float(margin), rivals, found.colour_noise, found.ranked_by
+    )
+
+
 def _contradicted(pose: Candidate, reference: Candidate, noise: float) -> bool:
     """Whether `pose` disagrees in colour beyond the noise and COLOUR_SWITCH_RATIO times
     more than `reference`."""

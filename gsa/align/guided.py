@@ -1,0 +1,218 @@
+"""Guided alignment: what a person knows, used where the automatic answer is doubtful.
+
+Hints (AlignOptions fields; each optional):
+- init_transform: a 4×4 Sim(3) to start from; only the local refinement runs from it.
+- point_pairs: ≥ 3 picked pairs, one point in each model's own coordinates: the closed-form
+  Sim(3) of the pairs (with ≥ 4 pairs, the one pair that disagrees with the rest is left
+  out), then the same local refinement.
+- up_axes: the up vector of each model: the search only turns about it, and every later pose
+  is brought back onto it (a cross-instance refinement can tilt).
+- fixed_scale: the answer's scale, kept through every stage.
+
+`check_guidance` validates and normalises the hints once (AlignOptions.__post_init__), so the
+CLI, both APIs and the library refuse the same things with the same words.
+"""
+
+from __future__ import annotations
+
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+from gsa.geometry import axis_rotation
+from gsa.sim3 import Sim3, solve_sim3
+
+if TYPE_CHECKING:
+    from gsa.align.types import AlignOptions
+
+MAX_PAIRS = 1000
+# Turns about the up axis tried by the constrained search (degrees apart).
+UP_SEARCH_STEP_DEG = 2.0
+# A pair whose residual exceeds this multiple of the others' median residual (and 1 % of the
+# pairs' spread) is the wrong one.
+OUTLIER_RATIO = 4.0
+
+
+def is_guided(opts: AlignOptions) -> bool:
+    return any(x is not None for x in (opts.init_transform, opts.point_pairs, opts.up_axes, opts.fixed_scale))
+
+
+def _finite(values, name: str, shape: tuple[int, ...] | None = None) -> np.ndarray:
+    try:
+        arr = np.asarray(values, np.float64)
+    except (TypeError, ValueError):
+        raise ValueError(f"{name} must hold numbers") from None
+    if shape is not None and arr.shape != shape:
+        raise ValueError(f"{name} must have shape {'×'.join(map(str, shape))}, got {'×'.join(map(str, arr.shape))}")
+    if not np.isfinite(arr).all():
+        raise ValueError(f"{name} holds NaN or Inf")
+    return arr
+
+
+def check_guidance(opts: AlignOptions) -> None:
+    """Validate the hints and store them normalised (tuples of floats, up vectors unit length)."""
+    if opts.init_transform is not None and opts.point_pairs is not None:
+        raise ValueError("give init_transform or point_pairs, not both")
+    if opts.init_transform is not None:
+        opts.init_transform = _tuple(init_sim3(opts.init_transform).matrix())
+    if opts.point_pairs is not None:
+        src, dst = pair_arrays(opts.point_pairs)
+        opts.point_pairs = (_tuple(src), _tuple(dst))
+    if opts.up_axes is not None:
+        try:
+            src_up, dst_up = opts.up_axes
+        except (TypeError, ValueError):
+            raise ValueError("up_axes must be two vectors: the source's up and the target's up") from None
+        ups = []
+        for name, v in (("source up axis", src_up), ("target up axis", dst_up)):
+            v = _finite(v, name, (3,))
+            if not np.linalg.norm(v) > 1e-12:
+                raise ValueError(f"{name} must not be zero")
+            ups.append(v / np.linalg.norm(v))
+        opts.up_axes = (_tuple(ups[0]), _tuple(ups[1]))
+    if opts.fixed_scale is not None:
+        scale = float(_finite(opts.fixed_scale, "fixed_scale", ()))
+        if not 1e-6 <= scale <= 1e6:
+            raise ValueError("fixed_scale must be in 1e-6..1e6")
+        opts.fixed_scale = scale
+
+
+def _tuple(a: np.ndarray):
+    return tuple(_tuple(x) for x in a) if np.ndim(a) > 1 else tuple(float(x) for x in a)
+
+
+def init_sim3(matrix) -> Sim3:
+    """A 4×4 similarity (rotation × positive scale, translation, last row 0 0 0 1) as Sim3."""
+    m = _finite(matrix, "init_transform", (4, 4))
+    if not np.allclose(m[3], (0, 0, 0, 1), atol=1e-6):
+        raise ValueError("init_transform's last row must be 0 0 0 1")
+    a = m[:3, :3]
+    det = np.linalg.det(a)
+    if not det > 0:
+        raise ValueError("init_transform must be a rotation with a positive scale (its determinant is not positive)")
+    scale = det ** (1 / 3)
+    rotation = a / scale
+    if not np.allclose(rotation @ rotation.T, np.eye(3), atol=1e-3):
+        raise ValueError("init_transform is not a similarity (its 3×3 part is not a scaled rotation)")
+    u, _, vt = np.linalg.svd(rotation)
+    return Sim3(scale, u @ vt, m[:3, 3])
+
+
+def pair_arrays(point_pairs) -> tuple[np.ndarray, np.ndarray]:
+    """(source points, target points) as (n, 3) arrays; n ≥ 3, not all on one line."""
+    try:
+        src, dst = (point_pairs["source"], point_pairs["target"]) if isinstance(point_pairs, dict) else point_pairs
+    except (TypeError, ValueError, KeyError):
+        raise ValueError("point_pairs must be {source: [[x, y, z], …], target: [[x, y, z], …]}") from None
+    src, dst = _finite(src, "point_pairs.source"), _finite(dst, "point_pairs.target")
+    for name, pts in (("source", src), ("target", dst)):
+        if pts.ndim != 2 or pts.shape[1] != 3:
+            raise ValueError(f"point_pairs.{name} must be a list of [x, y, z] points")
+    if len(src) != len(dst):
+        raise ValueError(f"point_pairs has {len(src)} source and {len(dst)} target points: they must pair up")
+    if not 3 <= len(src) <= MAX_PAIRS:
+        raise ValueError(f"point_pairs needs 3..{MAX_PAIRS} pairs, got {len(src)}")
+    for name, pts in (("source", src), ("target", dst)):
+        sv = np.linalg.svd(pts - pts.mean(0), compute_uv=False)
+        if not sv[1] > 1e-6 * max(sv[0], 1e-300):
+            raise ValueError(f"point_pairs.{name} points lie on one line: they fix no rotation")
+    return src, dst
+
+
+def pairs_transform(src: np.ndarray, dst: np.ndarray, fixed_scale: float | None = None) -> tuple[Sim3, dict]:
+    """Closed-form Sim(3) of picked pairs. With ≥ 4 pairs, the fit without each pair in turn
+    is tried; where one pair's residual under the fit of the others stands out, it is left out
+    (a misclick), and the report names it."""
+    fit = _fit(src, dst, fixed_scale)
+    report: dict = {"pairs": len(src), "left_out": None}
+    if len(src) >= 4:
+        best = None
+        for i in range(len(src)):
+            keep = np.arange(len(src)) != i
+            sub = _fit(src[keep], dst[keep], fixed_scale)
+            res = np.linalg.norm(sub.apply(src) - dst, axis=1)
+            spread = np.sqrt(np.mean(np.sum((dst - dst.mean(0)) ** 2, axis=1)))
+            others = np.median(res[keep])
+            if res[i] > OUTLIER_RATIO * others and res[i] > 0.01 * spread and (best is None or res[i] > best[1]):
+                best = (i, res[i], sub)
+        if best is not None:
+            fit = best[2]
+            report["left_out"] = int(best[0])
+    residuals = np.linalg.norm(fit.apply(src) - dst, axis=1)
+    report["residuals"] = [float(r) for r in residuals]
+    return fit, report
+
+
+def _fit(src: np.ndarray, dst: np.ndarray, fixed_scale: float | None) -> Sim3:
+    fit = solve_sim3(src, dst)
+    if fixed_scale is None:
+        return fit
+    return Sim3(fixed_scale, fit.rotation, dst.mean(0) - fixed_scale * fit.rotation @ src.mean(0))
+
+
+def up_rotations(src_up, dst_up, step_deg: float = UP_SEARCH_STEP_DEG) -> list[tuple[str, np.ndarray]]:
+    """Every rotation taking the source's up onto the target's, turned about it in steps."""
+    base = _min_rotation(np.asarray(src_up, np.float64), np.asarray(dst_up, np.float64))
+    return [(f"up:{deg:g}", axis_rotation(dst_up, np.radians(deg)) @ base) for deg in np.arange(0.0, 360.0, step_deg)]
+
+
+def _min_rotation(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """The smallest rotation taking unit vector a onto unit vector b."""
+    axis = np.cross(a, b)
+    s, c = np.linalg.norm(axis), float(a @ b)
+    if s < 1e-12:
+        if c > 0:
+            return np.eye(3)
+        # opposite: half a turn about any axis perpendicular to a
+        perp = np.cross(a, np.eye(3)[int(np.argmin(np.abs(a)))])
+        return axis_rotation(perp, np.pi)
+    return axis_rotation(axis / s, np.arctan2(s, c))
+
+
+def constrain(transform: Sim3, opts: AlignOptions, pivot: np.ndarray) -> Sim3:
+    """`transform` brought back onto the hints: its rotation tilted so the up axes agree, its
+    scale set to fixed_scale; the source point `pivot` (its centre) stays where it was mapped."""
+    rotation, scale = transform.rotation, transform.scale
+    if opts.up_axes is not None:
+        src_up, dst_up = (np.asarray(v, np.float64) for v in opts.up_axes)
+        rotation = _min_rotation(rotation @ src_up, dst_up) @ rotation
+    if opts.fixed_scale is not None:
+        scale = opts.fixed_scale
+    if rotation is transform.rotation and scale == transform.scale:
+        return transform
+    mapped = transform.apply(pivot[None])[0]
+    return Sim3(scale, rotation, mapped - scale * rotation @ pivot)
+
+
+def start_transform(opts: AlignOptions) -> tuple[Sim3, dict] | None:
+    """Where a local refinement starts: init_transform or the pairs' fit (None: neither given)."""
+    if opts.init_transform is not None:
+        return init_sim3(opts.init_transform), {"from": "init_transform"}
+    if opts.point_pairs is not None:
+        src, dst = (np.asarray(p, np.float64) for p in opts.point_pairs)
+        fit, report = pairs_transform(src, dst, opts.fixed_scale)
+        return fit, {"from": "point_pairs", **report}
+    return None
+
+
+def describe(opts: AlignOptions) -> dict:
+    """metrics['guidance']: which hints were used."""
+    return {
+        "init_transform": opts.init_transform is not None,
+        "point_pairs": None if opts.point_pairs is None else len(opts.point_pairs[0]),
+        "up_axes": None if opts.up_axes is None else [list(v) for v in opts.up_axes],
+        "fixed_scale": opts.fixed_scale,
+    }
+
+
+__all__ = [
+    "check_guidance",
+    "constrain",
+    "describe",
+    "init_sim3",
+    "is_guided",
+    "pair_arrays",
+    "pairs_transform",
+    "start_transform",
+    "up_rotations",
+]

@@ -1,0 +1,133 @@
+"""Guided alignment (gsa.align.guided): start poses, picked pairs, up axes, fixed scale."""
+
+import json
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from gsa.align.contract import hints_from_files
+from gsa.align.guided import pairs_transform
+from gsa.align.pipeline import AlignOptions, align
+from gsa.geometry import axis_rotation
+from gsa.io import frames
+from gsa.metrics import rre_deg
+from gsa.sim3 import Sim3
+from gsa.synth import make_object, random_sim3
+
+
+@pytest.fixture(scope="module")
+def pair():
+    truth = random_sim3(np.random.default_rng(4))
+    source = make_object("car", seed=3, n_gaussians=4000, sample_seed=1)
+    target = make_object("car", seed=3, n_gaussians=5000, sample_seed=2).transformed(truth)
+    return source, target, truth
+
+
+def _picks(source, truth, count, rng):
+    rows = rng.choice(len(source), count, replace=False)
+    return source.means[rows].astype(np.float64), truth.apply(source.means[rows])
+
+
+def test_pairs_solve_in_closed_form_and_leave_out_one_wrong_pair():
+    rng = np.random.default_rng(0)
+    truth = random_sim3(rng)
+    src = rng.normal(size=(6, 3))
+    dst = truth.apply(src) + rng.normal(0, 0.005, (6, 3)) * truth.scale
+    dst[2] = dst[4] + 3.0 * truth.scale  # a misclick
+    fit, report = pairs_transform(src, dst)
+    assert report["left_out"] == 2
+    assert rre_deg(fit.rotation, truth.rotation) < 1.0
+    assert abs(fit.scale / truth.scale - 1) < 0.02
+    fixed, _ = pairs_transform(src[:3], truth.apply(src[:3]), fixed_scale=2.5)
+    assert fixed.scale == 2.5
+
+
+def test_picked_pairs_align_a_model_and_say_so(pair):
+    source, target, truth = pair
+    src, dst = _picks(source, truth, 4, np.random.default_rng(1))
+    size = np.linalg.norm(np.ptp(target.means, axis=0))
+    dst = dst + np.random.default_rng(2).normal(0, 0.02 * size / np.sqrt(3), dst.shape)  # clicks 2 % off
+    result = align(source, target, AlignOptions(point_pairs={"source": src.tolist(), "target": dst.tolist()}))
+    assert rre_deg(result.transform.rotation, truth.rotation) < 1.0
+    guidance = result.metrics["guidance"]
+    assert guidance["point_pairs"] == 4 and guidance["start"]["from"] == "point_pairs"
+    assert len(guidance["start"]["residuals"]) == 4
+
+
+def test_init_refines_locally_and_never_jumps(pair):
+    source, target, truth = pair
+    near = Sim3(truth.scale * 1.05, axis_rotation([1, 1, 0], np.radians(8)) @ truth.rotation, truth.translation)
+    result = align(source, target, AlignOptions(init_transform=near.matrix().tolist()))
+    assert rre_deg(result.transform.rotation, truth.rotation) < 0.5
+    assert result.metrics["guidance"]["init_transform"] is True and result.hypotheses == []
+    # Half a turn away: the answer stays near where it was told to start (and is doubtful).
+    far = Sim3(truth.scale, truth.rotation @ axis_rotation([0, 0, 1], np.pi), truth.translation)
+    stay = align(source, target, AlignOptions(init_transform=far.matrix()))
+    assert rre_deg(stay.transform.rotation, far.rotation) < 30.0
+    assert stay.metrics["doubtful"]
+
+
+def test_up_axes_hold_and_fixed_scale_is_kept(pair):
+    source, target, truth = pair
+    up = np.array([0.0, 0.0, 1.0])
+    result = align(source, target, AlignOptions(up_axes=(up, truth.rotation @ up)))
+    assert rre_deg(result.transform.rotation, truth.rotation) < 2.0
+    assert np.allclose(result.transform.rotation @ up, truth.rotation @ up, atol=1e-9)
+    hypotheses = [np.asarray(h["transform"])[:3, :3] for h in result.hypotheses]
+    assert all(np.allclose(h @ up / np.linalg.norm(h @ up), truth.rotation @ up, atol=0.3) for h in hypotheses)
+    fixed = align(source, target, AlignOptions(fixed_scale=truth.scale * 1.1))
+    assert fixed.transform.scale == pytest.approx(truth.scale * 1.1)
+    assert rre_deg(fixed.transform.rotation, truth.rotation) < 2.0
+
+
+@pytest.mark.parametrize(
+    "options, message",
+    [
+        (dict(init_transform=np.eye(3)), "shape 4×4"),
+        (dict(init_transform=np.diag([1.0, 1, -1, 1])), "determinant"),
+        (dict(init_transform=[[1, 2, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]]), "not a similarity"),
+        (dict(point_pairs=([[0, 0, 0], [1, 0, 0]], [[0, 0, 0], [1, 0, 0]])), "3..1000 pairs"),
+        (dict(point_pairs=([[0, 0, 0], [1, 0, 0], [2, 0, 0]], [[0, 0, 0], [0, 1, 0], [0, 0, 1]])), "one line"),
+        (dict(point_pairs=([[0, 0, 0]] * 3, [[0, 0, 0]] * 4)), "pair up"),
+        (dict(point_pairs={"source": [[0, 0, float("nan")]] * 3, "target": [[0, 0, 0]] * 3}), "NaN"),
+        (dict(up_axes=([0, 0, 0], [0, 0, 1])), "must not be zero"),
+        (dict(up_axes=[[0, 0, 1]]), "two vectors"),
+        (dict(fixed_scale=-1.0), "fixed_scale"),
+        (dict(init_transform=np.eye(4), point_pairs=([[0, 0, 0], [1, 0, 0], [0, 1, 0]],) * 2), "not both"),
+    ],
+)
+def test_bad_hints_are_refused_with_a_reason(options, message):
+    with pytest.raises(ValueError, match=message):
+        AlignOptions(**options)
+
+
+def test_hints_in_file_coordinates_become_internal():
+    internal = random_sim3(np.random.default_rng(5))
+    in_files = frames.file_transform(internal, "spz", "ply")
+    converted = hints_from_files(AlignOptions(init_transform=in_files.matrix()), "spz", "ply")
+    assert np.allclose(np.asarray(converted.init_transform), internal.matrix(), atol=1e-9)
+    up = hints_from_files(AlignOptions(up_axes=([0, 1, 0], [0, 1, 0])), "spz", "ply").up_axes
+    assert np.allclose(up[0], [0, -1, 0]) and np.allclose(up[1], [0, 1, 0])
+
+
+def test_cli_init_from_a_result_and_its_alternatives(pair, tmp_path):
+    from gsa.io import write_ply
+
+    source, target, truth = pair
+    write_ply(source, tmp_path / "a.ply")
+    write_ply(target, tmp_path / "b.ply")
+    result = tmp_path / "r.json"
+    result.write_text(json.dumps({"transform": truth.matrix().tolist(), "metrics": {"alternatives": []}}))
+    cmd = [sys.executable, "-m", "gsa.cli", "align", str(tmp_path / "a.ply"), str(tmp_path / "b.ply"), "--quiet"]
+    ok = subprocess.run(
+        cmd + ["--out", str(tmp_path / "o.json"), "--init", str(result)], capture_output=True, text=True
+    )
+    assert ok.returncode == 0, ok.stderr
+    out = json.loads((tmp_path / "o.json").read_text())
+    assert rre_deg(np.asarray(out["transform"])[:3, :3] / out["scale"], truth.rotation) < 0.5
+    assert out["metrics"]["guidance"]["init_transform"] is True
+    bad = subprocess.run(cmd + ["--init", str(result), "--alternative", "2"], capture_output=True, text=True)
+    assert bad.returncode == 1
+    assert bad.stderr.strip().splitlines() == [f"gsa: error: --alternative 2: {result} lists 0 alternative(s)"]
