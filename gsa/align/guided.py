@@ -9,21 +9,17 @@ Hints (AlignOptions fields; each optional):
   is brought back onto it (a cross-instance refinement can tilt).
 - fixed_scale: the answer's scale, kept through every stage.
 
+Functions taking `opts` take a gsa.align.AlignOptions (not imported here: it imports this module).
 `check_guidance` validates and normalises the hints once (AlignOptions.__post_init__), so the
 CLI, both APIs and the library refuse the same things with the same words.
 """
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING
-
 import numpy as np
 
 from gsa.geometry import axis_rotation
 from gsa.sim3 import Sim3, solve_sim3
-
-if TYPE_CHECKING:
-    from gsa.align.types import AlignOptions
 
 MAX_PAIRS = 1000
 # Turns about the up axis tried by the constrained search (degrees apart).
@@ -33,7 +29,7 @@ UP_SEARCH_STEP_DEG = 2.0
 OUTLIER_RATIO = 4.0
 
 
-def is_guided(opts: AlignOptions) -> bool:
+def is_guided(opts) -> bool:
     return any(x is not None for x in (opts.init_transform, opts.point_pairs, opts.up_axes, opts.fixed_scale))
 
 
@@ -49,7 +45,7 @@ def _finite(values, name: str, shape: tuple[int, ...] | None = None) -> np.ndarr
     return arr
 
 
-def check_guidance(opts: AlignOptions) -> None:
+def check_guidance(opts) -> None:
     """Validate the hints and store them normalised (tuples of floats, up vectors unit length)."""
     if opts.init_transform is not None and opts.point_pairs is not None:
         raise ValueError("give init_transform or point_pairs, not both")
@@ -169,7 +165,7 @@ def _min_rotation(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return axis_rotation(axis / s, np.arctan2(s, c))
 
 
-def constrain(transform: Sim3, opts: AlignOptions, pivot: np.ndarray) -> Sim3:
+def constrain(transform: Sim3, opts, pivot: np.ndarray) -> Sim3:
     """`transform` brought back onto the hints: its rotation tilted so the up axes agree, its
     scale set to fixed_scale; the source point `pivot` (its centre) stays where it was mapped."""
     rotation, scale = transform.rotation, transform.scale
@@ -184,7 +180,7 @@ def constrain(transform: Sim3, opts: AlignOptions, pivot: np.ndarray) -> Sim3:
     return Sim3(scale, rotation, mapped - scale * rotation @ pivot)
 
 
-def start_transform(opts: AlignOptions) -> tuple[Sim3, dict] | None:
+def start_transform(opts) -> tuple[Sim3, dict] | None:
     """Where a local refinement starts: init_transform or the pairs' fit (None: neither given)."""
     if opts.init_transform is not None:
         return init_sim3(opts.init_transform), {"from": "init_transform"}
@@ -195,7 +191,7 @@ def start_transform(opts: AlignOptions) -> tuple[Sim3, dict] | None:
     return None
 
 
-def describe(opts: AlignOptions) -> dict:
+def describe(opts) -> dict:
     """metrics['guidance']: which hints were used."""
     return {
         "init_transform": opts.init_transform is not None,
