@@ -18,7 +18,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from gsa.geometry import axis_rotation
+from gsa.geometry import axis_rotation, rotation_distance_deg
 from gsa.sim3 import Sim3, solve_sim3
 
 MAX_PAIRS = 1000
@@ -27,6 +27,8 @@ UP_SEARCH_STEP_DEG = 2.0
 # A pair whose residual exceeds this multiple of the others' median residual (and 1 % of the
 # pairs' spread) is the wrong one.
 OUTLIER_RATIO = 4.0
+# The refinement after picked pairs is kept while it turns the pairs' fit by at most this.
+PAIRS_MAX_TURN_DEG = 30.0
 
 
 def is_guided(opts) -> bool:
@@ -189,6 +191,15 @@ def start_transform(opts) -> tuple[Sim3, dict] | None:
         fit, report = pairs_transform(src, dst, opts.fixed_scale)
         return fit, {"from": "point_pairs", **report}
     return None
+
+
+def honours_pairs(refined: Sim3, start: Sim3) -> bool:
+    """Whether the refinement from the pairs' fit stayed near it (within PAIRS_MAX_TURN_DEG).
+    The local refinement corrects clicks that are a few % off, and between two instances of
+    different proportions it finds the pose better than the clicks do (the pairs themselves
+    then disagree with any one similarity); but it must not carry the answer to another side
+    of the object, away from the parts the user matched."""
+    return rotation_distance_deg(refined.rotation, start.rotation) <= PAIRS_MAX_TURN_DEG
 
 
 def describe(opts) -> dict:

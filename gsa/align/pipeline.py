@@ -159,6 +159,9 @@ def _align(
         scored = []
         t = time.perf_counter()
         coarse = pair.refine_global(best.init, progress) if pair.global_search else pair.coarse(best, progress)
+        if start[1]["from"] == "point_pairs" and not guided.honours_pairs(coarse.transform, best.init):
+            start[1]["refinement"] = "undone: it moved away from the pairs"
+            coarse = replace(coarse, transform=best.init)
         timings["coarse"] = time.perf_counter() - t
         if pair.global_search:
             # The verdict weighs the user's pose against what the search finds on its own.

@@ -105,20 +105,23 @@ def category_real_pairs(data: str | Path, quick: bool, seed: int) -> list[Pair]:
 def _hints(source, target, truth: Sim3, rng: np.random.Generator) -> dict:
     """What a person would tell the guided path (gsa.align.guided): the up axis in each model's
     coordinates (the meshes' shared canonical +Y), and PICKED_PAIRS point pairs clicked on
-    corresponding parts (the source's extreme points along the canonical axes, each paired
-    with the other instance's surface point nearest it in the shared canonical frame), each
+    corresponding parts: each instance's outermost surface point towards one of the bounding
+    box's corner directions (front-left-top, …; the same PICKED_PAIRS corners on both), each
     click off by up to PICK_NOISE of the model's size."""
     up = np.array([0.0, 1.0, 0.0])
-    src = source.means[source.opacities > 0.5].astype(np.float64)
-    dst = target.means[target.opacities > 0.5].astype(np.float64)
-    ends = [int(np.argmax(sign * src[:, axis])) for axis in range(3) for sign in (1, -1)]
-    picks = src[rng.choice(ends, PICKED_PAIRS, replace=False)]
-    partners = dst[cKDTree(dst).query(picks)[1]]
-    size = float(np.linalg.norm(dst.max(0) - dst.min(0)))
-    partners = partners + rng.normal(0, PICK_NOISE * size / np.sqrt(3), partners.shape)
+    corners = np.array([[x, y, z] for x in (-1, 1) for y in (-1, 1) for z in (-1, 1)], np.float64)
+    chosen = corners[rng.choice(len(corners), PICKED_PAIRS, replace=False)]
+
+    def clicks(model) -> np.ndarray:
+        pts = model.means[model.opacities > 0.5].astype(np.float64)
+        centred = (pts - 0.5 * (pts.min(0) + pts.max(0))) / np.maximum(np.ptp(pts, axis=0), 1e-12)
+        picked = pts[np.argmax(centred @ chosen.T, axis=0)]
+        size = float(np.linalg.norm(np.ptp(pts, axis=0)))
+        return picked + rng.normal(0, PICK_NOISE * size / np.sqrt(3), picked.shape)
+
     return {
         "up_axes": (up.tolist(), (truth.rotation @ up).tolist()),
-        "point_pairs": (picks.tolist(), truth.apply(partners).tolist()),
+        "point_pairs": (clicks(source).tolist(), truth.apply(clicks(target)).tolist()),
     }
 
 

@@ -118,6 +118,7 @@ __all__ = [
     "solid_voxels",
     "srgb_to_lab",
     "verdict",
+    "with_given_pose",
     "voxel_anchors",
     "voxelise",
 ]
