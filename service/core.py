@@ -4,12 +4,15 @@ assets, creating jobs (with idempotency), cancelling, reading artifacts."""
 from __future__ import annotations
 
 import hashlib
+import json
 import tempfile
 import time
 import zipfile
 from collections.abc import Iterable
 from pathlib import Path
 from typing import Any, BinaryIO
+
+import numpy as np
 
 from service.backend import Backend, notify_webhook
 from service.inputs import (
@@ -283,6 +286,7 @@ def create_job(
     options: dict[str, Any],
     webhook: dict | None,
     idempotency_key: str | None,
+    parent_job: str | None = None,
 ) -> Job:
     check_memory(b, sources, target, options)
     now = time.time()
@@ -301,6 +305,7 @@ def create_job(
         options=options,
         webhook=webhook,
         idempotency_key=idempotency_key,
+        parent_job=parent_job,
     )
     b.store.create(job)
     # Enqueue after the record exists (a worker may start at once); remember the
@@ -367,3 +372,121 @@ def get_artifact(b: Backend, owner: str, job_id: str, name: str):
         if a.name == name:
             return job, a
     raise not_found("Artifact", name)
+
+
+# POST /v1/jobs/{id}:refine and gRPC RefineJob: where the follow-up job starts (exactly one) and
+# the hints it may change (the parent's are kept unless given; null drops one).
+REFINE_STARTS = ("alternative", "init_transform", "point_pairs")
+REFINE_FIELDS = (*REFINE_STARTS, "up_axes", "fixed_scale")
+
+
+def refine_options(parent: Job, hints: dict[str, Any]) -> dict[str, Any]:
+    """The follow-up job's options: the parent's, its start replaced by the one chosen in
+    `hints` (an alternative of its result, init_transform or point_pairs), up_axes and
+    fixed_scale the parent's unless `hints` gives them. 422 naming the field for a bad one."""
+    unknown = sorted(set(hints) - set(REFINE_FIELDS))
+    if unknown:
+        raise invalid_input(f"unknown refine field(s): {', '.join(unknown)}", allowed=list(REFINE_FIELDS))
+    starts = [k for k in REFINE_STARTS if hints.get(k) is not None]
+    if len(starts) != 1:
+        raise invalid_input(
+            "give exactly one of alternative, init_transform, point_pairs"
+            + (f" (got {', '.join(starts)})" if starts else ""),
+            option=starts[-1] if starts else "alternative",
+            allowed=list(REFINE_STARTS),
+        )
+    if len(parent.sources) != 1:
+        raise invalid_input(f"job {parent.id} aligns {len(parent.sources)} sources; refine takes a job with one source")
+    options = {k: v for k, v in parent.options.items() if k not in ("init_transform", "point_pairs")}
+    for k in ("up_axes", "fixed_scale"):
+        if k in hints:
+            options.pop(k, None)
+            if hints[k] is not None:
+                options[k] = hints[k]
+    if starts[0] == "alternative":
+        options["init_transform"] = alternative_transform(parent, hints["alternative"])
+    else:
+        options[starts[0]] = hints[starts[0]]
+    return options
+
+
+def alternative_transform(parent: Job, index: Any) -> list[list[float]]:
+    """The parent result's metrics.alternatives[index] pose, in the input files' own coordinates
+    (as init_transform is given; the result lists alternatives in the internal frame)."""
+    if parent.state != JobState.succeeded or not parent.result:
+        raise Problem(
+            409,
+            "no-result",
+            "Job has no result",
+            f"job {parent.id} is {parent.state.value}: only a succeeded job's alternatives can be refined",
+        )
+    alternatives = (parent.result.get("metrics") or {}).get("alternatives") or []
+    if not isinstance(index, int) or isinstance(index, bool) or not 0 <= index < len(alternatives):
+        raise invalid_input(
+            f"'alternative' must be an index into the parent result's metrics.alternatives, which has "
+            f"{len(alternatives)} entr{'y' if len(alternatives) == 1 else 'ies'}",
+            option="alternative",
+            minimum=0,
+            maximum=len(alternatives) - 1,
+        )
+    from gsa.io import frames  # numpy only
+    from gsa.sim3 import Sim3
+
+    formats = parent.result.get("frames") or {}
+    src_fmt = (formats.get("source") or {}).get("format") or "ply"
+    dst_fmt = (formats.get("target") or {}).get("format") or "ply"
+    try:
+        internal = Sim3.from_matrix(np.asarray(alternatives[index]["transform"], np.float64))
+    except (KeyError, TypeError, ValueError):  # a result stored by another library version
+        raise invalid_input(f"alternative {index} has no 4×4 transform", option="alternative") from None
+    return frames.file_transform(internal, src_fmt, dst_fmt).matrix().tolist()
+
+
+def refine_job(
+    b: Backend, owner: str, parent_id: str, hints: dict[str, Any], idempotency_key: str | None
+) -> tuple[Job, bool]:
+    """A follow-up job on the parent's own inputs with a guidance hint (docs/service.md, "Guided
+    alignment"), linked both ways: child.parent_job, parent.children. 404 for another owner's
+    job, 409 while the parent is queued or running, 422 for a bad hint. Returns (job, created):
+    created is False for a replayed Idempotency-Key."""
+    parent = get_job(b, owner, parent_id)
+    if not parent.terminal:
+        raise Problem(
+            409,
+            "job-not-finished",
+            "Job not finished",
+            f"job {parent_id} is {parent.state.value}; refine it once it has finished",
+        )
+    options = refine_options(parent, hints)
+    check_request(b, len(parent.sources), options, parent.webhook)
+    assets = []
+    for ref in [*parent.sources, parent.target]:
+        a = b.store.get_asset(ref.asset_id)
+        if a is None or a.owner != owner or a.key != ref.key:
+            raise Problem(
+                409,
+                "input-deleted",
+                "Input deleted",
+                f"job {parent_id}'s input asset {ref.asset_id} was deleted: submit a new job",
+            )
+        assets.append(a)
+    sources, target = assets[:-1], assets[-1]
+    check_memory(b, sources, target, options)
+    fingerprint = hashlib.sha256(
+        json.dumps({"refine": parent_id, "options": options}, sort_keys=True, default=str).encode()
+    ).hexdigest()
+    job_id, existing = claim(b, owner, idempotency_key, fingerprint)
+    if existing is not None:
+        return existing, False
+    try:
+        job = create_job(b, owner, job_id, sources, target, options, parent.webhook, idempotency_key, parent.id)
+    except BaseException:
+        release(b, owner, idempotency_key)
+        raise
+    # The parent lists its children. A store-wide lock keyed by the parent (the one the
+    # stores already have, blob_lock) keeps two concurrent refines from losing one.
+    with b.store.blob_lock(f"job-children:{parent_id}"):
+        now = b.store.get(parent_id)
+        if now is not None:
+            b.store.update(parent_id, children=[*now.children, job.id])
+    return job, True

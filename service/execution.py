@@ -173,6 +173,7 @@ def problem_for(exc: Exception) -> Problem:
 
 def _run(backend: Backend, job: Job, token: str, prog: JobProgress, art_prefix: str) -> JobState | None:
     # lazy: the aligner (numba kernels, ~1 s of imports) loads in the processes that run jobs
+    from gsa.align.contract import hints_from_files
     from gsa.align.outputs import result_dict, write_outputs
     from gsa.align.pipeline import AlignOptions, align
 
@@ -218,7 +219,9 @@ def _run(backend: Backend, job: Job, token: str, prog: JobProgress, art_prefix: 
                 recon_iterations,
             )
             prog.check(force=True)
-            res = align(source, target, opts, progress=prog)
+            # Guidance comes in the files' own coordinates (as results state transforms).
+            formats = (source.metadata.get("format", "ply"), target.metadata.get("format", "ply"))
+            res = align(source, target, hints_from_files(opts, *formats), progress=prog)
             prog("writing", 0.99)
             out_dir = work / f"out{i}"
             extra = {
@@ -226,6 +229,8 @@ def _run(backend: Backend, job: Job, token: str, prog: JobProgress, art_prefix: 
                 "source_asset_id": ref.asset_id,
                 "target_asset_id": job.target.asset_id,
             }
+            if job.parent_job:
+                extra["parent_job"] = job.parent_job
             paths = write_outputs(res, source, target, out_dir, outputs=outputs, extra=extra)
             d = result_dict(res, source, target)  # + the transform contract (docs/formats.md)
             d["source_asset_id"] = ref.asset_id
@@ -247,6 +252,8 @@ def _run(backend: Backend, job: Job, token: str, prog: JobProgress, art_prefix: 
         result["reconstructions"] = {n: summ for n, (summ, _) in reconstructions.items()}
     if notes:
         result["notes"] = notes
+    if job.parent_job:
+        result["parent_job"] = job.parent_job
     ok = finish_attempt(
         backend,
         job.id,

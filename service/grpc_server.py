@@ -100,6 +100,8 @@ def job_to_pb(job: Job) -> pb.Job:
         target_asset_id=job.target.asset_id,
         options_json=json.dumps(job.options),
         artifacts=[pb.Artifact(name=a.name, size=a.size, content_type=a.content_type) for a in job.artifacts],
+        parent_job=job.parent_job or "",
+        children=job.children,
     )
     if job.error:
         msg.error.CopyFrom(
@@ -123,6 +125,27 @@ def job_to_pb(job: Job) -> pb.Job:
         ):  # a result shape this build does not know: result_json still has it
             pass
     return msg
+
+
+def _point(p: pb.Point) -> list[float]:
+    return [p.x, p.y, p.z]
+
+
+def guidance_options(g: pb.Guidance) -> dict:
+    """A Guidance message as the JSON options it stands for (init_transform, point_pairs,
+    up_axes, fixed_scale): only the ones set. Their values are checked with the other options."""
+    out: dict = {}
+    if g.init_transform:
+        m = list(g.init_transform)
+        out["init_transform"] = [m[i : i + 4] for i in range(0, 16, 4)] if len(m) == 16 else m
+    if g.HasField("point_pairs"):
+        pp = g.point_pairs
+        out["point_pairs"] = {"source": [_point(x) for x in pp.source], "target": [_point(x) for x in pp.target]}
+    if g.HasField("up_axes"):
+        out["up_axes"] = [_point(g.up_axes.source), _point(g.up_axes.target)]
+    if g.HasField("fixed_scale"):
+        out["fixed_scale"] = g.fixed_scale
+    return out
 
 
 class AlignmentServicer(pbg.AlignmentServiceServicer):
@@ -200,6 +223,14 @@ class AlignmentServicer(pbg.AlignmentServiceServicer):
                 raise invalid_input("options_json is not JSON") from None
             if not isinstance(options, dict):
                 raise invalid_input("options_json must be a JSON object")
+            if header.HasField("guidance"):
+                hints = guidance_options(header.guidance)
+                twice = sorted(set(hints) & {k for k, v in options.items() if v is not None})
+                if twice:
+                    raise invalid_input(
+                        f"{', '.join(twice)} given both in guidance and in options_json", option=twice[0]
+                    )
+                options.update(hints)
             try:
                 options = AlignOptionsIn.model_validate(options).to_dict()
             except ValueError as exc:
@@ -263,6 +294,20 @@ class AlignmentServicer(pbg.AlignmentServiceServicer):
         finally:
             for f in files.values():
                 f[1].close()
+
+    def RefineJob(self, request, context):
+        owner = self._owner(context)
+
+        def refine():
+            hints = guidance_options(request.guidance) if request.HasField("guidance") else {}
+            if request.HasField("alternative"):
+                hints["alternative"] = request.alternative
+            job, created = core.refine_job(self.b, owner, request.job_id, hints, request.idempotency_key or None)
+            if created and self.metrics is not None:
+                self.metrics.jobs_created.labels("grpc").inc()
+            return job_to_pb(job)
+
+        return self._guard(refine, context)
 
     def GetJob(self, request, context):
         owner = self._owner(context)

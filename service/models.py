@@ -62,6 +62,9 @@ class Job(BaseModel):
     # reaper notice a queue message lost before any worker claimed the job.
     queue_ref: str | None = None
     enqueued_at: float | None = None
+    # Guided alignment: the job this one refines (POST /v1/jobs/{id}:refine) and the jobs that refine this one.
+    parent_job: str | None = None
+    children: list[str] = Field(default_factory=list)
     version: int = 0
 
     @property

@@ -99,6 +99,7 @@ OPTION_BOUNDS: dict[str, Bound] = {
     "fine_lr": Bound(float, 0, 1, lo_open=True),
     "fine_image_size": Bound(int, 8, 1024),
     "recon_iterations": Bound(int, 10, 100_000),
+    "fixed_scale": Bound(float, 1e-6, 1e6),
 }
 # Choices the library checks only when the fine stage starts (gsa.align.fine.FineOptions,
 # whose module loads torch): repeated here so a typo is refused at submission.
@@ -108,6 +109,16 @@ OPTION_CHOICES: dict[str, tuple[str, ...]] = {
 }
 STAGE_NAMES = ("auto", "coarse", "fine")
 BOOL_OPTIONS = {"renders", "weight_by_opacity"}
+# Guidance (gsa.align.guided, docs/service.md "Guided alignment"): what a person knows about the
+# pose, each in the input FILES' own coordinates (as the result states its transform). Their
+# shapes are checked by the library's own check_guidance, one hint at a time so a 422 names it.
+GUIDANCE_OPTIONS = ("init_transform", "point_pairs", "up_axes", "fixed_scale")
+GUIDANCE_SHAPES = {
+    "init_transform": "4×4 nested list, a Sim(3) source → target: rows [[r, r, r, t], …, [0, 0, 0, 1]]",
+    "point_pairs": '{"source": [[x, y, z], …], "target": [[x, y, z], …]}, 3..1000 pairs',
+    "up_axes": "[[x, y, z], [x, y, z]]: the source's up, the target's up",
+    "fixed_scale": "the answer's scale s",
+}
 # The fine stage's work, fine_views × fine_image_size² × fine_iterations, with the
 # library's defaults for the ones a job leaves out.
 FINE_DEFAULTS = {"fine_views": 5, "fine_image_size": 128, "fine_iterations": 60}
@@ -144,6 +155,29 @@ def check_option_values(options: dict[str, Any]) -> None:
             raise invalid_input(f"option {name!r} must be true or false", option=name)
     if "stages" in options:
         _check_stages(options["stages"])
+    if any(options.get(k) is not None for k in GUIDANCE_OPTIONS):
+        check_guidance_options(options)
+
+
+def check_guidance_options(options: dict[str, Any]) -> None:
+    """The hints' shapes, with the library's words (gsa.align.guided.check_guidance), each
+    hint alone first so the 422 names the one that is wrong, then together."""
+    from types import SimpleNamespace
+
+    from gsa.align.guided import check_guidance  # numpy only: no torch, no numba
+
+    given = {k: options[k] for k in GUIDANCE_OPTIONS if options.get(k) is not None}
+    empty = dict.fromkeys(GUIDANCE_OPTIONS)
+    for name, value in given.items():
+        try:
+            check_guidance(SimpleNamespace(**(empty | {name: value})))
+        except (TypeError, ValueError) as exc:
+            detail = str(exc) if str(exc).startswith(name) else f"option {name!r}: {exc}"
+            raise invalid_input(detail, option=name, expected=GUIDANCE_SHAPES[name]) from None
+    try:
+        check_guidance(SimpleNamespace(**(empty | given)))
+    except (TypeError, ValueError) as exc:  # init_transform and point_pairs: one start, not two
+        raise invalid_input(str(exc), option="point_pairs", conflicts_with="init_transform") from None
 
 
 def _check_stages(stages: Any) -> None:

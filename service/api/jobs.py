@@ -16,7 +16,7 @@ from fastapi.responses import JSONResponse
 from service import core, retention
 from service.api.deps import B, Owner
 from service.api.openapi import JOB_BODY, problem_responses
-from service.api.schemas import AlignOptionsIn, JobCreate, JobList, JobOut, WebhookIn
+from service.api.schemas import AlignOptionsIn, JobCreate, JobList, JobOut, RefineIn, WebhookIn
 from service.api.upload import Form, parse_multipart
 from service.backend import Backend
 from service.models import JobState
@@ -281,3 +281,48 @@ async def cancel_job(job_id: str, owner: Owner, b: B):
 async def delete_job(job_id: str, owner: Owner, b: B):
     await run_in_threadpool(retention.delete_job, b, owner, job_id)
     return Response(status_code=204)
+
+
+@router.post(
+    "/v1/jobs/{job_id}:refine",
+    operation_id="refineJob",
+    status_code=202,
+    response_model=JobOut,
+    tags=["jobs"],
+    summary="Refine a finished job from a chosen pose or picked point pairs",
+    description="Creates a follow-up job on the parent's own inputs and options, starting from one of "
+    "the parent result's `metrics.alternatives` (`alternative`: its index), a pose (`init_transform`) or "
+    "picked point pairs (`point_pairs`); `up_axes` and `fixed_scale` replace the parent's (null drops "
+    "one). The new job has `parent_job`; the parent lists it in `children`. 409 while the parent is "
+    "queued or running (and for `alternative` when it has no result); 422 for a bad hint or an "
+    "alternative index the result does not have. `/v1/jobs/{job_id}/refine` is the same operation. "
+    "`Idempotency-Key` as for createJob.",
+    responses=problem_responses(401, 404, 409, 422),
+)
+async def refine_job(
+    job_id: str,
+    body: RefineIn,
+    request: Request,
+    owner: Owner,
+    b: B,
+    idempotency_key: Annotated[str | None, Header(alias="Idempotency-Key")] = None,
+):
+    hints = body.model_dump(exclude_unset=True)
+    job, created = await run_in_threadpool(core.refine_job, b, owner, job_id, hints, idempotency_key)
+    if created:
+        request.app.state.metrics.jobs_created.labels("http").inc()
+    return _job_response(job, created)
+
+
+# The same operation for clients and proxies that cannot put a colon in a path.
+router.add_api_route(
+    "/v1/jobs/{job_id}/refine",
+    refine_job,
+    methods=["POST"],
+    operation_id="refineJobSlash",
+    status_code=202,
+    response_model=JobOut,
+    tags=["jobs"],
+    summary="Refine a finished job (same as POST /v1/jobs/{job_id}:refine)",
+    responses=problem_responses(401, 404, 409, 422),
+)

@@ -84,6 +84,20 @@ class CoarseVerdict(_Open):
     doubtful: bool | None = None
 
 
+class Guidance(_Open):
+    """The hints a guided job used (gsa.align.guided.describe), and where it started from."""
+
+    init_transform: bool | None = Field(None, description="started from a given pose")
+    point_pairs: int | None = Field(None, description="how many picked pairs were given")
+    up_axes: list[list[float]] | None = Field(None, description="(source up, target up), unit length, internal frame")
+    fixed_scale: float | None = None
+    start: dict[str, Any] | None = Field(
+        None,
+        description="where the local refinement started: from init_transform or point_pairs (their "
+        "residuals and the index of a pair left out as wrong)",
+    )
+
+
 class Metrics(_Open):
     """GT-free quality numbers; trust the transform only when `doubtful` is false."""
 
@@ -127,6 +141,7 @@ class Metrics(_Open):
         None, description="confidence, ambiguous, doubtful at the coarse pose, where the fine stage ran"
     )
     scene: SceneMetrics | None = None
+    guidance: Guidance | None = Field(None, description="present when the job was given hints (guided alignment)")
 
 
 class CoarseStage(Sim3Out):
@@ -194,3 +209,4 @@ class JobResult(SourceResult):
         None, description="summaries of the models reconstructed from image-set inputs"
     )
     notes: list[str] | None = None
+    parent_job: str | None = Field(None, description="the job this one refines (POST /v1/jobs/{id}:refine)")

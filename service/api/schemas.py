@@ -10,7 +10,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_valida
 
 from service.api.results import JobResult
 from service.models import Asset, Job, JobState
-from service.options import OPTION_BOUNDS, OutputName, check_option_values
+from service.options import GUIDANCE_SHAPES, OPTION_BOUNDS, OutputName, check_option_values
 
 log = logging.getLogger("gsa.api")
 
@@ -29,6 +29,35 @@ class Problem(BaseModel):
 def _bounded(name: str, description: str | None = None, **kw):
     """A field whose documented bounds come from service.options (which enforces them)."""
     return Field(None, description=description, json_schema_extra=OPTION_BOUNDS[name].json_schema(), **kw)
+
+
+_HINT_SCHEMAS: dict[str, dict[str, Any]] = {
+    "init_transform": {
+        "type": "array",
+        "items": {"type": "array", "items": {"type": "number"}, "minItems": 4, "maxItems": 4},
+        "minItems": 4,
+        "maxItems": 4,
+    },
+    "point_pairs": {
+        "type": "object",
+        "properties": {
+            k: {"type": "array", "items": {"type": "array", "items": {"type": "number"}, "minItems": 3, "maxItems": 3}}
+            for k in ("source", "target")
+        },
+        "required": ["source", "target"],
+    },
+    "up_axes": {
+        "type": "array",
+        "items": {"type": "array", "items": {"type": "number"}, "minItems": 3, "maxItems": 3},
+        "minItems": 2,
+        "maxItems": 2,
+    },
+}
+
+
+def _hint(name: str, description: str):
+    """A guidance field: documented in OpenAPI, checked by service.options.check_guidance_options."""
+    return Field(None, description=f"{description}; {GUIDANCE_SHAPES[name]}", json_schema_extra=_HINT_SCHEMAS[name])
 
 
 class AlignOptionsIn(BaseModel):
@@ -53,6 +82,12 @@ class AlignOptionsIn(BaseModel):
     renders: bool | None = Field(None, description="produce before/after renders (default true)")
     outputs: list[OutputName] | None = Field(None, description="artifacts wanted (default: all)")
     recon_iterations: int | None = _bounded("recon_iterations", "3DGS training iterations for image-set inputs")
+    # Guidance (docs/service.md "Guided alignment"), in the input files' own coordinates. Typed
+    # loosely here: their shapes are checked by the library's check_guidance (422 naming the option).
+    init_transform: Any = _hint("init_transform", "start from this pose; only a local refinement runs")
+    point_pairs: Any = _hint("point_pairs", "picked point pairs: their Sim(3), then a local refinement")
+    up_axes: Any = _hint("up_axes", "every pose keeps these up axes aligned")
+    fixed_scale: float | None = _bounded("fixed_scale", "the answer's scale, kept through every stage")
 
     @model_validator(mode="after")
     def _check(self):
@@ -61,6 +96,19 @@ class AlignOptionsIn(BaseModel):
 
     def to_dict(self) -> dict[str, Any]:
         return self.model_dump(exclude_none=True)
+
+
+class RefineIn(BaseModel):
+    """POST /v1/jobs/{id}:refine: where the follow-up job starts (exactly one of alternative,
+    init_transform, point_pairs) and, optionally, new up_axes / fixed_scale (null drops the
+    parent's). Checked by service.core.refine_options and service.options (422 naming the field)."""
+
+    model_config = ConfigDict(extra="forbid")
+    alternative: Any = Field(None, description="index into the parent result's metrics.alternatives", examples=[0])
+    init_transform: Any = _hint("init_transform", "start from this pose")
+    point_pairs: Any = _hint("point_pairs", "start from these picked pairs")
+    up_axes: Any = _hint("up_axes", "keep these up axes aligned")
+    fixed_scale: Any = Field(None, description="the answer's scale (null: free)", json_schema_extra={"type": "number"})
 
 
 class WebhookIn(BaseModel):
@@ -108,6 +156,8 @@ class JobOut(BaseModel):
         "quaternion (wxyz), translation, metrics, timings; `results` lists one entry per source",
     )
     artifacts: list[ArtifactOut] = Field(default_factory=list)
+    parent_job: str | None = Field(None, description="the job this one refines (POST /v1/jobs/{id}:refine)")
+    children: list[str] = Field(default_factory=list, description="the jobs that refine this one, oldest first")
     links: dict[str, str]
 
     @classmethod
@@ -142,7 +192,14 @@ class JobOut(BaseModel):
                 )
                 for a in job.artifacts
             ],
-            links={"self": base, "cancel": f"{base}:cancel"},
+            parent_job=job.parent_job,
+            children=job.children,
+            links={
+                "self": base,
+                "cancel": f"{base}:cancel",
+                "refine": f"{base}:refine",
+                **({"parent": f"/v1/jobs/{job.parent_job}"} if job.parent_job else {}),
+            },
         )
 
 

@@ -47,18 +47,70 @@ class SubmitRequest(_message.Message):
     def __init__(self, header: _Optional[_Union[SubmitHeader, _Mapping]] = ..., chunk: _Optional[_Union[FileChunk, _Mapping]] = ...) -> None: ...
 
 class SubmitHeader(_message.Message):
-    __slots__ = ("source_asset_ids", "target_asset_id", "options_json", "idempotency_key", "webhook")
+    __slots__ = ("source_asset_ids", "target_asset_id", "options_json", "idempotency_key", "webhook", "guidance")
     SOURCE_ASSET_IDS_FIELD_NUMBER: _ClassVar[int]
     TARGET_ASSET_ID_FIELD_NUMBER: _ClassVar[int]
     OPTIONS_JSON_FIELD_NUMBER: _ClassVar[int]
     IDEMPOTENCY_KEY_FIELD_NUMBER: _ClassVar[int]
     WEBHOOK_FIELD_NUMBER: _ClassVar[int]
+    GUIDANCE_FIELD_NUMBER: _ClassVar[int]
     source_asset_ids: _containers.RepeatedScalarFieldContainer[str]
     target_asset_id: str
     options_json: str
     idempotency_key: str
     webhook: Webhook
-    def __init__(self, source_asset_ids: _Optional[_Iterable[str]] = ..., target_asset_id: _Optional[str] = ..., options_json: _Optional[str] = ..., idempotency_key: _Optional[str] = ..., webhook: _Optional[_Union[Webhook, _Mapping]] = ...) -> None: ...
+    guidance: Guidance
+    def __init__(self, source_asset_ids: _Optional[_Iterable[str]] = ..., target_asset_id: _Optional[str] = ..., options_json: _Optional[str] = ..., idempotency_key: _Optional[str] = ..., webhook: _Optional[_Union[Webhook, _Mapping]] = ..., guidance: _Optional[_Union[Guidance, _Mapping]] = ...) -> None: ...
+
+class Point(_message.Message):
+    __slots__ = ("x", "y", "z")
+    X_FIELD_NUMBER: _ClassVar[int]
+    Y_FIELD_NUMBER: _ClassVar[int]
+    Z_FIELD_NUMBER: _ClassVar[int]
+    x: float
+    y: float
+    z: float
+    def __init__(self, x: _Optional[float] = ..., y: _Optional[float] = ..., z: _Optional[float] = ...) -> None: ...
+
+class PointPairs(_message.Message):
+    __slots__ = ("source", "target")
+    SOURCE_FIELD_NUMBER: _ClassVar[int]
+    TARGET_FIELD_NUMBER: _ClassVar[int]
+    source: _containers.RepeatedCompositeFieldContainer[Point]
+    target: _containers.RepeatedCompositeFieldContainer[Point]
+    def __init__(self, source: _Optional[_Iterable[_Union[Point, _Mapping]]] = ..., target: _Optional[_Iterable[_Union[Point, _Mapping]]] = ...) -> None: ...
+
+class UpAxes(_message.Message):
+    __slots__ = ("source", "target")
+    SOURCE_FIELD_NUMBER: _ClassVar[int]
+    TARGET_FIELD_NUMBER: _ClassVar[int]
+    source: Point
+    target: Point
+    def __init__(self, source: _Optional[_Union[Point, _Mapping]] = ..., target: _Optional[_Union[Point, _Mapping]] = ...) -> None: ...
+
+class Guidance(_message.Message):
+    __slots__ = ("init_transform", "point_pairs", "up_axes", "fixed_scale")
+    INIT_TRANSFORM_FIELD_NUMBER: _ClassVar[int]
+    POINT_PAIRS_FIELD_NUMBER: _ClassVar[int]
+    UP_AXES_FIELD_NUMBER: _ClassVar[int]
+    FIXED_SCALE_FIELD_NUMBER: _ClassVar[int]
+    init_transform: _containers.RepeatedScalarFieldContainer[float]
+    point_pairs: PointPairs
+    up_axes: UpAxes
+    fixed_scale: float
+    def __init__(self, init_transform: _Optional[_Iterable[float]] = ..., point_pairs: _Optional[_Union[PointPairs, _Mapping]] = ..., up_axes: _Optional[_Union[UpAxes, _Mapping]] = ..., fixed_scale: _Optional[float] = ...) -> None: ...
+
+class RefineRequest(_message.Message):
+    __slots__ = ("job_id", "alternative", "guidance", "idempotency_key")
+    JOB_ID_FIELD_NUMBER: _ClassVar[int]
+    ALTERNATIVE_FIELD_NUMBER: _ClassVar[int]
+    GUIDANCE_FIELD_NUMBER: _ClassVar[int]
+    IDEMPOTENCY_KEY_FIELD_NUMBER: _ClassVar[int]
+    job_id: str
+    alternative: int
+    guidance: Guidance
+    idempotency_key: str
+    def __init__(self, job_id: _Optional[str] = ..., alternative: _Optional[int] = ..., guidance: _Optional[_Union[Guidance, _Mapping]] = ..., idempotency_key: _Optional[str] = ...) -> None: ...
 
 class Webhook(_message.Message):
     __slots__ = ("url", "secret")
@@ -177,7 +229,7 @@ class Artifact(_message.Message):
     def __init__(self, name: _Optional[str] = ..., size: _Optional[int] = ..., content_type: _Optional[str] = ...) -> None: ...
 
 class Job(_message.Message):
-    __slots__ = ("id", "state", "stage", "progress", "created_at", "updated_at", "started_at", "finished_at", "attempts", "max_attempts", "cancel_requested", "source_asset_ids", "target_asset_id", "options_json", "error", "transform", "transforms", "result_json", "artifacts")
+    __slots__ = ("id", "state", "stage", "progress", "created_at", "updated_at", "started_at", "finished_at", "attempts", "max_attempts", "cancel_requested", "source_asset_ids", "target_asset_id", "options_json", "error", "transform", "transforms", "result_json", "artifacts", "parent_job", "children")
     ID_FIELD_NUMBER: _ClassVar[int]
     STATE_FIELD_NUMBER: _ClassVar[int]
     STAGE_FIELD_NUMBER: _ClassVar[int]
@@ -197,6 +249,8 @@ class Job(_message.Message):
     TRANSFORMS_FIELD_NUMBER: _ClassVar[int]
     RESULT_JSON_FIELD_NUMBER: _ClassVar[int]
     ARTIFACTS_FIELD_NUMBER: _ClassVar[int]
+    PARENT_JOB_FIELD_NUMBER: _ClassVar[int]
+    CHILDREN_FIELD_NUMBER: _ClassVar[int]
     id: str
     state: JobState
     stage: str
@@ -216,4 +270,6 @@ class Job(_message.Message):
     transforms: _containers.RepeatedCompositeFieldContainer[Transform]
     result_json: str
     artifacts: _containers.RepeatedCompositeFieldContainer[Artifact]
-    def __init__(self, id: _Optional[str] = ..., state: _Optional[_Union[JobState, str]] = ..., stage: _Optional[str] = ..., progress: _Optional[float] = ..., created_at: _Optional[_Union[datetime.datetime, _timestamp_pb2.Timestamp, _Mapping]] = ..., updated_at: _Optional[_Union[datetime.datetime, _timestamp_pb2.Timestamp, _Mapping]] = ..., started_at: _Optional[_Union[datetime.datetime, _timestamp_pb2.Timestamp, _Mapping]] = ..., finished_at: _Optional[_Union[datetime.datetime, _timestamp_pb2.Timestamp, _Mapping]] = ..., attempts: _Optional[int] = ..., max_attempts: _Optional[int] = ..., cancel_requested: _Optional[bool] = ..., source_asset_ids: _Optional[_Iterable[str]] = ..., target_asset_id: _Optional[str] = ..., options_json: _Optional[str] = ..., error: _Optional[_Union[Problem, _Mapping]] = ..., transform: _Optional[_Union[Transform, _Mapping]] = ..., transforms: _Optional[_Iterable[_Union[Transform, _Mapping]]] = ..., result_json: _Optional[str] = ..., artifacts: _Optional[_Iterable[_Union[Artifact, _Mapping]]] = ...) -> None: ...
+    parent_job: str
+    children: _containers.RepeatedScalarFieldContainer[str]
+    def __init__(self, id: _Optional[str] = ..., state: _Optional[_Union[JobState, str]] = ..., stage: _Optional[str] = ..., progress: _Optional[float] = ..., created_at: _Optional[_Union[datetime.datetime, _timestamp_pb2.Timestamp, _Mapping]] = ..., updated_at: _Optional[_Union[datetime.datetime, _timestamp_pb2.Timestamp, _Mapping]] = ..., started_at: _Optional[_Union[datetime.datetime, _timestamp_pb2.Timestamp, _Mapping]] = ..., finished_at: _Optional[_Union[datetime.datetime, _timestamp_pb2.Timestamp, _Mapping]] = ..., attempts: _Optional[int] = ..., max_attempts: _Optional[int] = ..., cancel_requested: _Optional[bool] = ..., source_asset_ids: _Optional[_Iterable[str]] = ..., target_asset_id: _Optional[str] = ..., options_json: _Optional[str] = ..., error: _Optional[_Union[Problem, _Mapping]] = ..., transform: _Optional[_Union[Transform, _Mapping]] = ..., transforms: _Optional[_Iterable[_Union[Transform, _Mapping]]] = ..., result_json: _Optional[str] = ..., artifacts: _Optional[_Iterable[_Union[Artifact, _Mapping]]] = ..., parent_job: _Optional[str] = ..., children: _Optional[_Iterable[str]] = ...) -> None: ...

@@ -68,6 +68,11 @@ class AlignmentServiceStub:
                 request_serializer=gsa_dot_v1_dot_alignment__pb2.ArtifactRequest.SerializeToString,
                 response_deserializer=gsa_dot_v1_dot_alignment__pb2.ArtifactChunk.FromString,
                 _registered_method=True)
+        self.RefineJob = channel.unary_unary(
+                '/gsa.v1.AlignmentService/RefineJob',
+                request_serializer=gsa_dot_v1_dot_alignment__pb2.RefineRequest.SerializeToString,
+                response_deserializer=gsa_dot_v1_dot_alignment__pb2.Job.FromString,
+                _registered_method=True)
 
 
 class AlignmentServiceServicer:
@@ -114,6 +119,15 @@ class AlignmentServiceServicer:
         context.set_details('Method not implemented!')
         raise NotImplementedError('Method not implemented!')
 
+    def RefineJob(self, request, context):
+        """A follow-up job on a finished job's own inputs, starting from one of its result's
+        alternatives, a pose or picked point pairs, like HTTP POST /v1/jobs/{id}:refine
+        (FAILED_PRECONDITION while it is queued or running, INVALID_ARGUMENT for a bad hint).
+        """
+        context.set_code(grpc.StatusCode.UNIMPLEMENTED)
+        context.set_details('Method not implemented!')
+        raise NotImplementedError('Method not implemented!')
+
 
 def add_AlignmentServiceServicer_to_server(servicer, server):
     rpc_method_handlers = {
@@ -146,6 +160,11 @@ def add_AlignmentServiceServicer_to_server(servicer, server):
                     servicer.GetArtifact,
                     request_deserializer=gsa_dot_v1_dot_alignment__pb2.ArtifactRequest.FromString,
                     response_serializer=gsa_dot_v1_dot_alignment__pb2.ArtifactChunk.SerializeToString,
+            ),
+            'RefineJob': grpc.unary_unary_rpc_method_handler(
+                    servicer.RefineJob,
+                    request_deserializer=gsa_dot_v1_dot_alignment__pb2.RefineRequest.FromString,
+                    response_serializer=gsa_dot_v1_dot_alignment__pb2.Job.SerializeToString,
             ),
     }
     generic_handler = grpc.method_handlers_generic_handler(
@@ -310,6 +329,33 @@ class AlignmentService:
             '/gsa.v1.AlignmentService/GetArtifact',
             gsa_dot_v1_dot_alignment__pb2.ArtifactRequest.SerializeToString,
             gsa_dot_v1_dot_alignment__pb2.ArtifactChunk.FromString,
+            options,
+            channel_credentials,
+            insecure,
+            call_credentials,
+            compression,
+            wait_for_ready,
+            timeout,
+            metadata,
+            _registered_method=True)
+
+    @staticmethod
+    def RefineJob(request,
+            target,
+            options=(),
+            channel_credentials=None,
+            call_credentials=None,
+            insecure=False,
+            compression=None,
+            wait_for_ready=None,
+            timeout=None,
+            metadata=None):
+        return grpc.experimental.unary_unary(
+            request,
+            target,
+            '/gsa.v1.AlignmentService/RefineJob',
+            gsa_dot_v1_dot_alignment__pb2.RefineRequest.SerializeToString,
+            gsa_dot_v1_dot_alignment__pb2.Job.FromString,
             options,
             channel_credentials,
             insecure,

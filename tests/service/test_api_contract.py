@@ -26,6 +26,8 @@ OPERATIONS = {
     ("get", "/v1/jobs/{job_id}"): "getJob",
     ("delete", "/v1/jobs/{job_id}"): "deleteJob",
     ("post", "/v1/jobs/{job_id}:cancel"): "cancelJob",
+    ("post", "/v1/jobs/{job_id}:refine"): "refineJob",
+    ("post", "/v1/jobs/{job_id}/refine"): "refineJobSlash",
     ("get", "/v1/jobs/{job_id}/artifacts/{name}"): "getArtifact",
     ("head", "/v1/jobs/{job_id}/artifacts/{name}"): "headArtifact",
 }

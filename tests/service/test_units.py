@@ -253,6 +253,8 @@ def test_openapi_paths_and_methods_are_the_public_contract(tmp_path):
         ("/v1/jobs", ["post", "get"]),
         ("/v1/jobs/{job_id}", ["get", "delete"]),
         ("/v1/jobs/{job_id}:cancel", ["post"]),
+        ("/v1/jobs/{job_id}:refine", ["post"]),
+        ("/v1/jobs/{job_id}/refine", ["post"]),
         ("/v1/jobs/{job_id}/artifacts/{name}", ["get", "head"]),
         ("/v1/jobs/{job_id}/view-link", ["post"]),
         ("/v1/view-link", ["post"]),
