@@ -131,3 +131,15 @@ def test_cli_init_from_a_result_and_its_alternatives(pair, tmp_path):
     bad = subprocess.run(cmd + ["--init", str(result), "--alternative", "2"], capture_output=True, text=True)
     assert bad.returncode == 1
     assert bad.stderr.strip().splitlines() == [f"gsa: error: --alternative 2: {result} lists 0 alternative(s)"]
+
+
+def test_noisy_clicks_are_not_misclicks():
+    rng = np.random.default_rng(3)
+    for trial in range(20):
+        truth = random_sim3(np.random.default_rng(100 + trial))
+        src = rng.uniform(-1, 1, (4, 3))
+        spread = np.sqrt(np.mean(np.sum((src - src.mean(0)) ** 2, axis=1)))
+        dst = truth.apply(src + rng.normal(0, 0.02 * spread, src.shape))
+        fit, report = pairs_transform(src, dst)
+        assert report["left_out"] is None
+        assert rre_deg(fit.rotation, truth.rotation) < 5.0

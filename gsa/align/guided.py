@@ -24,9 +24,14 @@ from gsa.sim3 import Sim3, solve_sim3
 MAX_PAIRS = 1000
 # Turns about the up axis tried by the constrained search (degrees apart).
 UP_SEARCH_STEP_DEG = 2.0
-# A pair whose residual exceeds this multiple of the others' median residual (and 1 % of the
-# pairs' spread) is the wrong one.
+# A pair the others' fit misses by this multiple of the full fit's median residual, and by this
+# share of the pairs' spread, is a misclick (pairs_transform).
 OUTLIER_RATIO = 4.0
+MISCLICK_SHARE = 0.25
+# ... and only where the fit of all pairs misses them by this share of their spread (RMS).
+MISFIT_SHARE = 0.05
+# Pairs left after a misclick must spread this far off a line (second/first singular value).
+WELL_SPREAD = 0.25
 # The refinement after picked pairs is kept while it turns the pairs' fit by at most this.
 PAIRS_MAX_TURN_DEG = 30.0
 
@@ -123,16 +128,24 @@ def pairs_transform(src: np.ndarray, dst: np.ndarray, fixed_scale: float | None 
     (a misclick), and the report names it."""
     fit = _fit(src, dst, fixed_scale)
     report: dict = {"pairs": len(src), "left_out": None}
-    if len(src) >= 4:
+    full_rms = float(np.sqrt(np.mean(np.sum((fit.apply(src) - dst) ** 2, axis=1))))
+    spread = float(np.sqrt(np.mean(np.sum((dst - dst.mean(0)) ** 2, axis=1))))
+    # Only a fit that misses its own pairs visibly has a misclick to look for.
+    if len(src) >= 4 and full_rms > MISFIT_SHARE * spread:
+        # A pair is a misclick when the fit of the others misses it by far more than it misses
+        # them, and by a visible share of the pairs' spread: three pairs fit each other almost
+        # exactly, so a noisy click's leave-one-out residual alone looks large (not a misclick).
         best = None
         for i in range(len(src)):
             keep = np.arange(len(src)) != i
+            sv = np.linalg.svd(src[keep] - src[keep].mean(0), compute_uv=False)
+            if sv[1] < WELL_SPREAD * sv[0]:
+                continue  # the others nearly on a line: their fit says nothing about pair i
             sub = _fit(src[keep], dst[keep], fixed_scale)
-            res = np.linalg.norm(sub.apply(src) - dst, axis=1)
-            spread = np.sqrt(np.mean(np.sum((dst - dst.mean(0)) ** 2, axis=1)))
-            others = np.median(res[keep])
-            if res[i] > OUTLIER_RATIO * others and res[i] > 0.01 * spread and (best is None or res[i] > best[1]):
-                best = (i, res[i], sub)
+            miss = float(np.linalg.norm(sub.apply(src[i]) - dst[i]))
+            typical = float(np.median(np.linalg.norm(sub.apply(src[keep]) - dst[keep], axis=1)))
+            if miss > OUTLIER_RATIO * typical and miss > MISCLICK_SHARE * spread and (best is None or miss > best[1]):
+                best = (i, miss, sub)
         if best is not None:
             fit = best[2]
             report["left_out"] = int(best[0])
