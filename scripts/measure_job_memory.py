@@ -24,8 +24,6 @@ ROOT = Path(__file__).resolve().parents[1]
 
 
 def child(src: str, tgt: str, options: dict, out: str) -> dict:
-    import resource
-
     from gsa.align.outputs import write_outputs
     from gsa.align.pipeline import AlignOptions, align
     from gsa.io import read_model
@@ -42,10 +40,25 @@ def child(src: str, tgt: str, options: dict, out: str) -> dict:
     res = align(source, target, AlignOptions(**opts))
     write_outputs(res, source, target, Path(out), outputs=outputs)
     return {
-        "peak_bytes": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024,
+        "peak_bytes": _peak_rss_bytes(),
         "seconds": round(time.perf_counter() - t0, 2),
         "fine_ran": res.fine is not None,
     }
+
+
+def _peak_rss_bytes() -> int:
+    """This process's own RSS high-water mark. VmHWM, not ru_maxrss: Linux carries ru_maxrss
+    across exec, so a child started from a large parent (a test runner holding 800 MB) would
+    report the parent's size."""
+    try:
+        for line in Path("/proc/self/status").read_text().splitlines():
+            if line.startswith("VmHWM:"):
+                return int(line.split()[1]) * 1024
+    except OSError:
+        pass
+    import resource
+
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024
 
 
 def measure(src: Path, tgt: Path, options: dict, timeout: float = 900) -> dict:

@@ -54,12 +54,15 @@ def small_pairs(tmp_path_factory):
 @pytest.mark.parametrize("n,options", RUNS, ids=["coarse", "fine-8x512", "fine-24views-20k"])
 def test_the_prediction_is_an_upper_bound_of_real_peaks(small_pairs, n, options):
     """Each job runs in a fresh child process (read, align, write outputs as a worker does);
-    its ru_maxrss must stay under the prediction, and the prediction within 2× of it."""
+    its peak RSS (VmHWM) must stay under the prediction, and the prediction within 2× of it."""
     src, tgt = small_pairs[n]
     got = _measure_script().measure(src, tgt, options, timeout=600)
     predicted = predict_job_memory(options, [n], n)
     assert got["peak_bytes"] <= predicted, (got, predicted / MB)
-    assert predicted <= 2 * got["peak_bytes"], (got, predicted / MB)  # an upper bound, not a wild one
+    if got["fine_ran"]:
+        # An upper bound, not a wild one. (A coarse-only job in a fresh process never loads
+        # torch, ~250 MB less than the model's base: a worker that has run any fine stage holds it.)
+        assert predicted <= 2 * got["peak_bytes"], (got, predicted / MB)
 
 
 def test_the_probe_is_predicted_above_the_default_budget():
