@@ -71,9 +71,51 @@ def validate_ply(path: Path, max_gaussians: int, display_name: str) -> int:
                     path,
                     f"truncated: the header declares {count} Gaussians ({need} bytes) but only {body} bytes follow",
                 )
+            _check_ply_values(path, fmt, header_len, int(count), props)
         return int(count)
     except plymod.PlyError as exc:
         raise invalid_input(f"{display_name}: {exc.problem}") from None
+
+
+def _check_ply_values(path: Path, fmt: str, header_len: int, count: int, props) -> None:
+    """Refuse NaN/Inf in a binary PLY's body as the reader (read_ply) would, chunk by chunk:
+    the body is read through the reader's own chunker and every chunk is checked by
+    GaussianModel.validate, so the API never holds more than one chunk of a large file.
+    Infinite opacity logits and log-scales are let through: the reader clamps them."""
+    from gsa.io import ply as plymod
+    from gsa.model import GaussianModel, ModelError
+
+    names = [n for n, _ in props]
+    degree, feat_dim = plymod._sh_and_feature_layout(path, names)
+    index = {n: i for i, n in enumerate(names)}
+    dtype = np.dtype([(n, plymod.FORMATS[fmt] + t) for n, t in props])
+    k = plymod.sh_coeff_count(degree)
+    rest_keys = [f"f_rest_{i}" for i in range(3 * (k - 1))]
+    feat_keys = [f"semantic_{i}" for i in range(feat_dim)]
+    for lo, hi, cols in plymod._binary_chunks(path, header_len, dtype, count, props, index):
+        n = hi - lo
+        sh = np.empty((n, k, 3), np.float32)
+        sh[:, 0, :] = cols(["f_dc_0", "f_dc_1", "f_dc_2"])
+        if k > 1:  # channel-major in the file
+            sh[:, 1:, :] = cols(rest_keys).reshape(n, 3, k - 1).transpose(0, 2, 1)
+        opacity = np.asarray(cols(["opacity"])[:, 0], np.float32)
+        log_scales = np.asarray(cols(["scale_0", "scale_1", "scale_2"]), np.float32)
+        chunk = GaussianModel(
+            means=np.asarray(cols(["x", "y", "z"]), np.float32),
+            quats=np.asarray(cols(["rot_0", "rot_1", "rot_2", "rot_3"]), np.float32),
+            log_scales=np.where(np.isinf(log_scales), 0.0, log_scales).astype(np.float32),  # clamped on read
+            opacity_logits=np.where(np.isinf(opacity), 0.0, opacity).astype(np.float32),  # clamped on read
+            sh=sh,
+            features=np.asarray(cols(feat_keys), np.float32) if feat_dim else None,
+        )
+        if "filter_3D" in index:
+            f3d = cols(["filter_3D"])[:, 0]
+            if not np.isfinite(f3d).all() or (f3d < 0).any():
+                raise plymod.PlyError(path, "filter_3D holds negative, NaN or Inf values")
+        try:
+            chunk.validate(source="data")
+        except ModelError as exc:
+            raise plymod.PlyError(path, str(exc)) from None
 
 
 def model_format(head: bytes, size: int, path: Path | None = None) -> str | None:
