@@ -12,6 +12,7 @@ from starlette.background import BackgroundTask
 
 from service import core
 from service.api.deps import B, Owner
+from service.api.jobs import _etag_matches
 from service.api.openapi import problem_responses
 from service.convert import converted_artifact
 from service.problems import Problem as ProblemError
@@ -29,7 +30,8 @@ _RANGE = re.compile(r"^bytes=(\d*)-(\d*)$")
     summary="Download an artifact",
     description="Supports single byte ranges (Range: bytes=a-b) with 206 Partial Content. With If-Range "
     "(the ETag or Last-Modified of a copy you hold), a range is served only if the artifact is still that "
-    "version; otherwise the whole artifact comes with 200 (RFC 9110).",
+    "version; otherwise the whole artifact comes with 200 (RFC 9110). With If-None-Match naming its ETag, "
+    "304 Not Modified without a body.",
     response_class=StreamingResponse,
     responses={
         200: {
@@ -41,6 +43,7 @@ _RANGE = re.compile(r"^bytes=(\d*)-(\d*)$")
             }
         },
         206: {"description": "partial content"},
+        304: {"description": "not modified (If-None-Match names the artifact's ETag)"},
         **problem_responses(401, 404, 409, 416, 422),
     },
 )
@@ -51,6 +54,7 @@ def get_artifact(
     b: B,
     range_header: Annotated[str | None, Header(alias="Range")] = None,
     if_range: Annotated[str | None, Header(alias="If-Range")] = None,
+    if_none_match: Annotated[str | None, Header(alias="If-None-Match")] = None,
     model_format: Annotated[
         str | None,
         Query(
@@ -69,7 +73,9 @@ def get_artifact(
             background=BackgroundTask(cleanup),  # also when the client left before the body
             headers={"Content-Disposition": f'attachment; filename="{filename}"', "Content-Length": str(size)},
         )
-    status, headers, start, end = _plan(job, art, range_header, if_range)
+    status, headers, start, end = _plan(job, art, range_header, if_range, if_none_match)
+    if status == 304:
+        return Response(status_code=304, headers=headers)
     if art.size == 0:
         return Response(b"", media_type=art.content_type, headers=headers)
     return StreamingResponse(
@@ -86,7 +92,11 @@ def get_artifact(
     tags=["jobs"],
     summary="An artifact's headers (size, ETag) without its body",
     response_class=Response,
-    responses={206: {"description": "partial content"}, **problem_responses(401, 404, 409, 416)},
+    responses={
+        206: {"description": "partial content"},
+        304: {"description": "not modified (If-None-Match names the artifact's ETag)"},
+        **problem_responses(401, 404, 409, 416),
+    },
 )
 async def head_artifact(
     job_id: str,
@@ -95,16 +105,21 @@ async def head_artifact(
     b: B,
     range_header: Annotated[str | None, Header(alias="Range")] = None,
     if_range: Annotated[str | None, Header(alias="If-Range")] = None,
+    if_none_match: Annotated[str | None, Header(alias="If-None-Match")] = None,
 ):
     job, art = core.get_artifact(b, owner, job_id, name)
-    status, headers, _, _ = _plan(job, art, range_header, if_range)
-    headers["Content-Type"] = art.content_type
+    status, headers, _, _ = _plan(job, art, range_header, if_range, if_none_match)
+    if status != 304:
+        headers["Content-Type"] = art.content_type
     return Response(status_code=status, headers=headers)
 
 
-def _plan(job, art, range_header: str | None, if_range: str | None) -> tuple[int, dict[str, str], int, int]:
-    """(status, headers, first byte, last byte) of a download: 206 for one satisfiable
-    range, unless an If-Range names another version (then the whole artifact, 200)."""
+def _plan(
+    job, art, range_header: str | None, if_range: str | None, if_none_match: str | None = None
+) -> tuple[int, dict[str, str], int, int]:
+    """(status, headers, first byte, last byte) of a download: 304 when If-None-Match names
+    this version (RFC 9110 §13.2.2: before any Range), 206 for one satisfiable range, unless
+    an If-Range names another version (then the whole artifact, 200)."""
     size = art.size
     etag = f'"{art.key.rsplit("/", 2)[-2][:16]}-{size}"'
     modified = formatdate(job.finished_at or job.updated_at, usegmt=True)
@@ -114,6 +129,8 @@ def _plan(job, art, range_header: str | None, if_range: str | None) -> tuple[int
         "Last-Modified": modified,
         "Content-Disposition": f'attachment; filename="{art.name}"',
     }
+    if _etag_matches(if_none_match, etag):
+        return 304, {"ETag": etag, "Last-Modified": modified}, 0, -1
     start, end, status = 0, size - 1, 200
     m = _RANGE.match(range_header.strip()) if range_header else None
     if m and (m.group(1) or m.group(2)) and _if_range_holds(if_range, etag, modified):

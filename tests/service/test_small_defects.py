@@ -65,3 +65,22 @@ def test_infinite_opacity_and_scale_are_still_accepted(http, tmp_path, field):
     r = http.post("/v1/assets", files={"file": ("clamped.ply", io.BytesIO(data))})
     assert r.status_code in (200, 201), r.text
     assert r.json()["n_gaussians"] == 400
+
+
+def test_artifact_honours_if_none_match(http, pair):
+    from tests.service.conftest import submit_pair, wait_job
+
+    job = wait_job(http, submit_pair(http, pair, {"coarse_iterations": 50}).json()["id"], timeout=120)
+    assert job["state"] == "succeeded", job
+    url = f"/v1/jobs/{job['id']}/artifacts/aligned.ply"
+    full = http.get(url)
+    etag = full.headers["etag"]
+    r = http.get(url, headers={"If-None-Match": etag})
+    assert r.status_code == 304 and r.content == b"" and r.headers["etag"] == etag
+    assert "content-length" not in r.headers or r.headers["content-length"] == "0"
+    # a list, a weak tag and * match too (weak comparison); a range does not override it
+    assert http.get(url, headers={"If-None-Match": f'"x", W/{etag}'}).status_code == 304
+    assert http.get(url, headers={"If-None-Match": "*", "Range": "bytes=0-9"}).status_code == 304
+    assert http.head(url, headers={"If-None-Match": etag}).status_code == 304
+    other = http.get(url, headers={"If-None-Match": '"stale-1"'})
+    assert other.status_code == 200 and other.content == full.content
