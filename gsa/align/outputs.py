@@ -7,13 +7,13 @@ from __future__ import annotations
 
 import json
 import os
-import tempfile
 from pathlib import Path
 
 import numpy as np
 
 from gsa.align.contract import transform_contract
 from gsa.align.pipeline import AlignmentResult
+from gsa.io.atomic import mkstemp_for
 from gsa.io.formats import EXTENSIONS, write_model
 from gsa.io.ply import write_ply
 from gsa.merge import merge_plan
@@ -26,7 +26,7 @@ OUTPUTS = ("result", "aligned", "merged", "renders", "preview")
 def write_json(data: dict, path: Path) -> Path:
     """Atomic JSON write (temp file + rename): readers never see half a file."""
     path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", dir=path.parent)
+    fd, tmp = mkstemp_for(path)  # 0666 & ~umask, not mkstemp's 0600
     try:
         with os.fdopen(fd, "w") as fh:
             json.dump(data, fh, indent=2)

@@ -10,13 +10,13 @@ from __future__ import annotations
 
 import os
 import struct
-import tempfile
 from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
 
 from gsa.io import frames
+from gsa.io.atomic import mkstemp_for
 from gsa.io.ply import (
     DEFAULT_MAX_GAUSSIANS,
     LOG_SCALE_BOUND,
@@ -234,7 +234,7 @@ def write_model(
 def _atomic_write(path: Path, data: bytes | list) -> Path:
     """Write bytes, or a list of byte strings / buffers in order, via a temp file + rename."""
     path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", dir=path.parent)
+    fd, tmp = mkstemp_for(path)  # 0666 & ~umask, not mkstemp's 0600
     try:
         with os.fdopen(fd, "wb") as fh:
             for part in data if isinstance(data, list) else [data]:

@@ -16,13 +16,13 @@ from __future__ import annotations
 
 import os
 import re
-import tempfile
 import warnings
 from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
 
+from gsa.io.atomic import mkstemp_for
 from gsa.model import ROW_BLOCK, GaussianModel, ModelError, sh_coeff_count
 
 PLY_TYPES = {
@@ -383,7 +383,7 @@ def write_ply(
     header += "".join(f"property float {name}\n" for name in names)
     header += "end_header\n"
     path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", dir=path.parent)
+    fd, tmp = mkstemp_for(path)  # 0666 & ~umask, not mkstemp's 0600
     try:
         with os.fdopen(fd, "wb") as fh:
             fh.write(header.encode("ascii"))

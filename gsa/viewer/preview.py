@@ -14,11 +14,11 @@ where a pick by size or opacity would drop all the fine detail.
 from __future__ import annotations
 
 import os
-import tempfile
 from pathlib import Path
 
 import numpy as np
 
+from gsa.io.atomic import mkstemp_for
 from gsa.model import GaussianModel
 
 DEFAULT_MAX_GAUSSIANS = 300_000
@@ -63,7 +63,7 @@ def write_splat(model: GaussianModel, path: str | os.PathLike) -> Path:
     """Atomic write (temp file + rename) of the model as a `.splat` file."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", dir=path.parent)
+    fd, tmp = mkstemp_for(path)  # 0666 & ~umask, not mkstemp's 0600
     try:
         with os.fdopen(fd, "wb") as fh:
             fh.write(splat_bytes(model))
