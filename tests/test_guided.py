@@ -87,7 +87,7 @@ def test_up_axes_hold_and_fixed_scale_is_kept(pair):
     [
         (dict(init_transform=np.eye(3)), "shape 4×4"),
         (dict(init_transform=np.diag([1.0, 1, -1, 1])), "determinant"),
-        (dict(init_transform=[[1, 2, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]]), "not a similarity"),
+        (dict(init_transform=[[1, 2, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]]), "scaled rotation"),
         (dict(point_pairs=([[0, 0, 0], [1, 0, 0]], [[0, 0, 0], [1, 0, 0]])), "3..1000 pairs"),
         (dict(point_pairs=([[0, 0, 0], [1, 0, 0], [2, 0, 0]], [[0, 0, 0], [0, 1, 0], [0, 0, 1]])), "one line"),
         (dict(point_pairs=([[0, 0, 0]] * 3, [[0, 0, 0]] * 4)), "pair up"),

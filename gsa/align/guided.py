@@ -89,16 +89,10 @@ def init_sim3(matrix) -> Sim3:
     m = _finite(matrix, "init_transform", (4, 4))
     if not np.allclose(m[3], (0, 0, 0, 1), atol=1e-6):
         raise ValueError("init_transform's last row must be 0 0 0 1")
-    a = m[:3, :3]
-    det = np.linalg.det(a)
-    if not det > 0:
-        raise ValueError("init_transform must be a rotation with a positive scale (its determinant is not positive)")
-    scale = det ** (1 / 3)
-    rotation = a / scale
-    if not np.allclose(rotation @ rotation.T, np.eye(3), atol=1e-3):
-        raise ValueError("init_transform is not a similarity (its 3×3 part is not a scaled rotation)")
-    u, _, vt = np.linalg.svd(rotation)
-    return Sim3(scale, u @ vt, m[:3, 3])
+    try:
+        return Sim3.from_matrix(m)
+    except ValueError as exc:
+        raise ValueError(f"init_transform: {exc}") from None
 
 
 def pair_arrays(point_pairs) -> tuple[np.ndarray, np.ndarray]:

@@ -14,7 +14,7 @@ from pathlib import Path
 import numpy as np
 
 from gsa.model import GaussianModel
-from gsa.synth.objects import _quats_from_normals
+from gsa.synth.objects import surface_gaussians
 
 # Uncoloured meshes get one grey: a real capture of an unpainted object has one albedo.
 UNCOLOURED_RGB = (0.62, 0.62, 0.6)
@@ -93,20 +93,7 @@ def mesh_to_gaussians(
     normals[degenerate] = (0.0, 0.0, 1.0)
     colours = np.clip(mesh.face_rgb[face] + rng.normal(0, 0.02, (n_surface, 3)), 0, 1)
     spacing = np.sqrt(0.5 * area2.sum() / max(n_surface, 1))
-    tangent = spacing * rng.uniform(0.6, 1.0, n_surface)
-    scales = np.stack([tangent, tangent * rng.uniform(0.7, 1.0, n_surface), tangent * 0.08], axis=1)
-    quats = _quats_from_normals(normals, rng)
-    opacity = rng.uniform(0.7, 0.99, n_surface)
-    if n_floaters:
-        lo, hi = means.min(0), means.max(0)
-        pad = 0.1 * (hi - lo)
-        means = np.concatenate([means, rng.uniform(lo - pad, hi + pad, (n_floaters, 3))])
-        colours = np.concatenate([colours, rng.uniform(0, 1, (n_floaters, 3))])
-        floater_scale = np.full((n_floaters, 3), spacing * 0.5) * rng.uniform(0.5, 1.5, (n_floaters, 1))
-        scales = np.concatenate([scales, floater_scale])
-        random_quats = rng.normal(size=(n_floaters, 4))
-        quats = np.concatenate([quats, random_quats / np.linalg.norm(random_quats, axis=1, keepdims=True)])
-        opacity = np.concatenate([opacity, rng.uniform(0.02, 0.2, n_floaters)])
+    means, colours, scales, quats, opacity = surface_gaussians(means, normals, colours, spacing, n_floaters, rng)
     model = GaussianModel.from_colors(means, colours, quats=quats, scales=scales, opacities=opacity)
     model.metadata.update(category=mesh.category, mesh=mesh.name)
     return model

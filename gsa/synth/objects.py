@@ -161,6 +161,35 @@ def _quats_from_normals(normals: np.ndarray, rng: np.random.Generator) -> np.nda
     return normalize_quats(quat_multiply(q_align, q_spin))
 
 
+def surface_gaussians(
+    means: np.ndarray,
+    normals: np.ndarray,
+    colors: np.ndarray,
+    spacing: float,
+    n_floaters: int,
+    rng: np.random.Generator,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Flat surface Gaussians at surface samples (`spacing` apart on average), lying in the
+    surface, and `n_floaters` faint ones scattered in the padded bounding box, as real captures
+    have: (means, colours, linear scales, quaternions wxyz, opacities)."""
+    n_surface = len(means)
+    tangent = spacing * rng.uniform(0.6, 1.0, n_surface)
+    scales = np.stack([tangent, tangent * rng.uniform(0.7, 1.0, n_surface), tangent * 0.08], axis=1)
+    quats = _quats_from_normals(normals, rng)
+    opac = rng.uniform(0.7, 0.99, n_surface)
+    if n_floaters:
+        lo, hi = means.min(0), means.max(0)
+        pad = 0.1 * (hi - lo)
+        means = np.concatenate([means, rng.uniform(lo - pad, hi + pad, (n_floaters, 3))])
+        colors = np.concatenate([colors, rng.uniform(0, 1, (n_floaters, 3))])
+        scales = np.concatenate(
+            [scales, np.full((n_floaters, 3), spacing * 0.5) * rng.uniform(0.5, 1.5, (n_floaters, 1))]
+        )
+        quats = np.concatenate([quats, normalize_quats(rng.normal(size=(n_floaters, 4)))])
+        opac = np.concatenate([opac, rng.uniform(0.02, 0.2, n_floaters)])
+    return means, colors, scales, quats, opac
+
+
 def make_object(
     category: str,
     seed: int = 0,
@@ -202,20 +231,7 @@ def make_object(
     if position_noise > 0:
         means = means + rng.normal(0, position_noise * size, means.shape)
     spacing = np.sqrt(areas.sum() / max(n_surface, 1))
-    tangent = spacing * rng.uniform(0.6, 1.0, n_surface)
-    scales = np.stack([tangent, tangent * rng.uniform(0.7, 1.0, n_surface), tangent * 0.08], axis=1)
-    quats = _quats_from_normals(normals, rng)
-    opac = rng.uniform(0.7, 0.99, n_surface)
-    if n_floaters:
-        lo, hi = means.min(0), means.max(0)
-        pad = 0.1 * (hi - lo)
-        means = np.concatenate([means, rng.uniform(lo - pad, hi + pad, (n_floaters, 3))])
-        colors = np.concatenate([colors, rng.uniform(0, 1, (n_floaters, 3))])
-        scales = np.concatenate(
-            [scales, np.full((n_floaters, 3), spacing * 0.5) * rng.uniform(0.5, 1.5, (n_floaters, 1))]
-        )
-        quats = np.concatenate([quats, normalize_quats(rng.normal(size=(n_floaters, 4)))])
-        opac = np.concatenate([opac, rng.uniform(0.02, 0.2, n_floaters)])
+    means, colors, scales, quats, opac = surface_gaussians(means, normals, colors, spacing, n_floaters, rng)
     # Centre by the instance's shape, not by the sample, so independent samplings
     # of one instance share one frame exactly (their true relative pose is identity).
     centers = np.array([np.asarray(p.center, np.float64) for p in parts])
