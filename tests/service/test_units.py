@@ -8,6 +8,7 @@ import subprocess
 import time
 import zipfile
 
+import numpy as np
 import pytest
 
 from service.jobs import InputRef, Job, JobState, SQLiteJobStore
@@ -149,7 +150,9 @@ def test_validate_ply_limits(tmp_path):
     from service.inputs import validate_ply
 
     p = tmp_path / "a.ply"
-    p.write_bytes(_ply_header(10) + b"\0" * 14 * 4 * 10)
+    body = np.zeros((10, 14), "<f4")
+    body[:, 10] = 1.0  # rot_0: a unit quaternion (a zero one is refused at upload)
+    p.write_bytes(_ply_header(10) + body.tobytes())
     assert validate_ply(p, 100, "a.ply") == 10
     with pytest.raises(Problem) as e:
         validate_ply(p, 5, "a.ply")
