@@ -65,6 +65,22 @@ class PlyError(ValueError):
         super().__init__(f"{self.path}: {problem}")
 
 
+def _clamp_infinite(model: GaussianModel, name: str, bound: float) -> int:
+    """±Inf in the array `name` of `model` become ±bound (block by block, copying a read-only
+    memory map first); returns how many Gaussians (rows) held one."""
+    count = 0
+    for lo in range(0, len(model), ROW_BLOCK):
+        block = getattr(model, name)[lo : lo + ROW_BLOCK]
+        inf = np.isinf(block)
+        if inf.any():
+            if not getattr(model, name).flags.writeable:
+                setattr(model, name, getattr(model, name).copy())
+                block = getattr(model, name)[lo : lo + ROW_BLOCK]
+            block[inf] = np.copysign(bound, block[inf])
+            count += int(inf.reshape(len(block), -1).any(axis=1).sum())
+    return count
+
+
 def clamp_infinite(model: GaussianModel, path: str | os.PathLike, *, clamped_opacity: int = 0) -> dict[str, int]:
     """Make infinite opacity logits and log-scales finite, in place, and warn once.
 
@@ -72,25 +88,8 @@ def clamp_infinite(model: GaussianModel, path: str | os.PathLike, *, clamped_opa
     ±LOG_SCALE_BOUND; NaN stays (validate refuses it). `clamped_opacity`: Gaussians whose alpha
     a decoder already clamped (formats that store alpha, not its logit). Returns the counts
     ({"opacity": n, "scale": m}, Gaussians), also kept in metadata["clamped"] when not zero."""
-    n_opacity = int(clamped_opacity)
-    n_scale = 0
-    for lo in range(0, len(model), ROW_BLOCK):
-        op = model.opacity_logits[lo : lo + ROW_BLOCK]
-        inf = np.isinf(op)
-        if inf.any():
-            if not model.opacity_logits.flags.writeable:
-                model.opacity_logits = model.opacity_logits.copy()
-                op = model.opacity_logits[lo : lo + ROW_BLOCK]
-            op[inf] = np.copysign(MAX_OPACITY_LOGIT, op[inf])
-            n_opacity += int(inf.sum())
-        ls = model.log_scales[lo : lo + ROW_BLOCK]
-        inf = np.isinf(ls)
-        if inf.any():
-            if not model.log_scales.flags.writeable:
-                model.log_scales = model.log_scales.copy()
-                ls = model.log_scales[lo : lo + ROW_BLOCK]
-            ls[inf] = np.copysign(LOG_SCALE_BOUND, ls[inf])
-            n_scale += int(inf.any(axis=1).sum())
+    n_opacity = int(clamped_opacity) + _clamp_infinite(model, "opacity_logits", MAX_OPACITY_LOGIT)
+    n_scale = _clamp_infinite(model, "log_scales", LOG_SCALE_BOUND)
     counts = {"opacity": n_opacity, "scale": n_scale}
     if n_opacity or n_scale:
         model.metadata["clamped"] = counts

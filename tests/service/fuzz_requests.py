@@ -9,7 +9,6 @@ the server did (an answer, a reset connection, or silence)."""
 from __future__ import annotations
 
 import http.client
-import io
 import json
 import select
 import socket
@@ -20,6 +19,9 @@ from urllib.parse import quote
 
 import numpy as np
 from hypothesis import strategies as st
+
+from tests.zip_defects import build as zip_of
+from tests.zip_defects import png as png_bytes
 
 CRLF = b"\r\n"
 
@@ -113,25 +115,10 @@ def load_http(data: bytes, kind: str = "corpus") -> tuple[Req, dict[str, str]]:
 # ---- corpus: valid inputs, and known-bad ones, built once --------------------------------------
 
 
-def _png(w: int, h: int, seed: int) -> bytes:
-    import cv2
-
-    img = np.random.default_rng(seed).integers(0, 255, (h, w, 3), dtype=np.uint8)
-    return cv2.imencode(".png", img)[1].tobytes()
-
-
-def _zip(entries: dict[str, bytes], method=zipfile.ZIP_DEFLATED) -> bytes:
-    buf = io.BytesIO()
-    with zipfile.ZipFile(buf, "w", method) as z:
-        for n, b in entries.items():
-            z.writestr(n, b)
-    return buf.getvalue()
-
-
 def build_corpus(ply_bytes: bytes) -> dict[str, bytes]:
     import cv2
 
-    png = _png(32, 24, 0)
+    png = png_bytes(32, 24, 0)
     huge_png = bytearray(png)
     huge_png[16:24] = (100_000).to_bytes(4, "big") * 2  # IHDR claims 100000 x 100000
     return {
@@ -142,11 +129,11 @@ def build_corpus(ply_bytes: bytes) -> dict[str, bytes]:
         "png": png,
         "png_huge": bytes(huge_png),
         "jpg": cv2.imencode(".jpg", np.full((24, 32, 3), 128, np.uint8))[1].tobytes(),
-        "zip": _zip({f"v{i}.png": _png(32, 24, i) for i in range(3)}),
-        "zip_traversal": _zip({"../../evil.png": png, "ok.png": png}),
-        "zip_bomb": _zip({"zeros.png": png[:64] + bytes(20 << 20)}),
-        "zip_text": _zip({"a.txt": b"hello", "b.png": b"not a png"}),
-        "zip_stored": _zip({f"v{i}.png": png for i in range(3)}, zipfile.ZIP_STORED),
+        "zip": zip_of({f"v{i}.png": png_bytes(32, 24, i) for i in range(3)}),
+        "zip_traversal": zip_of({"../../evil.png": png, "ok.png": png}),
+        "zip_bomb": zip_of({"zeros.png": png[:64] + bytes(20 << 20)}),
+        "zip_text": zip_of({"a.txt": b"hello", "b.png": b"not a png"}),
+        "zip_stored": zip_of({f"v{i}.png": png for i in range(3)}, zipfile.ZIP_STORED),
     }
 
 
