@@ -10,6 +10,7 @@ import tempfile
 import threading
 import uuid
 from dataclasses import dataclass, field
+from datetime import timedelta
 from pathlib import Path
 
 from service.redis_store import RedisJobStore
@@ -34,17 +35,23 @@ class RQQueue:
         self.q = rq.Queue(settings.queue_name, connection=redis_conn)
         self.hooks = rq.Queue(settings.queue_name + "-webhooks", connection=redis_conn)
 
-    def enqueue(self, job_id: str) -> str:
+    def enqueue(self, job_id: str, delay_s: float = 0.0) -> str:
+        """Send the job to the workers, now or (a retry's back-off) after delay_s, through
+        RQ's scheduler, which every `gsa worker` runs (the message is "scheduled" meanwhile,
+        which the reaper does not count as lost)."""
         ref = f"{job_id}-{uuid.uuid4().hex[:8]}"
-        self.q.enqueue(
-            "service.worker.run_job",  # by name: workers of any version resolve it
-            job_id,
+        kw = dict(
             job_id=ref,
             # Our own lease/reaper does retries; RQ's timeout is only the backstop.
             job_timeout=int(self.settings.job_timeout_s + 120),
             result_ttl=600,
             failure_ttl=24 * 3600,
         )
+        task = "service.worker.run_job"  # by name: workers of any version resolve it
+        if delay_s > 0:
+            self.q.enqueue_in(timedelta(seconds=delay_s), task, job_id, **kw)
+        else:
+            self.q.enqueue(task, job_id, **kw)
         return ref
 
     def lost(self, ref: str) -> bool:
@@ -88,7 +95,8 @@ class EmbeddedQueue:
         self.store, self.settings = store, settings
         self.wake = threading.Event()
 
-    def enqueue(self, job_id: str) -> str | None:
+    def enqueue(self, job_id: str, delay_s: float = 0.0) -> str | None:
+        # A delayed job waits in the store: its next_attempt_at keeps the workers off it.
         self.wake.set()
         return None
 

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import gc
 import logging
+import random
 import shutil
 import sys
 import tempfile
@@ -43,6 +44,13 @@ def execute(job_id: str, backend: Backend) -> JobState | None:
     job = store.get(job_id)
     if job is None or job.state != JobState.queued:
         return None
+    if job.next_attempt_at is not None and job.next_attempt_at > time.time():
+        # Its retry back-off has not passed: embedded workers simply look again later; an RQ
+        # message delivered early (a reaper re-send) is scheduled again for the right time.
+        if backend.redis is not None:
+            ref = backend.queue.enqueue(job_id, delay_s=job.next_attempt_at - time.time())
+            store.update(job_id, states={JobState.queued}, queue_ref=ref, enqueued_at=time.time())
+        return None
     if job.attempts >= job.max_attempts:
         store.update(
             job_id,
@@ -72,6 +80,7 @@ def execute(job_id: str, backend: Backend) -> JobState | None:
         stage="loading",
         progress=0.0,
         error=None,
+        next_attempt_at=None,
     ):
         return None  # another worker claimed it, or it was cancelled meanwhile
     lost, stop = threading.Event(), threading.Event()
@@ -123,15 +132,27 @@ def execute(job_id: str, backend: Backend) -> JobState | None:
 def _retry_later(backend: Backend, job: Job, token: str, exc: Exception, problem: Problem) -> JobState | None:
     """The attempt failed on the service's own infrastructure (storage full or
     failing, job store unreachable), not on the job: put the job back in the
-    queue for another attempt, or fail it with that problem (503/507, not
+    queue for another attempt after a back-off (retry_delay; the record's
+    next_attempt_at says when), or fail it with that problem (503/507, not
     alignment-failed) once its attempts are spent. If the store cannot be
     written either, the lease expires and the reaper requeues the job."""
     attempts = job.attempts + 1  # this attempt's number (`job` was read before the claim)
-    log.warning("job %s attempt %d hit an infrastructure error (%s: %s)", job.id, attempts, type(exc).__name__, exc)
     try:
         if attempts >= job.max_attempts:
+            log.warning(
+                "job %s attempt %d hit an infrastructure error (%s: %s)", job.id, attempts, type(exc).__name__, exc
+            )
             ok = finish_attempt(backend, job.id, token, JobState.failed, error=problem.to_dict())
             return JobState.failed if ok else None
+        delay = retry_delay(backend.settings, attempts)
+        log.warning(
+            "job %s attempt %d hit an infrastructure error (%s: %s); next attempt in %.1f s",
+            job.id,
+            attempts,
+            type(exc).__name__,
+            exc,
+            delay,
+        )
         if not backend.store.update(
             job.id,
             states={JobState.running},
@@ -141,14 +162,24 @@ def _retry_later(backend: Backend, job: Job, token: str, exc: Exception, problem
             run_token=None,
             lease_until=None,
             worker=None,
+            next_attempt_at=time.time() + delay,
         ):
             return None
-        ref = backend.queue.enqueue(job.id)
+        ref = backend.queue.enqueue(job.id, delay_s=delay)
         backend.store.update(job.id, queue_ref=ref, enqueued_at=time.time())
         return JobState.queued
     except Exception:
         log.exception("job %s: could not record the retry; the reaper will requeue it", job.id)
         return None
+
+
+def retry_delay(settings, attempt: int) -> float:
+    """Seconds before the attempt after attempt number `attempt` (1-based): exponential
+    (base·2^(attempt-1), capped at retry_backoff_max_s) with "equal jitter", a uniform draw
+    between half and all of it: never sooner than half (what was full may need the time)
+    and spread so that jobs failed by one outage do not all come back together."""
+    d = min(settings.retry_backoff_max_s, settings.retry_backoff_base_s * 2 ** max(attempt - 1, 0))
+    return d / 2 + random.uniform(0, d / 2) if d > 0 else 0.0
 
 
 def library_input_errors() -> tuple[type[Exception], ...]:

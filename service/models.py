@@ -62,6 +62,9 @@ class Job(BaseModel):
     # reaper notice a queue message lost before any worker claimed the job.
     queue_ref: str | None = None
     enqueued_at: float | None = None
+    # A retry after an infrastructure error waits (exponential back-off with jitter): the
+    # earliest time its next attempt may start; None when it may start at once.
+    next_attempt_at: float | None = None
     # Guided alignment: the job this one refines (POST /v1/jobs/{id}:refine) and the jobs that refine this one.
     parent_job: str | None = None
     children: list[str] = Field(default_factory=list)

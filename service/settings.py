@@ -64,6 +64,11 @@ class Settings(BaseSettings):
     # lease expired lost its worker and is requeued by the reaper.
     lease_s: float = 30.0
     reaper_interval_s: float = 5.0
+    # A job attempt that hit an infrastructure error (storage full/failing, store gone) is
+    # retried after base·2^(attempt-1) seconds, capped at max, each delay jittered to
+    # between half and all of it so a fleet of failed jobs does not come back at once.
+    retry_backoff_base_s: float = 5.0
+    retry_backoff_max_s: float = 120.0
     embedded_workers: int = 1
     # `gsa worker` outlives Redis restarts: it retries with exponential backoff
     # from worker_reconnect_min_s, capped at worker_reconnect_max_s.

@@ -145,6 +145,11 @@ class JobOut(BaseModel):
     finished_at: datetime | None
     attempts: int
     max_attempts: int
+    next_attempt_at: datetime | None = Field(
+        None,
+        description="a job waiting to be retried after an infrastructure error (back-off): "
+        "the earliest time its next attempt starts",
+    )
     cancel_requested: bool
     sources: list[str] = Field(description="source asset ids")
     target: str = Field(description="target asset id")
@@ -177,6 +182,7 @@ class JobOut(BaseModel):
             finished_at=ts(job.finished_at),
             attempts=job.attempts,
             max_attempts=job.max_attempts,
+            next_attempt_at=ts(job.next_attempt_at) if job.state == JobState.queued else None,
             cancel_requested=job.cancel_requested,
             sources=[s.asset_id for s in job.sources],
             target=job.target.asset_id,

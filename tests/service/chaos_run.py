@@ -123,6 +123,10 @@ class ChaosRun:
             GSA_WORKER_RECONNECT_MAX_S=1,
             GSA_UNAVAILABLE_RETRY_AFTER_S=1,
             GSA_LEASE_S=3,
+            # Faults last seconds here: a short back-off (0.5-1 s, doubling to 4 s at most)
+            # keeps up to 20 retried attempts within the run's time.
+            GSA_RETRY_BACKOFF_BASE_S=1,
+            GSA_RETRY_BACKOFF_MAX_S=4,
         )
         self.dep = Deployment(tmp, env, self.redis)
         self.ids: dict[int, str] = {}  # logical submission -> job id

@@ -173,7 +173,8 @@ def test_storage_errors_are_507_or_503_and_jobs_retry_them(tmp_path, pair, monke
     from service.settings import Settings
     from service.worker import execute
 
-    s = Settings(storage_root=tmp_path / "data", api_keys={"k": "me"}, max_attempts=2)
+    # No back-off here, so the retry can run at once (back-off: test_retry_backoff.py).
+    s = Settings(storage_root=tmp_path / "data", api_keys={"k": "me"}, max_attempts=2, retry_backoff_base_s=0)
     H = {"Authorization": "Bearer k"}
     backend = make_backend(s)
     real_put = backend.storage.put
