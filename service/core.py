@@ -14,6 +14,7 @@ from typing import Any, BinaryIO
 
 import numpy as np
 
+from service import quotas
 from service.backend import Backend, notify_webhook
 from service.inputs import (
     check_image,
@@ -76,6 +77,14 @@ def _digest(data: BinaryIO, max_bytes: int) -> str | None:
     return sha.hexdigest()
 
 
+def _length(data: BinaryIO) -> int:
+    """Bytes in a seekable upload (left at its start)."""
+    data.seek(0, 2)
+    n = data.tell()
+    data.seek(0)
+    return n
+
+
 def _reuse(b: Backend, owner: str, sha256: str, filename: str | None, expect: str | None) -> Asset | None:
     """A new asset id for bytes this owner already stored: no second copy, one more
     reference to the blob. None if no live asset holds these bytes."""
@@ -93,6 +102,7 @@ def _reuse(b: Backend, owner: str, sha256: str, filename: str | None, expect: st
                 b.store.remove_blob_ref(key, asset.id)
                 return None
         b.store.put_asset(asset)
+        quotas.record(b, owner, key, other.size)  # counted once (a blob stored before the ledger: now)
         return asset
     return None
 
@@ -102,6 +112,7 @@ def release_blob(b: Backend, asset: Asset) -> None:
     with b.store.blob_lock(asset.key):
         if b.store.remove_blob_ref(asset.key, asset.id) == 0:
             b.storage.delete(asset.key)
+            quotas.forget(b, asset.owner, asset.key)
 
 
 def ingest(b: Backend, owner: str, data, filename: str | None, *, expect: str | None = None) -> Asset:
@@ -113,6 +124,8 @@ def ingest(b: Backend, owner: str, data, filename: str | None, *, expect: str | 
         reused = _reuse(b, owner, sha, filename, expect)
         if reused is not None:
             return reused
+    # The tenant's storage quota, before anything is written (a stream of unknown length: once full).
+    quotas.check_storage(b, owner, _length(data) if sha is not None else 0)
     key = blob_key(owner, sha) if sha else new_key("uploads", filename or "upload")
     asset_id = new_id("ast")
     if sha is not None:
@@ -156,6 +169,7 @@ def ingest(b: Backend, owner: str, data, filename: str | None, *, expect: str | 
             else:
                 raise invalid_input(f"{name}: not a 3DGS .ply or a .zip of images (unrecognised file type)")
         b.store.put_asset(asset)
+        quotas.record(b, owner, key, size)
         return asset
     except BaseException:
         # Another upload of the same bytes may have finished meanwhile: its reference keeps the blob.
@@ -163,6 +177,7 @@ def ingest(b: Backend, owner: str, data, filename: str | None, *, expect: str | 
             with b.store.blob_lock(key):
                 if b.store.remove_blob_ref(key, asset_id) == 0:
                     b.storage.delete(key)
+                    quotas.forget(b, owner, key)
         except Exception:  # store unreachable: only a blob no other asset can share goes
             if not key.startswith("cas/"):
                 b.storage.delete(key)
@@ -243,8 +258,13 @@ def discard_asset(b: Backend, asset: Asset) -> None:
     release_blob(b, asset)
 
 
-def check_request(b: Backend, n_sources: int, options: dict[str, Any], webhook: dict | None) -> None:
+def check_request(
+    b: Backend, n_sources: int, options: dict[str, Any], webhook: dict | None, owner: str | None = None
+) -> None:
     s = b.settings
+    if owner is not None:  # before any upload is stored; create_job checks again, atomically
+        quotas.check_active_jobs(b, owner)
+        quotas.check_storage(b, owner)
     if n_sources < 1:
         raise invalid_input("at least one source model is required")
     if n_sources > s.max_sources:
@@ -307,7 +327,15 @@ def create_job(
         idempotency_key=idempotency_key,
         parent_job=parent_job,
     )
-    b.store.create(job)
+    quotas.check_storage(b, owner)
+    if b.settings.tenant_max_active_jobs > 0:
+        # Count and create under one per-owner lock (Redis: across API processes), so
+        # concurrent submissions cannot pass the limit together.
+        with b.store.blob_lock(f"tenant-jobs:{owner}"):
+            quotas.check_active_jobs(b, owner)
+            b.store.create(job)
+    else:
+        b.store.create(job)
     # Enqueue after the record exists (a worker may start at once); remember the
     # queue's handle so a lost message can be detected and re-sent.
     try:
@@ -458,7 +486,7 @@ def refine_job(
             f"job {parent_id} is {parent.state.value}; refine it once it has finished",
         )
     options = refine_options(parent, hints)
-    check_request(b, len(parent.sources), options, parent.webhook)
+    check_request(b, len(parent.sources), options, parent.webhook, owner)
     assets = []
     for ref in [*parent.sources, parent.target]:
         a = b.store.get_asset(ref.asset_id)

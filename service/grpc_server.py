@@ -16,7 +16,7 @@ from google.protobuf.timestamp_pb2 import Timestamp
 from grpc_health.v1 import health, health_pb2, health_pb2_grpc
 from grpc_reflection.v1alpha import reflection
 
-from service import core, retention
+from service import core, quotas, retention
 from service.api.deps import owner_for_key
 from service.api.schemas import AlignOptionsIn
 from service.backend import Backend
@@ -43,10 +43,12 @@ _CODE = {
     404: grpc.StatusCode.NOT_FOUND,
     409: grpc.StatusCode.FAILED_PRECONDITION,
     413: grpc.StatusCode.RESOURCE_EXHAUSTED,
+    429: grpc.StatusCode.RESOURCE_EXHAUSTED,  # a tenant's rate or job limit (service.quotas)
     415: grpc.StatusCode.INVALID_ARGUMENT,
     416: grpc.StatusCode.OUT_OF_RANGE,
     422: grpc.StatusCode.INVALID_ARGUMENT,
     503: grpc.StatusCode.UNAVAILABLE,
+    507: grpc.StatusCode.RESOURCE_EXHAUSTED,  # storage full, or a tenant's storage quota
 }
 
 
@@ -164,11 +166,15 @@ class AlignmentServicer(pbg.AlignmentServiceServicer):
                 context,
                 Problem(401, "unauthorized", "Unauthorized", "a valid API key is required"),
             )
+        self._guard(lambda: quotas.check_rate(self.b, owner), context)  # one bucket with HTTP
         return owner
 
     @staticmethod
     def _abort(context, p: Problem):
-        context.set_trailing_metadata((("gsa-problem", json.dumps(p.to_dict())),))
+        md = [("gsa-problem", json.dumps(p.to_dict()))]
+        if "Retry-After" in p.headers:  # as HTTP's header: 429 (rate, jobs), 503
+            md.append(("retry-after", p.headers["Retry-After"]))
+        context.set_trailing_metadata(tuple(md))
         context.abort(_CODE.get(p.status, grpc.StatusCode.INTERNAL), p.detail or p.title)
 
     def _guard(self, fn, context):
@@ -245,7 +251,7 @@ class AlignmentServicer(pbg.AlignmentServiceServicer):
             n_src = len(src_up) if src_up else len(header.source_asset_ids)
             if len(tgt_up) > 1 or (not tgt_up and not header.target_asset_id):
                 raise invalid_input("exactly one target is required (chunks or target_asset_id)")
-            core.check_request(self.b, n_src, options, webhook)
+            core.check_request(self.b, n_src, options, webhook, owner)
             src_assets = [] if src_up else [core.get_asset(self.b, owner, i) for i in header.source_asset_ids]
             tgt_asset = None if tgt_up else core.get_asset(self.b, owner, header.target_asset_id)
 

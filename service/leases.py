@@ -22,6 +22,7 @@ import threading
 import time
 from pathlib import Path
 
+from service import quotas
 from service.backend import Backend, notify_webhook
 from service.models import Job, JobState
 from service.problems import Problem, infrastructure_problem
@@ -174,7 +175,7 @@ def finish_attempt(backend: Backend, job_id: str, token: str, state: JobState, *
         job = backend.store.get(job_id)
         if job is not None:
             fields["error"] = redact_problem(fields["error"], job)
-    return backend.store.update(
+    ok = backend.store.update(
         job_id,
         states={JobState.running},
         token=token,
@@ -183,6 +184,15 @@ def finish_attempt(backend: Backend, job_id: str, token: str, state: JobState, *
         lease_until=None,
         **fields,
     )
+    if ok and fields.get("artifacts"):
+        # The artifacts count against their owner's storage quota (service.quotas) until the job is deleted.
+        job = backend.store.get(job_id)
+        if job is not None:
+            try:
+                quotas.record(backend, job.owner, f"job:{job_id}", sum(a.size for a in job.artifacts))
+            except Exception:  # never fails a finished job; the tenant's count is short by this job
+                log.warning("could not count job %s's artifacts against %s's quota", job_id, job.owner)
+    return ok
 
 
 # ------------------------------------------------------------------ reaper

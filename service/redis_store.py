@@ -54,6 +54,21 @@ return 1
 """
 
 
+# Per-owner storage ledger (service.quotas). KEYS: the owner's item hash, its total.
+# ARGV: item, bytes. The total moves by the difference, so setting an item twice counts it once.
+_USAGE_SET = """
+local old = tonumber(redis.call('HGET', KEYS[1], ARGV[1]) or '0')
+redis.call('HSET', KEYS[1], ARGV[1], ARGV[2])
+return redis.call('INCRBY', KEYS[2], tonumber(ARGV[2]) - old)
+"""
+_USAGE_DROP = """
+local old = redis.call('HGET', KEYS[1], ARGV[1])
+if not old then return tonumber(redis.call('GET', KEYS[2]) or '0') end
+redis.call('HDEL', KEYS[1], ARGV[1])
+return redis.call('INCRBY', KEYS[2], -tonumber(old))
+"""
+
+
 class RedisJobStore:
     """Distributed mode: one Redis hash per job, JSON field values."""
 
@@ -61,6 +76,8 @@ class RedisJobStore:
         self.r = redis_client
         self.p = prefix
         self._cas = self.r.register_script(_CAS)
+        self._usage_set = self.r.register_script(_USAGE_SET)
+        self._usage_drop = self.r.register_script(_USAGE_DROP)
 
     def _jk(self, job_id):
         return f"{self.p}job:{job_id}"
@@ -204,6 +221,25 @@ class RedisJobStore:
     def get_asset(self, asset_id):
         raw = self.r.get(f"{self.p}asset:{asset_id}")
         return Asset.model_validate_json(raw) if raw else None
+
+    def active_jobs(self, owner):
+        # The owner's job index intersected with the queued and running state sets (Redis >= 7).
+        pipe = self.r.pipeline(transaction=False)
+        for s in (JobState.queued, JobState.running):
+            pipe.zintercard(2, [f"{self.p}owner:{owner}", f"{self.p}state:{_enc(s)}"])
+        return sum(int(n) for n in pipe.execute())
+
+    def _usage_keys(self, owner):
+        return [f"{self.p}usage:{owner}", f"{self.p}usage-total:{owner}"]
+
+    def set_usage(self, owner, item, nbytes):
+        return int(self._usage_set(keys=self._usage_keys(owner), args=[item, int(nbytes)]))
+
+    def drop_usage(self, owner, item):
+        return int(self._usage_drop(keys=self._usage_keys(owner), args=[item]))
+
+    def usage(self, owner):
+        return int(self.r.get(self._usage_keys(owner)[1]) or 0)
 
     def record_stage(self, stage, seconds):
         pipe = self.r.pipeline(transaction=False)

@@ -18,7 +18,7 @@ import logging
 import threading
 import time
 
-from service import core
+from service import core, quotas
 from service.backend import Backend
 from service.models import Job, JobState
 from service.problems import Problem, infrastructure_problem
@@ -42,6 +42,7 @@ def delete_job(b: Backend, owner: str, job_id: str) -> None:
 def _remove_job(b: Backend, job: Job) -> None:
     # Artifacts first: if this fails the record stays and the DELETE can be retried.
     b.storage.delete_prefix(f"jobs/{job.id}")
+    quotas.forget(b, job.owner, f"job:{job.id}")
     b.store.delete(job.id)
 
 

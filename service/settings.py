@@ -74,6 +74,13 @@ class Settings(BaseSettings):
     # from worker_reconnect_min_s, capped at worker_reconnect_max_s.
     worker_reconnect_min_s: float = 0.5
     worker_reconnect_max_s: float = 30.0
+    # Artifacts converted on request (?format=, service.convert) run in child processes: at
+    # most max_conversions at once per API process; a request finding none free waits up to
+    # conversion_wait_s, then gets 503 with Retry-After; a child past conversion_timeout_s is
+    # killed (504).
+    max_conversions: int = 2
+    conversion_wait_s: float = 20.0
+    conversion_timeout_s: float = 900.0
     # Retry-After (seconds) on the 503 answered while the job store is unreachable.
     unavailable_retry_after_s: int = 5
     # /readyz answers 503 below this much free space in the temp folder or local storage.
@@ -81,6 +88,16 @@ class Settings(BaseSettings):
     # Local storage only: bytes the blobs may take in all (0 = no quota). A write past it
     # fails as on a full disk (507 / a retried job), and /readyz counts what is left of it.
     storage_quota_bytes: int = 0
+    # Per tenant (owner), so one cannot take what all share (service.quotas): bytes of uploads
+    # and job artifacts one owner may store (507 past it; unset: half of storage_quota_bytes
+    # when that is set, else none; 0 = none), queued + running jobs at once (429 past it;
+    # 0 = none), and API requests a second with a burst (token bucket, in Redis when there is
+    # one; 429 with Retry-After; 0 = none).
+    tenant_storage_quota_bytes: int | None = None
+    tenant_max_active_jobs: int = 100
+    tenant_jobs_retry_after_s: int = 10
+    tenant_rate_per_s: float = 100.0
+    tenant_rate_burst: int = 200
     # Browser origins allowed to call the API (CORS), e.g. GSA_CORS_ORIGINS='["https://assets.example"]';
     # empty: no CORS headers, browsers on other origins are refused.
     cors_origins: list[str] = []

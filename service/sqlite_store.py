@@ -47,6 +47,8 @@ class SQLiteJobStore:
                 CREATE TABLE IF NOT EXISTS idem (k TEXT PRIMARY KEY, job_id TEXT, hash TEXT, at REAL);
                 CREATE TABLE IF NOT EXISTS stages (stage TEXT PRIMARY KEY, n INTEGER, secs REAL);
                 CREATE TABLE IF NOT EXISTS blobrefs (k TEXT, asset_id TEXT, PRIMARY KEY (k, asset_id));
+                CREATE TABLE IF NOT EXISTS usage (owner TEXT, item TEXT, bytes INTEGER,
+                    PRIMARY KEY (owner, item));
                 """
             )
 
@@ -244,6 +246,27 @@ class SQLiteJobStore:
         with self.lock:
             row = self.db.execute("SELECT data FROM assets WHERE id=?", (asset_id,)).fetchone()
         return Asset.model_validate_json(row[0]) if row else None
+
+    def active_jobs(self, owner):
+        with self.lock:
+            q = "SELECT COUNT(*) FROM jobs WHERE owner=? AND state IN ('queued', 'running')"
+            return int(self.db.execute(q, (owner,)).fetchone()[0])
+
+    def set_usage(self, owner, item, nbytes):
+        with self.lock:
+            self.db.execute("INSERT OR REPLACE INTO usage VALUES (?,?,?)", (owner, item, int(nbytes)))
+            return self.usage(owner)
+
+    def drop_usage(self, owner, item):
+        with self.lock:  # frees space: must work on a full disk, as deletes do
+            self._freeing(lambda: self.db.execute("DELETE FROM usage WHERE owner=? AND item=?", (owner, item)))
+            return self.usage(owner)
+
+    def usage(self, owner):
+        with self.lock:
+            return int(
+                self.db.execute("SELECT COALESCE(SUM(bytes), 0) FROM usage WHERE owner=?", (owner,)).fetchone()[0]
+            )
 
     def record_stage(self, stage, seconds):
         with self.lock:

@@ -97,6 +97,23 @@ class JobStore(Protocol):
 
     def get_asset(self, asset_id: str) -> Asset | None: ...
 
+    def active_jobs(self, owner: str) -> int:
+        """The owner's queued and running jobs (service.quotas: GSA_TENANT_MAX_ACTIVE_JOBS)."""
+        ...
+
+    def set_usage(self, owner: str, item: str, nbytes: int) -> int:
+        """Count `nbytes` stored for `item` (a blob key, job:<id>) against the owner, replacing
+        what the item counted before (so a retried write counts once); returns the owner's total."""
+        ...
+
+    def drop_usage(self, owner: str, item: str) -> int:
+        """The item's bytes are gone; returns the owner's total."""
+        ...
+
+    def usage(self, owner: str) -> int:
+        """Bytes the owner stores (what set_usage counted, less what drop_usage removed)."""
+        ...
+
     def record_stage(self, stage: str, seconds: float) -> None: ...
 
     def stage_stats(self) -> dict[str, tuple[int, float]]:

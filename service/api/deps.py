@@ -12,6 +12,7 @@ from typing import Annotated
 from fastapi import Depends, Request
 from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
 
+from service import quotas
 from service.backend import Backend
 from service.problems import Problem
 
@@ -52,6 +53,7 @@ async def require_owner(
         )
         p.headers["WWW-Authenticate"] = 'Bearer realm="gsa"'
         raise p
+    quotas.check_rate(backend, owner)  # 429 with Retry-After past the tenant's request rate
     return owner
 
 

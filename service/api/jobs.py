@@ -77,7 +77,7 @@ async def create_job(
             raise invalid_input("give either 'source' or 'sources', not both")
         options = spec.options.to_dict()
         webhook = spec.webhook.model_dump(exclude_none=True) if spec.webhook else None
-        core.check_request(b, len(ids), options, webhook)
+        core.check_request(b, len(ids), options, webhook, owner)
         sources = [core.get_asset(b, owner, i) for i in ids]
         target = core.get_asset(b, owner, spec.target)
         core.check_memory(b, sources, target, options)  # before the Idempotency-Key is claimed
@@ -136,7 +136,7 @@ async def _create_from_form(request: Request, form: Form, owner: str, b: Backend
             exclude_none=True
         )
     n_sources = len(src_files) + bool(src_imgs)
-    core.check_request(b, n_sources, options, webhook)
+    core.check_request(b, n_sources, options, webhook, owner)
     digests = {k: [_sha_file(p.file) for p in v] for k, v in form.files.items()}
     fp = _fingerprint({"files": digests, "options": options, "webhook": webhook})
     job_id, existing = core.claim(b, owner, idem, fp)

@@ -46,7 +46,10 @@ def test_no_quota_by_default(tmp_path):
 @pytest.mark.slow
 def test_upload_past_the_quota_is_507_and_readyz_reports_it(tmp_path, pair):
     size = pair["source"].stat().st_size
-    env = service_env(tmp_path, GSA_STORAGE_QUOTA_BYTES=int(size * 1.05), GSA_MIN_FREE_BYTES=size)
+    # The global quota alone: a tenant's own (by default half of it, service.quotas) is tested in test_tenant_limits.
+    env = service_env(
+        tmp_path, GSA_STORAGE_QUOTA_BYTES=int(size * 1.05), GSA_MIN_FREE_BYTES=size, GSA_TENANT_STORAGE_QUOTA_BYTES=0
+    )
     api, url, _ = start_api(tmp_path, env, name="api-quota")
     try:
         with httpx.Client(base_url=url, headers=ALICE, timeout=60) as c:
