@@ -226,8 +226,10 @@ class S3Storage:
         return written
 
     def open(self, key, start=0, end=None):
-        rng = f"bytes={start}-" + ("" if end is None else str(end))
-        body = self.s3.get_object(Bucket=self.bucket, Key=self._k(key), Range=rng)["Body"]
+        kw = {}
+        if start or end is not None:  # S3 answers 416 to "bytes=0-" on an empty object
+            kw["Range"] = f"bytes={start}-" + ("" if end is None else str(end))
+        body = self.s3.get_object(Bucket=self.bucket, Key=self._k(key), **kw)["Body"]
         yield from body.iter_chunks(CHUNK)
 
     def size(self, key):
@@ -244,10 +246,13 @@ class S3Storage:
         self.s3.delete_object(Bucket=self.bucket, Key=self._k(key))
 
     def delete_prefix(self, prefix):
-        pages = self.s3.get_paginator("list_objects_v2").paginate(Bucket=self.bucket, Prefix=self.prefix + prefix)
+        # The folder `prefix`, as LocalStorage deletes it: "jobs/ab" must leave "jobs/abc/…".
+        folder = self.prefix + prefix.rstrip("/") + "/"
+        pages = self.s3.get_paginator("list_objects_v2").paginate(Bucket=self.bucket, Prefix=folder)
         for page in pages:
-            for obj in page.get("Contents", []):
-                self.s3.delete_object(Bucket=self.bucket, Key=obj["Key"])
+            objs = [{"Key": o["Key"]} for o in page.get("Contents", [])]
+            if objs:  # a page holds at most 1,000 keys, what one DeleteObjects takes
+                self.s3.delete_objects(Bucket=self.bucket, Delete={"Objects": objs, "Quiet": True})
 
     def ping(self):
         try:
