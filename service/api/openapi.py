@@ -102,5 +102,29 @@ def custom_openapi(app: FastAPI) -> dict:
         for name, d in js.pop("$defs", {}).items():
             comps.setdefault(name, d)
         comps.setdefault(model.__name__, js)
+    _tenant_limits(schema)
     app.openapi_schema = schema
     return schema
+
+
+# Operations that store bytes for the caller: 507 past the tenant's storage quota (service.quotas).
+_STORING = {"uploadAsset", "createJob", "refineJob", "refineJobSlash"}
+
+
+def _tenant_limits(schema: dict) -> None:
+    """Every operation that takes an API key may answer 429 (the tenant's request rate; createJob
+    and refine also its job limit), the storing ones 507: documented once here, not per route."""
+    problem = {"application/problem+json": {"schema": {"$ref": "#/components/schemas/Problem"}}}
+    for item in schema.get("paths", {}).values():
+        for op in item.values():
+            responses = op.get("responses") if isinstance(op, dict) else None
+            if not responses or "401" not in responses:
+                continue
+            responses.setdefault(
+                "429",
+                {"description": "the tenant's request rate or job limit; see Retry-After", "content": problem},
+            )
+            if op.get("operationId") in _STORING:
+                responses.setdefault(
+                    "507", {"description": "the tenant's storage quota, or storage full", "content": problem}
+                )
