@@ -8,13 +8,13 @@ from typing import Annotated
 
 from fastapi import APIRouter, Header, Query, Response
 from fastapi.responses import StreamingResponse
-from starlette.background import BackgroundTask
+from starlette.concurrency import run_in_threadpool
 
 from service import core
 from service.api.deps import B, Owner
 from service.api.jobs import _etag_matches
 from service.api.openapi import problem_responses
-from service.convert import converted_artifact
+from service.convert import conversions
 from service.problems import Problem as ProblemError
 
 router = APIRouter()
@@ -44,10 +44,10 @@ _RANGE = re.compile(r"^bytes=(\d*)-(\d*)$")
         },
         206: {"description": "partial content"},
         304: {"description": "not modified (If-None-Match names the artifact's ETag)"},
-        **problem_responses(401, 404, 409, 416, 422),
+        **problem_responses(401, 404, 409, 416, 422, 503, 504),
     },
 )
-def get_artifact(
+async def get_artifact(
     job_id: str,
     name: str,
     owner: Owner,
@@ -60,19 +60,16 @@ def get_artifact(
         Query(
             alias="format",
             description="a model artifact converted to ply, compressed-ply, splat, ksplat, spz, sog or glb "
-            "(docs/formats.md); served whole",
+            "(docs/formats.md), in a child process, then kept: served like any artifact (Range, ETag). "
+            "503 conversions-busy with Retry-After when every conversion slot stays taken",
         ),
     ] = None,
 ):
-    job, art = core.get_artifact(b, owner, job_id, name)
+    # async, and the store read in the threadpool: a request waiting for a conversion then
+    # holds no thread (the threadpool serves every other sync route).
+    job, art = await run_in_threadpool(core.get_artifact, b, owner, job_id, name)
     if model_format is not None:
-        body, size, filename, media_type, cleanup = converted_artifact(b, art, model_format)
-        return StreamingResponse(
-            body,
-            media_type=media_type,
-            background=BackgroundTask(cleanup),  # also when the client left before the body
-            headers={"Content-Disposition": f'attachment; filename="{filename}"', "Content-Length": str(size)},
-        )
+        art = await conversions(b).converted(b, art, model_format)
     status, headers, start, end = _plan(job, art, range_header, if_range, if_none_match)
     if status == 304:
         return Response(status_code=304, headers=headers)
@@ -95,7 +92,7 @@ def get_artifact(
     responses={
         206: {"description": "partial content"},
         304: {"description": "not modified (If-None-Match names the artifact's ETag)"},
-        **problem_responses(401, 404, 409, 416),
+        **problem_responses(401, 404, 409, 416, 422, 503, 504),
     },
 )
 async def head_artifact(
@@ -106,8 +103,13 @@ async def head_artifact(
     range_header: Annotated[str | None, Header(alias="Range")] = None,
     if_range: Annotated[str | None, Header(alias="If-Range")] = None,
     if_none_match: Annotated[str | None, Header(alias="If-None-Match")] = None,
+    model_format: Annotated[
+        str | None, Query(alias="format", description="the headers of the artifact in this format (as GET)")
+    ] = None,
 ):
-    job, art = core.get_artifact(b, owner, job_id, name)
+    job, art = await run_in_threadpool(core.get_artifact, b, owner, job_id, name)
+    if model_format is not None:  # the same headers as GET ?format= (it converts if it must)
+        art = await conversions(b).converted(b, art, model_format)
     status, headers, _, _ = _plan(job, art, range_header, if_range, if_none_match)
     if status != 304:
         headers["Content-Type"] = art.content_type

@@ -92,10 +92,11 @@ def test_scene_pair_uploaded_aligned_and_merged(http, scene_pair, tmp_path):
 
 def test_a_merged_artifact_over_max_gaussians_still_converts(tmp_path, scene_pair):
     """The service wrote it: aligned source + target, each within GSA_MAX_GAUSSIANS."""
+    import asyncio
     from types import SimpleNamespace
 
     from gsa.io.formats import read_model
-    from service.convert import converted_artifact
+    from service.convert import Conversions
     from service.models import Artifact
     from service.settings import Settings
     from service.storage import LocalStorage
@@ -106,12 +107,11 @@ def test_a_merged_artifact_over_max_gaussians_still_converts(tmp_path, scene_pai
     n = len(scene_pair["cap"].source)
     b = SimpleNamespace(storage=storage, settings=Settings(max_gaussians=n // 2 + 1))
     art = Artifact(name="merged.ply", key="jobs/j/t/merged.ply", size=size, content_type="application/x-ply")
-    body, size, name, ctype, cleanup = converted_artifact(b, art, "spz")
-    (tmp_path / name).write_bytes(b"".join(body))
-    cleanup()
-    assert name == "merged.spz" and (tmp_path / name).stat().st_size == size
-    assert len(read_model(tmp_path / name)) == n
+    converted = asyncio.run(Conversions(1).converted(b, art, "spz"))  # in a child process
+    (tmp_path / converted.name).write_bytes(b"".join(storage.open(converted.key)))
+    assert converted.name == "merged.spz" and (tmp_path / converted.name).stat().st_size == converted.size
+    assert len(read_model(tmp_path / converted.name)) == n
     b.settings = Settings(max_gaussians=n // 2 - 1)  # past twice the limit: refused, one clear problem
     with pytest.raises(Exception, match="exceeds the limit") as info:
-        converted_artifact(b, art, "spz")
+        asyncio.run(Conversions(1).converted(b, art, "ply"))
     assert getattr(info.value, "status", None) == 422
