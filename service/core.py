@@ -101,8 +101,8 @@ def _reuse(b: Backend, owner: str, sha256: str, filename: str | None, expect: st
             if not b.storage.exists(key):  # its last other user was deleted meanwhile: store it afresh
                 b.store.remove_blob_ref(key, asset.id)
                 return None
-        b.store.put_asset(asset)
         quotas.record(b, owner, key, other.size)  # counted once (a blob stored before the ledger: now)
+        b.store.put_asset(asset)
         return asset
     return None
 
@@ -168,8 +168,10 @@ def ingest(b: Backend, owner: str, data, filename: str | None, *, expect: str | 
                 asset = Asset(**fields, kind="images", content_type="application/zip", n_images=n)
             else:
                 raise invalid_input(f"{name}: not a 3DGS .ply or a .zip of images (unrecognised file type)")
-        b.store.put_asset(asset)
+        # Counted before the record exists: if either write fails (a full disk), the blob and
+        # its count go together below, and no asset names a deleted blob.
         quotas.record(b, owner, key, size)
+        b.store.put_asset(asset)
         return asset
     except BaseException:
         # Another upload of the same bytes may have finished meanwhile: its reference keeps the blob.
