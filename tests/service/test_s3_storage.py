@@ -44,7 +44,11 @@ AWS_ENV = {
 
 @pytest.fixture(scope="module")
 def s3_server(tmp_path_factory):
-    pytest.importorskip("boto3", reason="the dev extra installs boto3 and moto[s3]")
+    try:
+        import boto3  # noqa: F401
+        import moto.server  # noqa: F401
+    except ImportError as exc:  # a failure, not a skip: a missing install must not pass as green
+        pytest.fail(f"{exc}: the dev extra installs boto3 and moto[s3] (./dev.sh test)")
     tmp = tmp_path_factory.mktemp("s3")
     port = free_port()
     env = {**os.environ, **AWS_ENV}
