@@ -108,3 +108,105 @@ def wait_colours(page, selector: str, predicate, timeout: float = 30.0) -> dict[
 
 def errors(messages) -> list[tuple[str, str]]:
     return [(t, m) for t, m in messages if t in ("error", "pageerror")]
+
+
+def project(page, pane: str, point) -> list[float] | None:
+    """Where internal point `point` shows in the view (client px), by the page's own camera."""
+    return page.evaluate("([n, p]) => gsaViewer.project(n, p)", [pane, [float(v) for v in point]])
+
+
+def click_pairs(page, candidates, truth, want: int, tolerance: float) -> list[dict]:
+    """Point picking as a person does it, with the picking mode on: click a candidate's spot on
+    the source view, then the spot where `truth` (internal source -> internal target, a callable)
+    puts the point the page picked there on the target view. A pair whose target click landed
+    on another surface (hidden from this side) is removed with the page's undo and the next
+    candidate tried. Returns the page's pairs (internal coordinates)."""
+    for p in candidates:
+        made = len(page.evaluate("() => gsaViewer.guide.pairs"))
+        if made >= want:
+            break
+        page.evaluate("() => window.scrollTo(0, 0)")  # the views in sight (a button click scrolls)
+        xy = project(page, "source", p)
+        if xy is None:
+            continue
+        page.mouse.click(*xy)
+        picked = page.evaluate("() => gsaViewer.guide.pending.source || null")
+        if picked is None:
+            continue
+        q = truth(np.asarray(picked, np.float64))
+        xy = project(page, "target", q)
+        if xy is not None:
+            page.mouse.click(*xy)
+        pairs = page.evaluate("() => gsaViewer.guide.pairs")
+        if len(pairs) > made and np.linalg.norm(np.asarray(pairs[-1]["target"]) - q) <= tolerance:
+            continue
+        page.click("#pairs-undo")  # the half pair, or the pair whose target point was another one
+    pairs = page.evaluate("() => gsaViewer.guide.pairs")
+    assert len(pairs) >= want, f"only {len(pairs)} of {want} pairs could be clicked"
+    return pairs
+
+
+def screen_positions(page, pane: str, points) -> np.ndarray:
+    """(N, 3): each internal point's client x, y and depth in the view, by the page's camera
+    (the same projection its picking uses); depth <= 0 behind the camera."""
+    project(page, pane, [0, 0, 0])  # places the camera for the current orbit
+    cam = page.evaluate(
+        "(n) => { const p = gsaViewer.panes[n]; const r = p.canvas.getBoundingClientRect(); "
+        "return {proj: p.camera.projectionMatrix.elements, view: p.camera.matrixWorldInverse.elements, "
+        "rect: [r.left, r.top, r.width, r.height]}; }",
+        pane,
+    )
+    m = np.reshape(cam["proj"], (4, 4)).T @ np.reshape(cam["view"], (4, 4)).T  # three.js: column-major
+    pts = np.asarray(points, np.float64)
+    clip = np.c_[pts, np.ones(len(pts))] @ m.T
+    w = clip[:, 3]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        x = cam["rect"][0] + (0.5 + 0.5 * clip[:, 0] / w) * cam["rect"][2]
+        y = cam["rect"][1] + (0.5 - 0.5 * clip[:, 1] / w) * cam["rect"][3]
+    return np.c_[x, y, w]
+
+
+def front_most(
+    screen: np.ndarray, inside: tuple[float, float, float, float], slack: float, radius: float = 8.0
+) -> np.ndarray:
+    """Which points lie on the surface facing the view: no point within `radius` px of theirs is
+    nearer the camera by more than `slack`, so a click on their spot picks them or a neighbour
+    on that surface (web/src/guide.js nearestSplat: the nearest within 8 px); and inside the
+    view's rectangle (left, top, w, h)."""
+    from scipy.spatial import cKDTree
+
+    ok = (screen[:, 2] > 0) & np.isfinite(screen).all(1)
+    left, top, w, h = inside
+    ok &= (screen[:, 0] > left + 10) & (screen[:, 0] < left + w - 10) & (screen[:, 1] > top + 10)
+    ok &= screen[:, 1] < top + h - 10
+    idx = np.flatnonzero(ok)
+    tree = cKDTree(screen[idx, :2])
+    keep = np.zeros(len(screen), bool)
+    for j, near in zip(idx, tree.query_ball_point(screen[idx, :2], radius - 0.5)):
+        keep[j] = screen[j, 2] <= screen[idx[near], 2].min() + slack
+    return keep
+
+
+def visible_in_both(page, source_points, truth) -> np.ndarray:
+    """Source preview points (internal, opaque enough to be picked) on the surface the source view
+    shows whose images under `truth` are on the surface the target view shows (the target's
+    preview holds those images: a moved copy): the pairs a person could click from this side."""
+    pts = np.asarray(source_points, np.float64)
+    page.evaluate("() => window.scrollTo(0, 0)")
+    rect = "(n) => { const r = gsaViewer.panes[n].canvas.getBoundingClientRect(); return [r.left, r.top, r.width, r.height]; }"
+    moved = truth(pts)
+    slack = [0.02 * np.sqrt(((p - p.mean(0)) ** 2).sum(1).mean()) for p in (pts, moved)]  # 2 % of the size
+    in_source = front_most(screen_positions(page, "source", pts), tuple(page.evaluate(rect, "source")), slack[0])
+    in_target = front_most(screen_positions(page, "target", moved), tuple(page.evaluate(rect, "target")), slack[1])
+    return pts[in_source & in_target]
+
+
+def spread_points(points: np.ndarray, count: int) -> np.ndarray:
+    """`count` of the points far apart (farthest-point order from the one nearest the centre)."""
+    pts = np.asarray(points, np.float64)
+    chosen = [int(np.argmin(np.linalg.norm(pts - pts.mean(0), axis=1)))]
+    dist = np.linalg.norm(pts - pts[chosen[0]], axis=1)
+    for _ in range(count - 1):
+        chosen.append(int(np.argmax(dist)))
+        dist = np.minimum(dist, np.linalg.norm(pts - pts[chosen[-1]], axis=1))
+    return pts[chosen[1:] + chosen[:1]]

@@ -13,6 +13,7 @@ import numpy as np
 
 from gsa.align.contract import transform_contract
 from gsa.align.pipeline import AlignmentResult
+from gsa.io import frames
 from gsa.io.atomic import mkstemp_for
 from gsa.io.formats import EXTENSIONS, write_model
 from gsa.io.ply import write_ply
@@ -42,7 +43,21 @@ def result_dict(result: AlignmentResult, source: GaussianModel, target: Gaussian
     (docs/formats.md) stated in the two models' file formats (metadata "format", PLY when unset)."""
     data = result.to_dict()
     source_format = source.metadata.get("format", "ply")
-    data.update(transform_contract(result.transform, source_format, target.metadata.get("format", "ply")))
+    target_format = target.metadata.get("format", "ply")
+    data.update(transform_contract(result.transform, source_format, target_format))
+    # Alternatives keep `transform` in align()'s internal frame (what --init RESULT --alternative N
+    # and the service's refine read); `file_transform` states each one as `transform` is stated,
+    # in the files' own coordinates (an SPZ or GLB input differs by a 180° turn).
+    metrics = data.get("metrics")
+    if isinstance(metrics, dict) and metrics.get("alternatives"):
+        alternatives = []
+        for alt in metrics["alternatives"]:
+            if isinstance(alt, dict) and "transform" in alt:
+                internal = Sim3.from_matrix(np.asarray(alt["transform"], np.float64))
+                file = frames.file_transform(internal, source_format, target_format).matrix().tolist()
+                alt = {**alt, "file_transform": file}  # a copy: result.metrics stays as align() made it
+            alternatives.append(alt)
+        data["metrics"] = {**metrics, "alternatives": alternatives}
     return data
 
 

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import json
 import secrets
+import shlex
 import shutil
 import tempfile
 from http import HTTPStatus
@@ -47,7 +48,10 @@ def _made_previews(result: dict, work: Path) -> dict[str, Path]:
         source, target = read_model(inputs["source"]), read_model(inputs["target"])
     except (KeyError, TypeError, OSError, ValueError):
         return {}
-    return write_previews(source, target, Sim3.from_matrix(result["transform"]), work)
+    # The readers give internal coordinates (gsa.io.frames): the pose in those is
+    # `transform_internal` where the files' frames differ from it (SPZ, GLB), else `transform`.
+    pose = result.get("transform_internal") or result["transform"]
+    return write_previews(source, target, Sim3.from_matrix(pose), work)
 
 
 def collect(path: str | Path, work: Path) -> tuple[str, list[ResultView], dict[str, Path], list[tuple[str, str]]]:
@@ -91,6 +95,21 @@ def collect(path: str | Path, work: Path) -> tuple[str, list[ResultView], dict[s
     return str(p), views, files, extra
 
 
+def cli_guide(path: str | Path, views: list[ResultView]) -> dict:
+    """The page's guide shows `gsa align` commands (there is no job to refine locally): the
+    input files result.json names (placeholders for a fetched service result) and the result
+    itself for --init, shell-quoted."""
+    p = Path(path)
+    inputs = views[0].result.get("inputs") if views and isinstance(views[0].result.get("inputs"), dict) else {}
+    source, target = inputs.get("source"), inputs.get("target")
+    return {
+        "mode": "cli",
+        "source": shlex.quote(str(source)) if source else "SOURCE",
+        "target": shlex.quote(str(target)) if target else "TARGET",
+        "result": shlex.quote(str(p if p.is_file() else p / "result.json")),
+    }
+
+
 def make_server(path: str | Path, host: str = "127.0.0.1", port: int = 0) -> tuple[ThreadingHTTPServer, str]:
     """A server for the result's page (not yet serving); returns it and the page URL."""
     work = Path(tempfile.mkdtemp(prefix="gsa-view-"))  # previews made here; removed with the server
@@ -110,6 +129,7 @@ def make_server(path: str | Path, host: str = "127.0.0.1", port: int = 0) -> tup
         "static/",
         subtitle=f"target: {Path(str(target)).name}" if target else "",
         extra_renders=extra,
+        guide=cli_guide(path, views),
     ).encode()
 
     class Handler(BaseHTTPRequestHandler):

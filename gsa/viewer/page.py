@@ -201,6 +201,107 @@ def result_section(index: int, view: ResultView) -> str:
     )
 
 
+# Up-axis choices of the guide (gsa align --up, REST/gRPC up_axes): unit vectors in a file's own
+# coordinates; the viewer turns them into the internal frame the previews are drawn in.
+AXES = {"+x": (1, 0, 0), "-x": (-1, 0, 0), "+y": (0, 1, 0), "-y": (0, -1, 0), "+z": (0, 0, 1), "-z": (0, 0, -1)}
+
+
+def _finite_matrix(m, n: int) -> list[list[float]] | None:
+    """m as an n×n list of finite floats, else None (a result from elsewhere may hold anything)."""
+    try:
+        rows = [[float(v) for v in row] for row in m]
+    except (TypeError, ValueError):
+        return None
+    if len(rows) != n or any(len(r) != n or not all(math.isfinite(v) for v in r) for r in rows):
+        return None
+    return rows
+
+
+def _number(v) -> float | None:
+    return float(v) if isinstance(v, int | float) and not isinstance(v, bool) and math.isfinite(v) else None
+
+
+def guide_config(result: dict) -> dict:
+    """What the viewer needs to guide a one-source result: the chosen pose and each alternative
+    in align()'s internal frame (the frame the .splat previews are in, so the overlay can show
+    them), each alternative also in the files' own coordinates, the rotations taking internal
+    coordinates to each file's (picked points and up axes are sent in file coordinates, as
+    init_transform, point_pairs and up_axes are given), and each file's up axis."""
+    from gsa.io import frames  # numpy only
+    from gsa.sim3 import Sim3
+
+    fr = result.get("frames") if isinstance(result.get("frames"), dict) else {}
+    formats, to_file, up = {}, {}, {}
+    for role in ("source", "target"):
+        desc = fr.get(role) if isinstance(fr.get(role), dict) else {}
+        fmt = desc.get("format") if desc.get("format") in frames.FRAME_OF_FORMAT else "ply"
+        formats[role] = fmt
+        to_file[role] = frames.internal_to_file(fmt).rotation.tolist()
+        up[role] = frames.FRAME_OF_FORMAT[fmt].up_axis
+    pose = _finite_matrix(result.get("transform_internal") or result.get("transform"), 4)
+    m = result.get("metrics") if isinstance(result.get("metrics"), dict) else {}
+    alternatives = []
+    for i, alt in enumerate(m.get("alternatives") or []):
+        internal = _finite_matrix(alt.get("transform"), 4) if isinstance(alt, dict) else None
+        if internal is None:
+            continue  # kept out, but the others keep their index (--alternative N, "alternative": N)
+        file = _finite_matrix(alt.get("file_transform"), 4) or (
+            frames.file_transform(Sim3.from_matrix(internal), formats["source"], formats["target"]).matrix().tolist()
+        )
+        alternatives.append(
+            {
+                "index": i,
+                "transform": internal,
+                "file_transform": file,
+                **{k: _number(alt.get(k)) for k in ("score", "rotation_offset_deg", "scale_ratio")},
+            }
+        )
+    return {"pose": pose, "alternatives": alternatives, "to_file": to_file, "up": up}
+
+
+def _guide(view: ResultView, mode: str) -> str:
+    """The guide's controls (web/src/main.js drives them): alternatives, point pairs, up axes."""
+    m = view.result.get("metrics") if isinstance(view.result.get("metrics"), dict) else {}
+    n_alt = len(m.get("alternatives") or [])
+    axes = "".join(f'<option value="{a}">{a}</option>' for a in AXES)
+    act = (
+        "starts a follow-up job; its page opens here and shows the result when it is done"
+        if mode == "service"
+        else "shows the gsa align command that does it"
+    )
+    return (
+        "<section class=guide id=guide aria-labelledby=guide-title><h3 id=guide-title>Not right? Guide the alignment</h3>"
+        f"<p class=hint>Each control below {act}.</p>"
+        "<fieldset><legend>Alternatives</legend>"
+        '<button type=button id=alt-prev aria-label="previous pose">◀ previous</button> '
+        f"<output id=alt-label aria-live=polite>the chosen pose ({n_alt} alternative{'' if n_alt == 1 else 's'})</output> "
+        '<button type=button id=alt-next aria-label="next pose">next ▶</button> '
+        "<button type=button id=alt-use disabled>Use this one</button></fieldset>"
+        "<fieldset><legend>Point pairs</legend>"
+        "<button type=button id=pick-toggle aria-pressed=false>Pick point pairs</button> "
+        "<button type=button id=pairs-undo disabled>Remove the last</button> "
+        "<button type=button id=pairs-submit disabled>Align from these pairs</button>"
+        "<p class=hint id=pick-hint>Click a point on the source view, then the same point on the target view; "
+        "three pairs or more. Keyboard: focus a view (Tab), arrow keys orbit, +/− zoom, Enter picks the point "
+        "under the centre cross.</p>"
+        "<p id=pick-state class=status aria-live=polite>no pairs yet</p><ol id=pair-list class=pairs></ol></fieldset>"
+        "<fieldset><legend>Up axes (in each file's own coordinates)</legend>"
+        f"<label>source up <select id=up-source>{axes}</select></label> "
+        f"<label>target up <select id=up-target>{axes}</select></label> "
+        "<button type=button id=up-submit>Align with these up axes</button></fieldset>"
+        "<div id=guide-out aria-live=polite></div></section>"
+    )
+
+
+def _canvas(name: str) -> str:
+    # Focusable, so the views orbit from the keyboard too (web/src/main.js); the wrapper holds the
+    # centre cross that Enter picks at (viewer.css).
+    return (
+        f'<div class=canvas-wrap><canvas id=view-{name} tabindex=0 role=img aria-label="{name} view: drag or '
+        f'arrow keys to orbit, scroll or +/− to zoom"></canvas></div>'
+    )
+
+
 def _viewer(results: list[ResultView]) -> str:
     picks = "".join(f'<option value="{i}">{esc(v.label)}</option>' for i, v in enumerate(results))
     pick = f'<select id=pick-source aria-label="source shown">{picks}</select>' if len(results) > 1 else ""
@@ -211,10 +312,11 @@ def _viewer(results: list[ResultView]) -> str:
     up = "".join(f'<option value="{u}">{u} up</option>' for u in ("+z", "+y", "-y"))
     return (
         "<section class=viewer><div class=panes>"
-        f"<figure class=pane><figcaption>Source (its own frame) {pick}</figcaption><canvas id=view-source></canvas></figure>"
-        "<figure class=pane><figcaption>Target</figcaption><canvas id=view-target></canvas></figure>"
-        "<figure class=pane><figcaption>Aligned overlay</figcaption><canvas id=view-overlay></canvas></figure>"
+        f"<figure class=pane><figcaption>Source (its own frame) {pick}</figcaption>{_canvas('source')}</figure>"
+        f"<figure class=pane><figcaption>Target</figcaption>{_canvas('target')}</figure>"
+        f"<figure class=pane><figcaption>Aligned overlay</figcaption>{_canvas('overlay')}</figure>"
         f"</div><div class=toggles>{boxes}<label><input type=checkbox id=toggle-tint checked> tint</label>"
+        "<label><input type=checkbox id=link-views checked> orbit the views together</label>"
         f"<select id=pick-up aria-label=up>{up}</select></div>"
         "<p id=viewer-status class=status>loading the models…</p>"
         "<p class=hint>Drag any view to orbit all three, scroll to zoom.</p></section>"
@@ -231,12 +333,22 @@ def render_page(
     extra_renders: list[tuple[str, str]] | None = None,
     links: list[tuple[str, str]] | None = None,
     up: str = "+z",
+    guide: dict | None = None,
+    poll: str | None = None,
 ) -> str:
-    """The whole results page."""
+    """The whole results page. `guide`: how its guide submits ({"mode": "service", "refine": URL}
+    or {"mode": "cli", "source", "target", "result": shell-quoted paths}); shown for a one-source
+    result with previews (refining takes one source). `poll`: a URL of the job's state, polled
+    until it has finished, then the page reloads."""
     config = {
         "up": up if up in ("+z", "+y", "-y") else "+z",
         "results": [{"label": v.label, "preview": dict(v.preview)} for v in results],
     }
+    guided = guide is not None and len(results) == 1 and bool(results[0].preview.get("target"))
+    if guided:
+        config["guide"] = {**guide, **guide_config(results[0].result)}
+    if poll:
+        config["poll"] = poll
     doubtful = [v.label for v in results if (v.result.get("metrics") or {}).get("doubtful")]
     banner = (
         f'<p class="banner doubtful">{len(doubtful)} of {len(results)} result(s) doubtful: '
@@ -258,6 +370,7 @@ def render_page(
     body = (
         f"<header><h1>{esc(title)}</h1><p class=sub>{esc(subtitle)}</p><nav>{nav}</nav></header>{banner}"
         f"{_viewer(results) if results else '<p>No results.</p>'}"
+        f"{_guide(results[0], guide['mode']) if guided else ''}"
         + "".join(result_section(i, v) for i, v in enumerate(results))
         + extra
         + note_list

@@ -3,8 +3,10 @@
 // The page (built by gsa/viewer/page.py) carries a JSON config in #gsa-config; this
 // script only reads it and the preview files it names (same origin, no CDN).
 // window.gsaViewer reports state for people and tests: {ready, firstFrameMs, error, ...}.
+// The guide (config.guide, one-source results) is in guide.js: alternatives, point pairs, up axes.
 import { SparkRenderer, SplatMesh } from "@sparkjsdev/spark";
 import * as THREE from "three";
+import { pollJob, setupGuide } from "./guide.js";
 
 const BACKGROUND = 0x1b1d22;
 const TARGET_TINT = [0.15, 0.45, 1.0];
@@ -72,6 +74,8 @@ class Pane {
     this.meshes = {};
     this.dirty = true;
     this.painted = false;
+    this.up = null; // a THREE.Vector3 from the guide's up-axis choice, else the page's up
+    this.view = null; // its own orbit while the views are unlinked (picking points), else the shared one
   }
 
   add(key, mesh) {
@@ -97,7 +101,8 @@ class Pane {
 
   place(view) {
     const { center, radius } = this.frame;
-    const up = new THREE.Vector3(...UPS[view.up]);
+    // The guide's up-axis choice turns this pane to show that axis up.
+    const up = this.up ? this.up.clone() : new THREE.Vector3(...UPS[view.up]);
     const e1 = Math.abs(up.x) > 0.9 ? new THREE.Vector3(0, 1, 0) : new THREE.Vector3(1, 0, 0);
     e1.sub(up.clone().multiplyScalar(e1.dot(up))).normalize();
     const e2 = up.clone().cross(e1);
@@ -132,18 +137,46 @@ class Pane {
   }
 }
 
-function controls(canvases, view, onChange) {
-  for (const canvas of canvases) {
+// Drag orbits all views (or only its own while they are unlinked: pane.view), the wheel zooms; a press that does not move is a click (the guide picks
+// points with it). Focused views orbit with the arrow keys and zoom with +/-; Enter or Space is a
+// click at the view's centre, so picking works from the keyboard.
+function controls(panes, view, onChange, onClick) {
+  for (const pane of panes) {
+    const canvas = pane.canvas;
     let last = null;
+    let down = null;
     canvas.addEventListener("pointerdown", (e) => {
       last = [e.clientX, e.clientY];
+      down = last;
       canvas.setPointerCapture(e.pointerId);
     });
-    canvas.addEventListener("pointerup", () => (last = null));
+    canvas.addEventListener("pointerup", (e) => {
+      if (down && Math.hypot(e.clientX - down[0], e.clientY - down[1]) < 4) onClick(pane, e.clientX, e.clientY);
+      last = down = null;
+    });
+    canvas.addEventListener("keydown", (e) => {
+      const v = pane.view || view;
+      const step = { ArrowLeft: [0.1, 0], ArrowRight: [-0.1, 0], ArrowUp: [0, 0.1], ArrowDown: [0, -0.1] }[e.key];
+      const zoom = { "+": 0.9, "=": 0.9, "-": 1.1, _: 1.1 }[e.key];
+      if (step) {
+        v.azimuth += step[0];
+        v.elevation = Math.max(-1.5, Math.min(1.5, v.elevation + step[1]));
+      } else if (zoom) {
+        v.distance = Math.max(0.5, Math.min(20, v.distance * zoom));
+      } else if (e.key === "Enter" || e.key === " ") {
+        const r = canvas.getBoundingClientRect();
+        onClick(pane, r.left + r.width / 2, r.top + r.height / 2);
+      } else {
+        return;
+      }
+      e.preventDefault();
+      onChange();
+    });
     canvas.addEventListener("pointermove", (e) => {
       if (!last) return;
-      view.azimuth -= (e.clientX - last[0]) * 0.01;
-      view.elevation = Math.max(-1.5, Math.min(1.5, view.elevation + (e.clientY - last[1]) * 0.01));
+      const v = pane.view || view;
+      v.azimuth -= (e.clientX - last[0]) * 0.01;
+      v.elevation = Math.max(-1.5, Math.min(1.5, v.elevation + (e.clientY - last[1]) * 0.01));
       last = [e.clientX, e.clientY];
       onChange();
     });
@@ -151,7 +184,8 @@ function controls(canvases, view, onChange) {
       "wheel",
       (e) => {
         e.preventDefault();
-        view.distance = Math.max(0.5, Math.min(20, view.distance * Math.exp(e.deltaY * 0.001)));
+        const v = pane.view || view;
+        v.distance = Math.max(0.5, Math.min(20, v.distance * Math.exp(e.deltaY * 0.001)));
         onChange();
       },
       { passive: false },
@@ -161,6 +195,7 @@ function controls(canvases, view, onChange) {
 
 async function main() {
   const config = JSON.parse(document.getElementById("gsa-config").textContent);
+  if (config.poll) pollJob(config.poll); // a job still running: reload when it has finished
   const models = config.results;
   const el = (id) => document.getElementById(id);
   if (!models.length || !models[0].preview.target) {
@@ -193,7 +228,8 @@ async function main() {
   const redraw = () => {
     for (const p of Object.values(panes)) p.dirty = true;
   };
-  controls(Object.values(panes).map((p) => p.canvas), view, redraw);
+  const clicks = { handler: () => {} }; // the guide's, when the page has one
+  controls(Object.values(panes), view, redraw, (pane, x, y) => clicks.handler(pane, x, y));
 
   // The source pane shows one source at a time (a multi-model job has several).
   const pick = el("pick-source");
@@ -209,6 +245,17 @@ async function main() {
     upPick.value = view.up;
     upPick.addEventListener("change", () => {
       view.up = upPick.value;
+      for (const p of Object.values(panes)) p.up = null; // back from the guide's per-model axes
+      redraw();
+    });
+  }
+  // Unlinked, each view orbits on its own: two models in different frames show the same side
+  // only when each is turned separately (point picking needs that).
+  const link = el("link-views");
+  if (link) {
+    link.addEventListener("change", () => {
+      for (const p of Object.values(panes)) p.view = link.checked ? null : { ...(p.view || view) };
+      state.linked = link.checked;
       redraw();
     });
   }
@@ -219,6 +266,9 @@ async function main() {
     for (const box of document.querySelectorAll("input[data-model]")) on[box.dataset.model] = box.checked;
     return on;
   };
+  // The guide may show another pose of source 0 (an alternative): alt.pose set, the aligned
+  // preview hidden and the source preview drawn at that pose instead.
+  const alt = { pose: null, tinted: null, natural: null };
   const applyToggles = () => {
     const on = visibleKeys();
     const useTint = !tint || tint.checked;
@@ -227,16 +277,36 @@ async function main() {
       alignedBytes.forEach((b, i) => (natural[`source${i}`] ??= makeMesh(b)));
       for (const [k, m] of Object.entries(natural)) if (!m.parent) panes.overlay.scene.add(m);
     }
-    for (const k of Object.keys(tintedMeshes)) {
-      tintedMeshes[k].visible = useTint && on[k] !== false;
-      if (natural[k]) natural[k].visible = !useTint && on[k] !== false;
+    if (alt.pose) {
+      const key = useTint ? "tinted" : "natural";
+      if (!alt[key]) {
+        alt[key] = makeMesh(useTint ? tinted(sourceBytes[0], SOURCE_TINTS[0]) : sourceBytes[0]);
+        panes.overlay.add(useTint ? "alternative" : "alternativeNatural", alt[key]);
+      }
+      alt.pose.decompose(alt[key].position, alt[key].quaternion, alt[key].scale);
     }
+    for (const k of Object.keys(tintedMeshes)) {
+      const shown = on[k] !== false && !(alt.pose && k === "source0");
+      tintedMeshes[k].visible = useTint && shown;
+      if (natural[k]) natural[k].visible = !useTint && shown;
+    }
+    if (alt.tinted) alt.tinted.visible = Boolean(alt.pose) && useTint && on.source0 !== false;
+    if (alt.natural) alt.natural.visible = Boolean(alt.pose) && !useTint && on.source0 !== false;
     panes.overlay.dirty = true;
     state.visible = { ...on, tint: useTint };
   };
   for (const box of document.querySelectorAll("input[data-model]")) box.addEventListener("change", applyToggles);
   if (tint) tint.addEventListener("change", applyToggles);
   applyToggles();
+
+  if (config.guide) {
+    const showPose = (matrix) => {
+      alt.pose = matrix;
+      applyToggles();
+    };
+    const place = (pane) => pane.place(pane.view || view); // a click may come before the next frame placed it
+    clicks.handler = setupGuide(config.guide, { panes, sourceBytes: sourceBytes[0], targetBytes, redraw, showPose, place, state });
+  }
 
   await Promise.all(
     Object.values(panes).flatMap((p) => Object.values(p.meshes).map((m) => m.initialized)),
@@ -247,7 +317,7 @@ async function main() {
       p.resize();
       if (!p.dirty && p.painted) continue;
       p.dirty = false;
-      p.place(view);
+      p.place(p.view || view);
       p.renderer.render(p.scene, p.camera);
       if (!p.painted && p.hasPixels()) p.painted = true;
     }
