@@ -591,7 +591,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--quick", action="store_true", help="small sizes, a few minutes")
     p.add_argument("--out", default="out/bench", help="folder for the JSON results")
     p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--data", help="category-real: a folder of <category>_<i>.npz meshes (V, F, optional C)")
+    p.add_argument(
+        "--data",
+        help="category-real: a folder of <category>_<i>.npz meshes (V, F, optional C); real: a folder of 3DGS captures",
+    )
     p.add_argument(
         "--peers", default="default", help="comma list of icp,open3d,splatreg, or default (icp,open3d), all, none"
     )

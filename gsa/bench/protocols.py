@@ -76,6 +76,7 @@ from gsa.bench.pairs import (
     symmetric_pairs,
 )
 from gsa.bench.peers import Peer, available_peers
+from gsa.bench.real_captures import capture_of, real_split_pairs
 from gsa.bench.records import (
     GSA_COARSE,
     GSA_FINE,
@@ -331,6 +332,28 @@ def protocol_category_real(
     return rows
 
 
+def protocol_real(
+    quick: bool, seed: int, out: Path, peers: list[str] | None = None, data: str | Path | None = None
+) -> list[dict]:
+    """Split pairs of real captures from `data` (gsa.bench.real_captures), as captured and with
+    the source's exposure shifted; one row per method and variant."""
+    if data is None:
+        raise ValueError("real needs --data DIR (a folder of 3DGS captures)")
+    runners = [default_align_runner()] + [peer_runner(p, seed) for p in available_peers(peers)]
+    rows = []
+    for exposure in (False, True):
+        name = "real-exposure" if exposure else "real"
+        pairs = real_split_pairs(data, quick, seed, exposure=exposure)
+        variant = evaluate(name, pairs, runners, capture_of, out=out)
+        for row in variant:
+            row["variant"] = "exposure shifted" if exposure else "as captured"
+            row["method"] += f" · {row['variant']}"
+            row["per_capture_mean_rre_deg"] = row.pop("per_category_mean_rre_deg", {})
+        rows += variant
+    save_rows(out, "real", rows)
+    return rows
+
+
 def protocol_speed(quick: bool, seed: int, out: Path, peers: list[str] | None = None) -> list[dict]:
     return _speed.protocol_speed(quick, seed, out, peers, fine=FINE_ROWS)
 
@@ -350,9 +373,10 @@ PROTOCOLS = {
     "exposure": protocol_exposure,
     "scene": protocol_scene,
     "category-real": protocol_category_real,
+    "real": protocol_real,
 }
 # Protocols over the user's own data (--data DIR).
-DATA_PROTOCOLS = {"category-real"}
+DATA_PROTOCOLS = {"category-real", "real"}
 
 
 def run_protocols(
