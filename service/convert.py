@@ -173,7 +173,10 @@ async def _run_child(b, art: Artifact, fmt: str, key: str) -> int:
         )
         try:
             stdout, stderr = await asyncio.wait_for(child.communicate(), timeout=s.conversion_timeout_s)
-        except (TimeoutError, asyncio.CancelledError):
+        except asyncio.CancelledError:  # the API is shutting down: no child outlives it
+            _kill(child)
+            raise
+        except TimeoutError:
             _kill(child)
             await child.wait()
             raise Problem(
