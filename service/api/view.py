@@ -12,9 +12,11 @@ from __future__ import annotations
 
 import time
 from functools import lru_cache
+from urllib.parse import urlsplit
 
 from fastapi import APIRouter, Request, Response
-from fastapi.responses import HTMLResponse, RedirectResponse, StreamingResponse
+from fastapi.concurrency import run_in_threadpool
+from fastapi.responses import HTMLResponse, JSONResponse, RedirectResponse, StreamingResponse
 from pydantic import BaseModel
 
 from gsa.viewer.page import PAGE_HEADERS, STATIC_FILES, ResultView, ViewerNotBuilt, esc, fmt, layout, render_page
@@ -22,9 +24,10 @@ from gsa.viewer.preview import PREVIEW_NAMES
 from service import core
 from service.api.deps import B, Owner, get_backend, owner_for_key
 from service.api.openapi import problem_responses
+from service.api.schemas import JobOut, RefineIn
 from service.backend import Backend
 from service.models import Job, JobState
-from service.problems import Problem, not_found
+from service.problems import Problem, invalid_input, not_found
 from service.view_links import LinkError, sign, verify
 
 router = APIRouter()
@@ -150,6 +153,9 @@ def job_page(job_id: str, request: Request, token: str | None = None):
         if job.error:
             notes.insert(1, f"{job.error.get('title', 'error')}: {job.error.get('detail', '')}")
     views, extra = job_views(job) if job.state == JobState.succeeded else ([], [])
+    # Guided alignment: the job it refines and its follow-ups, each through its own signed link.
+    links = [(f"refines job {job.parent_job}", _page_link(b, owner, job.parent_job))] if job.parent_job else []
+    links += [(f"follow-up job {c}", _page_link(b, owner, c)) for c in job.children]
     page = render_page(
         f"Job {job.id}",
         views,
@@ -157,8 +163,85 @@ def job_page(job_id: str, request: Request, token: str | None = None):
         subtitle=f"target: {job.target.filename or job.target.asset_id} · {job.state.value}",
         notes=notes,
         extra_renders=extra,
+        links=links,
+        guide={"mode": "service", "refine": f"/v1/jobs/{job_id}/view/refine"},
+        poll=None if job.terminal else f"/v1/jobs/{job_id}/view/state",
     )
     return HTMLResponse(page, headers=PAGE_HEADERS)
+
+
+def _page_link(b: Backend, owner: str, job_id: str) -> str:
+    return _link(b, f"job:{job_id}", owner, f"/v1/jobs/{job_id}/view").url
+
+
+@router.get("/v1/jobs/{job_id}/view/state", include_in_schema=False)
+def job_state(job_id: str, request: Request) -> JSONResponse:
+    """The job's state for its page, which polls it while the job runs (the page's cookie is
+    scoped to /v1/jobs/{id}/view, so the API's GET /v1/jobs/{id} is not open to it)."""
+    b = get_backend(request)
+    job = core.get_job(b, browser_owner(request, b, f"job:{job_id}", None), job_id)
+    body = {"id": job.id, "state": job.state.value, "stage": job.stage, "progress": job.progress}
+    return JSONResponse({**body, "terminal": job.terminal}, headers={"Cache-Control": "no-store"})
+
+
+def _same_origin(request: Request) -> None:
+    """A page's POST carries its cookie; the browser's Origin must be this server's, so another
+    site (SameSite=Lax stops cross-site ones, not another port or subdomain of the same site)
+    cannot start jobs with it. Bearer-key callers are not browsers and skip this."""
+    if request.headers.get("authorization", "")[:7].lower() == "bearer ":
+        return
+    origin = request.headers.get("origin")
+    if not origin or urlsplit(origin).netloc != request.headers.get("host"):
+        raise Problem(403, "cross-origin", "Cross-origin request", "this page's actions come from its own origin only")
+
+
+@router.post("/v1/jobs/{job_id}/view/refine", include_in_schema=False)
+async def job_page_refine(job_id: str, body: RefineIn, request: Request) -> JSONResponse:
+    """The page's guide: POST /v1/jobs/{id}:refine for the page's cookie (same body and checks),
+    or, with up_axes and no start, the automatic search again about those axes. Answers the
+    follow-up job and a signed link to its page, which the page opens."""
+    b = get_backend(request)
+    owner = browser_owner(request, b, f"job:{job_id}", None)
+    _same_origin(request)
+    hints = body.model_dump(exclude_unset=True)
+    if hints.get("up_axes") is not None and not any(hints.get(k) is not None for k in core.REFINE_STARTS):
+        job = await run_in_threadpool(_search_again, b, owner, job_id, hints)
+    else:
+        job, _ = await run_in_threadpool(core.refine_job, b, owner, job_id, hints, None)
+    request.app.state.metrics.jobs_created.labels("http").inc()
+    return JSONResponse(
+        {"job": JobOut.from_job(job).model_dump(mode="json"), "view_url": _page_link(b, owner, job.id)},
+        status_code=202,
+        headers={"Location": f"/v1/jobs/{job.id}", "Cache-Control": "no-store"},
+    )
+
+
+def _search_again(b: Backend, owner: str, parent_id: str, hints: dict) -> Job:
+    """A follow-up job on the parent's inputs and options with new up_axes (and fixed_scale when
+    given) and no start: the search runs again, turning only about the up axes. The REST refine
+    takes exactly one start (alternative, init_transform, point_pairs); a person who only knows
+    which way is up needs the search, not a local refinement of a pose they doubt. Linked to the
+    parent as core.refine_job links its jobs."""
+    parent = core.get_job(b, owner, parent_id)
+    if not parent.terminal:
+        raise Problem(409, "job-not-finished", "Job not finished", f"job {parent_id} is {parent.state.value}")
+    if len(parent.sources) != 1:
+        raise invalid_input(f"job {parent.id} aligns {len(parent.sources)} sources; refine takes a job with one source")
+    options = {k: v for k, v in parent.options.items() if k not in ("init_transform", "point_pairs")}
+    options.update({k: hints[k] for k in ("up_axes", "fixed_scale") if k in hints})
+    options = {k: v for k, v in options.items() if v is not None}
+    core.check_request(b, 1, options, parent.webhook)  # 422 naming a bad up_axes
+    refs = (*parent.sources, parent.target)
+    assets = [b.store.get_asset(ref.asset_id) for ref in refs]
+    if any(a is None or a.owner != owner or a.key != ref.key for a, ref in zip(assets, refs)):
+        raise Problem(409, "input-deleted", "Input deleted", f"job {parent_id}'s inputs were deleted: submit a new job")
+    job_id, _ = core.claim(b, owner, None, "")
+    job = core.create_job(b, owner, job_id, assets[:-1], assets[-1], options, parent.webhook, None, parent.id)
+    with b.store.blob_lock(f"job-children:{parent_id}"):  # the lock core.refine_job takes
+        now = b.store.get(parent_id)
+        if now is not None:
+            b.store.update(parent_id, children=[*now.children, job.id])
+    return job
 
 
 @router.get("/v1/jobs/{job_id}/view/files/{name:path}", include_in_schema=False)
