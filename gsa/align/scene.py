@@ -50,7 +50,7 @@ objects:
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 from scipy.sparse.csgraph import connected_components
@@ -60,6 +60,7 @@ from gsa.align import robust
 from gsa.align.choices import Progress
 from gsa.align.coarse import AlignmentError, CoarseResult
 from gsa.align.types import AlignmentResult
+from gsa.geometry import axis_rotation
 from gsa.model import GaussianModel, ModelError
 from gsa.sim3 import Sim3
 
@@ -81,8 +82,27 @@ TEST_SAMPLE = 200_000
 SCENE_GAUSSIANS = 400_000
 VOXEL_PROBE = 200_000
 
+# The site test (see site_structure): ground normals within GROUND_DEG of the up axis,
+# the ground's band above each column's lowest up-facing anchor (voxels), its weight,
+# open sky over it, its span and things standing on it.
+GROUND_DEG = 30.0
+GROUND_BAND = 1.5
+GROUND_SHARE = 0.35
+SKY_SHARE = 0.8
+GROUND_SPAN = 0.3
+SITE_HEIGHT = 0.5
+SITE_PARTS = 1
+SITE_ANCHORS = 400
+SKY_OPEN = 0.95
+
 # The scene path.
 SCENE_ANCHORS = 6000
+# Sites: the yaw step of the up-aligned rotations searched, the tilts tried about them
+# (the two captures' mean ground normals differ by a few degrees over hills), and the
+# ground's share of the anchors the search scores on.
+SITE_YAW_DEG = 5.0
+SITE_TILT_DEG = 6.0
+SITE_GROUND_KEEP = 0.35
 REFINE_CLOUD = 400_000
 # translation_sweep: rotations swept, lattice step and score truncation (fractions of the
 # target's anchor radius; the step below the truncation so no offset falls between),
@@ -106,24 +126,80 @@ class Structure:
     planes: list[dict]
 
     gaussians: int = 0
+    site: Site | None = None  # the site test, where the shell test failed
 
     @property
     def shell(self) -> bool:
         return self.shell_planes >= SHELL_PLANES and self.shell_weight >= SHELL_WEIGHT
 
     @property
-    def is_scene(self) -> bool:
+    def is_room(self) -> bool:
         things_inside = self.parts >= CONTENT_PARTS and self.parts_weight >= CONTENT_WEIGHT
         return self.shell and (things_inside or self.gaussians >= SCENE_GAUSSIANS)
 
+    @property
+    def is_site(self) -> bool:
+        return not self.is_room and self.site is not None and self.site.is_site
+
+    @property
+    def is_scene(self) -> bool:
+        return self.is_room or self.is_site
+
     def to_dict(self) -> dict:
-        return {
+        out = {
             "shell_planes": self.shell_planes,
             "shell_weight": round(self.shell_weight, 4),
             "parts": self.parts,
             "parts_weight": round(self.parts_weight, 4),
             "gaussians": self.gaussians,
             "is_scene": self.is_scene,
+            "kind": "room" if self.is_room else "site" if self.is_site else None,
+        }
+        if self.site is not None:
+            out["site"] = self.site.to_dict()
+        return out
+
+
+@dataclass
+class Site:
+    """What the site test saw on one model (site_structure)."""
+
+    up: np.ndarray  # unit up axis, signed so that things stand on the ground
+    ground: np.ndarray  # (A,) bool: anchors of the ground
+    ground_share: float  # anchor weight on the ground
+    sky: float  # share of the ground's columns with no up/down-facing surface above the ground
+    span: float  # the ground's horizontal span over the model's extent (the smaller side)
+    height: float  # the model's extent along up over its horizontal extent
+    parts: int  # separate things standing on the ground
+    parts_weight: float
+    gaussians: int = 0
+    anchors: int = 0
+
+    @property
+    def is_site(self) -> bool:
+        things_on_it = self.parts >= SITE_PARTS and self.parts_weight >= CONTENT_WEIGHT
+        # A ground open almost everywhere is a site with nothing on it (a lawn, a field):
+        # what came closest among objects, an airplane from below, has sky 0.86.
+        open_ground = self.sky >= SKY_OPEN
+        return bool(
+            self.anchors >= SITE_ANCHORS
+            and self.ground_share >= GROUND_SHARE
+            and self.sky >= SKY_SHARE
+            and self.span >= GROUND_SPAN
+            and self.height <= SITE_HEIGHT
+            and (things_on_it or open_ground or self.gaussians >= SCENE_GAUSSIANS)
+        )
+
+    def to_dict(self) -> dict:
+        return {
+            "ground_share": round(self.ground_share, 4),
+            "sky": round(self.sky, 4),
+            "span": round(self.span, 4),
+            "height": round(self.height, 4),
+            "parts": self.parts,
+            "parts_weight": round(self.parts_weight, 4),
+            "anchors": self.anchors,
+            "is_site": self.is_site,
         }
 
 
@@ -185,7 +261,77 @@ def scene_structure(anchors: robust.Anchors, seed: int = 0, gaussians: int = 0) 
     parts, parts_weight = 0, 0.0
     if len(shell) >= SHELL_PLANES and shell_weight >= SHELL_WEIGHT:  # else decided: skip the parts
         parts, parts_weight = _inner_parts(pts, w, ~on_shell, shell, voxel, extent)
-    return Structure(len(shell), shell_weight, parts, parts_weight, planes, gaussians)
+    out = Structure(len(shell), shell_weight, parts, parts_weight, planes, gaussians)
+    if not out.is_room:
+        out.site = site_structure(pts, w, normals, voxel, extent, gaussians)
+    return out
+
+
+def site_structure(
+    pts: np.ndarray, w: np.ndarray, normals: np.ndarray, voxel: float, extent: float, gaussians: int = 0
+) -> Site:
+    """The site test on anchors (weights w summing to 1, unit normals, the anchor voxel):
+    an outdoor site has no shell; it is a ground - an open heightfield - with things
+    standing on it. The up axis is the dominant normal direction (the weighted normals'
+    principal axis). Seen along it, the ground is each column's lowest anchors that face
+    up (within GROUND_DEG), up to GROUND_BAND voxels above the lowest (columns two voxels
+    wide). A site's ground holds GROUND_SHARE of the weight, lies open to the sky in
+    SKY_SHARE of its columns (no other up- or down-facing surface above it: an object's
+    underside has its top above it, a site's ground has the sky), spans GROUND_SPAN of
+    the extent across (the smaller horizontal side), is at most SITE_HEIGHT as tall as
+    wide, and has SITE_PARTS separate things standing on it (trees, rocks, benches: as
+    the room test's parts), or is open to the sky in SKY_OPEN of its columns (a lawn),
+    or has SCENE_GAUSSIANS Gaussians, as a room; and the test sees
+    at least SITE_ANCHORS anchors (TEST_DENSITY Gaussians each): with fewer, a thin
+    object (a wing, a wheel face-on) is one layer of columns like a ground. Measured
+    (docs/benchmarks.md, "Outdoor sites"): an airplane seen from below comes closest
+    (sky 0.67: its fuselage's top covers the columns under it). Both signs of the axis are tried; the site's up is the one
+    that passes (else the one with the more ground)."""
+    m = np.einsum("n,ni,nj->ij", w, normals, normals)
+    axis = np.linalg.eigh(m)[1][:, 2]
+    helper = np.array([1.0, 0, 0]) if abs(axis[0]) < 0.9 else np.array([0, 1.0, 0])
+    u = np.cross(axis, helper)
+    u /= np.linalg.norm(u)
+    v = np.cross(axis, u)
+    xy = np.stack([pts @ u, pts @ v], 1)
+    facing = np.abs(normals @ axis) >= np.cos(np.radians(GROUND_DEG))
+    cell = 2.0 * voxel
+    ij = np.floor((xy - xy.min(0)) / cell).astype(np.int64)
+    _, col = np.unique(ij[:, 0] * (ij[:, 1].max() + 1) + ij[:, 1], return_inverse=True)
+    col = col.ravel()
+    n_col = int(col.max()) + 1
+    band = GROUND_BAND * voxel
+    horizontal = float(np.max(np.ptp(xy, axis=0)))
+    best = None
+    for sign in (1.0, -1.0):
+        h = sign * (pts @ axis)
+        lowest = np.full(n_col, np.inf)
+        np.minimum.at(lowest, col[facing], h[facing])
+        has_ground = np.isfinite(lowest)
+        rel = h - lowest[col]
+        ground = facing & (rel <= band)
+        covered = np.zeros(n_col, bool)
+        covered[col[facing & (rel > band)]] = True  # another horizontal surface above the ground
+        n_ground_cols = max(int(has_ground.sum()), 1)
+        sky = float(np.sum(has_ground & ~covered) / n_ground_cols)
+        g_xy = xy[ground]
+        if len(g_xy) >= 3:
+            lo, hi = np.percentile(g_xy, [2, 98], axis=0)
+            span = float(np.min(hi - lo) / extent)
+        else:
+            span = 0.0
+        height = float(np.ptp(h) / max(horizontal, 1e-12))
+        # Things standing on the ground: the room test's parts, off the ground and above it.
+        standing = ~ground & (rel > -band)
+        parts, parts_weight = _inner_parts(pts, w, standing, [], voxel, extent)
+        site = Site(
+            sign * axis, ground, float(w[ground].sum()), sky, span, height, parts, parts_weight, gaussians, len(pts)
+        )
+        if site.is_site:
+            return site
+        if best is None or site.ground_share > best.ground_share:
+            best = site
+    return best
 
 
 def _inner_parts(pts, w, rest_mask, shell, voxel: float, extent: float) -> tuple[int, float]:
@@ -319,8 +465,10 @@ def choose(source: GaussianModel, target: GaussianModel, mode: str, eligible: bo
     # scene_anchors, not robust.anchors: the same summary, many times faster at millions
     # of Gaussians; the object path makes its own.
     s, t = (scene_structure(_test_anchors(m, anchor_count, seed), seed, len(m)) for m in (source, target))
-    if s.is_scene and t.is_scene:
+    if s.is_room and t.is_room:
         reason = "auto: both models are shells of large planes with things inside (scene test passed)"
+    elif s.is_scene and t.is_scene:
+        reason = "auto: both models are open grounds with things standing on them (site test passed)"
     else:
         which = [name for name, st in (("source", s), ("target", t)) if not st.is_scene]
         reason = f"auto: the {' and '.join(which)} failed the scene test"
@@ -388,14 +536,18 @@ def align_scene(
 
     _report(progress, "hypotheses", 0.0)
     t = time.perf_counter()
-    search = robust.global_search(
-        src,
-        dst,
-        None,
-        robust.SearchOptions(rotations=opts.search_rotations, seed=opts.seed),
-        widen_if=lambda first: robust.verdict(first.best, first)["doubtful"],
-    )
-    search = translation_sweep(src, dst, search, opts.seed)
+    sites = _sites(src, dst)
+    if sites is None:
+        search = robust.global_search(
+            src,
+            dst,
+            None,
+            robust.SearchOptions(rotations=opts.search_rotations, seed=opts.seed),
+            widen_if=lambda first: robust.verdict(first.best, first)["doubtful"],
+        )
+        search = translation_sweep(src, dst, search, opts.seed)
+    else:
+        search = site_search(src, dst, *sites, opts.seed)
     timings["hypotheses"] = time.perf_counter() - t
     _report(progress, "hypotheses", 1.0)
     scored = [c.to_dict(search.best.transform) | {"chosen": c is search.best} for c in search.candidates]
@@ -410,15 +562,24 @@ def align_scene(
     q_rows = _rows(rng, len(q_cloud), half)
     q = q_cloud[q_rows]
     normals, flatness = target.surface_normals(q_idx)
+    start = search.best if sites is None else _site_polish(src, dst, search, rng)
     transform, history = robust.refine(
         p,
         q,
         p_tree,
         q_tree,
-        search.best.transform,
+        start.transform,
         opts.refine_iterations,
         target_normals=(normals, flatness, normals[q_rows], flatness[q_rows]),
     )
+    refine_kept = True
+    if sites is not None:
+        # On a site whose Gaussians are far denser in one part (an SfM garden's table) the
+        # full-resolution refinement can slide to a pose that the anchors - the whole
+        # site, in colour - score clearly lower: the start is kept then.
+        refined = robust.score_pose(src, dst, transform, "refined", search.colour_weight)
+        if refined.score < start.score - robust.SCORE_TIE:
+            transform, refine_kept = start.transform, False
     coarse = CoarseResult(
         transform=transform,
         iterations=len(history),
@@ -436,6 +597,8 @@ def align_scene(
     metrics.update(robust.verdict(final, search, robust.coincidence(p, q, p_tree, q_tree, transform)))
     metrics["hypothesis"] = search.best.origin
     metrics["scene"] = choice.to_dict() | {
+        "kind": "room" if sites is None else "site",
+        "refinement_kept": refine_kept,
         "anchors": [len(src), len(dst)],
         "refine_cloud": [len(p_cloud), len(q_cloud)],
         "exposure_gains": list(src.colour_gain),  # linear RGB gains: the source's colours in the target's exposure
@@ -452,6 +615,107 @@ def align_scene(
         timings=timings,
         hypotheses=scored,
     )
+
+
+def _sites(src: robust.Anchors, dst: robust.Anchors) -> tuple[Site, Site] | None:
+    """Both models' site test on the path's own anchors (its parts-or-size condition
+    waived: the pair is already taken as scenes): a pair whose grounds both lie open to
+    the sky is searched as sites, whichever test took it - a walled garden passes the room
+    test too, and the room search, blind to the ground, misses it. A room with its ceiling
+    has no sky."""
+    found = tuple(_site_of(a) for a in (src, dst))
+    return found if all(f.is_site for f in found) else None
+
+
+def _site_of(a: robust.Anchors) -> Site:
+    w = a.weights / a.weights.sum()
+    extent = float(np.max(np.ptp(a.points, axis=0)))
+    voxel = extent / np.sqrt(len(a.points))
+    return site_structure(a.points, w, _anchor_normals(a.points), voxel, extent, SCENE_GAUSSIANS)
+
+
+def site_search(
+    src: robust.Anchors, dst: robust.Anchors, src_site: Site, dst_site: Site, seed: int = 0
+) -> robust.SearchResult:
+    """The scene path's search for sites. Two things differ from a room's:
+    - the ground fixes two of the three rotation angles: only rotations taking the
+      source's up axis onto the target's (either sign: the test's sign can be fooled by
+      tree crowns seen from above), tilted by up to SITE_TILT_DEG, turned about it in
+      SITE_YAW_DEG steps, are searched (robust.global_search with these as its only
+      rotations; no widening: these rotations are all a site can be in);
+    - the ground, which holds most of the weight and which any turn of the site lays on
+      itself within the search's truncation, is thinned to SITE_GROUND_KEEP of the
+      anchors the search scores on, so the things standing on it decide.
+    The translation sweep follows, as for rooms; the verdict scores on all anchors."""
+    rng = np.random.default_rng(seed)
+    s_thin, d_thin = (_ground_thinned(a, site.ground, rng) for a, site in ((src, src_site), (dst, dst_site)))
+    rotations = _site_rotations(src_site.up, dst_site.up)
+    search = robust.global_search(
+        s_thin, d_thin, [("site", r) for r in rotations], robust.SearchOptions(rotations=0, seed=seed)
+    )
+    search = translation_sweep(s_thin, d_thin, search, seed)
+    # Re-scored on all anchors, so the verdict and the alternatives read what rooms' do.
+    w = search.colour_weight
+    return robust.decide(
+        _distinct_poses([robust.score_pose(src, dst, c.transform, c.origin, w) for c in search.candidates]), w
+    )
+
+
+def _site_polish(
+    src: robust.Anchors, dst: robust.Anchors, search: robust.SearchResult, rng: np.random.Generator
+) -> robust.Candidate:
+    """The search's best pose run on to convergence by the anchor ICP on all anchors (the
+    search's ICP ran on the ground-thinned ones), kept if it scores better."""
+    rows = _rows(rng, len(src), 2000), _rows(rng, len(dst), 2000)
+    pose = robust.bidirectional_icp(src, dst, search.best.transform, *rows, 100, search.colour_weight)
+    polished = robust.score_pose(src, dst, pose, search.best.origin, search.colour_weight)
+    return polished if polished.score > search.best.score else search.best
+
+
+def _ground_thinned(a: robust.Anchors, ground: np.ndarray, rng: np.random.Generator) -> robust.Anchors:
+    """The anchors with the ground's cut to SITE_GROUND_KEEP of them (at random); centre
+    and radius stay the whole model's."""
+    g, rest = np.flatnonzero(ground), np.flatnonzero(~ground)
+    keep = int(SITE_GROUND_KEEP / (1 - SITE_GROUND_KEEP) * len(rest))
+    if keep >= len(g) or len(rest) < 50:
+        return a
+    rows = np.sort(np.concatenate([rest, rng.choice(g, keep, replace=False)]))
+    return replace(
+        a,
+        points=a.points[rows],
+        lab=a.lab[rows],
+        weights=a.weights[rows],
+        tree=cKDTree(a.points[rows]),
+        rgb=None if a.rgb is None else a.rgb[rows],
+    )
+
+
+def _site_rotations(up_src: np.ndarray, up_dst: np.ndarray) -> np.ndarray:
+    """Rotations taking up_src onto ±up_dst, tilted by 0 and ±SITE_TILT_DEG about two
+    axes across up_dst, each turned about up_dst in SITE_YAW_DEG steps."""
+    helper = np.array([1.0, 0, 0]) if abs(up_dst[0]) < 0.9 else np.array([0, 1.0, 0])
+    a = np.cross(up_dst, helper)
+    a /= np.linalg.norm(a)
+    b = np.cross(up_dst, a)
+    tilts = [np.eye(3)] + [axis_rotation(x, sgn * np.radians(SITE_TILT_DEG)) for x in (a, b) for sgn in (1, -1)]
+    yaws = [axis_rotation(up_dst, y) for y in np.radians(np.arange(0.0, 360.0, SITE_YAW_DEG))]
+    out = []
+    for sign in (1.0, -1.0):
+        base = _rotation_between(up_src, sign * up_dst)
+        out += [tilt @ yaw @ base for tilt in tilts for yaw in yaws]
+    return np.asarray(out)
+
+
+def _rotation_between(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """The smallest rotation taking unit a onto unit b (a half turn about an axis across a
+    when they are opposite)."""
+    v, c = np.cross(a, b), float(a @ b)
+    if c < -1 + 1e-9:
+        helper = np.array([1.0, 0, 0]) if abs(a[0]) < 0.9 else np.array([0, 1.0, 0])
+        axis = np.cross(a, helper)
+        return axis_rotation(axis / np.linalg.norm(axis), np.pi)
+    k = np.array([[0, -v[2], v[1]], [v[2], 0, -v[0]], [-v[1], v[0], 0]])
+    return np.eye(3) + k + k @ k / (1 + c)
 
 
 def translation_sweep(

@@ -32,6 +32,10 @@ scene     issue 18: two partial captures of a generated furnished room (gsa.synt
           Full: 20 pairs of 1–2M Gaussians per capture; --quick: 3 pairs of ~100k.
           Success: RRE < 2° and translation error < 2 % of the room's extent; peak
           memory per method (gsa.bench.scene). GSA rows are align()'s coarse stage.
+site      issue 26: the same on outdoor sites without walls (gsa.bench.site): generated
+          terrain with things on it, and SfM point files (--data, default
+          ../shared/data/real-dev) made into Gaussians. Full: 12 + 4 per file pairs of
+          1–2M Gaussians per capture; --quick: 3 pairs of ~100k. Judged as scene.
 
 GSA rows carry align()'s `confidence` and `doubtful` (metrics) per pair; tables
 then add how well the flag tracks failure (flagged rate, success among the
@@ -147,6 +151,7 @@ __all__ = [
     "protocol_partial",
     "protocol_same",
     "protocol_scene",
+    "protocol_site",
     "protocol_speed",
     "protocol_symmetric",
     "random_sim3",
@@ -316,6 +321,21 @@ def protocol_scene(quick: bool, seed: int, out: Path, peers: list[str] | None = 
     return rows
 
 
+def protocol_site(
+    quick: bool, seed: int, out: Path, peers: list[str] | None = None, data: str | Path | None = None
+) -> list[dict]:
+    # As protocol_scene: coarse only, peak memory per method.
+    from gsa.bench.site import site_of, site_pairs
+
+    runners = [
+        with_peak_memory(r) for r in [gsa_runner(False)] + [peer_runner(p, seed) for p in available_peers(peers)]
+    ]
+    rows = evaluate("site", site_pairs(quick, seed, data), runners, site_of, out=out, judge=scene_judge)
+    add_scene_summary(rows)
+    save_rows(out, "site", rows)
+    return rows
+
+
 def protocol_category_real(
     quick: bool, seed: int, out: Path, peers: list[str] | None = None, data: str | Path | None = None
 ) -> list[dict]:
@@ -372,11 +392,12 @@ PROTOCOLS = {
     "deform": protocol_deform,
     "exposure": protocol_exposure,
     "scene": protocol_scene,
+    "site": protocol_site,
     "category-real": protocol_category_real,
     "real": protocol_real,
 }
 # Protocols over the user's own data (--data DIR).
-DATA_PROTOCOLS = {"category-real", "real"}
+DATA_PROTOCOLS = {"category-real", "real", "site"}
 
 
 def run_protocols(

@@ -17,7 +17,7 @@ def _f(x: float, digits: int) -> str:
 
 
 def format_table(name: str, rows: list[dict]) -> str:
-    if name == "scene":
+    if name in ("scene", "site"):
         from gsa.bench.scene import format_scene_table
 
         return format_scene_table(rows)

@@ -15,6 +15,7 @@ temporaries are one component's, never the whole scene's.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -315,6 +316,7 @@ def scene_captures(
     wavy: float = 0.0,
     holes: int = 0,
     no_ceiling: float = 0.0,
+    resample: Callable[[GaussianModel, int], GaussianModel] | None = None,
 ) -> SceneCaptures:
     """Two partial, differently dense, noisy captures of `scene`, each under its own Sim(3).
 
@@ -328,7 +330,8 @@ def scene_captures(
 
     independent: the target comes from a second sampling of the room (make_scene with a
     new sample_seed; real captures never share Gaussians), cut by the same half-space;
-    False: both from `scene` (their overlap then holds identical Gaussians).
+    False: both from `scene` (their overlap then holds identical Gaussians). A make_site
+    model is resampled by make_site; any other by resample(scene, sample_seed).
 
     Harder captures (each off at its default, and then no random number is drawn for it,
     so seeds keep their captures):
@@ -376,10 +379,20 @@ def scene_captures(
     second = scene
     if independent:
         meta = scene.metadata
-        if meta.get("kind") != "scene":
-            raise ValueError("independent captures need a make_scene model (its metadata says how to resample it)")
         sample_seed = int(rng.integers(1 << 30))
-        second = make_scene(meta["seed"], len(scene), sample_seed=sample_seed, **meta["scene_args"])
+        if resample is not None:
+            second = resample(scene, sample_seed)
+        elif meta.get("kind") == "scene":
+            second = make_scene(meta["seed"], len(scene), sample_seed=sample_seed, **meta["scene_args"])
+        elif meta.get("kind") == "site":
+            from gsa.synth.sites import make_site  # sites import this module
+
+            second = make_site(meta["seed"], len(scene), sample_seed=sample_seed, **meta["site_args"])
+        else:
+            raise ValueError(
+                "independent captures need a make_scene or make_site model (its metadata says how to resample it) "
+                "or resample="
+            )
         in_dst = project(second.means) <= cut_dst
     captures, poses, indices, n_floaters = [], [], [], []
     gains, holed, ceilingless, scanners = [], [], [], []

@@ -1,0 +1,123 @@
+"""Outdoor sites (issue 26): the generators (gsa.synth.sites), the site test and the scene
+path's site search (gsa.align.scene), and the `site` bench pairs."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from gsa.align import scene as S
+from gsa.align.pipeline import AlignOptions, align
+from gsa.bench.scene import scene_judge
+from gsa.bench.site import SITE_HARD, point_files, site_pairs
+from gsa.metrics import rre_deg, scale_error_pct
+from gsa.synth import make_object, scene_captures
+from gsa.synth.sites import PointSite, make_site, robust_extent
+
+GARDEN = Path(__file__).resolve().parents[2] / "shared" / "data" / "real-dev" / "garden_sfm_points.npz"
+
+
+def test_make_site_is_deterministic_and_exact():
+    a, b = make_site(seed=5, n_gaussians=20_000), make_site(seed=5, n_gaussians=20_000)
+    assert len(a) == 20_000 and a.means.dtype == np.float32
+    assert np.array_equal(a.means, b.means) and np.array_equal(a.sh, b.sh)
+    assert a.metadata["kind"] == "site" and a.metadata["extent"] > 30
+    other = make_site(seed=5, n_gaussians=20_000, sample_seed=9)
+    assert not np.array_equal(a.means, other.means)
+    # One site, two samplings: the same layout, so every Gaussian of one lies on the other.
+    assert other.metadata["objects"] == a.metadata["objects"]
+    # Wider than tall: a ground with things on it (sky floaters aside).
+    ptp = np.ptp(np.percentile(a.means, [1, 99], axis=0), axis=0)
+    assert ptp[2] < 0.5 * min(ptp[0], ptp[1])
+
+
+def test_site_args_resample_the_same_site():
+    """scene_captures resamples a site from its metadata: giving the drawn counts back must
+    not shift the layout (a shift moves every tree and the captures no longer agree)."""
+    site = make_site(seed=7, n_gaussians=30_000)
+    again = make_site(seed=7, n_gaussians=30_000, sample_seed=3, **site.metadata["site_args"])
+    assert again.metadata["objects"] == site.metadata["objects"]
+    cap = scene_captures(site, np.random.default_rng(0), sizes=(12_000, 12_000))
+    from scipy.spatial import cKDTree
+
+    d, _ = cKDTree(cap.target.means).query(cap.truth.apply(cap.source.means.astype(np.float64)))
+    assert np.median(d) < 0.005 * cap.extent_target
+
+
+def test_point_site_from_points():
+    rng = np.random.default_rng(0)
+    xy = rng.uniform(-5, 5, (3000, 2))
+    pts = np.column_stack([xy, 0.1 * np.sin(xy[:, 0])])
+    ps = PointSite(pts, rng.uniform(0, 1, (3000, 3)))
+    a, b = ps.sample(10_000, 1), ps.sample(10_000, 1)
+    assert len(a) == 10_000 and np.array_equal(a.means, b.means)
+    assert not np.array_equal(a.means, ps.sample(10_000, 2).means)
+    # Gaussians stay on the points' surface (within their spacing) and keep the extent robust.
+    assert np.abs(a.means[:, 2] - 0.1 * np.sin(a.means[:, 0])).max() < 0.1
+    assert abs(a.metadata["extent"] - robust_extent(pts)) < 1e-9
+    with pytest.raises(ValueError):
+        PointSite(pts[:10], np.zeros((10, 3)))
+
+
+@pytest.fixture(scope="module")
+def site_pair():
+    site = make_site(seed=2601, n_gaussians=170_000)
+    return scene_captures(site, np.random.default_rng([0, 26, 1]), sizes=(90_000, 100_000), **SITE_HARD)
+
+
+def test_sites_pass_the_site_test_and_objects_do_not(site_pair):
+    cap = site_pair
+    choice = S.choose(cap.source, cap.target, "auto", True, 2000)
+    assert choice.run, choice.to_dict()
+    # A shed's walls and the ground can make a room test's shell too; either way the
+    # path searches the pair as sites, as both grounds lie open to the sky.
+    anchors = [S.scene_anchors(m, S.SCENE_ANCHORS) for m in (cap.source, cap.target)]
+    sites = S._sites(*anchors)
+    assert sites is not None and all(s.sky >= S.SKY_SHARE for s in sites)
+    for model in (make_object("airplane", seed=0, n_gaussians=20_000), make_object("car", seed=1, n_gaussians=20_000)):
+        st = S.scene_structure(S.scene_anchors(model, S.test_anchor_count(len(model), 2000)), gaussians=len(model))
+        assert not st.is_scene, st.to_dict()
+
+
+def test_scene_path_aligns_a_site_pair(site_pair):
+    cap = site_pair
+    assert cap.gains[0] != cap.gains[1] and cap.wave is not None  # the harder captures
+    result = align(cap.source, cap.target, AlignOptions())
+    scene = result.metrics["scene"]
+    assert scene["ran"] and scene["kind"] == "site"
+    judged = scene_judge(result.transform, cap.truth, cap.source, cap.target)
+    assert rre_deg(result.transform.rotation, cap.truth.rotation) < 0.5
+    assert judged["translation_error_pct_extent"] < 0.5
+    assert scale_error_pct(result.transform.scale, cap.truth.scale) < 0.5
+    assert not result.metrics["doubtful"]
+
+
+def test_site_search_only_turns_about_the_ground():
+    up = np.array([0.0, 0.6, 0.8])
+    rots = S._site_rotations(np.array([0.0, 0.0, 1.0]), up)
+    assert len(rots) == 2 * 5 * round(360 / S.SITE_YAW_DEG)
+    mapped = rots @ np.array([0.0, 0.0, 1.0])
+    tilt = np.degrees(np.arccos(np.clip(np.abs(mapped @ up), -1, 1)))
+    assert tilt.max() < S.SITE_TILT_DEG + 1e-6
+    assert np.allclose(np.einsum("nij,nkj->nik", rots, rots), np.eye(3), atol=1e-9)
+
+
+def test_site_bench_pairs(tmp_path):
+    pairs = site_pairs(True, 0, data=tmp_path)  # an empty folder: generated pairs only
+    assert [label for label, _ in pairs] == ["site-0", "site-1", "site-2"]
+    with pytest.raises(ValueError):
+        point_files(tmp_path / "missing")
+
+
+@pytest.mark.skipif(not GARDEN.exists(), reason="the garden SfM points live in ../shared/data/real-dev")
+def test_garden_point_site():
+    files = point_files(GARDEN.parent)
+    assert GARDEN in files
+    labels = [label for label, _ in site_pairs(True, 0, data=GARDEN.parent)]
+    assert labels[-1] == "garden_sfm_points-0" and len(labels) == 3
+    ps = PointSite.from_file(GARDEN)
+    model = ps.sample(50_000, 0)
+    assert len(model) == 50_000 and model.metadata["points"] == 138_766
+    assert model.metadata["extent"] < 0.5 * float(np.linalg.norm(np.ptp(ps.points, axis=0)))
