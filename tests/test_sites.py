@@ -75,7 +75,7 @@ def test_sites_pass_the_site_test_and_objects_do_not(site_pair):
     # path searches the pair as sites, as both grounds lie open to the sky.
     anchors = [S.scene_anchors(m, S.SCENE_ANCHORS) for m in (cap.source, cap.target)]
     sites = S._sites(*anchors)
-    assert sites is not None and all(s.sky >= S.SKY_SHARE for s in sites)
+    assert sites is not None and all(s.open_ground for s in sites)
     for model in (make_object("airplane", seed=0, n_gaussians=20_000), make_object("car", seed=1, n_gaussians=20_000)):
         st = S.scene_structure(S.scene_anchors(model, S.test_anchor_count(len(model), 2000)), gaussians=len(model))
         assert not st.is_scene, st.to_dict()

@@ -59,7 +59,9 @@ from scipy.spatial import cKDTree
 from gsa.align import robust
 from gsa.align.choices import Progress
 from gsa.align.coarse import AlignmentError, CoarseResult
+from gsa.align.robust.anchoring import MAX_EXPOSURE_GAIN
 from gsa.align.types import AlignmentResult
+from gsa.colour import linear_to_lab, srgb_to_linear
 from gsa.geometry import axis_rotation
 from gsa.model import GaussianModel, ModelError
 from gsa.sim3 import Sim3
@@ -174,6 +176,16 @@ class Site:
     parts_weight: float
     gaussians: int = 0
     anchors: int = 0
+
+    @property
+    def open_ground(self) -> bool:
+        """A ground open to the sky (what the path's search relies on), whatever its span."""
+        return bool(
+            self.anchors >= SITE_ANCHORS
+            and self.ground_share >= GROUND_SHARE
+            and self.sky >= SKY_SHARE
+            and self.height <= SITE_HEIGHT
+        )
 
     @property
     def is_site(self) -> bool:
@@ -618,13 +630,14 @@ def align_scene(
 
 
 def _sites(src: robust.Anchors, dst: robust.Anchors) -> tuple[Site, Site] | None:
-    """Both models' site test on the path's own anchors (its parts-or-size condition
-    waived: the pair is already taken as scenes): a pair whose grounds both lie open to
-    the sky is searched as sites, whichever test took it - a walled garden passes the room
+    """Both models' site test on the path's own anchors, its ground alone (Site.open_ground:
+    the pair is already taken as scenes, and far background anchors of a real capture
+    can shrink the ground's span against the extent): a pair whose grounds both lie open
+    to the sky is searched as sites, whichever test took it - a walled garden passes the room
     test too, and the room search, blind to the ground, misses it. A room with its ceiling
     has no sky."""
     found = tuple(_site_of(a) for a in (src, dst))
-    return found if all(f.is_site for f in found) else None
+    return found if all(f.open_ground for f in found) else None
 
 
 def _site_of(a: robust.Anchors) -> Site:
@@ -654,11 +667,35 @@ def site_search(
         s_thin, d_thin, [("site", r) for r in rotations], robust.SearchOptions(rotations=0, seed=seed)
     )
     search = translation_sweep(s_thin, d_thin, search, seed)
-    # Re-scored on all anchors, so the verdict and the alternatives read what rooms' do.
+    # Re-scored on all anchors, so the verdict and the alternatives read what rooms' do,
+    # each pose's colours compared under the exposure that pose implies.
     w = search.colour_weight
-    return robust.decide(
-        _distinct_poses([robust.score_pose(src, dst, c.transform, c.origin, w) for c in search.candidates]), w
-    )
+    return robust.decide(_distinct_poses([_pose_gain_score(src, dst, c, w) for c in search.candidates]), w)
+
+
+def _pose_gain_score(src: robust.Anchors, dst: robust.Anchors, cand, w_colour: float) -> robust.Candidate:
+    """robust.score_pose with the source's colours under the linear-RGB gains that the
+    pose's own close pairs give (per channel, the median ratio). The palettes alone
+    (robust.match_exposure) often cannot tell an exposure change on a site: grass and
+    foliage are a continuum of greens that any gain maps onto itself, and the colour term
+    then counts the truth's pairs as disagreeing. At the true pose the pairs are the same
+    surfaces and the gains are the exposure's; a wrong pose pairs unrelated surfaces, and
+    no gain makes them agree. The gains are held within robust's exposure bounds."""
+    plain = robust.score_pose(src, dst, cand.transform, cand.origin, w_colour)
+    if src.rgb is None or dst.rgb is None or w_colour <= 0:
+        return plain
+    d, j = dst.tree.query(cand.transform.apply(src.points), k=1)
+    near = d <= robust.COLOUR_PAIR_DISTANCE * dst.radius
+    if near.sum() < 50:
+        return plain
+    lin_s = srgb_to_linear(src.rgb)
+    lin_d = srgb_to_linear(dst.rgb)
+    ratio = np.median(lin_d[j[near]] / np.maximum(lin_s[near], 1e-4), axis=0)
+    limit = MAX_EXPOSURE_GAIN
+    gain = np.clip(ratio, 1 / limit, limit)
+    shifted = replace(src, lab=linear_to_lab(np.clip(lin_s * gain, 0.0, 1.0)))
+    gained = robust.score_pose(shifted, dst, cand.transform, cand.origin, w_colour)
+    return gained if gained.score > plain.score else plain
 
 
 def _site_polish(
