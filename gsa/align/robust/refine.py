@@ -34,6 +34,15 @@ COINCIDENT_SPACINGS = 2.0
 COINCIDENT_SHARE = 0.5
 
 
+# The fit of two captures of one surface holds the CORE_FRACTION closest pairs (the floor of
+# overlap_fraction's grid) from the search's pose to the end. From a pose a degree or two off,
+# residuals grow smoothly everywhere and the overlap estimate reads most pairs as overlap; a
+# fit on them drifts where one capture has parts the other lacks and real captures fill
+# volumes rather than thin surfaces (a split pair of a real capture: 1.3° -> 27°). The closest
+# pairs lie where the two coincide, and their fit is exact there (docs/benchmarks.md, "real
+# captures": split pairs 96 -> 100 %, median 0.09 -> 0.04°; partial median 0.015 -> 0.006°).
+CORE_FRACTION = 0.3
+
 # Point-to-plane polish steps after the point-to-point fit converged (refine).
 PLANE_ITERATIONS = 8
 
@@ -130,7 +139,8 @@ def refine(
     one direction. Both directions: where two captures overlap only in part, a
     one-way match pulls the overlap's boundary inwards and biases the scale.
 
-    Where the converged pose shows two models that coincide nowhere (see
+    The fit holds the CORE_FRACTION closest pairs (see there). Where its pose shows two
+    models that coincide nowhere (see
     `coincide`: another instance, a deformed copy), the fit goes on with every
     pair, so that it averages the difference instead of locking onto one part.
 
@@ -140,17 +150,23 @@ def refine(
     never share points, and point-to-point pairs between them carry the sampling's
     offsets, which a pair's distance along the normal does not."""
     fit = _Fit(source_points, target_points, source_tree, target_tree, neighbours)
-    transform, history = fit.run(init, iterations, overlap_fraction)
-    if fit.differ_everywhere(transform):
-        # Its own budget: a trimmed fit on a deformed copy wanders rather than converges.
-        transform, more = fit.run(transform, iterations, lambda d: 1.0, start=len(history))
-        for step in more:
-            step["stage"] = "refine-all-pairs"
-        history += more
-    elif target_normals is not None:
-        transform, more = fit.polish(transform, target_normals, PLANE_ITERATIONS, start=len(history))
-        history += more
-    return transform, history
+    core, history = fit.run(init, iterations, lambda d: CORE_FRACTION)
+    for step in history:
+        step["stage"] = "refine-core"
+    if not fit.differ_everywhere(core):
+        if target_normals is None:
+            return core, history
+        transform, more = fit.polish(core, target_normals, PLANE_ITERATIONS, CORE_FRACTION, start=len(history))
+        return transform, history + more
+    # Models that coincide nowhere (a deformed copy): the fit on the estimated overlap from the
+    # search's pose, then on every pair, so that it averages the difference.
+    transform, more = fit.run(init, iterations, overlap_fraction, start=len(history))
+    history += more
+    # Its own budget: a trimmed fit on a deformed copy wanders rather than converges.
+    transform, more = fit.run(transform, iterations, lambda d: 1.0, start=len(history))
+    for step in more:
+        step["stage"] = "refine-all-pairs"
+    return transform, history + more
 
 
 class _Fit:
@@ -210,8 +226,10 @@ class _Fit:
                     break
         return transform, history
 
-    def polish(self, transform: Sim3, normals, iterations: int, start: int = 0) -> tuple[Sim3, list[dict]]:
-        """Point-to-plane Gauss-Newton steps on the trimmed pairs (overlap estimate held),
+    def polish(
+        self, transform: Sim3, normals, iterations: int, fraction: float, start: int = 0
+    ) -> tuple[Sim3, list[dict]]:
+        """Point-to-plane Gauss-Newton steps on the `fraction` closest pairs,
         each pair along its target Gaussian's normal weighted by its flatness; a step
         that does not lower the trimmed plane residual ends the polish."""
         n_all, flat_all, n_q, flat_q = normals
@@ -221,11 +239,8 @@ class _Fit:
         tab_f = np.ascontiguousarray(tab_f.reshape(len(self.p), -1), np.int64)
         tab_r = np.ascontiguousarray(tab_r.reshape(len(self.q), -1), np.int64)
         history: list[dict] = []
-        fraction = None
         for it in range(iterations):
             d, a, b, j = self._pairs(transform, tab_f, tab_r, with_rows=True)
-            if fraction is None:
-                fraction = overlap_fraction(d)
             keep = _smallest(d, fraction)
             n = np.concatenate([n_all[j], n_q])[keep]
             w = np.concatenate([flat_all[j], flat_q])[keep]
