@@ -89,12 +89,12 @@ VOXEL_PROBE = 200_000
 # open sky over it, its span and things standing on it.
 GROUND_DEG = 30.0
 GROUND_BAND = 1.5
-GROUND_SHARE = 0.35
+GROUND_SHARE = 0.25
 SKY_SHARE = 0.8
 GROUND_SPAN = 0.3
 SITE_HEIGHT = 0.5
 SITE_PARTS = 1
-SITE_ANCHORS = 400
+SITE_ANCHORS = 300
 SKY_OPEN = 0.95
 
 # The scene path.
