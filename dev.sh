@@ -1,9 +1,9 @@
 #!/usr/bin/env bash
 # The project's two entry points on a fresh machine:
-#   ./dev.sh demo   set up .venv, then align generated example data end to end
+#   ./dev.sh demo   set up .venv and the results page's viewer, then align generated example data end to end
 #   ./dev.sh test   set up .venv (and redis-server, docker-compose if missing), then run the test suite
 #   ./dev.sh lint   set up .venv, then ruff check and ruff format --check (CI runs it before the tests)
-#   ./dev.sh build-web   build the results page's viewer (web/ -> gsa/viewer/static/viewer.js; `test` does it too)
+#   ./dev.sh build-web   build the results page's viewer (web/ -> gsa/viewer/static/viewer.js; `demo` and `test` do it too)
 # Extra arguments go to `gsa demo` or pytest.
 set -euo pipefail
 cd "$(dirname "$0")"
@@ -40,10 +40,18 @@ setup_system_tools() {
 setup_web() {
     # The results page's 3D viewer: web/ (Spark + three, pinned by package-lock.json) bundled
     # by esbuild into gsa/viewer/static/viewer.js; rebuilt only when web/'s sources changed.
+    # With "optional" (the demo: the alignment itself needs no page) a missing npm is a warning.
     local stamp
     stamp="gsa/viewer/static/.built-$(cat web/package.json web/package-lock.json web/src/*.js | sha1sum | cut -c1-16)"
     if [ ! -f "$stamp" ] || [ ! -f gsa/viewer/static/viewer.js ]; then
-        command -v npm >/dev/null 2>&1 || { echo "dev.sh: npm (Node >= 20) is needed to build web/" >&2; exit 1; }
+        if ! command -v npm >/dev/null 2>&1; then
+            if [ "${1:-}" = optional ]; then
+                echo "dev.sh: npm (Node >= 20) not found: the results page (--preview, gsa view) is not built" >&2
+                return 0
+            fi
+            echo "dev.sh: npm (Node >= 20) is needed to build web/" >&2
+            exit 1
+        fi
         (cd web && npm ci --no-audit --no-fund --loglevel=error && npm run --silent build)
         rm -f gsa/viewer/static/.built-*
         touch "$stamp"
@@ -55,6 +63,7 @@ cmd=${1:-}
 case "$cmd" in
     demo)
         setup_python
+        setup_web optional  # the README's next example opens the results page
         exec "$VENV/bin/gsa" demo "$@"
         ;;
     test)
