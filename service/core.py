@@ -1,14 +1,17 @@
-"""Operations shared by the HTTP and gRPC front ends: ingesting uploads as
-assets, creating jobs (with idempotency), cancelling, reading artifacts."""
+"""Operations shared by the HTTP and gRPC front ends: authenticating a caller,
+ingesting uploads as assets, submitting jobs (with idempotency), cancelling,
+reading artifacts."""
 
 from __future__ import annotations
 
 import hashlib
+import hmac
 import json
 import tempfile
 import time
 import zipfile
 from collections.abc import Iterable
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, BinaryIO
 
@@ -62,19 +65,59 @@ def blob_key(owner: str, sha256: str) -> str:
     return f"cas/{hashlib.sha256(owner.encode()).hexdigest()[:32]}/{sha256}"
 
 
-def _digest(data: BinaryIO, max_bytes: int) -> str | None:
-    """sha256 of a seekable upload (then rewound); None for a stream that cannot be re-read."""
-    if not (hasattr(data, "seek") and hasattr(data, "read")):
+def owner_for_key(b: Backend, presented: str | None) -> str | None:
+    """The owner of an API key, or None. Compares against every key with
+    hmac.compare_digest so timing reveals neither the key nor which one matched."""
+    if b.settings.auth_disabled:
+        return "anonymous"
+    if not presented:
         return None
-    data.seek(0)
+    found = None
+    p = presented.encode()
+    for key, owner in b.settings.api_keys.items():
+        if hmac.compare_digest(key.encode(), p):
+            found = owner
+    return found
+
+
+def authenticate(b: Backend, presented: str | None, detail: str | None = None) -> str:
+    """The caller's owner for the API key it presented (None: no key). 401 for a missing or
+    unknown key (`detail` replaces the text that tells which), 429 past the owner's request
+    rate (one bucket for HTTP and gRPC)."""
+    owner = owner_for_key(b, presented)
+    if owner is None:
+        if detail is None:
+            detail = (
+                "a valid API key is required: Authorization: Bearer <key>"
+                if presented is None
+                else "the API key is not valid"
+            )
+        p = Problem(401, "unauthorized", "Unauthorized", detail)
+        p.headers["WWW-Authenticate"] = 'Bearer realm="gsa"'
+        raise p
+    quotas.check_rate(b, owner)
+    return owner
+
+
+def sha256_file(fh: BinaryIO, max_bytes: int | None = None) -> str:
+    """sha256 of a seekable file's bytes from its start; the file is left at its start.
+    413 once it holds more than max_bytes."""
+    fh.seek(0)
     sha, size = hashlib.sha256(), 0
-    while chunk := data.read(CHUNK):
+    while chunk := fh.read(CHUNK):
         size += len(chunk)
-        if size > max_bytes:
+        if max_bytes is not None and size > max_bytes:
             raise too_large(f"upload exceeds the limit of {max_bytes} bytes")
         sha.update(chunk)
-    data.seek(0)
+    fh.seek(0)
     return sha.hexdigest()
+
+
+def _digest(data: BinaryIO, max_bytes: int) -> str | None:
+    """sha256 of a seekable upload; None for a stream that cannot be re-read."""
+    if not (hasattr(data, "seek") and hasattr(data, "read")):
+        return None
+    return sha256_file(data, max_bytes)
 
 
 def _length(data: BinaryIO) -> int:
@@ -348,10 +391,94 @@ def create_job(
         # half-created job behind it (a worker that got the message finds no record).
         try:
             b.store.delete(job.id)
-        except Exception:
+        except Exception:  # last resort: never hides the error being answered
             pass
         raise
     return job
+
+
+@dataclass
+class Upload:
+    """One uploaded file as a front end received it: seekable (spooled), not yet stored."""
+
+    file: BinaryIO
+    filename: str | None = None
+
+
+@dataclass
+class ImageSet:
+    """Image uploads that make one input together (stored as one zip, `label`.zip)."""
+
+    images: list[Upload]
+    label: str
+
+
+# An input of a job request: an asset id the caller uploaded before, a model file, or images.
+Input = str | Upload | ImageSet
+
+
+@dataclass
+class JobRequest:
+    """A job submission as a front end parsed it (HTTP JSON or multipart, gRPC)."""
+
+    sources: list[Input]
+    target: Input
+    options: dict[str, Any]  # parsed (service.options.parse_options), checked by submit_job
+    webhook: dict | None
+    # What makes a retry with the same Idempotency-Key the same request; an Upload in it counts
+    # by its bytes' sha256. With the JSON separators its fingerprint is made with: each front
+    # end keeps its own, since a changed fingerprint turns the replay of a key claimed earlier
+    # (kept IDEM_TTL_S) into a 422.
+    identity: dict[str, Any]
+    separators: tuple[str, str] = (",", ":")
+
+
+def fingerprint(identity: Any, separators: tuple[str, str] = (",", ":")) -> str:
+    """sha256 of a request's identity as key-sorted JSON (an Upload: its bytes' sha256)."""
+
+    def value(o):
+        return sha256_file(o.file) if isinstance(o, Upload) else str(o)
+
+    text = json.dumps(identity, sort_keys=True, separators=separators, default=value)
+    return hashlib.sha256(text.encode()).hexdigest()
+
+
+def submit_job(b: Backend, owner: str, req: JobRequest, idempotency_key: str | None) -> tuple[Job, bool]:
+    """Create a job (the one path of HTTP and gRPC): check the request, claim the
+    Idempotency-Key, store the uploads as assets, create and enqueue the job. On any
+    failure nothing stays behind: not the assets stored here, not the claim. Returns
+    (job, created): created is False for a replayed Idempotency-Key."""
+    check_request(b, len(req.sources), req.options, req.webhook, owner)
+    inputs = [*req.sources, req.target]
+    given = {i: get_asset(b, owner, i) for i in inputs if isinstance(i, str)}
+    if all(isinstance(i, str) for i in inputs):  # no uploads: the memory check comes before the claim
+        check_memory(b, [given[i] for i in req.sources], given[req.target], req.options)
+    job_id, existing = claim(b, owner, idempotency_key, fingerprint(req.identity, req.separators))
+    if existing is not None:
+        return existing, False
+    made: list[Asset] = []
+
+    def stored(i: Input) -> Asset:
+        if isinstance(i, str):
+            return given[i]
+        if isinstance(i, Upload):
+            asset = ingest(b, owner, i.file, i.filename)
+        else:
+            asset = ingest_images(b, owner, [(u.filename, u.file) for u in i.images], i.label)
+        made.append(asset)
+        return asset
+
+    try:
+        sources = [stored(i) for i in req.sources]
+        target = stored(req.target)
+        job = create_job(b, owner, job_id, sources, target, req.options, req.webhook, idempotency_key)
+    except BaseException:
+        # Leave nothing behind: uploaded blobs, asset records, the idempotency claim.
+        for a in made:
+            discard_asset(b, a)
+        release(b, owner, idempotency_key)  # a retry with the key must not find it claimed
+        raise
+    return job, True
 
 
 def get_job(b: Backend, owner: str, job_id: str) -> Job:
@@ -502,10 +629,8 @@ def refine_job(
         assets.append(a)
     sources, target = assets[:-1], assets[-1]
     check_memory(b, sources, target, options)
-    fingerprint = hashlib.sha256(
-        json.dumps({"refine": parent_id, "options": options}, sort_keys=True, default=str).encode()
-    ).hexdigest()
-    job_id, existing = claim(b, owner, idempotency_key, fingerprint)
+    identity = {"refine": parent_id, "options": options}
+    job_id, existing = claim(b, owner, idempotency_key, fingerprint(identity, separators=(", ", ": ")))
     if existing is not None:
         return existing, False
     try:

@@ -3,7 +3,6 @@ as HTTP, plus the standard grpc.health.v1 service and server reflection."""
 
 from __future__ import annotations
 
-import hashlib
 import json
 import logging
 import tempfile
@@ -16,15 +15,13 @@ from google.protobuf.timestamp_pb2 import Timestamp
 from grpc_health.v1 import health, health_pb2, health_pb2_grpc
 from grpc_reflection.v1alpha import reflection
 
-from service import core, quotas, retention
-from service.api.deps import owner_for_key
-from service.api.schemas import AlignOptionsIn
+from service import core, retention
 from service.backend import Backend
 from service.grpc_gen import alignment_pb2 as pb
 from service.grpc_gen import alignment_pb2_grpc as pbg
 from service.models import Job, JobState
+from service.options import parse_options
 from service.problems import Problem, invalid_input, too_large
-from service.storage import CHUNK
 
 log = logging.getLogger("gsa.grpc")
 SERVICE_NAME = "gsa.v1.AlignmentService"
@@ -150,6 +147,49 @@ def guidance_options(g: pb.Guidance) -> dict:
     return out
 
 
+def _header_options(header: pb.SubmitHeader) -> dict:
+    """options_json with the Guidance message's hints merged in (each given in one place only)."""
+    try:
+        options = json.loads(header.options_json or "{}")
+    except ValueError:
+        raise invalid_input("options_json is not JSON") from None
+    if not isinstance(options, dict):
+        raise invalid_input("options_json must be a JSON object")
+    if header.HasField("guidance"):
+        hints = guidance_options(header.guidance)
+        twice = sorted(set(hints) & {k for k, v in options.items() if v is not None})
+        if twice:
+            raise invalid_input(f"{', '.join(twice)} given both in guidance and in options_json", option=twice[0])
+        options.update(hints)
+    return parse_options(options, "invalid options")
+
+
+def _job_request(header: pb.SubmitHeader, files: dict[tuple[int, int], core.Upload]) -> core.JobRequest:
+    """A SubmitAlignment as the service core's JobRequest: uploaded sources, else the header's
+    asset ids; the uploaded target, else target_asset_id."""
+    options = _header_options(header)
+    webhook = None
+    if header.HasField("webhook") and header.webhook.url:
+        webhook = {"url": header.webhook.url}
+        if header.webhook.secret:
+            webhook["secret"] = header.webhook.secret
+    src_up = sorted(k for k in files if k[0] == pb.ROLE_SOURCE)
+    tgt_up = [k for k in files if k[0] == pb.ROLE_TARGET]
+    if len(tgt_up) > 1 or (not tgt_up and not header.target_asset_id):
+        raise invalid_input("exactly one target is required (chunks or target_asset_id)")
+    sources = [files[k] for k in src_up] if src_up else list(header.source_asset_ids)
+    target = files[tgt_up[0]] if tgt_up else header.target_asset_id
+    identity = {
+        "files": {f"{r}:{i}": f for (r, i), f in sorted(files.items())},
+        "sources": list(header.source_asset_ids) if not src_up else [],
+        "target": header.target_asset_id if not tgt_up else "",
+        "options": options,
+        "webhook": webhook,
+        "api": "grpc",
+    }
+    return core.JobRequest(sources, target, options, webhook, identity, separators=(", ", ": "))
+
+
 class AlignmentServicer(pbg.AlignmentServiceServicer):
     def __init__(self, backend: Backend, metrics=None):
         self.b = backend
@@ -160,14 +200,7 @@ class AlignmentServicer(pbg.AlignmentServiceServicer):
         md = dict(context.invocation_metadata())
         auth = md.get("authorization", "")
         key = auth[7:] if auth.lower().startswith("bearer ") else None
-        owner = owner_for_key(self.b, key)
-        if owner is None:
-            self._abort(
-                context,
-                Problem(401, "unauthorized", "Unauthorized", "a valid API key is required"),
-            )
-        self._guard(lambda: quotas.check_rate(self.b, owner), context)  # one bucket with HTTP
-        return owner
+        return self._guard(lambda: core.authenticate(self.b, key, "a valid API key is required"), context)
 
     @staticmethod
     def _abort(context, p: Problem):
@@ -189,117 +222,50 @@ class AlignmentServicer(pbg.AlignmentServiceServicer):
         return self._guard(lambda: self._submit(owner, request_iterator), context)
 
     def _submit(self, owner, request_iterator):
-        s = self.b.settings
-        header = None
-        files: dict[tuple[int, int], list] = {}  # (role, index) -> [filename, tempfile, size]
+        files: dict[tuple[int, int], core.Upload] = {}  # (role, index) -> its chunks, spooled
         try:
-            for req in request_iterator:
-                kind = req.WhichOneof("payload")
-                if kind == "header":
-                    if header is not None:
-                        raise invalid_input("more than one SubmitHeader")
-                    header = req.header
-                    continue
-                if kind != "chunk":
-                    raise invalid_input("empty SubmitRequest")
-                if header is None:
-                    raise invalid_input("the first message must be a SubmitHeader")
-                c = req.chunk
-                if c.role not in (pb.ROLE_SOURCE, pb.ROLE_TARGET):
-                    raise invalid_input("FileChunk.role must be ROLE_SOURCE or ROLE_TARGET")
-                k = (c.role, c.index)
-                if k not in files:
-                    if len(files) > s.max_sources + 1:
-                        raise too_large("too many files")
-                    files[k] = [
-                        c.filename or None,
-                        tempfile.SpooledTemporaryFile(max_size=1 << 20),
-                        0,
-                    ]
-                f = files[k]
-                f[2] += len(c.data)
-                if f[2] > s.max_upload_bytes:
-                    raise too_large(f"file {f[0]!r} exceeds the limit of {s.max_upload_bytes} bytes")
-                f[1].write(c.data)
-            if header is None:
-                raise invalid_input("no SubmitHeader received")
-            try:
-                options = json.loads(header.options_json or "{}")
-            except ValueError:
-                raise invalid_input("options_json is not JSON") from None
-            if not isinstance(options, dict):
-                raise invalid_input("options_json must be a JSON object")
-            if header.HasField("guidance"):
-                hints = guidance_options(header.guidance)
-                twice = sorted(set(hints) & {k for k, v in options.items() if v is not None})
-                if twice:
-                    raise invalid_input(
-                        f"{', '.join(twice)} given both in guidance and in options_json", option=twice[0]
-                    )
-                options.update(hints)
-            try:
-                options = AlignOptionsIn.model_validate(options).to_dict()
-            except ValueError as exc:
-                raise invalid_input(f"invalid options: {exc}") from None
-            webhook = None
-            if header.HasField("webhook") and header.webhook.url:
-                webhook = {"url": header.webhook.url}
-                if header.webhook.secret:
-                    webhook["secret"] = header.webhook.secret
-            src_up = sorted(k for k in files if k[0] == pb.ROLE_SOURCE)
-            tgt_up = [k for k in files if k[0] == pb.ROLE_TARGET]
-            n_src = len(src_up) if src_up else len(header.source_asset_ids)
-            if len(tgt_up) > 1 or (not tgt_up and not header.target_asset_id):
-                raise invalid_input("exactly one target is required (chunks or target_asset_id)")
-            core.check_request(self.b, n_src, options, webhook, owner)
-            src_assets = [] if src_up else [core.get_asset(self.b, owner, i) for i in header.source_asset_ids]
-            tgt_asset = None if tgt_up else core.get_asset(self.b, owner, header.target_asset_id)
-
-            def digest(f):
-                h = hashlib.sha256()
-                f.seek(0)
-                while b := f.read(CHUNK):
-                    h.update(b)
-                f.seek(0)
-                return h.hexdigest()
-
-            fp = hashlib.sha256(
-                json.dumps(
-                    {
-                        "files": {f"{r}:{i}": digest(v[1]) for (r, i), v in sorted(files.items())},
-                        "sources": list(header.source_asset_ids) if not src_up else [],
-                        "target": header.target_asset_id if not tgt_up else "",
-                        "options": options,
-                        "webhook": webhook,
-                        "api": "grpc",
-                    },
-                    sort_keys=True,
-                ).encode()
-            ).hexdigest()
-            idem = header.idempotency_key or None
-            job_id, existing = core.claim(self.b, owner, idem, fp)
-            if existing is not None:
-                return job_to_pb(existing)
-            made = []
-            try:
-                for k in src_up:
-                    made.append(core.ingest(self.b, owner, files[k][1], files[k][0]))
-                sources = made[:] if src_up else src_assets
-                if tgt_up:
-                    tgt_asset = core.ingest(self.b, owner, files[tgt_up[0]][1], files[tgt_up[0]][0])
-                    made.append(tgt_asset)
-                job = core.create_job(self.b, owner, job_id, sources, tgt_asset, options, webhook, idem)
-            except BaseException:
-                for a in made:
-                    core.discard_asset(self.b, a)
-                core.release(self.b, owner, idem)
-                raise
-            if self.metrics is not None:
+            header = self._receive(request_iterator, files)
+            job, created = core.submit_job(self.b, owner, _job_request(header, files), header.idempotency_key or None)
+            if created and self.metrics is not None:
                 self.metrics.jobs_created.labels("grpc").inc()
             return job_to_pb(job)
         finally:
             for f in files.values():
-                f[1].close()
+                f.file.close()
+
+    def _receive(self, request_iterator, files: dict[tuple[int, int], core.Upload]) -> pb.SubmitHeader:
+        """Read a SubmitAlignment stream: its one SubmitHeader (returned), then FileChunks,
+        spooled into `files` by (role, index) within the upload limits."""
+        s = self.b.settings
+        header = None
+        sizes: dict[tuple[int, int], int] = {}
+        for req in request_iterator:
+            kind = req.WhichOneof("payload")
+            if kind == "header":
+                if header is not None:
+                    raise invalid_input("more than one SubmitHeader")
+                header = req.header
+                continue
+            if kind != "chunk":
+                raise invalid_input("empty SubmitRequest")
+            if header is None:
+                raise invalid_input("the first message must be a SubmitHeader")
+            c = req.chunk
+            if c.role not in (pb.ROLE_SOURCE, pb.ROLE_TARGET):
+                raise invalid_input("FileChunk.role must be ROLE_SOURCE or ROLE_TARGET")
+            k = (c.role, c.index)
+            if k not in files:
+                if len(files) > s.max_sources + 1:
+                    raise too_large("too many files")
+                files[k] = core.Upload(tempfile.SpooledTemporaryFile(max_size=1 << 20), c.filename or None)
+                sizes[k] = 0
+            sizes[k] += len(c.data)
+            if sizes[k] > s.max_upload_bytes:
+                raise too_large(f"file {files[k].filename!r} exceeds the limit of {s.max_upload_bytes} bytes")
+            files[k].file.write(c.data)
+        if header is None:
+            raise invalid_input("no SubmitHeader received")
+        return header
 
     def RefineJob(self, request, context):
         owner = self._owner(context)

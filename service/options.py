@@ -6,6 +6,8 @@ import dataclasses
 import math
 from typing import Any, Literal, NamedTuple, get_args
 
+from pydantic import BaseModel, ConfigDict, Field, model_validator
+
 from gsa.features.settings import FeatureSettings  # torch-free: safe at API start-up
 from gsa.settings_env import feature_settings_env
 from service.problems import invalid_input
@@ -278,3 +280,87 @@ def validate_options(options: dict[str, Any], settings=None) -> dict[str, Any]:
                 value=work,
             )
     return options
+
+
+def bounded_field(name: str, description: str | None = None, **kw):
+    """A field whose documented bounds come from OPTION_BOUNDS (which check_option_values enforces)."""
+    return Field(None, description=description, json_schema_extra=OPTION_BOUNDS[name].json_schema(), **kw)
+
+
+_HINT_SCHEMAS: dict[str, dict[str, Any]] = {
+    "init_transform": {
+        "type": "array",
+        "items": {"type": "array", "items": {"type": "number"}, "minItems": 4, "maxItems": 4},
+        "minItems": 4,
+        "maxItems": 4,
+    },
+    "point_pairs": {
+        "type": "object",
+        "properties": {
+            k: {"type": "array", "items": {"type": "array", "items": {"type": "number"}, "minItems": 3, "maxItems": 3}}
+            for k in ("source", "target")
+        },
+        "required": ["source", "target"],
+    },
+    "up_axes": {
+        "type": "array",
+        "items": {"type": "array", "items": {"type": "number"}, "minItems": 3, "maxItems": 3},
+        "minItems": 2,
+        "maxItems": 2,
+    },
+}
+
+
+def hint_field(name: str, description: str):
+    """A guidance field: documented in OpenAPI, checked by check_guidance_options."""
+    return Field(None, description=f"{description}; {GUIDANCE_SHAPES[name]}", json_schema_extra=_HINT_SCHEMAS[name])
+
+
+class AlignOptionsIn(BaseModel):
+    """Alignment options; fields not listed (e.g. fine_*) pass through to the
+    library's AlignOptions and are rejected with 422 if it does not know them.
+    Types, bounds and choices are checked here (422 invalid-input naming the
+    option and its bound). The HTTP schema (service.api.schemas) and gRPC's
+    options_json both parse with it."""
+
+    model_config = ConfigDict(extra="allow")
+    stages: list[str] | None = Field(None, examples=[["coarse", "fine"]], description="auto | coarse | coarse,fine")
+    features: str | None = Field(None, description="feature backend: auto | canonical | spheremap | dinov2")
+    tau_f: float | None = bounded_field("tau_f", "feature-match threshold τ_f")
+    coarse_iterations: int | None = bounded_field("coarse_iterations")
+    seed: int | None = bounded_field("seed")
+    fine_views: int | None = bounded_field("fine_views", "fine stage: rendered views")
+    fine_image_size: int | None = bounded_field("fine_image_size", "fine stage: render size in pixels (square)")
+    fine_iterations: int | None = bounded_field(
+        "fine_iterations",
+        "fine stage: optimiser steps; fine_views × fine_image_size² × fine_iterations is also capped "
+        "per job (GSA_MAX_FINE_WORK)",
+    )
+    renders: bool | None = Field(None, description="produce before/after renders (default true)")
+    outputs: list[OutputName] | None = Field(None, description="artifacts wanted (default: all)")
+    recon_iterations: int | None = bounded_field("recon_iterations", "3DGS training iterations for image-set inputs")
+    # Guidance (docs/service.md "Guided alignment"), in the input files' own coordinates. Typed
+    # loosely here: their shapes are checked by the library's check_guidance (422 naming the option).
+    init_transform: Any = hint_field("init_transform", "start from this pose; only a local refinement runs")
+    point_pairs: Any = hint_field("point_pairs", "picked point pairs: their Sim(3), then a local refinement")
+    up_axes: Any = hint_field("up_axes", "every pose keeps these up axes aligned")
+    fixed_scale: float | None = bounded_field("fixed_scale", "the answer's scale, kept through every stage")
+
+    @model_validator(mode="after")
+    def _check(self):
+        check_option_values(self.to_dict())  # raises a 422 Problem (not a pydantic error)
+        return self
+
+    def to_dict(self) -> dict[str, Any]:
+        return self.model_dump(exclude_none=True)
+
+
+def parse_options(raw: str | dict[str, Any], error: str) -> dict[str, Any]:
+    """Options as a client sent them (a JSON text or an object) -> their dict, or a 422
+    invalid-input "<error>: <why>" for a wrong type or shape."""
+    try:
+        if isinstance(raw, str):
+            return AlignOptionsIn.model_validate_json(raw).to_dict()
+        return AlignOptionsIn.model_validate(raw).to_dict()
+    except ValueError as exc:
+        raise invalid_input(f"{error}: {exc}") from None

@@ -16,27 +16,14 @@ from fastapi.responses import JSONResponse
 from service import core, retention
 from service.api.deps import B, Owner
 from service.api.openapi import JOB_BODY, problem_responses
-from service.api.schemas import AlignOptionsIn, JobCreate, JobList, JobOut, RefineIn, WebhookIn
+from service.api.schemas import JobCreate, JobList, JobOut, RefineIn, WebhookIn
 from service.api.upload import Form, parse_multipart
 from service.backend import Backend
 from service.models import JobState
-from service.problems import Problem as ProblemError
-from service.problems import invalid_input
+from service.options import parse_options
+from service.problems import Problem, invalid_input
 
 router = APIRouter()
-
-
-def _sha_file(fh) -> str:
-    h = hashlib.sha256()
-    fh.seek(0)
-    while chunk := fh.read(1 << 20):
-        h.update(chunk)
-    fh.seek(0)
-    return h.hexdigest()
-
-
-def _fingerprint(obj) -> str:
-    return hashlib.sha256(json.dumps(obj, sort_keys=True, separators=(",", ":")).encode()).hexdigest()
 
 
 def _job_response(job, created: bool) -> JSONResponse:
@@ -77,30 +64,11 @@ async def create_job(
             raise invalid_input("give either 'source' or 'sources', not both")
         options = spec.options.to_dict()
         webhook = spec.webhook.model_dump(exclude_none=True) if spec.webhook else None
-        core.check_request(b, len(ids), options, webhook, owner)
-        sources = [core.get_asset(b, owner, i) for i in ids]
-        target = core.get_asset(b, owner, spec.target)
-        core.check_memory(b, sources, target, options)  # before the Idempotency-Key is claimed
-        fp = _fingerprint(
-            {
-                "sources": ids,
-                "target": spec.target,
-                "options": options,
-                "webhook": webhook,
-            }
-        )
-        job_id, existing = core.claim(b, owner, idempotency_key, fp)
-        if existing is not None:
-            return _job_response(existing, False)
-        try:
-            job = core.create_job(b, owner, job_id, sources, target, options, webhook, idempotency_key)
-        except BaseException:
-            core.release(b, owner, idempotency_key)  # a retry with the key must not find it claimed
-            raise
-        request.app.state.metrics.jobs_created.labels("http").inc()
-        return _job_response(job, True)
+        identity = {"sources": ids, "target": spec.target, "options": options, "webhook": webhook}
+        req = core.JobRequest(list(ids), spec.target, options, webhook, identity)
+        return await _submit(request, b, owner, req, idempotency_key)
     if not ctype.startswith("multipart/form-data"):
-        raise ProblemError(
+        raise Problem(
             415,
             "unsupported-media-type",
             "Unsupported Media Type",
@@ -109,74 +77,41 @@ async def create_job(
     s = b.settings
     form = await parse_multipart(request, s.max_upload_bytes, max_files=2 * s.max_images + s.max_sources + 1)
     try:
-        return await _create_from_form(request, form, owner, b, idempotency_key)
+        return await _submit(request, b, owner, _form_request(form), idempotency_key)
     finally:
         form.close()
 
 
-async def _create_from_form(request: Request, form: Form, owner: str, b: Backend, idem: str | None):
+def _form_request(form: Form) -> core.JobRequest:
+    """A multipart job submission: model files and image sets, options as a JSON field."""
     unknown = set(form.files) - {"source", "target", "source_images", "target_images"}
     unknown |= set(form.fields) - {"options", "webhook_url", "webhook_secret"}
     if unknown:
         raise invalid_input(f"unknown form field(s): {', '.join(sorted(unknown))}")
-    src_files, tgt_files = form.files.get("source", []), form.files.get("target", [])
-    src_imgs, tgt_imgs = (
-        form.files.get("source_images", []),
-        form.files.get("target_images", []),
-    )
+    files = {k: [core.Upload(p.file, p.filename) for p in parts] for k, parts in form.files.items()}
+    src_files, tgt_files = files.get("source", []), files.get("target", [])
+    src_imgs, tgt_imgs = files.get("source_images", []), files.get("target_images", [])
     if len(tgt_files) + bool(tgt_imgs) != 1:
         raise invalid_input("exactly one target is required: a 'target' file or 'target_images'")
-    try:
-        options = AlignOptionsIn.model_validate_json(form.field("options") or "{}").to_dict()
-    except ValueError as exc:
-        raise invalid_input(f"'options' is not a valid options JSON object: {exc}") from None
+    options = parse_options(form.field("options") or "{}", "'options' is not a valid options JSON object")
     webhook = None
     if form.field("webhook_url"):
         webhook = WebhookIn(url=form.field("webhook_url"), secret=form.field("webhook_secret")).model_dump(
             exclude_none=True
         )
-    n_sources = len(src_files) + bool(src_imgs)
-    core.check_request(b, n_sources, options, webhook, owner)
-    digests = {k: [_sha_file(p.file) for p in v] for k, v in form.files.items()}
-    fp = _fingerprint({"files": digests, "options": options, "webhook": webhook})
-    job_id, existing = core.claim(b, owner, idem, fp)
-    if existing is not None:
-        return _job_response(existing, False)
-    made = []
-    try:
-        for p in src_files:
-            made.append(await run_in_threadpool(core.ingest, b, owner, p.file, p.filename))
-        if src_imgs:
-            made.append(
-                await run_in_threadpool(
-                    core.ingest_images,
-                    b,
-                    owner,
-                    [(p.filename, p.file) for p in src_imgs],
-                    "source_images",
-                )
-            )
-        sources = list(made)
-        if tgt_files:
-            target = await run_in_threadpool(core.ingest, b, owner, tgt_files[0].file, tgt_files[0].filename)
-        else:
-            target = await run_in_threadpool(
-                core.ingest_images,
-                b,
-                owner,
-                [(p.filename, p.file) for p in tgt_imgs],
-                "target_images",
-            )
-        made.append(target)
-        job = core.create_job(b, owner, job_id, sources, target, options, webhook, idem)
-    except BaseException:
-        # Leave nothing behind: uploaded blobs, asset records, the idempotency claim.
-        for a in made:
-            core.discard_asset(b, a)
-        core.release(b, owner, idem)
-        raise
-    request.app.state.metrics.jobs_created.labels("http").inc()
-    return _job_response(job, True)
+    sources: list[core.Input] = list(src_files)
+    if src_imgs:
+        sources.append(core.ImageSet(src_imgs, "source_images"))
+    target = tgt_files[0] if tgt_files else core.ImageSet(tgt_imgs, "target_images")
+    identity = {"files": files, "options": options, "webhook": webhook}
+    return core.JobRequest(sources, target, options, webhook, identity)
+
+
+async def _submit(request: Request, b: Backend, owner: str, req: core.JobRequest, idem: str | None):
+    job, created = await run_in_threadpool(core.submit_job, b, owner, req, idem)
+    if created:
+        request.app.state.metrics.jobs_created.labels("http").inc()
+    return _job_response(job, created)
 
 
 def _etag(payload: bytes) -> str:
@@ -224,7 +159,7 @@ def _decode_cursor(c: str) -> tuple[float, str]:
     try:
         t, i = json.loads(base64.urlsafe_b64decode(c + "=" * (-len(c) % 4)))
         return float(t), str(i)
-    except Exception:
+    except (TypeError, ValueError):  # not base64, not JSON (ValueError subclasses), not [time, id]
         raise invalid_input("invalid cursor") from None
 
 

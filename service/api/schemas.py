@@ -6,11 +6,11 @@ import logging
 from datetime import UTC, datetime
 from typing import Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
 from service.api.results import JobResult
 from service.models import Asset, Job, JobState
-from service.options import GUIDANCE_SHAPES, OPTION_BOUNDS, OutputName, check_option_values
+from service.options import AlignOptionsIn, hint_field
 
 log = logging.getLogger("gsa.api")
 
@@ -26,78 +26,6 @@ class Problem(BaseModel):
     instance: str | None = None
 
 
-def _bounded(name: str, description: str | None = None, **kw):
-    """A field whose documented bounds come from service.options (which enforces them)."""
-    return Field(None, description=description, json_schema_extra=OPTION_BOUNDS[name].json_schema(), **kw)
-
-
-_HINT_SCHEMAS: dict[str, dict[str, Any]] = {
-    "init_transform": {
-        "type": "array",
-        "items": {"type": "array", "items": {"type": "number"}, "minItems": 4, "maxItems": 4},
-        "minItems": 4,
-        "maxItems": 4,
-    },
-    "point_pairs": {
-        "type": "object",
-        "properties": {
-            k: {"type": "array", "items": {"type": "array", "items": {"type": "number"}, "minItems": 3, "maxItems": 3}}
-            for k in ("source", "target")
-        },
-        "required": ["source", "target"],
-    },
-    "up_axes": {
-        "type": "array",
-        "items": {"type": "array", "items": {"type": "number"}, "minItems": 3, "maxItems": 3},
-        "minItems": 2,
-        "maxItems": 2,
-    },
-}
-
-
-def _hint(name: str, description: str):
-    """A guidance field: documented in OpenAPI, checked by service.options.check_guidance_options."""
-    return Field(None, description=f"{description}; {GUIDANCE_SHAPES[name]}", json_schema_extra=_HINT_SCHEMAS[name])
-
-
-class AlignOptionsIn(BaseModel):
-    """Alignment options; fields not listed (e.g. fine_*) pass through to the
-    library's AlignOptions and are rejected with 422 if it does not know them.
-    Types, bounds and choices are checked by service.options (422 invalid-input
-    naming the option and its bound)."""
-
-    model_config = ConfigDict(extra="allow")
-    stages: list[str] | None = Field(None, examples=[["coarse", "fine"]], description="auto | coarse | coarse,fine")
-    features: str | None = Field(None, description="feature backend: auto | canonical | spheremap | dinov2")
-    tau_f: float | None = _bounded("tau_f", "feature-match threshold τ_f")
-    coarse_iterations: int | None = _bounded("coarse_iterations")
-    seed: int | None = _bounded("seed")
-    fine_views: int | None = _bounded("fine_views", "fine stage: rendered views")
-    fine_image_size: int | None = _bounded("fine_image_size", "fine stage: render size in pixels (square)")
-    fine_iterations: int | None = _bounded(
-        "fine_iterations",
-        "fine stage: optimiser steps; fine_views × fine_image_size² × fine_iterations is also capped "
-        "per job (GSA_MAX_FINE_WORK)",
-    )
-    renders: bool | None = Field(None, description="produce before/after renders (default true)")
-    outputs: list[OutputName] | None = Field(None, description="artifacts wanted (default: all)")
-    recon_iterations: int | None = _bounded("recon_iterations", "3DGS training iterations for image-set inputs")
-    # Guidance (docs/service.md "Guided alignment"), in the input files' own coordinates. Typed
-    # loosely here: their shapes are checked by the library's check_guidance (422 naming the option).
-    init_transform: Any = _hint("init_transform", "start from this pose; only a local refinement runs")
-    point_pairs: Any = _hint("point_pairs", "picked point pairs: their Sim(3), then a local refinement")
-    up_axes: Any = _hint("up_axes", "every pose keeps these up axes aligned")
-    fixed_scale: float | None = _bounded("fixed_scale", "the answer's scale, kept through every stage")
-
-    @model_validator(mode="after")
-    def _check(self):
-        check_option_values(self.to_dict())  # raises a 422 Problem (not a pydantic error)
-        return self
-
-    def to_dict(self) -> dict[str, Any]:
-        return self.model_dump(exclude_none=True)
-
-
 class RefineIn(BaseModel):
     """POST /v1/jobs/{id}:refine: where the follow-up job starts (exactly one of alternative,
     init_transform, point_pairs) and, optionally, new up_axes / fixed_scale (null drops the
@@ -105,9 +33,9 @@ class RefineIn(BaseModel):
 
     model_config = ConfigDict(extra="forbid")
     alternative: Any = Field(None, description="index into the parent result's metrics.alternatives", examples=[0])
-    init_transform: Any = _hint("init_transform", "start from this pose")
-    point_pairs: Any = _hint("point_pairs", "start from these picked pairs")
-    up_axes: Any = _hint("up_axes", "keep these up axes aligned")
+    init_transform: Any = hint_field("init_transform", "start from this pose")
+    point_pairs: Any = hint_field("point_pairs", "start from these picked pairs")
+    up_axes: Any = hint_field("up_axes", "keep these up axes aligned")
     fixed_scale: Any = Field(None, description="the answer's scale (null: free)", json_schema_extra={"type": "number"})
 
 

@@ -22,7 +22,7 @@ from pydantic import BaseModel
 from gsa.viewer.page import PAGE_HEADERS, STATIC_FILES, ResultView, ViewerNotBuilt, esc, fmt, layout, render_page
 from gsa.viewer.preview import PREVIEW_NAMES
 from service import core
-from service.api.deps import B, Owner, get_backend, owner_for_key
+from service.api.deps import B, Owner, get_backend
 from service.api.openapi import problem_responses
 from service.api.schemas import JobOut, RefineIn
 from service.backend import Backend
@@ -79,7 +79,7 @@ def browser_owner(request: Request, b: Backend, scope: str, token: str | None) -
     """The caller of a browser route: a bearer key, else the signed token (query or cookie)."""
     auth = request.headers.get("authorization", "")
     if auth[:7].lower() == "bearer ":
-        owner = owner_for_key(b, auth[7:].strip())
+        owner = core.owner_for_key(b, auth[7:].strip())
         if owner is None:
             raise Problem(401, "unauthorized", "Unauthorized", "the API key is not valid")
         return owner

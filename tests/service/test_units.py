@@ -11,9 +11,10 @@ import zipfile
 import numpy as np
 import pytest
 
-from service.jobs import InputRef, Job, JobState, SQLiteJobStore
+from service.models import InputRef, Job, JobState
 from service.problems import Problem
 from service.settings import Settings
+from service.sqlite_store import SQLiteJobStore
 from service.storage import LocalStorage, new_key
 from tests.service.conftest import ROOT
 
@@ -104,7 +105,7 @@ def test_sqlite_store_cas_persistence_and_pages(tmp_path):
 def test_redis_store_matches_sqlite_semantics(redis_url):
     import redis as redislib
 
-    from service.jobs import RedisJobStore
+    from service.redis_store import RedisJobStore
 
     r = redislib.Redis.from_url(redis_url + "/2")
     r.flushdb()  # our private test server's db 2 only
@@ -189,7 +190,7 @@ def test_zip_limits(tmp_path):
 
 
 def test_webhook_signature_and_ssrf():
-    from service.webhooks import check_url, sign, verify
+    from service.webhook_delivery import check_url, sign, verify
 
     sig = sign("k", "123", b"{}")
     assert verify("k", "123", b"{}", sig) and not verify("k", "124", b"{}", sig)
@@ -291,7 +292,7 @@ def test_cancel_queued_and_job_timeout_in_process(tmp_path, pair):
 
     from service.api.app import create_app
     from service.backend import make_backend
-    from service.worker import execute
+    from service.execution import execute
 
     s = Settings(storage_root=tmp_path, api_keys={"k": "me"}, job_timeout_s=0.0)
     H = {"Authorization": "Bearer k"}
@@ -334,3 +335,31 @@ def test_serve_grpc_host_flag_reaches_the_settings(monkeypatch):
     args = build_parser().parse_args(["serve", "--grpc-port", "50099", "--grpc-host", "127.0.0.3"])
     _settings_env(args)
     assert Settings().grpc_host == "127.0.0.3"
+
+
+def test_fingerprint_counts_uploads_by_their_bytes():
+    """An Upload in a request's identity stands for its bytes' sha256, under the separators
+    the front end gives (a changed fingerprint would turn an idempotent replay into a 422)."""
+    import hashlib
+    import json
+
+    from service.core import Upload, fingerprint, sha256_file
+
+    data = io.BytesIO(b"ply\n" * 1000)
+    sha = hashlib.sha256(data.getvalue()).hexdigest()
+    assert sha256_file(data) == sha and data.tell() == 0
+    with pytest.raises(Problem) as exc:
+        sha256_file(data, max_bytes=10)
+    assert exc.value.status == 413
+    identity = {"files": {"source": [Upload(data, "a.ply")]}, "options": {"seed": 1}}
+    plain = {"files": {"source": [sha]}, "options": {"seed": 1}}
+    for seps in ((",", ":"), (", ", ": ")):
+        want = hashlib.sha256(json.dumps(plain, sort_keys=True, separators=seps).encode()).hexdigest()
+        assert fingerprint(identity, seps) == want
+
+
+def test_grpc_front_end_does_not_import_the_http_one():
+    from tests.test_import_graph import ROOT, import_graph
+
+    graph = import_graph(ROOT, ("service",))
+    assert not sorted(m for m in graph["service.grpc_server"] if m.startswith("service.api"))
