@@ -13,10 +13,7 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 
 from gsa.geometry import normalize_quats, quat_multiply, quat_to_rotation, rotation_to_quat
-from gsa.sh import rotate_sh
-
-SH_C0 = 0.28209479177387814
-
+from gsa.sh import SH_C0, rotate_sh
 
 # Rows per block where whole-model work is done block by block to bound its temporaries.
 ROW_BLOCK = 1 << 18

@@ -11,10 +11,11 @@ from functools import lru_cache
 
 import numpy as np
 
-C0 = 0.28209479177387814
-C1 = 0.4886025119029199
-C2 = (1.0925484305920792, -1.0925484305920792, 0.31539156525252005, -1.0925484305920792, 0.5462742152960396)
-C3 = (
+# The basis' constants, defined here once (the model's DC colour, the renderer's SH colour).
+SH_C0 = 0.28209479177387814
+SH_C1 = 0.4886025119029199
+SH_C2 = (1.0925484305920792, -1.0925484305920792, 0.31539156525252005, -1.0925484305920792, 0.5462742152960396)
+SH_C3 = (
     -0.5900435899266435,
     2.890611442640554,
     -0.4570457994644658,
@@ -29,27 +30,27 @@ def sh_basis(dirs: np.ndarray, degree: int) -> np.ndarray:
     """(M, 3) unit directions -> (M, (degree+1)**2) basis values, float64."""
     d = np.asarray(dirs, np.float64)
     x, y, z = d[:, 0], d[:, 1], d[:, 2]
-    out = [np.full_like(x, C0)]
+    out = [np.full_like(x, SH_C0)]
     if degree >= 1:
-        out += [-C1 * y, C1 * z, -C1 * x]
+        out += [-SH_C1 * y, SH_C1 * z, -SH_C1 * x]
     if degree >= 2:
         xx, yy, zz, xy, yz, xz = x * x, y * y, z * z, x * y, y * z, x * z
         out += [
-            C2[0] * xy,
-            C2[1] * yz,
-            C2[2] * (2 * zz - xx - yy),
-            C2[3] * xz,
-            C2[4] * (xx - yy),
+            SH_C2[0] * xy,
+            SH_C2[1] * yz,
+            SH_C2[2] * (2 * zz - xx - yy),
+            SH_C2[3] * xz,
+            SH_C2[4] * (xx - yy),
         ]
     if degree >= 3:
         out += [
-            C3[0] * y * (3 * xx - yy),
-            C3[1] * xy * z,
-            C3[2] * y * (4 * zz - xx - yy),
-            C3[3] * z * (2 * zz - 3 * xx - 3 * yy),
-            C3[4] * x * (4 * zz - xx - yy),
-            C3[5] * z * (xx - yy),
-            C3[6] * x * (xx - 3 * yy),
+            SH_C3[0] * y * (3 * xx - yy),
+            SH_C3[1] * xy * z,
+            SH_C3[2] * y * (4 * zz - xx - yy),
+            SH_C3[3] * z * (2 * zz - 3 * xx - 3 * yy),
+            SH_C3[4] * x * (4 * zz - xx - yy),
+            SH_C3[5] * z * (xx - yy),
+            SH_C3[6] * x * (xx - 3 * yy),
         ]
     return np.stack(out, axis=1)
 

@@ -9,6 +9,8 @@ from typing import Protocol
 
 import torch
 
+from gsa.render.projection import quats_to_rotmat
+
 
 class DensityConfig(Protocol):
     """The gsa.recon.train.TrainConfig fields density control reads."""
@@ -83,9 +85,7 @@ def densify_and_prune(opt: Adam, avg_grad, cfg: DensityConfig, extent: float, rn
         if split.any():
             m = p["means"][split]
             s = scales[split]
-            q = p["quats"][split]
-            q = q / q.norm(dim=1, keepdim=True)
-            r = quat_to_rot(q)
+            r = quats_to_rotmat(p["quats"][split])
             for _ in range(2):  # two children sampled from the parent, scales / 1.6
                 off = (r @ (torch.randn_like(s) * s)[..., None])[..., 0]
                 for k in p:
@@ -111,21 +111,3 @@ def densify_and_prune(opt: Adam, avg_grad, cfg: DensityConfig, extent: float, rn
         n_new = len(add)
         new_params[k] = torch.cat([p[k].detach()[keep], add.detach()]).requires_grad_(True)
     opt.remap(new_params, keep, n_new)
-
-
-def quat_to_rot(q: torch.Tensor) -> torch.Tensor:
-    w, x, y, z = q.unbind(-1)
-    return torch.stack(
-        [
-            1 - 2 * (y * y + z * z),
-            2 * (x * y - w * z),
-            2 * (x * z + w * y),
-            2 * (x * y + w * z),
-            1 - 2 * (x * x + z * z),
-            2 * (y * z - w * x),
-            2 * (x * z - w * y),
-            2 * (y * z + w * x),
-            1 - 2 * (x * x + y * y),
-        ],
-        -1,
-    ).reshape(q.shape[:-1] + (3, 3))

@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import torch
 
+from gsa.render.constants import EPS2D, NEAR
 from gsa.render.output import split_channels
 from gsa.render.projection import colors_from_sh
 
@@ -78,8 +79,8 @@ def render_gsplat(
         ks,
         width,
         height,
-        near_plane=0.01,
-        eps2d=0.3,
+        near_plane=NEAR,
+        eps2d=EPS2D,
         sh_degree=None,
         packed=False,
         backgrounds=bg,
