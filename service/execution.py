@@ -102,7 +102,7 @@ def execute(job_id: str, backend: Backend) -> JobState | None:
                 f"the job ran longer than {s.job_timeout_s:.0f} s",
             ).to_dict()
             final = JobState.failed if finish_attempt(backend, job_id, token, JobState.failed, error=err) else None
-    except Exception as exc:
+    except Exception as exc:  # last resort: whatever the attempt raised becomes the job's outcome
         infra = infrastructure_problem(exc, s.unavailable_retry_after_s)
         if infra is not None:
             final = _retry_later(backend, job, token, exc, infra)
@@ -168,7 +168,7 @@ def _retry_later(backend: Backend, job: Job, token: str, exc: Exception, problem
         ref = backend.queue.enqueue(job.id, delay_s=delay)
         backend.store.update(job.id, queue_ref=ref, enqueued_at=time.time())
         return JobState.queued
-    except Exception:
+    except Exception:  # last resort: the attempt's own error is what the job reports
         log.exception("job %s: could not record the retry; the reaper will requeue it", job.id)
         return None
 

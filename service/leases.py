@@ -25,7 +25,7 @@ from pathlib import Path
 from service import quotas
 from service.backend import Backend, notify_webhook
 from service.models import Job, JobState
-from service.problems import Problem, infrastructure_problem
+from service.problems import Problem, infrastructure_problem, store_errors
 
 log = logging.getLogger("gsa.worker")
 
@@ -156,7 +156,7 @@ def heartbeat(
                 token=token,
                 lease_until=time.time() + lease,
             )
-        except Exception as exc:  # transient store error: the lease has slack for a few quick retries
+        except store_errors() as exc:  # transient store error: the lease has slack for a few quick retries
             log.warning("lease renewal failed for %s: %s: %s", job_id, type(exc).__name__, exc)
             wait = lease / 10
             continue
@@ -190,7 +190,7 @@ def finish_attempt(backend: Backend, job_id: str, token: str, state: JobState, *
         if job is not None:
             try:
                 quotas.record(backend, job.owner, f"job:{job_id}", sum(a.size for a in job.artifacts))
-            except Exception:  # never fails a finished job; the tenant's count is short by this job
+            except store_errors():  # never fails a finished job; the tenant's count is short by this job
                 log.warning("could not count job %s's artifacts against %s's quota", job_id, job.owner)
     return ok
 
@@ -318,7 +318,7 @@ def start_reaper(backend: Backend, stop: threading.Event) -> threading.Thread:
                 reap(backend)
                 resend_lost(backend)
                 sweep_workspaces(backend)
-            except Exception as exc:
+            except Exception as exc:  # last resort: the reaper thread outlives any one failed pass
                 if infrastructure_problem(exc) is not None:  # Redis down, disk trouble: one line, not a traceback
                     log.warning("reaper pass failed: %s: %s", type(exc).__name__, exc)
                 else:

@@ -7,23 +7,27 @@ from __future__ import annotations
 from prometheus_client import CollectorRegistry, Counter, Histogram
 from prometheus_client.core import GaugeMetricFamily, SummaryMetricFamily
 
+from service.problems import store_errors
+
 
 class _StoreCollector:
     def __init__(self, backend):
         self.b = backend
 
+    # While the store or the queue cannot answer, its families go out without samples: the
+    # scrape itself still answers (and /readyz tells why).
     def collect(self):
         jobs = GaugeMetricFamily("gsa_jobs", "Jobs by state", labels=["state"])
         try:
             for state, n in self.b.store.counts().items():
                 jobs.add_metric([state], n)
-        except Exception:
+        except store_errors():
             pass
         yield jobs
         depth = GaugeMetricFamily("gsa_queue_depth", "Jobs waiting in the queue")
         try:
             depth.add_metric([], self.b.queue.depth())
-        except Exception:
+        except store_errors():
             pass
         yield depth
         stages = SummaryMetricFamily(
@@ -34,7 +38,7 @@ class _StoreCollector:
         try:
             for stage, (n, secs) in sorted(self.b.store.stage_stats().items()):
                 stages.add_metric([stage], n, secs)
-        except Exception:
+        except store_errors():
             pass
         yield stages
 

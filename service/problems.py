@@ -68,6 +68,13 @@ _FULL = {errno.ENOSPC, getattr(errno, "EDQUOT", errno.ENOSPC), errno.EFBIG}
 _NOT_INFRA = (FileNotFoundError, IsADirectoryError, NotADirectoryError, FileExistsError)
 
 
+def store_errors() -> tuple[type[Exception], ...]:
+    """What the job store or queue raises when it cannot answer: SQLite's errors, I/O
+    errors and, when Redis is in use at all, Redis's (`except store_errors():`)."""
+    rexc = sys.modules.get("redis.exceptions")
+    return (sqlite3.Error, OSError, *((rexc.RedisError,) if rexc is not None else ()))
+
+
 def infrastructure_problem(exc: BaseException, retry_after: int = 5) -> Problem | None:
     """The problem for a failure of the service's own infrastructure (job store
     unreachable, storage full or failing), or None if `exc` is not one.

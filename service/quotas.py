@@ -20,7 +20,7 @@ import math
 import threading
 import time
 
-from service.problems import Problem
+from service.problems import Problem, store_errors
 
 log = logging.getLogger("gsa.quotas")
 
@@ -115,7 +115,7 @@ def check_rate(b, owner: str) -> None:
         return
     try:
         wait = limiter.acquire(owner)
-    except Exception as exc:  # Redis down: the request's own store access answers 503
+    except store_errors() as exc:  # Redis down: the request's own store access answers 503
         log.debug("rate limiter unavailable: %s", exc)
         return
     if wait > 0:
@@ -192,5 +192,5 @@ def forget(b, owner: str, item: str) -> None:
     """The item's bytes are gone; never hides the caller's own error."""
     try:
         b.store.drop_usage(owner, item)
-    except Exception as exc:
+    except store_errors() as exc:
         log.warning("could not update %s's storage usage for %s: %s", owner, item, exc)

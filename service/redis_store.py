@@ -253,7 +253,9 @@ class RedisJobStore:
         return {k.decode(): (int(v), float(secs.get(k, 0))) for k, v in counts.items()}
 
     def ping(self):
+        from redis.exceptions import RedisError  # loaded with the client that made self.r
+
         try:
             return bool(self.r.ping())
-        except Exception:
+        except RedisError:
             return False

@@ -120,7 +120,7 @@ def start_retention(b: Backend, stop: threading.Event) -> threading.Thread | Non
         while True:
             try:
                 sweep(b)
-            except Exception as exc:
+            except Exception as exc:  # last resort: the sweep thread outlives any one failed pass
                 if infrastructure_problem(exc) is not None:  # Redis down, disk trouble: next pass
                     log.warning("retention sweep failed: %s: %s", type(exc).__name__, exc)
                 else:

@@ -17,6 +17,7 @@ from pathlib import Path
 from service.backend import Backend, process_backend
 from service.execution import execute
 from service.leases import reap, start_reaper, sweep_workspaces
+from service.problems import store_errors
 
 log = logging.getLogger("gsa.worker")
 
@@ -35,7 +36,7 @@ def start_embedded_workers(backend: Backend, stop: threading.Event) -> list[thre
                 try:
                     if execute(job_id, backend) is not None:
                         ran = True
-                except Exception:
+                except Exception:  # last resort: one job's unforeseen error never stops the worker thread
                     log.exception("embedded worker error on %s", job_id)
             if not ran:
                 backend.queue.wake.wait(1.0)
@@ -189,7 +190,7 @@ def run_rq_worker(burst: bool = False, name: str | None = None) -> None:
     _warm_up()
     try:
         sweep_workspaces(backend)  # what a SIGKILLed horse on this machine left behind
-    except Exception as exc:  # Redis not up yet: the reaper sweeps later
+    except store_errors() as exc:  # Redis not up yet: the reaper sweeps later
         log.warning("start-up sweep of job temp folders skipped: %s", exc)
     stop = threading.Event()
     start_reaper(backend, stop)
@@ -235,7 +236,7 @@ def run_rq_worker(burst: bool = False, name: str | None = None) -> None:
 def _redis_up(backend: Backend) -> bool:
     try:
         return bool(backend.redis.ping())
-    except Exception:
+    except store_errors():
         return False
 
 
@@ -258,5 +259,5 @@ def _wait_for_redis(backend: Backend, why: str, retry: int, delay: float, cap: f
             if backend.redis.ping():
                 log.warning("Redis is back; restarting the worker (reconnect attempt %d)", retry)
                 return delay, retry
-        except Exception as exc:
+        except store_errors() as exc:
             why = f"{type(exc).__name__}: {exc}"

@@ -284,5 +284,5 @@ class SQLiteJobStore:
             with self.lock:
                 self.db.execute("SELECT 1")
             return True
-        except Exception:
+        except sqlite3.Error:
             return False

@@ -236,10 +236,12 @@ class S3Storage:
         return int(self.s3.head_object(Bucket=self.bucket, Key=self._k(key))["ContentLength"])
 
     def exists(self, key):
+        from botocore.exceptions import BotoCoreError, ClientError  # boto3's own dependency
+
         try:
             self.size(key)
             return True
-        except Exception:
+        except (BotoCoreError, ClientError):  # 404, and an S3 that cannot answer
             return False
 
     def delete(self, key):
@@ -255,10 +257,12 @@ class S3Storage:
                 self.s3.delete_objects(Bucket=self.bucket, Delete={"Objects": objs, "Quiet": True})
 
     def ping(self):
+        from botocore.exceptions import BotoCoreError, ClientError
+
         try:
             self.s3.head_bucket(Bucket=self.bucket)
             return True
-        except Exception:
+        except (BotoCoreError, ClientError):
             return False
 
     def download(self, key, dest):

@@ -211,7 +211,7 @@ def deliver_with_retries(store, job_id: str, settings) -> bool:
         try:
             post_job_event(store, job_id, settings)
             return True
-        except Exception as exc:
+        except Exception as exc:  # last resort: any failure to deliver is retried, then given up
             log.warning("webhook for %s failed (attempt %d): %s", job_id, attempt + 1, exc)
             time.sleep(delay)
             delay = min(delay * 5, 600)

@@ -1,4 +1,4 @@
-"""The worker's public entry points, kept at this address on purpose.
+"""The worker's entry points, kept at this address on purpose.
 
 RQ messages name their task as "service.worker.run_job" (see
 service.backend.RQQueue.enqueue), and `gsa worker` starts run_rq_worker from
@@ -11,6 +11,4 @@ here, so these names must stay importable from service.worker. The code lives in
 
 from __future__ import annotations
 
-from service.execution import execute  # noqa: F401
-from service.leases import reap, resend_lost, start_reaper  # noqa: F401
-from service.runners import run_job, run_rq_worker, start_embedded_workers  # noqa: F401
+from service.runners import run_job, run_rq_worker  # noqa: F401  (RQ resolves run_job by this name)

@@ -10,7 +10,7 @@ import redis as redislib
 from service import redis_store, store
 from service.backend import make_backend
 from service.core import claim, create_job
-from service.jobs import Asset
+from service.models import Asset
 from service.problems import Problem
 from service.settings import Settings
 

@@ -10,9 +10,9 @@ import redis as redislib
 
 from service.backend import make_backend
 from service.core import create_job
-from service.jobs import Asset
+from service.leases import resend_lost
+from service.models import Asset
 from service.settings import Settings
-from service.worker import resend_lost
 
 
 def test_a_queued_message_no_list_holds_is_resent(redis_url, tmp_path):

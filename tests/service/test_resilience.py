@@ -169,9 +169,9 @@ def test_storage_errors_are_507_or_503_and_jobs_retry_them(tmp_path, pair, monke
 
     from service.api.app import create_app
     from service.backend import make_backend
+    from service.execution import execute
     from service.models import JobState
     from service.settings import Settings
-    from service.worker import execute
 
     # No back-off here, so the retry can run at once (back-off: test_retry_backoff.py).
     s = Settings(storage_root=tmp_path / "data", api_keys={"k": "me"}, max_attempts=2, retry_backoff_base_s=0)
@@ -226,9 +226,9 @@ def test_every_exit_path_removes_the_job_temp_folder(tmp_path, pair, monkeypatch
 
     import gsa.align.pipeline as pipeline
     from service.backend import make_backend
+    from service.execution import execute
     from service.models import JobState
     from service.settings import Settings
-    from service.worker import execute
 
     tmp = tmp_path / "tmp"
     tmp.mkdir()
