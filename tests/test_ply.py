@@ -97,6 +97,8 @@ def _bad(tmp_path, data: bytes):
         (lambda b: b.replace(b"binary_little_endian", b"binary_middle_endian"), "unknown format"),
         (lambda b: b.replace(b"element vertex 100", b"element vertex 99999999999"), "exceeds the limit"),
         (lambda b: b.replace(b"property float f_rest_44\n", b""), "f_rest"),
+        # a bare 'property' line (the service fuzzer's; it used to escape as IndexError)
+        (lambda b: b.replace(b"property float nz", b"property\nfloat nz"), "unknown property type"),
     ],
     ids=[
         "not-ply",
@@ -109,6 +111,7 @@ def _bad(tmp_path, data: bytes):
         "format",
         "absurd-count",
         "sh-layout",
+        "bare-property",
     ],
 )
 def test_bad_files_get_one_clear_error(tmp_path, car_model, mutate, message):

@@ -22,6 +22,7 @@ from pathlib import Path
 
 import numpy as np
 
+from gsa.errors import GSAError
 from gsa.io.atomic import mkstemp_for
 from gsa.model import ROW_BLOCK, GaussianModel, ModelError, sh_coeff_count
 
@@ -56,7 +57,7 @@ class ReaderWarning(UserWarning):
     names the file and says what changed (one line)."""
 
 
-class PlyError(ValueError):
+class PlyError(GSAError, ValueError):
     """A file that is not a readable 3DGS PLY; the message names file and problem."""
 
     def __init__(self, path: str | os.PathLike, problem: str):
@@ -141,7 +142,7 @@ def _parse_header(
         elif tok[0] == "property":
             if not elements:
                 raise PlyError(path, f"header line {lineno}: property before any element")
-            if tok[1] == "list":
+            if len(tok) > 1 and tok[1] == "list":
                 if len(tok) != 5:
                     raise PlyError(path, f"header line {lineno}: malformed list property {line!r}")
                 elements[-1][2].append((tok[4], "list"))
