@@ -165,12 +165,14 @@ def make_backend(settings: Settings | None = None) -> Backend:
 _process_backend: Backend | None = None
 
 
-def process_backend() -> Backend:
-    """The backend of this process, made from the environment on first use: what
-    RQ tasks (job runs, webhook deliveries) use, since RQ passes them only ids."""
+def process_backend(settings: Settings | None = None) -> Backend:
+    """The backend of this process, made on first use from `settings` (default: the
+    environment's): what RQ tasks (job runs, webhook deliveries) use, since RQ passes
+    them only ids. `gsa worker` makes it from its flags before it forks work horses,
+    which inherit it."""
     global _process_backend
     if _process_backend is None:
-        _process_backend = make_backend()
+        _process_backend = make_backend(settings)
     return _process_backend
 
 

@@ -108,20 +108,24 @@ def _intermixed(parser: argparse.ArgumentParser) -> None:
     parser.parse_known_args = parse_known_args
 
 
-def _settings_env(args) -> None:
-    # Settings are read from the environment (also by forked RQ work horses).
-    if getattr(args, "redis_url", None):
-        os.environ["GSA_REDIS_URL"] = args.redis_url
-    if getattr(args, "storage_root", None):
-        os.environ["GSA_STORAGE_ROOT"] = args.storage_root
-    if getattr(args, "grpc_port", None):
-        os.environ["GSA_GRPC_PORT"] = str(args.grpc_port)
-    if getattr(args, "grpc_host", None):
-        os.environ["GSA_GRPC_HOST"] = args.grpc_host
-    if getattr(args, "workers", None):
-        os.environ["GSA_EMBEDDED_WORKERS"] = str(args.workers)
-    if getattr(args, "no_auth", False):
-        os.environ["GSA_AUTH_DISABLED"] = "true"
+# Flags of `gsa serve` / `gsa worker` -> the Settings field each one sets.
+_FLAG_SETTINGS = {
+    "redis_url": "redis_url",
+    "storage_root": "storage_root",
+    "grpc_port": "grpc_port",
+    "grpc_host": "grpc_host",
+    "workers": "embedded_workers",
+    "no_auth": "auth_disabled",
+}
+
+
+def _settings(args):
+    """The process's one settings object, made and validated at start-up: the environment's
+    GSA_* values, with the flags given on the command line over them."""
+    from service.settings import Settings
+
+    given = {field: getattr(args, flag) for flag, field in _FLAG_SETTINGS.items() if getattr(args, flag, None)}
+    return Settings(**given)
 
 
 def cmd_serve(args) -> int:
@@ -133,10 +137,8 @@ def cmd_serve(args) -> int:
 
     from service.api.app import create_app
     from service.logs import configure_logging
-    from service.settings import Settings
 
-    _settings_env(args)
-    settings = Settings()
+    settings = _settings(args)
     configure_logging(args.log_level, settings.log_format)
     mode = "embedded (SQLite + in-process worker)" if settings.embedded else f"distributed (Redis {settings.redis_url})"
     if settings.log_format == "json":
@@ -159,12 +161,11 @@ def cmd_serve(args) -> int:
 
 def cmd_worker(args) -> int:
     from service.logs import configure_logging
-    from service.settings import Settings
     from service.worker import run_rq_worker
 
-    _settings_env(args)
-    configure_logging("INFO", Settings().log_format)
-    run_rq_worker(burst=args.burst, name=args.name)
+    settings = _settings(args)
+    configure_logging("INFO", settings.log_format)
+    run_rq_worker(burst=args.burst, name=args.name, settings=settings)
     return 0
 
 

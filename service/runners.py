@@ -18,6 +18,7 @@ from service.backend import Backend, process_backend
 from service.execution import execute
 from service.leases import reap, start_reaper, sweep_workspaces
 from service.problems import store_errors
+from service.settings import Settings
 
 log = logging.getLogger("gsa.worker")
 
@@ -170,7 +171,7 @@ def _scheduler_dies_with_its_worker() -> None:
     rq_scheduler.run = run
 
 
-def run_rq_worker(burst: bool = False, name: str | None = None) -> None:
+def run_rq_worker(burst: bool = False, name: str | None = None, settings: Settings | None = None) -> None:
     """A worker process: RQ worker on the job + webhook queues, plus a reaper.
 
     RQ's work loop gives up ("... quitting") on most Redis errors (a restart, a
@@ -183,7 +184,7 @@ def run_rq_worker(burst: bool = False, name: str | None = None) -> None:
     from redis.exceptions import TimeoutError as RedisTimeoutError
     from rq import Worker  # lazy: embedded mode runs without RQ
 
-    backend = process_backend()
+    backend = process_backend(settings)
     if backend.redis is None:
         raise SystemExit("gsa worker needs GSA_REDIS_URL (embedded mode runs workers inside `gsa serve`)")
     s = backend.settings

@@ -323,18 +323,26 @@ def test_cancel_queued_and_job_timeout_in_process(tmp_path, pair):
         assert job["artifacts"] == [] and job["attempts"] == 1
 
 
-def test_serve_grpc_host_flag_reaches_the_settings(monkeypatch):
-    from gsa.cli import build_parser
-    from service.cli import _settings_env
-    from service.settings import Settings
+def test_serve_flags_reach_the_settings_not_the_environment(monkeypatch):
+    """`gsa serve` makes its settings from the environment with its flags over it, and
+    leaves the environment as it was."""
+    import os
 
-    # setenv first: monkeypatch then restores both variables, which _settings_env writes directly
-    for name in ("GSA_GRPC_HOST", "GSA_GRPC_PORT"):
-        monkeypatch.setenv(name, "")
-        monkeypatch.delenv(name)
-    args = build_parser().parse_args(["serve", "--grpc-port", "50099", "--grpc-host", "127.0.0.3"])
-    _settings_env(args)
-    assert Settings().grpc_host == "127.0.0.3"
+    from gsa.cli import build_parser
+    from service.cli import _settings
+
+    monkeypatch.setenv("GSA_GRPC_HOST", "127.0.0.2")
+    monkeypatch.setenv("GSA_MAX_SOURCES", "3")
+    for name in ("GSA_GRPC_PORT", "GSA_AUTH_DISABLED", "GSA_EMBEDDED_WORKERS"):
+        monkeypatch.delenv(name, raising=False)
+    args = build_parser().parse_args(
+        ["serve", "--grpc-port", "50099", "--grpc-host", "127.0.0.3", "--no-auth", "--workers", "2"]
+    )
+    s = _settings(args)
+    assert (s.grpc_host, s.grpc_port, s.auth_disabled, s.embedded_workers) == ("127.0.0.3", 50099, True, 2)
+    assert s.max_sources == 3  # the environment's, where no flag is given
+    assert os.environ["GSA_GRPC_HOST"] == "127.0.0.2" and "GSA_GRPC_PORT" not in os.environ
+    assert _settings(build_parser().parse_args(["serve"])).grpc_host == "127.0.0.2"
 
 
 def test_fingerprint_counts_uploads_by_their_bytes():
