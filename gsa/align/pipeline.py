@@ -409,7 +409,10 @@ class _Pair:
     def judge(self, transform: Sim3, search: robust.SearchResult | None) -> dict:
         """Confidence in [0, 1], ambiguity and the alternative poses (GT-free)."""
         src, dst = self.anchors()
-        w_colour = search.colour_weight if search is not None else robust.colour_weight(src, dst)
+        if search is not None:
+            w_colour = search.colour_weight
+        else:
+            w_colour = robust.colour_trust(src, dst, 0.5 * (robust.colour_noise(src) + robust.colour_noise(dst)))
         src_tree, dst_tree = self.kept_trees
         rng = np.random.default_rng(self.opts.seed)
         p = src_tree.data[_subsample(rng, src_tree.n, JUDGE_POINTS)]

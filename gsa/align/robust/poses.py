@@ -9,7 +9,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 from scipy.spatial import cKDTree
 
-from gsa.align.robust.anchoring import Anchors
+from gsa.align.robust.anchoring import Anchors, colour_weight
 from gsa.geometry import rotation_distance_deg
 from gsa.sim3 import DegenerateCorrespondencesError, Sim3, solve_sim3
 
@@ -40,6 +40,14 @@ COLOUR_MISMATCH_LIMIT = 2.0
 COLOUR_NOISE_FLOOR = 0.02
 COLOUR_SWITCH_WINDOW = 2 * SCORE_TIE
 COLOUR_SWITCH_RATIO = 2.0
+# A pair's colour factor is 1 − 2w(1 − k) (_pair_scores). Two captures of one surface, aligned,
+# disagree about as much as each model's neighbouring anchors do (colour_noise n), so a right
+# pose's pairs get 1 − 2wn on average. Where a texture varies at the anchors' spacing (n ≈ 0.75
+# on reconstructions of a finely printed object) full trust made that negative: every pose
+# scored below zero and the one overlapping least won (a 180° flip, issue 26). colour_trust caps
+# w at NOISE_TRUST / n, where the right pose's pairs stop counting against it; no capture the
+# protocols use has n above 0.5 (docs/benchmarks.md, reconstruction), so their trust is unchanged.
+NOISE_TRUST = 0.5
 
 
 @dataclass
@@ -196,6 +204,13 @@ def score_pose(src: Anchors, dst: Anchors, transform: Sim3, origin: str = "", w_
     colour = float(np.mean(np.exp(-0.5 * (de / COLOUR_SIGMA) ** 2))) if len(de) else 0.0
     overlap = float(0.5 * (pair_f.mean() + pair_r.mean()))
     return Candidate(transform, origin, score, geometry, colour, overlap)
+
+
+def colour_trust(src: Anchors, dst: Anchors, noise: float) -> float:
+    """How far colour counts in the scores: the palettes' agreement (colour_weight), capped
+    where the models' own colour noise (mean colour_noise) would make a right pose's pairs
+    count against it (NOISE_TRUST)."""
+    return min(colour_weight(src, dst), NOISE_TRUST / noise) if noise > 0 else colour_weight(src, dst)
 
 
 def colour_noise(a: Anchors) -> float:

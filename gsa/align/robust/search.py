@@ -10,7 +10,7 @@ from dataclasses import dataclass
 import numba
 import numpy as np
 
-from gsa.align.robust.anchoring import Anchors, NearestGrid, _sample, colour_weight, grid_index
+from gsa.align.robust.anchoring import Anchors, NearestGrid, _sample, grid_index
 from gsa.align.robust.placement import placed_starts
 from gsa.align.robust.poses import (
     COLOUR_SIGMA,
@@ -23,6 +23,7 @@ from gsa.align.robust.poses import (
     _dedupe,
     bidirectional_icp,
     colour_noise,
+    colour_trust,
     decide,
     score_pose,
 )
@@ -85,8 +86,8 @@ def global_search(
     dst_grid = NearestGrid(dst.points, 0.5 * tau, dst.radius)
     src_grid = NearestGrid(src.points, 0.5 * tau / scale0, src.radius)
 
-    w_colour = colour_weight(src, dst)
     noise = 0.5 * (colour_noise(src) + colour_noise(dst))
+    w_colour = colour_trust(src, dst, noise)
     scorer = _GridScorer(src, dst, dst_grid, src_grid, rng, opts.score_points, tau, w_colour)
     # Centres and RMS radii are only a first guess: a capture that missed a side has
     # its centroid moved by up to a radius and its radius off by up to ~40 %.
