@@ -385,6 +385,35 @@ def test_image_set_job(http, pair):
     assert job["artifacts"] == []
 
 
+def test_multipart_image_sets_replay_and_leave_nothing_on_failure(http, stack, pair):
+    """source_images / target_images: each list of images becomes one image-set asset; the
+    same request with its Idempotency-Key replays the job; when the target's images are bad,
+    the source's image set already stored is discarded and the key can be used again."""
+    images = [("source_images", (f"{i}.png", _png(16, 12))) for i in range(3)]
+    files = [*images, ("target", ("t.ply", pair["target"].read_bytes()))]
+    key = {"Idempotency-Key": f"image-sets-{id(files)}"}
+    r = http.post("/v1/jobs", files=files, headers=key)
+    assert r.status_code == 202, r.text
+    job = r.json()
+    src = http.get(f"/v1/assets/{job['sources'][0]}").json()
+    assert (src["kind"], src["n_images"], src["filename"]) == ("images", 3, "source_images.zip")
+    again = http.post("/v1/jobs", files=files, headers=key)
+    assert again.status_code == 202 and again.json()["id"] == job["id"], again.text
+    assert again.headers["Idempotent-Replayed"] == "true"
+    http.post(f"/v1/jobs/{job['id']}:cancel")
+    wait_job(http, job["id"])
+
+    before = _blob_count(stack), _asset_count(stack)
+    bad = [*images[:2], ("target_images", ("t.png", b"\x89PNG\r\n\x1a\n not a picture"))]
+    other = {"Idempotency-Key": key["Idempotency-Key"] + "-bad"}
+    assert_problem(http.post("/v1/jobs", files=bad, headers=other), 422, "invalid-input")
+    assert (_blob_count(stack), _asset_count(stack)) == before
+    fixed = [*images[:2], ("target_images", ("t.png", _png(16, 12)))]
+    r = http.post("/v1/jobs", files=fixed, headers=other)  # the failed request left no claim
+    assert r.status_code == 202, r.text
+    http.post(f"/v1/jobs/{r.json()['id']}:cancel")
+
+
 def test_ops_endpoints_and_openapi(stack, http):
     assert httpx.get(stack["url"] + "/healthz").json()["status"] == "ok"
     ready = httpx.get(stack["url"] + "/readyz").json()
