@@ -23,34 +23,15 @@ from pathlib import Path
 
 import numpy as np
 
+from gsa.errors import GSAError
+
 EXIT_FAILED = 1
 # gsa.io.formats.FORMATS, spelled out so building the parser imports nothing (a test checks they agree)
 FORMAT_CHOICES = ("ply", "compressed-ply", "splat", "ksplat", "spz", "sog", "glb")
 
 
-class CliError(Exception):
+class CliError(GSAError):
     """An error to show as one line."""
-
-
-# Errors shown as one line: (module, class). Looked up only in modules already imported
-# (an exception cannot come from a module that never loaded), so `main` need not import
-# gsa.recon (OpenCV) or gsa.align.coarse (numba, scipy) for a verb that does not use them.
-_ONE_LINE_ERRORS = (
-    ("gsa.io.ply", "PlyError"),
-    ("gsa.align.coarse", "AlignmentError"),
-    ("gsa.model", "ModelError"),
-    ("gsa.recon.sfm", "SfMError"),
-    ("gsa.recon.masks", "MaskError"),
-)
-
-
-def _one_line_error_types() -> tuple[type[BaseException], ...]:
-    types: list[type[BaseException]] = [CliError, ValueError]
-    for module, name in _ONE_LINE_ERRORS:
-        loaded = sys.modules.get(module)
-        if loaded is not None and isinstance(getattr(loaded, name, None), type):
-            types.append(getattr(loaded, name))
-    return tuple(types)
 
 
 class _LazyChoices(Sequence):
@@ -607,6 +588,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 def _add_module_commands(sub) -> None:
     """Commands defined beside their modules; the service verbs only with the service extra."""
+    from gsa.align.many_command import add_align_many_parser
     from gsa.features.command import add_lift_parser
     from gsa.recon.command import add_reconstruct_parser
     from gsa.render.command import add_render_parser
@@ -616,6 +598,7 @@ def _add_module_commands(sub) -> None:
     add_lift_parser(sub)
     add_reconstruct_parser(sub)
     add_view_parser(sub)
+    add_align_many_parser(sub)
     # Verbs of other packages (the service's `serve`, `worker`, `submit`, ...) come through
     # the "gsa.commands" entry point group: service/ depends on gsa/, never the reverse.
     for entry in entry_points(group="gsa.commands"):
@@ -672,14 +655,12 @@ def main(argv: list[str] | None = None) -> int:
     except KeyboardInterrupt:
         print("gsa: interrupted", file=sys.stderr)
         return 130
-    except Exception as exc:
-        if isinstance(exc, _one_line_error_types()):
-            print(f"gsa: error: {exc}", file=sys.stderr)
-            return EXIT_FAILED
-        if isinstance(exc, OSError):
-            print(f"gsa: error: {exc.filename or ''}: {exc.strerror or exc}", file=sys.stderr)
-            return EXIT_FAILED
-        raise
+    except (GSAError, ValueError) as exc:  # the library's errors; a ValueError: an argument refused
+        print(f"gsa: error: {exc}", file=sys.stderr)
+        return EXIT_FAILED
+    except OSError as exc:
+        print(f"gsa: error: {exc.filename or ''}: {exc.strerror or exc}", file=sys.stderr)
+        return EXIT_FAILED
     finally:
         if program:
             # Exit without the interpreter's final collections over that heap: they cost

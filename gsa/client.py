@@ -21,10 +21,12 @@ from typing import Any
 
 import httpx
 
+from gsa import errors
+
 TERMINAL = ("succeeded", "failed", "cancelled")
 
 
-class GSAError(Exception):
+class ServiceError(errors.GSAError):
     """An error answer from the service; `.problem` holds the RFC 9457 body."""
 
     def __init__(self, status: int, problem: dict, request_id: str | None = None):
@@ -47,6 +49,11 @@ class GSAError(Exception):
         return text
 
 
+# The name ServiceError had before the library's base took it (gsa.errors.GSAError): still
+# imported by service/cli.py and tests/service/test_http.py.
+GSAError = ServiceError
+
+
 def _reason(status: int) -> str:
     from http import HTTPStatus
 
@@ -56,7 +63,7 @@ def _reason(status: int) -> str:
         return "Error"
 
 
-class ServiceUnreachable(ConnectionError):
+class ServiceUnreachable(errors.GSAError, ConnectionError):
     """The service could not be reached at all (refused, unresolvable host,
     connect timeout, connection dropped): no answer to report, only why."""
 
@@ -98,7 +105,7 @@ class _Client(httpx.Client):
             raise ServiceUnreachable(self.server, _reason(exc)) from exc
 
 
-class JobFailed(GSAError):
+class JobFailed(ServiceError):
     def __init__(self, job: dict):
         self.job = job
         err = job.get("error") or {"title": f"job {job.get('state')}"}
@@ -140,7 +147,7 @@ class GSAClient:
                 body = None
             if not isinstance(body, dict):  # not problem+json: a proxy's page, plain text
                 body = {"title": r.reason_phrase, "detail": r.text[:500]}
-            raise GSAError(r.status_code, body, r.headers.get("x-request-id"))
+            raise ServiceError(r.status_code, body, r.headers.get("x-request-id"))
         return r
 
     # ---------------------------------------------------------------- assets

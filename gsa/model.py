@@ -12,6 +12,7 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
+from gsa.errors import GSAError
 from gsa.geometry import normalize_quats, quat_multiply, quat_to_rotation, rotation_to_quat
 from gsa.sh import SH_C0, rotate_sh
 
@@ -24,7 +25,7 @@ def _bad_rows(block: np.ndarray) -> int:
     return 0 if finite.all() else int((~finite).reshape(len(block), -1).any(axis=1).sum())
 
 
-class ModelError(ValueError):
+class ModelError(GSAError, ValueError):
     """A GaussianModel whose arrays are inconsistent or not finite."""
 
 

@@ -11,10 +11,11 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from gsa.errors import GSAError
 from gsa.geometry import quat_to_rotation, rotation_to_quat
 
 
-class DegenerateCorrespondencesError(ValueError):
+class DegenerateCorrespondencesError(GSAError, ValueError):
     """Too few, collinear or coincident correspondences to fix a similarity."""
 
 

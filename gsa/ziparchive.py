@@ -30,11 +30,13 @@ from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path, PurePosixPath, PureWindowsPath
 
+from gsa.errors import GSAError
+
 SUPPORTED_METHODS = frozenset({zipfile.ZIP_STORED, zipfile.ZIP_DEFLATED, zipfile.ZIP_BZIP2, zipfile.ZIP_LZMA})
 CHUNK = 1 << 20
 
 
-class ZipArchiveError(ValueError):
+class ZipArchiveError(GSAError, ValueError):
     """A zip archive refused. `limit` is True when it is well-formed but over a size
     limit (the service answers 413), False for a defect (422)."""
 

@@ -20,13 +20,14 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from gsa.align.nearest import nearest_candidate, query_workers
+from gsa.errors import GSAError
 from gsa.geometry import rotation_angle
 from gsa.sim3 import DegenerateCorrespondencesError, Sim3, solve_sim3
 
 Progress = Callable[[str, float], None]
 
 
-class AlignmentError(ValueError):
+class AlignmentError(GSAError, ValueError):
     """The inputs cannot be aligned (no feature-compatible correspondences, ...)."""
 
 

@@ -41,8 +41,10 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
+from gsa.errors import GSAError
 
-class WeightsError(ValueError):
+
+class WeightsError(GSAError, ValueError):
     """A weight file or folder named by a setting is missing or unreadable."""
 
 

@@ -17,6 +17,7 @@ import struct
 
 import numpy as np
 
+from gsa.errors import GSAError
 from gsa.io.ply import ALPHA_EPS
 from gsa.model import GaussianModel, sh_coeff_count
 from gsa.sim3 import Sim3
@@ -34,7 +35,7 @@ _COMPONENTS = {
 _WIDTH = {"SCALAR": 1, "VEC3": 3, "VEC4": 4}
 
 
-class GlbError(ValueError):
+class GlbError(GSAError, ValueError):
     """A GLB that is not a readable KHR_gaussian_splatting asset."""
 
 

@@ -22,6 +22,7 @@ import zlib
 
 import numpy as np
 
+from gsa.errors import GSAError
 from gsa.model import GaussianModel, sh_coeff_count
 
 GAUSSFORGE_NAMES = {"compressed-ply": "compressed.ply", "ksplat": "ksplat", "spz": "spz", "sog": "sog"}
@@ -29,7 +30,7 @@ SPZ_MAGIC = 0x5053474E  # "NGSP"
 DECODE_TIMEOUT_S = 600
 
 
-class PackedError(ValueError):
+class PackedError(GSAError, ValueError):
     """A packed file gaussforge or our checks refuse."""
 
 

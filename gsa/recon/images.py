@@ -16,6 +16,7 @@ from pathlib import Path, PurePosixPath
 import cv2
 import numpy as np
 
+from gsa.errors import GSAError
 from gsa.ziparchive import ZipArchiveError, ZipLimits
 from gsa.ziparchive import check_zip as _check_zip
 
@@ -27,7 +28,7 @@ MAX_ZIP_RATIO = 200.0  # uncompressed / compressed per entry: zip bombs go far b
 MAX_IMAGE_PIXELS = 64_000_000
 
 
-class ImageSetError(ValueError):
+class ImageSetError(GSAError, ValueError):
     """An image set that cannot be reconstructed (too few readable images, an image over the pixel limit, unsafe archive)."""
 
 

@@ -20,11 +20,13 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from gsa.errors import GSAError
+
 METHODS = ("auto", "key", "grabcut", "sam", "none")
 
 
-class MaskError(RuntimeError):
-    pass
+class MaskError(GSAError, RuntimeError):
+    """The chosen mask backend cannot run (its checkpoints or runtime missing)."""
 
 
 def border_pixels(image: np.ndarray, width: int = 4) -> np.ndarray:

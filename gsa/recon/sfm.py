@@ -17,6 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
+from gsa.errors import GSAError
 from gsa.recon.images import ImageSet
 from gsa.render.cameras import Cameras
 from gsa.sim3 import solve_sim3
@@ -24,7 +25,7 @@ from gsa.sim3 import solve_sim3
 Progress = Callable[[str, float], None]
 
 
-class SfMError(RuntimeError):
+class SfMError(GSAError, RuntimeError):
     """SfM could not register enough images."""
 
 

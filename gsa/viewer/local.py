@@ -17,13 +17,14 @@ from http import HTTPStatus
 from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 from pathlib import Path
 
+from gsa.errors import GSAError
 from gsa.viewer.page import PAGE_HEADERS, STATIC_FILES, ResultView, render_page, static_file
 from gsa.viewer.preview import PREVIEW_NAMES
 
 CONTENT_TYPES = {".splat": "application/octet-stream", ".png": "image/png", ".json": "application/json"}
 
 
-class ResultError(ValueError):
+class ResultError(GSAError, ValueError):
     """The path is not a result this command can show."""
 
 

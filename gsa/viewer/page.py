@@ -14,6 +14,8 @@ import math
 from dataclasses import dataclass, field
 from importlib import resources
 
+from gsa.errors import GSAError
+
 # The page loads only same-origin code; Spark runs its sorter in a blob: worker and
 # compiles its inlined WebAssembly ('wasm-unsafe-eval').
 CONTENT_SECURITY_POLICY = (
@@ -30,7 +32,7 @@ PAGE_HEADERS = {
 STATIC_FILES = {"viewer.js": "text/javascript; charset=utf-8", "viewer.css": "text/css; charset=utf-8"}
 
 
-class ViewerNotBuilt(ValueError):
+class ViewerNotBuilt(GSAError, ValueError):
     """static/viewer.js is missing: the front end was not built (./dev.sh builds it from web/)."""
 
 
