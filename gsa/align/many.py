@@ -1,0 +1,566 @@
+"""Many models into one frame (issue 30): pairwise alignments over a graph of edges, then a
+global step over Sim(3) that makes them agree around the cycles they close.
+
+An edge (i, j) holds T_ij with model_j ≈ T_ij(model_i), its confidence, doubtful flag and
+alternatives (align()'s metrics). The global step finds X_k (model k into the reference
+frame) with X_i ≈ X_j ∘ T_ij for every edge:
+
+1. every model is first put in a normalised frame (centroid at 0, RMS radius 1), so that
+   translation residuals are fractions of the model's size and scales are near 1;
+2. initialisation: a maximum spanning tree over each edge's triangle support (how many
+   triangles through it close within tolerance) and confidence, so one confident but wrong
+   edge is not trusted just because align() was sure of it;
+3. IRLS: chordal rotation averaging (linear least squares, then projection onto SO(3)),
+   log-scale and translation least squares, each edge weighted by its confidence times a
+   Cauchy weight of its residual against the current solution; an edge beyond PRUNE
+   tolerances gets weight 0 (a line process in Open3D's sense);
+4. a pruned edge whose alternative agrees with the solution is replaced by it ("corrected")
+   and the IRLS runs again.
+
+Residuals are in tolerance units: max(rotation / ROT_TOL_DEG, |log scale| / LOG_SCALE_TOL,
+centroid displacement / (size · TRANS_TOL)).
+"""
+
+from __future__ import annotations
+
+import itertools
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from gsa.errors import GSAError
+from gsa.geometry import rotation_angle
+from gsa.model import GaussianModel
+from gsa.sim3 import Sim3
+
+# Tolerances of one "unit" of residual: what a right coarse alignment of partial captures stays
+# within; a residual above PRUNE units is a wrong edge, between 1 and PRUNE a poor one.
+ROT_TOL_DEG = 5.0
+LOG_SCALE_TOL = 0.05
+TRANS_TOL = 0.05
+PRUNE = 3.0
+# Corrected when an alternative's residual is this small: alternatives are search poses,
+# refined less than the chosen one.
+ACCEPT_ALTERNATIVE = 2.0
+# All pairs up to this many models; beyond, each model to its SPARSE_K most similar.
+ALL_PAIRS_MAX = 8
+SPARSE_K = 3
+# Floor of an edge's weight: a pruned edge still fixes a model no other edge reaches,
+# so the least squares stay determined (that model's confidence says it is unsupported).
+WEIGHT_FLOOR = 1e-6
+IRLS_ITERATIONS = 15
+EDGE_STATUSES = ("kept", "down-weighted", "pruned", "corrected")
+
+
+class ManyError(GSAError, ValueError):
+    """Input align_many cannot work with (fewer than two models, a bad reference, ...)."""
+
+
+@dataclass
+class Edge:
+    """One pairwise alignment: model `target` ≈ transform(model `source`)."""
+
+    source: int
+    target: int
+    transform: Sim3
+    confidence: float = 1.0
+    doubtful: bool = False
+    ambiguous: bool = False
+    alternatives: list[Sim3] = field(default_factory=list)
+    seconds: float = 0.0
+    # Set by the global step:
+    used: Sim3 | None = None  # the transform the solution used (an alternative when corrected)
+    status: str = "kept"
+    weight: float = 1.0
+    residual: dict | None = None  # of `used` against the solution
+    measured_residual: dict | None = None  # of `transform` (differs when corrected)
+    triangle_support: float | None = None
+
+    def to_dict(self, names: Sequence[str]) -> dict:
+        return {
+            "source": names[self.source],
+            "target": names[self.target],
+            "source_index": self.source,
+            "target_index": self.target,
+            "transform": self.transform.matrix().tolist(),
+            "used_transform": (self.used or self.transform).matrix().tolist(),
+            "confidence": self.confidence,
+            "doubtful": self.doubtful,
+            "ambiguous": self.ambiguous,
+            "alternatives": len(self.alternatives),
+            "status": self.status,
+            "weight": self.weight,
+            "residual": self.residual,
+            "measured_residual": self.measured_residual,
+            "triangle_support": self.triangle_support,
+            "seconds": self.seconds,
+        }
+
+
+@dataclass
+class ManyResult:
+    names: list[str]
+    reference: int
+    transforms: list[Sim3]  # model k -> reference frame (gsa's internal frame, as model.transformed takes)
+    confidences: list[float]
+    edges: list[Edge]
+    cycles: dict
+    timings: dict = field(default_factory=dict)
+
+    def to_dict(self) -> dict:
+        return {
+            "reference": self.names[self.reference],
+            "models": [
+                {
+                    "name": name,
+                    "index": k,
+                    **self.transforms[k].to_dict(),
+                    "confidence": self.confidences[k],
+                    "doubtful": self.confidences[k] < 0.5,
+                }
+                for k, name in enumerate(self.names)
+            ],
+            "edges": [e.to_dict(self.names) for e in self.edges],
+            "pruned": [f"{self.names[e.source]} -> {self.names[e.target]}" for e in self.edges if e.status == "pruned"],
+            "corrected": [
+                f"{self.names[e.source]} -> {self.names[e.target]}" for e in self.edges if e.status == "corrected"
+            ],
+            "cycles": self.cycles,
+            "timings": self.timings,
+            "frame": "gsa internal (RDF); transforms map each model as read by gsa into the reference's frame",
+        }
+
+
+# ---------------------------------------------------------------- residuals
+
+
+def _normaliser(centre: np.ndarray, size: float) -> Sim3:
+    """x -> (x - centre) / size."""
+    return Sim3(1.0 / size, np.eye(3), -np.asarray(centre, np.float64) / size)
+
+
+def residual_of(error: Sim3) -> dict:
+    """An error transform (identity when consistent) in a normalised frame, in its parts and
+    in tolerance units. Its translation is the displacement of the model's centroid (0 there)
+    in units of the model's size."""
+    rot = float(np.degrees(rotation_angle(error.rotation)))
+    log_s = float(abs(np.log(error.scale)))
+    trans = float(np.linalg.norm(error.translation))
+    units = max(rot / ROT_TOL_DEG, log_s / LOG_SCALE_TOL, trans / TRANS_TOL)
+    return {"rotation_deg": rot, "log_scale": log_s, "translation": trans, "units": units}
+
+
+def _edge_error(x: list[Sim3], i: int, j: int, t_ij: Sim3) -> Sim3:
+    """T_ij⁻¹ ∘ X_j⁻¹ ∘ X_i: identity when the edge agrees with the solution."""
+    return t_ij.inverse() @ x[j].inverse() @ x[i]
+
+
+# ---------------------------------------------------------------- the global step
+
+
+def _project_so3(m: np.ndarray) -> np.ndarray:
+    u, _, vt = np.linalg.svd(m)
+    d = np.sign(np.linalg.det(u @ vt)) or 1.0
+    return u @ np.diag([1.0, 1.0, d]) @ vt
+
+
+def _solve_once(n: int, ref: int, pairs: list[tuple[int, int, Sim3]], w: np.ndarray) -> list[Sim3]:
+    """Weighted least squares of X_i = X_j T_ij with X_ref = identity: chordal rotations, then
+    log-scales, then translations given both."""
+    others = [k for k in range(n) if k != ref]
+    col = {k: c for c, k in enumerate(others)}
+    m = len(others)
+    sw = np.sqrt(w)
+    # Rotations: R_iᵀ − R_ijᵀ R_jᵀ = 0, unknown Z_k = R_kᵀ (3×3 blocks), Z_ref = I.
+    a = np.zeros((3 * len(pairs), 3 * m))
+    b = np.zeros((3 * len(pairs), 3))
+    for e, (i, j, t) in enumerate(pairs):
+        rows = slice(3 * e, 3 * e + 3)
+        for k, block in ((i, np.eye(3)), (j, -t.rotation.T)):
+            if k == ref:
+                b[rows] -= sw[e] * block
+            else:
+                a[rows, 3 * col[k] : 3 * col[k] + 3] += sw[e] * block
+    z = np.linalg.lstsq(a, b, rcond=None)[0]
+    rot = {ref: np.eye(3)}
+    for k in others:
+        rot[k] = _project_so3(z[3 * col[k] : 3 * col[k] + 3]).T
+    # Log-scales: l_i − l_j = log s_ij.
+    a = np.zeros((len(pairs), m))
+    b = np.zeros(len(pairs))
+    for e, (i, j, t) in enumerate(pairs):
+        b[e] = sw[e] * np.log(t.scale)
+        if i != ref:
+            a[e, col[i]] += sw[e]
+        if j != ref:
+            a[e, col[j]] -= sw[e]
+    logs = np.zeros(n)
+    logs[others] = np.linalg.lstsq(a, b, rcond=None)[0]
+    # Translations: t_i − t_j = s_j R_j t_ij.
+    a = np.zeros((3 * len(pairs), 3 * m))
+    b = np.zeros((3 * len(pairs), 1))
+    for e, (i, j, t) in enumerate(pairs):
+        rows = slice(3 * e, 3 * e + 3)
+        b[rows, 0] = sw[e] * np.exp(logs[j]) * rot[j] @ t.translation
+        for k, sign in ((i, 1.0), (j, -1.0)):
+            if k != ref:
+                a[rows, 3 * col[k] : 3 * col[k] + 3] += sign * sw[e] * np.eye(3)
+    tr = np.linalg.lstsq(a, b, rcond=None)[0][:, 0]
+    out = []
+    for k in range(n):
+        t = np.zeros(3) if k == ref else tr[3 * col[k] : 3 * col[k] + 3]
+        out.append(Sim3(float(np.exp(logs[k])), rot[k], t))
+    return out
+
+
+def _oriented(edges: dict[tuple[int, int], Sim3], a: int, b: int) -> Sim3:
+    return edges[(a, b)] if (a, b) in edges else edges[(b, a)].inverse()
+
+
+def _triangle_support(n: int, pairs: list[tuple[int, int, Sim3]]) -> tuple[np.ndarray, list[dict]]:
+    """Per edge, the share of triangles through it that close within PRUNE units (0.5 when it
+    closes none: no evidence either way), and every triangle's residual."""
+    by_pair = {(i, j): t for i, j, t in pairs}
+    index = {}
+    for e, (i, j, _) in enumerate(pairs):
+        index[(i, j)] = index[(j, i)] = e
+    good = np.zeros(len(pairs))
+    total = np.zeros(len(pairs))
+    triangles = []
+    for a, b, c in itertools.combinations(range(n), 3):
+        if not all(p in index for p in ((a, b), (b, c), (a, c))):
+            continue
+        error = _oriented(by_pair, a, c).inverse() @ _oriented(by_pair, b, c) @ _oriented(by_pair, a, b)
+        r = residual_of(error)
+        triangles.append({"models": [a, b, c], **r})
+        for p in ((a, b), (b, c), (a, c)):
+            total[index[p]] += 1
+            good[index[p]] += r["units"] <= PRUNE
+    support = np.where(total > 0, good / np.maximum(total, 1), 0.5)
+    return support, triangles
+
+
+def _spanning_tree(n: int, pairs: list[tuple[int, int, Sim3]], score: np.ndarray) -> list[int]:
+    """Kruskal's maximum spanning tree (or forest): edge indices."""
+    parent = list(range(n))
+
+    def root(k: int) -> int:
+        while parent[k] != k:
+            parent[k] = parent[parent[k]]
+            k = parent[k]
+        return k
+
+    tree = []
+    for e in np.argsort(-score, kind="stable"):
+        i, j, _ = pairs[e]
+        ri, rj = root(i), root(j)
+        if ri != rj:
+            parent[ri] = rj
+            tree.append(int(e))
+    return tree
+
+
+def _tree_solution(n: int, ref: int, pairs: list[tuple[int, int, Sim3]], tree: list[int]) -> list[Sim3]:
+    """X along the tree from the reference (identity for models it does not reach)."""
+    x: list[Sim3 | None] = [None] * n
+    x[ref] = Sim3.identity()
+    frontier = [ref]
+    while frontier:
+        k = frontier.pop()
+        for e in tree:
+            i, j, t = pairs[e]
+            if j == k and x[i] is None:  # X_i = X_j T_ij
+                x[i] = x[j] @ t
+                frontier.append(i)
+            elif i == k and x[j] is None:  # X_j = X_i T_ij⁻¹
+                x[j] = x[i] @ t.inverse()
+                frontier.append(j)
+    return [Sim3.identity() if s is None else s for s in x]
+
+
+def _irls(n: int, ref: int, pairs, prior: np.ndarray, x: list[Sim3]) -> tuple[list[Sim3], np.ndarray, list[dict]]:
+    w = prior.copy()
+    for _ in range(IRLS_ITERATIONS):
+        res = [residual_of(_edge_error(x, i, j, t)) for i, j, t in pairs]
+        units = np.array([r["units"] for r in res])
+        # Cauchy weight inside the prune limit, the floor beyond it.
+        new_w = np.where(units <= PRUNE, prior / (1.0 + units**2), WEIGHT_FLOOR)
+        new_w = np.maximum(new_w, WEIGHT_FLOOR)
+        x_new = _solve_once(n, ref, pairs, new_w)
+        change = max(residual_of(a.inverse() @ b)["units"] for a, b in zip(x, x_new))
+        x, w = x_new, new_w
+        if change < 1e-4:
+            break
+    res = [residual_of(_edge_error(x, i, j, t)) for i, j, t in pairs]
+    return x, w, res
+
+
+def _cycle_stats(triangles: list[dict]) -> dict:
+    if not triangles:
+        return {"triangles": 0}
+    out: dict = {"triangles": len(triangles)}
+    for key in ("rotation_deg", "log_scale", "translation"):
+        vals = np.array([t[key] for t in triangles])
+        out[f"{key}_median"] = float(np.median(vals))
+        out[f"{key}_max"] = float(vals.max())
+    out["closing"] = int(sum(t["units"] <= PRUNE for t in triangles))
+    return out
+
+
+def _widest_paths(n: int, ref: int, edges: list[Edge], strength: list[float]) -> list[float]:
+    """Per model, the best bottleneck strength over paths of usable edges from the reference."""
+    best = [0.0] * n
+    best[ref] = 1.0
+    for _ in range(n):  # Bellman-Ford style: n rounds settle every path
+        changed = False
+        for e, s in zip(edges, strength):
+            if e.status == "pruned":
+                continue
+            for a, b in ((e.source, e.target), (e.target, e.source)):
+                v = min(best[a], s)
+                if v > best[b] + 1e-12:
+                    best[b] = v
+                    changed = True
+        if not changed:
+            break
+    return best
+
+
+def solve_graph(
+    n: int,
+    edges: list[Edge],
+    reference: int = 0,
+    centres: Sequence[np.ndarray] | None = None,
+    sizes: Sequence[float] | None = None,
+    names: Sequence[str] | None = None,
+) -> ManyResult:
+    """The global step: every model's Sim(3) into the reference frame, consistent with the
+    edges; sets each edge's status, weight and residual. centres and sizes: each model's
+    centroid and RMS radius in its own frame (residual units; default 0 and 1)."""
+    if n < 2:
+        raise ManyError("need at least two models")
+    if not 0 <= reference < n:
+        raise ManyError(f"reference index {reference} is not one of the {n} models")
+    if not edges:
+        raise ManyError("no edges")
+    for e in edges:
+        if not (0 <= e.source < n and 0 <= e.target < n) or e.source == e.target:
+            raise ManyError(f"edge {e.source} -> {e.target} does not join two of the {n} models")
+    t0 = time.perf_counter()
+    names = list(names) if names is not None else [f"model_{k}" for k in range(n)]
+    centres = [np.zeros(3)] * n if centres is None else [np.asarray(c, np.float64) for c in centres]
+    sizes = [1.0] * n if sizes is None else [float(s) for s in sizes]
+    norm = [_normaliser(c, s) for c, s in zip(centres, sizes)]
+
+    def normalised(e: Edge, t: Sim3) -> Sim3:
+        return norm[e.target] @ t @ norm[e.source].inverse()
+
+    chosen = [normalised(e, e.transform) for e in edges]
+    pairs = [(e.source, e.target, t) for e, t in zip(edges, chosen)]
+    prior = np.array([max(float(e.confidence), 0.05) for e in edges])
+    support, triangles_measured = _triangle_support(n, pairs)
+    # Triangle support first, confidence to break ties: a confident edge no cycle agrees with
+    # is not trusted for the initial solution.
+    tree = _spanning_tree(n, pairs, support + 0.1 * prior)
+    x, w, res = _irls(n, reference, pairs, prior, _tree_solution(n, reference, pairs, tree))
+    measured = list(res)
+
+    # Pruned edges: an alternative that agrees with the solution replaces the measured pose.
+    corrected = set()
+    for e_idx, (edge, r) in enumerate(zip(edges, res)):
+        if r["units"] <= PRUNE or not edge.alternatives:
+            continue
+        alts = [normalised(edge, a) for a in edge.alternatives]
+        alt_res = [residual_of(_edge_error(x, edge.source, edge.target, a)) for a in alts]
+        best = int(np.argmin([a["units"] for a in alt_res]))
+        if alt_res[best]["units"] <= ACCEPT_ALTERNATIVE:
+            chosen[e_idx] = alts[best]
+            edge.used = edge.alternatives[best]
+            corrected.add(e_idx)
+    if corrected:
+        pairs = [(e.source, e.target, t) for e, t in zip(edges, chosen)]
+        x, w, res = _irls(n, reference, pairs, prior, x)
+
+    for e_idx, (edge, r) in enumerate(zip(edges, res)):
+        edge.residual = r
+        edge.measured_residual = measured[e_idx]
+        edge.weight = float(w[e_idx])
+        edge.triangle_support = float(support[e_idx])
+        if edge.used is None:
+            edge.used = edge.transform
+        if r["units"] > PRUNE:
+            edge.status = "pruned"
+            edge.used = edge.transform
+        elif e_idx in corrected:
+            edge.status = "corrected"
+        else:
+            edge.status = "kept" if r["units"] <= 1.0 else "down-weighted"
+
+    # Per-model confidence: the widest path from the reference over usable edges, an edge
+    # counting as strong as its own confidence or, when a triangle of usable edges closes
+    # through it, the weaker of that triangle's other two edges (two paths agree).
+    _, triangles_used = _triangle_support(n, [(e.source, e.target, t) for e, t in zip(edges, chosen)])
+    usable = {(e.source, e.target): k for k, e in enumerate(edges) if e.status != "pruned"}
+    usable.update({(j, i): k for (i, j), k in list(usable.items())})
+    strength = [float(e.confidence) for e in edges]
+    for tri in triangles_used:
+        a, b, c = tri["models"]
+        ks = [usable.get(p) for p in ((a, b), (b, c), (a, c))]
+        if None in ks or tri["units"] > PRUNE:
+            continue
+        for k in ks:
+            others = [edges[o].confidence for o in ks if o != k]
+            strength[k] = max(strength[k], min(others))
+    confidences = _widest_paths(n, reference, edges, strength)
+
+    transforms = [norm[reference].inverse() @ xk @ norm[k] for k, xk in enumerate(x)]
+    usable_triangles = [
+        t
+        for t in triangles_used
+        if all(p in usable for p in ((t["models"][0], t["models"][1]), (t["models"][1], t["models"][2])))
+        and (t["models"][0], t["models"][2]) in usable
+    ]
+    cycles = {
+        "measured": _cycle_stats(triangles_measured),
+        "after": _cycle_stats(usable_triangles),
+        "edge_residuals": {
+            "rotation_deg_max": max(e.residual["rotation_deg"] for e in edges if e.status != "pruned"),
+            "log_scale_max": max(e.residual["log_scale"] for e in edges if e.status != "pruned"),
+            "translation_max": max(e.residual["translation"] for e in edges if e.status != "pruned"),
+        }
+        if any(e.status != "pruned" for e in edges)
+        else {},
+    }
+    return ManyResult(
+        names=names,
+        reference=reference,
+        transforms=transforms,
+        confidences=confidences,
+        edges=edges,
+        cycles=cycles,
+        timings={"global": time.perf_counter() - t0},
+    )
+
+
+# ---------------------------------------------------------------- edges
+
+
+def model_frame(model: GaussianModel) -> tuple[np.ndarray, float]:
+    """Centroid and RMS radius: the unit of a model's translation residuals."""
+    means = np.asarray(model.means, np.float64)
+    centre = means.mean(axis=0)
+    size = float(np.sqrt(((means - centre) ** 2).sum(axis=1).mean()))
+    return centre, max(size, 1e-12)
+
+
+def descriptor(model: GaussianModel) -> np.ndarray:
+    """Cheap, pose- and scale-free: the principal extents over the RMS radius, and a 4×4×4
+    colour histogram (shares)."""
+    means = np.asarray(model.means, np.float64)
+    centred = means - means.mean(axis=0)
+    eig = np.sort(np.linalg.eigvalsh(centred.T @ centred / max(len(means), 1)))[::-1]
+    extent = np.sqrt(np.maximum(eig, 0)) / max(np.sqrt(eig.sum()), 1e-12)
+    colours = np.clip(np.asarray(model.base_colors, np.float64), 0, 1 - 1e-9)
+    bins = (colours * 4).astype(int)
+    hist = np.bincount(bins[:, 0] * 16 + bins[:, 1] * 4 + bins[:, 2], minlength=64) / max(len(colours), 1)
+    return np.concatenate([extent, hist])
+
+
+def select_edges(models: Sequence[GaussianModel], edges: str = "auto", k: int = SPARSE_K) -> list[tuple[int, int]]:
+    """Which pairs to align: all pairs (edges "all", or "auto" with at most ALL_PAIRS_MAX
+    models), else each model with its k most similar by `descriptor` plus a minimum
+    spanning tree over the descriptor distances, so the graph is connected."""
+    n = len(models)
+    if edges not in ("auto", "all", "sparse"):
+        raise ManyError(f"edges must be auto, all or sparse, not {edges!r}")
+    if edges == "all" or (edges == "auto" and n <= ALL_PAIRS_MAX):
+        return list(itertools.combinations(range(n), 2))
+    d = np.array([descriptor(m) for m in models])
+    dist = np.linalg.norm(d[:, None] - d[None], axis=2)
+    chosen = set()
+    for i in range(n):
+        for j in np.argsort(dist[i])[1 : k + 1]:
+            chosen.add((min(i, int(j)), max(i, int(j))))
+    all_pairs = list(itertools.combinations(range(n), 2))
+    tree = _spanning_tree(n, [(i, j, None) for i, j in all_pairs], -np.array([dist[i, j] for i, j in all_pairs]))
+    chosen.update(all_pairs[e] for e in tree)
+    return sorted(chosen)
+
+
+def edge_from_result(i: int, j: int, result, seconds: float) -> Edge:
+    metrics = result.metrics or {}
+    alternatives = []
+    for alt in metrics.get("alternatives") or []:
+        try:
+            alternatives.append(Sim3.from_matrix(np.asarray(alt["transform"], np.float64)))
+        except (KeyError, TypeError, ValueError):  # an alternative we cannot read is left out
+            continue
+    confidence = metrics.get("confidence")
+    return Edge(
+        source=i,
+        target=j,
+        transform=result.transform,
+        confidence=1.0 if confidence is None else float(confidence),
+        doubtful=bool(metrics.get("doubtful", False)),
+        ambiguous=bool(metrics.get("ambiguous", False)),
+        alternatives=alternatives,
+        seconds=seconds,
+    )
+
+
+def pairwise_edges(
+    models: Sequence[GaussianModel],
+    pairs: Sequence[tuple[int, int]],
+    options=None,
+    progress: Callable[[int, int], None] | None = None,
+) -> list[Edge]:
+    """align(models[i], models[j]) for each pair; progress(done, total) after each."""
+    from gsa.align.pipeline import AlignOptions, align  # lazy: numba and scipy
+
+    options = options or AlignOptions()
+    out = []
+    for done, (i, j) in enumerate(pairs, 1):
+        t0 = time.perf_counter()
+        result = align(models[i], models[j], options)
+        out.append(edge_from_result(i, j, result, time.perf_counter() - t0))
+        if progress:
+            progress(done, len(pairs))
+    return out
+
+
+def align_many(
+    models: Sequence[GaussianModel],
+    names: Sequence[str] | None = None,
+    reference: int = 0,
+    options=None,
+    edges: str = "auto",
+    progress: Callable[[int, int], None] | None = None,
+) -> ManyResult:
+    """Every model's Sim(3) into models[reference]'s frame (see the module's docstring)."""
+    n = len(models)
+    if n < 2:
+        raise ManyError(f"align_many needs at least two models, got {n}")
+    names = [f"model_{k}" for k in range(n)] if names is None else [str(s) for s in names]
+    if len(names) != n or len(set(names)) != n:
+        raise ManyError("names must be one distinct name per model")
+    if not 0 <= reference < n:
+        raise ManyError(f"reference index {reference} is not one of the {n} models")
+    for name, m in zip(names, models):
+        if len(m) < 3:
+            raise ManyError(f"{name}: {len(m)} Gaussians; at least 3 are needed")
+    t0 = time.perf_counter()
+    pairs = select_edges(models, edges)
+    t_edges = time.perf_counter()
+    graph = pairwise_edges(models, pairs, options, progress)
+    t_pairwise = time.perf_counter() - t_edges
+    frames = [model_frame(m) for m in models]
+    result = solve_graph(n, graph, reference, [c for c, _ in frames], [s for _, s in frames], names)
+    result.timings.update(
+        pairwise=t_pairwise,
+        per_edge=t_pairwise / max(len(graph), 1),
+        edges=len(graph),
+        total=time.perf_counter() - t0,
+    )
+    return result
