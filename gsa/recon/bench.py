@@ -1,10 +1,14 @@
-"""`python -m gsa.recon.bench`: the issue's measurements on a generated object.
+"""`python -m gsa.recon.bench`: the reconstruction protocol on a generated object.
 
-1. 30 views at 256x256 -> reconstruct (cpu preset): views registered, camera-centre
-   error after a Sim(3) fit (% of orbit radius), held-out PSNR, wall time.
+1. 30 views at each --size (256 and 512 by default) -> reconstruct (cpu preset): views
+   registered, camera-centre error after a Sim(3) fit (% of orbit radius), held-out PSNR, wall time.
 2. The same object captured by a second camera rig placed in a random Sim(3) frame
    -> reconstruct -> gsa.align.pipeline.align(A, B) against the true relative Sim(3):
    T_gt = T_B^-1 ∘ rig ∘ T_A where T_X maps SfM frame X onto its true world frame.
+   Open3D (gsa.bench.peers) aligns the same reconstructions beside it.
+
+Reconstructions are kept in --workdir/<size>px/{a,b}_out; --reuse aligns those again
+without reconstructing (minutes per set on a CPU).
 """
 
 from __future__ import annotations
@@ -18,74 +22,130 @@ from pathlib import Path
 import numpy as np
 
 
-def _measure(name, syn, res) -> dict:
+def _measure(name, syn, names, cameras, report: dict) -> tuple[dict, object]:
     from gsa.recon.sfm import centre_error
 
-    idx = [syn.names.index(n) for n in res.sfm.names]
-    err, t = centre_error(res.sfm.cameras, syn.cameras[idx])
+    idx = [syn.names.index(n) for n in names]
+    err, t = centre_error(cameras, syn.cameras[idx])
     row = {
         "set": name,
         "views": len(syn.names),
-        "registered": res.n_registered,
+        "registered": report["registered"],
         "centre_error_pct_of_radius": 100 * err / syn.radius,
-        "psnr_heldout_db": res.train.psnr_heldout,
-        "psnr_heldout_masked_db": res.train.psnr_heldout_masked,
-        "gaussians": len(res.model),
-        "wall_s": res.timings["total"],
-        "sfm_s": res.timings["sfm"],
-        "train_s": res.timings["train"],
+        "psnr_heldout_db": report["psnr_heldout_db"],
+        "psnr_heldout_masked_db": report["psnr_heldout_masked_db"],
+        "gaussians": report["gaussians"],
+        "wall_s": report["timings_s"]["total"],
+        "sfm_s": report["timings_s"]["sfm"],
+        "train_s": report["timings_s"]["train"],
     }
     print(json.dumps(row), flush=True)
     return row, t
+
+
+def _reconstructed(syn, out: Path, args):
+    """(model, cameras, names, report) of the set's reconstruction, made unless --reuse finds it."""
+    from gsa.io.ply import read_ply
+    from gsa.recon.pipeline import reconstruct
+    from gsa.render.cameras import read_cameras_json
+
+    if not (args.reuse and (out / "report.json").exists()):
+        reconstruct(syn.directory, out, preset=args.preset, iterations=args.iterations)
+    model = read_ply(out / "model.ply")
+    cameras, names = read_cameras_json(out / "cameras.json")
+    model.metadata["training_cameras"] = cameras  # as reconstruct() leaves it: the fine stage's views
+    return model, cameras, names, json.loads((out / "report.json").read_text())
+
+
+def _alignment_rows(model_a, model_b, gt, peers: list[str]) -> list[dict]:
+    from gsa.align.pipeline import AlignOptions, align
+    from gsa.bench.peers import available_peers
+    from gsa.metrics import rre_deg, scale_error_pct
+
+    rows = []
+    t = time.perf_counter()
+    r = align(model_a, model_b, AlignOptions())
+    rows.append(
+        {
+            "method": "gsa",
+            "rre_deg": rre_deg(r.transform.rotation, gt.rotation),
+            "scale_error_pct": scale_error_pct(r.transform.scale, gt.scale),
+            "confidence": r.metrics.get("confidence"),
+            "doubtful": r.metrics.get("doubtful"),
+            "align_s": time.perf_counter() - t,
+        }
+    )
+    for peer in available_peers(peers):
+        t = time.perf_counter()
+        est = peer.register(model_a, model_b)
+        rows.append(
+            {
+                "method": peer.name,
+                "rre_deg": rre_deg(est.rotation, gt.rotation),
+                "scale_error_pct": scale_error_pct(est.scale, gt.scale),
+                "confidence": None,  # peers give no verdict
+                "doubtful": None,
+                "align_s": time.perf_counter() - t,
+            }
+        )
+    return rows
+
+
+def run_size(args, size: int, root: Path) -> dict:
+    from gsa.recon.synthetic import render_image_set, textured_object
+    from gsa.synth.perturb import random_sim3
+
+    model = textured_object(args.category, args.seed)
+    syn_a = render_image_set(root / "a", model=model, n_views=args.views, size=size, orbit_seed=args.seed)
+    model_a, cams_a, names_a, rep_a = _reconstructed(syn_a, root / "a_out", args)
+    row_a, t_a = _measure("A", syn_a, names_a, cams_a, rep_a)
+    out = {"size": size, "A": row_a}
+    if args.skip_align:
+        return out
+    rig = random_sim3(np.random.default_rng(args.seed + 100), scale_range=(0.5, 2.0), translation=2.0)
+    syn_b = render_image_set(root / "b", model=model, n_views=args.views, size=size, orbit_seed=args.seed + 1, rig=rig)
+    model_b, cams_b, names_b, rep_b = _reconstructed(syn_b, root / "b_out", args)
+    out["B"], t_b = _measure("B", syn_b, names_b, cams_b, rep_b)
+    gt = t_b.inverse().compose(rig.compose(t_a))
+    (root / "truth.json").write_text(json.dumps({"A_to_B": gt.matrix().tolist()}))
+    out["align"] = _alignment_rows(model_a, model_b, gt, args.peers)
+    for row in out["align"]:
+        print(json.dumps({"size": size, "category": args.category, "seed": args.seed} | row), flush=True)
+    return out
 
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(prog="python -m gsa.recon.bench")
     ap.add_argument("--category", default="car")
     ap.add_argument("--views", type=int, default=30)
-    ap.add_argument("--size", type=int, default=256)
+    ap.add_argument("--size", type=int, nargs="+", default=[512, 256], help="image sizes, one protocol row each")
     ap.add_argument("--preset", default="cpu")
     ap.add_argument("--iterations", type=int, default=None)
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--skip-align", action="store_true")
+    ap.add_argument("--peers", nargs="*", default=["open3d"], help="peers run on the same reconstructions")
     ap.add_argument("--workdir", default=None)
+    ap.add_argument("--reuse", action="store_true", help="align the reconstructions already in --workdir")
     args = ap.parse_args(argv)
 
-    from gsa.align.pipeline import AlignOptions, align
-    from gsa.metrics import rre_deg, scale_error_pct
-    from gsa.recon.pipeline import reconstruct
-    from gsa.recon.synthetic import render_image_set, textured_object
-    from gsa.synth.perturb import random_sim3
-
     root = Path(args.workdir or tempfile.mkdtemp(prefix="gsa-recon-bench-"))
-    model = textured_object(args.category, args.seed)
-    t = time.perf_counter()
-    syn_a = render_image_set(root / "a", model=model, n_views=args.views, size=args.size, orbit_seed=args.seed)
-    print(f"rendered {args.views} views in {time.perf_counter() - t:.1f}s -> {syn_a.directory}", flush=True)
-    res_a = reconstruct(syn_a.directory, root / "a_out", preset=args.preset, iterations=args.iterations)
-    row_a, t_a = _measure("A", syn_a, res_a)
-    out = {"A": row_a}
-    if not args.skip_align:
-        rig = random_sim3(np.random.default_rng(args.seed + 100), scale_range=(0.5, 2.0), translation=2.0)
-        syn_b = render_image_set(
-            root / "b", model=model, n_views=args.views, size=args.size, orbit_seed=args.seed + 1, rig=rig
-        )
-        res_b = reconstruct(syn_b.directory, root / "b_out", preset=args.preset, iterations=args.iterations)
-        row_b, t_b = _measure("B", syn_b, res_b)
-        gt = t_b.inverse().compose(rig.compose(t_a))
-        for feats in ("auto", "canonical"):
-            t = time.perf_counter()
-            r = align(res_a.model, res_b.model, AlignOptions(features=feats))
-            row = {
-                "align_features": r.features,
-                "requested": feats,
-                "rre_deg": rre_deg(r.transform.rotation, gt.rotation),
-                "scale_error_pct": scale_error_pct(r.transform.scale, gt.scale),
-                "align_s": time.perf_counter() - t,
-            }
-            print(json.dumps(row), flush=True)
-            out[f"align_{feats}"] = row
-        out["B"] = row_b
+    out = {"category": args.category, "seed": args.seed, "rows": []}
+    for size in args.size:
+        t = time.perf_counter()
+        out["rows"].append(run_size(args, size, root / f"{size}px"))
+        print(f"{size} px: {time.perf_counter() - t:.0f} s", flush=True)
+    print(
+        f"{'size':>5} {'method':>7} {'registered':>11} {'RRE (°)':>8} {'scale err (%)':>13} {'confidence':>10} flagged"
+    )
+    for row in out["rows"]:
+        reg = f"{row['A']['registered']}+{row.get('B', {}).get('registered', '-')}/{row['A']['views']}"
+        for a in row.get("align", []):
+            conf = "-" if a["confidence"] is None else f"{a['confidence']:.2f}"
+            flag = "-" if a["doubtful"] is None else ("yes" if a["doubtful"] else "no")
+            print(
+                f"{row['size']:>5} {a['method']:>7} {reg:>11} {a['rre_deg']:>8.2f} "
+                f"{a['scale_error_pct']:>13.2f} {conf:>10} {flag}"
+            )
     (root / "bench.json").write_text(json.dumps(out, indent=1))
     print(f"results: {root / 'bench.json'}")
     return 0
