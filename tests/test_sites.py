@@ -14,7 +14,7 @@ from gsa.bench.scene import scene_judge
 from gsa.bench.site import SITE_HARD, point_files, site_pairs
 from gsa.metrics import rre_deg, scale_error_pct
 from gsa.synth import make_object, scene_captures
-from gsa.synth.sites import PointSite, make_site, robust_extent
+from gsa.synth.sites import PointSite, make_site, resample_site, robust_extent
 
 GARDEN = Path(__file__).resolve().parents[2] / "shared" / "data" / "real-dev" / "garden_sfm_points.npz"
 
@@ -39,7 +39,7 @@ def test_site_args_resample_the_same_site():
     site = make_site(seed=7, n_gaussians=30_000)
     again = make_site(seed=7, n_gaussians=30_000, sample_seed=3, **site.metadata["site_args"])
     assert again.metadata["objects"] == site.metadata["objects"]
-    cap = scene_captures(site, np.random.default_rng(0), sizes=(12_000, 12_000))
+    cap = scene_captures(site, np.random.default_rng(0), sizes=(12_000, 12_000), resample=resample_site)
     from scipy.spatial import cKDTree
 
     d, _ = cKDTree(cap.target.means).query(cap.truth.apply(cap.source.means.astype(np.float64)))
@@ -64,7 +64,9 @@ def test_point_site_from_points():
 @pytest.fixture(scope="module")
 def site_pair():
     site = make_site(seed=2601, n_gaussians=170_000)
-    return scene_captures(site, np.random.default_rng([0, 26, 1]), sizes=(90_000, 100_000), **SITE_HARD)
+    return scene_captures(
+        site, np.random.default_rng([0, 26, 1]), sizes=(90_000, 100_000), resample=resample_site, **SITE_HARD
+    )
 
 
 def test_sites_pass_the_site_test_and_objects_do_not(site_pair):

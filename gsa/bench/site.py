@@ -23,7 +23,7 @@ import numpy as np
 from gsa.bench.pairs import SCENE_HARD
 from gsa.bench.records import Pair
 from gsa.synth.scenes import scene_captures
-from gsa.synth.sites import PointSite, make_site
+from gsa.synth.sites import PointSite, make_site, resample_site
 
 # (generated pairs, capture size range) for quick and full; real pairs per point file.
 SITE_QUICK = (2, (80_000, 120_000))
@@ -72,7 +72,12 @@ def site_pairs(quick: bool, seed: int, data: str | Path | None = None, count: in
         return cap.source, cap.target, cap.truth
 
     for i in range(n_gen):
-        pairs.append((f"site-{i}", lambda i=i: build(lambda n, i: make_site(seed=2600 + i, n_gaussians=n), i, "gen")))
+        pairs.append(
+            (
+                f"site-{i}",
+                lambda i=i: build(lambda n, i: make_site(seed=2600 + i, n_gaussians=n), i, "gen", resample_site),
+            )
+        )
     for f in files:
         cache: dict = {}
 

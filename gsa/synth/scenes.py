@@ -384,14 +384,10 @@ def scene_captures(
             second = resample(scene, sample_seed)
         elif meta.get("kind") == "scene":
             second = make_scene(meta["seed"], len(scene), sample_seed=sample_seed, **meta["scene_args"])
-        elif meta.get("kind") == "site":
-            from gsa.synth.sites import make_site  # sites import this module
-
-            second = make_site(meta["seed"], len(scene), sample_seed=sample_seed, **meta["site_args"])
         else:
             raise ValueError(
-                "independent captures need a make_scene or make_site model (its metadata says how to resample it) "
-                "or resample="
+                "independent captures need a make_scene model (its metadata says how to resample it) or resample= "
+                "(gsa.synth.sites.resample_site for make_site models)"
             )
         in_dst = project(second.means) <= cut_dst
     captures, poses, indices, n_floaters = [], [], [], []

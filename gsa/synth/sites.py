@@ -434,9 +434,16 @@ class PointSite:
         return lambda model, sample_seed: self.sample(len(model), sample_seed)
 
 
+def resample_site(site: GaussianModel, sample_seed: int) -> GaussianModel:
+    """For gsa.synth.scene_captures(resample=...): another sampling of a make_site model, from
+    its metadata."""
+    meta = site.metadata
+    return make_site(meta["seed"], len(site), sample_seed=sample_seed, **meta["site_args"])
+
+
 def site_from_points(points: np.ndarray, colors: np.ndarray, n_gaussians: int, seed: int = 0) -> GaussianModel:
     """`n_gaussians` Gaussians around SfM points (PointSite.sample)."""
     return PointSite(np.asarray(points, np.float64), np.asarray(colors, np.float64)).sample(n_gaussians, seed)
 
 
-__all__ = ["PointSite", "load_sfm_points", "make_site", "robust_extent", "site_from_points"]
+__all__ = ["PointSite", "load_sfm_points", "make_site", "resample_site", "robust_extent", "site_from_points"]
