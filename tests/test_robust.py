@@ -4,7 +4,6 @@ overlap, symmetric shapes and the honesty of its confidence."""
 from __future__ import annotations
 
 import functools
-import sys
 from pathlib import Path
 
 import numpy as np
@@ -13,7 +12,8 @@ from scipy.spatial import cKDTree
 
 from gsa.align import robust
 from gsa.align.pipeline import align
-from gsa.align.robust.refine import _plane_step
+from gsa.align.robust import refinement
+from gsa.align.robust.refinement import _plane_step
 from gsa.bench.pairs import exposure_pairs
 from gsa.geometry import axis_rotation, quat_to_rotation, super_fibonacci_rotations
 from gsa.metrics import accuracy, rre_deg
@@ -262,7 +262,7 @@ def test_fitting_every_pair_averages_a_deformation_better_than_trimming(monkeypa
     drifts less."""
     pairs = [(s, deformed, _turned(s, k, 3.0)) for k, (s, _, deformed, _) in enumerate(_deformed_pairs())]
     every_pair = [rre_deg(_refine(s, t, init)[0].rotation, np.eye(3)) for s, t, init in pairs]
-    monkeypatch.setattr(sys.modules["gsa.align.robust.refine"], "WHOLE_OVERLAP", 2.0)  # never: trim only
+    monkeypatch.setattr(refinement, "WHOLE_OVERLAP", 2.0)  # never: trim only
     trimmed = [rre_deg(_refine(s, t, init)[0].rotation, np.eye(3)) for s, t, init in pairs]
     assert np.mean(every_pair) < np.mean(trimmed), (every_pair, trimmed)
 

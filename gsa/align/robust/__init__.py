@@ -33,7 +33,7 @@ target Gaussians' normals where the two captures coincide.
 
 Modules: anchoring (1, and the colour trust), search (2-3, with the numba scoring and
 capture kernels), placement (the widened search for doubtful answers), poses (one
-pose's score, the anchor ICP, the decision), refine (the full-resolution refinement,
+pose's score, the anchor ICP, the decision), refinement (`refine`: the full-resolution refinement,
 frame relabellings, verdict).
 """
 
@@ -68,7 +68,7 @@ from gsa.align.robust.poses import (
     score_pose,
     with_given_pose,
 )
-from gsa.align.robust.refine import (
+from gsa.align.robust.refinement import (
     CONFIDENCE_THRESHOLD,
     FIT_FLOOR,
     FIT_SPAN,
