@@ -2,16 +2,17 @@
 
 Importable and testable without any web framework; `service/` builds on it.
 
-    from gsa import align, AlignOptions, read_ply
+    from gsa import read_ply
+    from gsa.align import AlignOptions, align
     result = align(read_ply("a.ply"), read_ply("b.ply"), AlignOptions())
     result.transform.matrix()  # 4×4 with target ≈ T(source)
 """
 
 from __future__ import annotations
 
-import importlib
 from typing import TYPE_CHECKING
 
+from gsa.lazy import lazy_exports
 from gsa.model import GaussianModel, merge_models
 from gsa.sim3 import Sim3, solve_sim3
 
@@ -21,9 +22,9 @@ if TYPE_CHECKING:  # pragma: no cover - for type checkers and IDEs only
     from gsa.io.ply import read_ply, write_ply  # noqa: F401
 
 # The alignment API pulls in scipy and numba; it loads on first use so that
-# `import gsa` (and the CLI's start-up) stays cheap.
-_LAZY = {
-    "align": "",  # the gsa.align package, callable (see its docstring)
+# `import gsa` (and the CLI's start-up) stays cheap. `align` itself is gsa.align.align:
+# here `gsa.align` is the subpackage.
+_HOMES = {
     "AlignOptions": "gsa.align.pipeline",
     "AlignmentResult": "gsa.align.pipeline",
     "AlignmentError": "gsa.align.pipeline",
@@ -33,19 +34,6 @@ _LAZY = {
     "write_model": "gsa.io.formats",
 }
 
-__all__ = ["GaussianModel", "Sim3", "merge_models", "solve_sim3", *_LAZY]
+__all__ = ["GaussianModel", "Sim3", "merge_models", "solve_sim3", *_HOMES]
 __version__ = "0.1.0"
-
-
-def __getattr__(name: str):
-    if name == "align":
-        return importlib.import_module("gsa.align")
-    if name in _LAZY:
-        value = getattr(importlib.import_module(_LAZY[name]), name)
-        globals()[name] = value
-        return value
-    raise AttributeError(f"module 'gsa' has no attribute {name!r}")
-
-
-def __dir__() -> list[str]:
-    return sorted(set(globals()) | set(_LAZY))
+__getattr__, __dir__ = lazy_exports(__name__, _HOMES)

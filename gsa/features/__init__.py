@@ -10,7 +10,7 @@ Names resolve lazily (the modules load torch), so the CLI starts fast.
 
 from __future__ import annotations
 
-import importlib
+from gsa.lazy import lazy_exports
 
 _HOME = {
     "ALIGN_FEATURE_MODES": "gsa.features.prepare",
@@ -33,9 +33,4 @@ _HOME = {
 }
 
 __all__ = sorted(_HOME)
-
-
-def __getattr__(name: str):
-    if name in _HOME:
-        return getattr(importlib.import_module(_HOME[name]), name)
-    raise AttributeError(f"module 'gsa.features' has no attribute {name!r}")
+__getattr__, __dir__ = lazy_exports(__name__, _HOME)

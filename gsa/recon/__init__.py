@@ -3,6 +3,8 @@
 Entry point: `reconstruct(images_path, out_dir, preset="cpu", features="canonical")`.
 """
 
+from gsa.lazy import lazy_exports
+
 __all__ = ["ImageSetError", "MaskError", "SfMError", "load_image_set", "reconstruct", "ReconstructionResult"]
 
 # Every name is resolved on first use: `import gsa.recon` (and gsa.recon.command, which
@@ -15,16 +17,4 @@ _LAZY = {
     "reconstruct": "gsa.recon.pipeline",
     "ReconstructionResult": "gsa.recon.pipeline",
 }
-
-
-def __getattr__(name):
-    module = _LAZY.get(name)
-    if module is None:
-        raise AttributeError(f"module 'gsa.recon' has no attribute {name!r}")
-    import importlib
-
-    return getattr(importlib.import_module(module), name)
-
-
-def __dir__():
-    return sorted(set(globals()) | set(_LAZY))
+__getattr__, __dir__ = lazy_exports(__name__, _LAZY)

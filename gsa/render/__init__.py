@@ -9,8 +9,7 @@ so that importing `gsa.render.cameras` or the CLI does not load torch.
 
 from __future__ import annotations
 
-import importlib
-
+from gsa.lazy import lazy_exports
 from gsa.render.cameras import Cameras, cameras_around, look_at, orbit_cameras
 
 _LAZY = dict.fromkeys(
@@ -34,9 +33,4 @@ _LAZY = dict.fromkeys(
 _LAZY["locality_order"] = "gsa.render.cpu"
 
 __all__ = ["Cameras", "cameras_around", "look_at", "orbit_cameras", *sorted(_LAZY)]
-
-
-def __getattr__(name: str):
-    if name in _LAZY:
-        return getattr(importlib.import_module(_LAZY[name]), name)
-    raise AttributeError(f"module 'gsa.render' has no attribute {name!r}")
+__getattr__, __dir__ = lazy_exports(__name__, _LAZY)
