@@ -214,3 +214,25 @@ def test_cli_bad_input_is_one_error_line(tmp_path, capsys, args, message):
     lines = capsys.readouterr().err.strip().splitlines()
     assert len(lines) == 1 and lines[0].startswith("gsa: error:") and message in lines[0]
     assert not (tmp_path / "out" / "many.json").exists()
+
+
+def test_bench_n_way_names_the_wrong_edge(monkeypatch, tmp_path, capsys):
+    # The protocol's bookkeeping on exact edges (the pairwise alignments are what the real run
+    # measures; here they are built from the truth so the test stays fast).
+    from gsa.bench import nway
+
+    _, truth = nway.captures(True, 0)
+
+    def exact_edges(models, pairs, options=None, progress=None):
+        return [Edge(i, j, truth[j] @ truth[i].inverse(), confidence=0.9) for i, j in pairs]
+
+    monkeypatch.setattr(nway, "pairwise_edges", exact_edges)
+    rows = nway.protocol_nway(True, 0, tmp_path)
+    by = {r["method"]: r for r in rows}
+    assert by["pairwise to reference · one edge wrong"]["success_rate"] < 1.0
+    wrong = by["global step · one edge wrong"]
+    assert wrong["success_rate"] == 1.0 and wrong["mean_rre_deg"] < 1e-3
+    assert wrong["wrong_edge_named"] and wrong["pruned"] == [wrong["wrong_edge"]]
+    assert by["global step · as measured"]["pruned"] == []
+    assert (tmp_path / "n-way.json").exists()
+    assert "the wrong edge model_0 -> model_3 named" in capsys.readouterr().out

@@ -62,6 +62,7 @@ from gsa.bench import speed as _speed
 from gsa.bench.ablation import ABLATION_COARSE, ABLATION_REFERENCE, FINE_BASE, ablation_runner, similar_cameras
 from gsa.bench.category_real import category_of as real_category_of
 from gsa.bench.category_real import category_real_judge, category_real_pairs, default_align_runner, per_class
+from gsa.bench.nway import protocol_nway
 from gsa.bench.pairs import (
     ROBUST_COUNT,
     ROBUST_SIZES,
@@ -395,6 +396,7 @@ PROTOCOLS = {
     "site": protocol_site,
     "category-real": protocol_category_real,
     "real": protocol_real,
+    "n-way": protocol_nway,
 }
 # Protocols over the user's own data (--data DIR).
 DATA_PROTOCOLS = {"category-real", "real", "site"}
