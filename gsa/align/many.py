@@ -51,6 +51,9 @@ SPARSE_K = 3
 # so the least squares stay determined (that model's confidence says it is unsupported).
 WEIGHT_FLOOR = 1e-6
 IRLS_ITERATIONS = 15
+# A model whose confidence is below this is flagged doubtful in to_dict (align()'s own flag
+# sits at the same level: gsa.align.robust).
+MODEL_DOUBTFUL = 0.5
 EDGE_STATUSES = ("kept", "down-weighted", "pruned", "corrected")
 
 
@@ -118,7 +121,7 @@ class ManyResult:
                     "index": k,
                     **self.transforms[k].to_dict(),
                     "confidence": self.confidences[k],
-                    "doubtful": self.confidences[k] < 0.5,
+                    "doubtful": self.confidences[k] < MODEL_DOUBTFUL,
                 }
                 for k, name in enumerate(self.names)
             ],
