@@ -236,3 +236,19 @@ def test_bench_n_way_names_the_wrong_edge(monkeypatch, tmp_path, capsys):
     assert by["global step · as measured"]["pruned"] == []
     assert (tmp_path / "n-way.json").exists()
     assert "the wrong edge model_0 -> model_3 named" in capsys.readouterr().out
+
+
+def test_global_step_on_a_sparse_graph_with_two_wrong_edges():
+    # 12 models, each joined to its next three (a ring with chords, as the sparse graph is):
+    # 36 edges instead of 66; two wrong ones, far apart.
+    truth, centres, sizes, all_edges = _graph(12, seed=8)
+    keep = {(i, (i + d) % 12) for i in range(12) for d in (1, 2, 3)}
+    edges = [e for e in all_edges if (e.source, e.target) in keep or (e.target, e.source) in keep]
+    assert len(edges) == 36
+    wrong = {3, 20}
+    for k in wrong:
+        edges[k].transform = _turned(edges[k].transform, 2, 120.0)
+    result = solve_graph(12, edges, 0, centres, sizes)
+    assert {k for k, e in enumerate(result.edges) if e.status == "pruned"} == wrong
+    for rot, log_s in _errors(result, truth):
+        assert rot < 1.5 and log_s < 0.02
