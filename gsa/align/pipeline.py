@@ -158,7 +158,11 @@ def _align(
         best = _Hypothesis(f"guided:{start[1]['from']}", pair.src_frame, pair.constrain(start[0]))
         scored = []
         t = time.perf_counter()
-        coarse = pair.refine_global(best.init, progress) if pair.global_search else pair.coarse(best, progress)
+        coarse = (
+            pair.refine_global(pair.approach(best.init), progress)
+            if pair.global_search
+            else pair.coarse(best, progress)
+        )
         if start[1]["from"] == "point_pairs" and not guided.honours_pairs(coarse.transform, best.init):
             start[1]["refinement"] = "undone: it moved away from the pairs"
             coarse = replace(coarse, transform=best.init)
@@ -355,6 +359,17 @@ class _Pair:
             )
         _report(progress, "hypotheses", 1.0)
         return result
+
+    def approach(self, start: Sim3) -> Sim3:
+        """The anchors' ICP from a given pose, as the search runs it on its own starts: the
+        full-resolution refinement fits the closest pairs, which converges only from within a
+        degree or two, and a user's pose can be tens of degrees off."""
+        src, dst = self.anchors()
+        options = robust.SearchOptions()
+        rng = np.random.default_rng(self.opts.seed)
+        rows = [_subsample(rng, len(a), options.refine_points) for a in (src, dst)]
+        iterations = options.early_iterations + options.refine_iterations
+        return robust.bidirectional_icp(src, dst, start, *rows, iterations, robust.colour_weight(src, dst))
 
     def check_given(self, transform: Sim3, progress: Progress | None) -> robust.SearchResult:
         """The automatic search's poses, with the given one first (robust.with_given_pose)."""
