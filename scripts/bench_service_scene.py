@@ -33,7 +33,7 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from tests.service.conftest import Proc, free_port, wait_until  # noqa: E402
+from tests.service.conftest import Proc, api_up, free_port, wait_until  # noqa: E402
 from tests.service.harness import RedisServer, rss_bytes  # noqa: E402
 
 KEY = "scene-bench-key"
@@ -156,7 +156,7 @@ def run(args) -> dict:
     )
     worker = None
     try:
-        wait_until(lambda: _up(url, api), 120, 0.1, "API to start")
+        wait_until(lambda: api_up(url, api), 120, 0.1, "API to start")
         if redis is not None:
             worker = Proc(
                 [sys.executable, "-m", "service.cli", "worker", "--name", f"scene-{time.time_ns()}"],
@@ -258,15 +258,6 @@ def run(args) -> dict:
             shutil.rmtree(tmp, ignore_errors=True)
         else:
             print(f"kept {tmp}")
-
-
-def _up(url: str, api: Proc) -> bool:
-    if api.p.poll() is not None:
-        raise RuntimeError(f"API exited: {api.tail()}")
-    try:
-        return httpx.get(url + "/healthz", timeout=1).status_code == 200
-    except httpx.HTTPError:
-        return False
 
 
 def main(argv: list[str] | None = None) -> int:

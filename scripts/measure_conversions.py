@@ -41,7 +41,7 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from tests.service.conftest import Proc, free_port, wait_until  # noqa: E402
+from tests.service.conftest import Proc, api_up, free_port, wait_until  # noqa: E402
 from tests.service.harness import RedisServer, rss_bytes  # noqa: E402
 
 KEY = "conversion-bench-key"
@@ -178,7 +178,7 @@ def main() -> None:
     api = InTree([sys.executable, "-m", "service.cli", "serve", "--port", str(port)], env, tmp / "api.log", cwd)
     worker = None
     try:
-        wait_until(lambda: _up(url, api), 120, 0.1, "API to start")
+        wait_until(lambda: api_up(url, api), 120, 0.1, "API to start")
         if redis is not None:
             worker = InTree([sys.executable, "-m", "service.cli", "worker"], env, tmp / "worker.log", cwd)
         with httpx.Client(base_url=url, headers=HEADERS, timeout=1800) as c:
@@ -213,15 +213,6 @@ def main() -> None:
         api.stop()
         if redis is not None:
             redis.stop()
-
-
-def _up(url: str, api: Proc) -> bool:
-    if api.p.poll() is not None:
-        raise RuntimeError(f"API exited: {api.tail()}")
-    try:
-        return httpx.get(url + "/healthz", timeout=1).status_code == 200
-    except httpx.HTTPError:
-        return False
 
 
 if __name__ == "__main__":

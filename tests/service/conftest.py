@@ -148,16 +148,18 @@ def start_api(
     proc = Proc(args, env, tmp / f"{name}.log")
     url = f"http://127.0.0.1:{port}"
 
-    def up():
-        if proc.p.poll() is not None:
-            raise RuntimeError(f"API exited: {proc.tail()}")
-        try:
-            return httpx.get(url + "/healthz", timeout=1).status_code == 200
-        except httpx.HTTPError:
-            return False
-
-    wait_until(up, 60, 0.1, "API to start")
+    wait_until(lambda: api_up(url, proc), 60, 0.1, "API to start")
     return proc, url, gport
+
+
+def api_up(url: str, api: Proc) -> bool:
+    """Whether the API answers /healthz; an API process that exited is an error, not a wait."""
+    if api.p.poll() is not None:
+        raise RuntimeError(f"API exited: {api.tail()}")
+    try:
+        return httpx.get(url + "/healthz", timeout=1).status_code == 200
+    except httpx.HTTPError:
+        return False
 
 
 def start_worker(tmp: Path, env: dict, name="worker") -> Proc:
