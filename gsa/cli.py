@@ -1,7 +1,7 @@
 """`gsa` command line: align, demo, synth, bench, and the service verbs.
 
 Over 400 lines on purpose: the parser and handlers of the core verbs in the one module the
-`gsa` entry point imports (its start-up is measured, scripts/bench_cli.py); verbs that belong
+`gsa` entry point imports (its start-up is measured, python -m gsa.bench.cli_speed); verbs that belong
 to a subpackage already live beside it (render, lift, reconstruct, the service's).
 
 Every failure the user can cause ends as one line on stderr and a non-zero

@@ -2,7 +2,7 @@
 start-up, imports, numba (cache loading or compilation), PLY reading, alignment
 and writing result.json, as a user sees it.
 
-    python scripts/bench_cli.py [--runs 5] [--gaussians 50000] [--keep DIR] [-- extra gsa align args]
+    python -m gsa.bench.cli_speed [--runs 5] [--gaussians 50000] [--keep DIR] [-- extra gsa align args]
 
 The pair: two independent samplings of a generated car, the target moved by a
 random Sim(3). Prints every run, then min/median; the first run is also shown on

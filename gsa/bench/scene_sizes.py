@@ -5,7 +5,7 @@ that many Gaussians before floaters), GSA's current align() coarse stage and, wi
 --icp, the plain-ICP peer; one line per pair and method, then a markdown table of the
 medians. Peak RSS per call: gsa.bench.scene.with_peak_memory.
 
-    .venv/bin/python scripts/bench_scene_sizes.py --sizes 250000 500000 1000000 --pairs 2
+    .venv/bin/python -m gsa.bench.scene_sizes --sizes 250000 500000 1000000 --pairs 2
 
 The captures are gsa.bench.pairs.SCENE_HARD's unless --easy (the issue-18 baseline's).
 """

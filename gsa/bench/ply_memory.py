@@ -7,7 +7,7 @@ it is exact, not sampled; "growth" is that peak minus the resident memory just b
 operation. The model itself is `model MB` (its arrays' bytes): reading never needs more than
 that one copy plus a bounded chunk, writing nothing beyond the model plus a chunk.
 
-    PYTHONPATH=. .venv/bin/python scripts/bench_ply_memory.py --sizes 1M,2M,5M --sh 0,3
+    .venv/bin/python -m gsa.bench.ply_memory --sizes 1M,2M,5M --sh 0,3
 """
 
 from __future__ import annotations
@@ -118,10 +118,10 @@ def main(argv: list[str] | None = None) -> int:
         for n in (parse_size(s) for s in args.sizes.split(",")):
             for degree in (int(x) for x in args.sh.split(",")):
                 proc = subprocess.run(
-                    [sys.executable, __file__, "--child", str(n), str(degree), d],
+                    [sys.executable, "-m", "gsa.bench.ply_memory", "--child", str(n), str(degree), d],
                     capture_output=True,
                     text=True,
-                    env={**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parents[1])},
+                    env={**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parents[2])},
                 )
                 if proc.returncode:
                     sys.stderr.write(proc.stderr)

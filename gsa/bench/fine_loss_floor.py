@@ -6,7 +6,7 @@ found by Levenberg-Marquardt over the 7 Sim(3) parameters from that start, and t
 at the true transform. If the minimiser lands farther from the truth than the coarse
 result, no optimiser of that loss can improve on coarse: the loss itself is the limit.
 
-    python scripts/fine_loss_floor.py [--views 5] [--size 128] [--pairs 4] [--on colors]
+    python -m gsa.bench.fine_loss_floor [--views 5] [--size 128] [--pairs 4] [--on colors]
 """
 
 from __future__ import annotations
@@ -36,7 +36,7 @@ def _around(init: Sim3, p: np.ndarray, center: np.ndarray, extent: float) -> Sim
 
 
 def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(prog="python scripts/fine_loss_floor.py")
+    ap = argparse.ArgumentParser(prog="python -m gsa.bench.fine_loss_floor")
     ap.add_argument("--views", type=int, default=5)
     ap.add_argument("--size", type=int, default=128)
     ap.add_argument("--pairs", type=int, default=4)

@@ -1,4 +1,4 @@
-"""`python -m gsa.recon.bench`: the reconstruction protocol on a generated object.
+"""`python -m gsa.bench.recon`: the reconstruction protocol on a generated object.
 
 1. 30 views at each --size (256 and 512 by default) -> reconstruct (cpu preset): views
    registered, camera-centre error after a Sim(3) fit (% of orbit radius), held-out PSNR, wall time.
@@ -115,7 +115,7 @@ def run_size(args, size: int, root: Path) -> dict:
 
 
 def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(prog="python -m gsa.recon.bench")
+    ap = argparse.ArgumentParser(prog="python -m gsa.bench.recon")
     ap.add_argument("--category", default="car")
     ap.add_argument("--views", type=int, default=30)
     ap.add_argument("--size", type=int, nargs="+", default=[512, 256], help="image sizes, one protocol row each")

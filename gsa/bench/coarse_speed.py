@@ -3,7 +3,7 @@
 5 runs each after a warm-up, and Open3D FPFH + RANSAC + ICP on the same pair in the
 same run when the `peers` extra is installed (the ratio is what compares across machines).
 
-    python scripts/bench_coarse.py [SIZES...]
+    python -m gsa.bench.coarse_speed [SIZES...]
 """
 
 from __future__ import annotations
