@@ -102,6 +102,8 @@ def job_to_pb(job: Job) -> pb.Job:
         parent_job=job.parent_job or "",
         children=job.children,
     )
+    if job.state == JobState.queued and job.next_attempt_at is not None:
+        msg.next_attempt_at.CopyFrom(_ts(job.next_attempt_at))
     if job.error:
         msg.error.CopyFrom(
             pb.Problem(

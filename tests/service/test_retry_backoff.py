@@ -8,10 +8,13 @@ import os
 from datetime import datetime
 from pathlib import Path
 
+import grpc
 import httpx
 import pytest
 
 from service.execution import retry_delay
+from service.grpc_gen import alignment_pb2 as pb
+from service.grpc_gen import alignment_pb2_grpc as pbg
 from service.settings import Settings
 from tests.service.conftest import ALICE, service_env, start_api, start_worker, wait_until
 
@@ -19,6 +22,7 @@ pytestmark = pytest.mark.slow  # starts servers and worker processes
 
 BASE_S = 1.6  # attempt 1 → 0.8..1.6 s, attempt 2 → 1.6..3.2 s
 QUOTA = 64 * 1024 * 1024
+GRPC_AUTH = (("authorization", ALICE["Authorization"]),)
 
 
 def test_delay_is_exponential_capped_and_jittered():
@@ -51,9 +55,11 @@ def test_retries_after_a_full_storage_wait_for_their_back_off(tmp_path, pair, re
     if mode == "redis":
         extra.update(GSA_REDIS_URL=redis_url + "/7", GSA_QUEUE_NAME="backoff")
     env = service_env(tmp_path, **extra)
-    api, url, _ = start_api(tmp_path, env, name=f"api-{mode}")
+    api, url, gport = start_api(tmp_path, env, grpc=True, name=f"api-{mode}")
     worker = start_worker(tmp_path, env, name="worker-backoff") if mode == "redis" else None
     blobs = tmp_path / "data" / "blobs"
+    channel = grpc.insecure_channel(f"127.0.0.1:{gport}")
+    rpc = pbg.AlignmentServiceStub(channel)
     try:
         with httpx.Client(base_url=url, headers=ALICE, timeout=60) as c:
             ids = []
@@ -86,7 +92,7 @@ def test_retries_after_a_full_storage_wait_for_their_back_off(tmp_path, pair, re
 
                 return check
 
-            waits = []
+            waits, grpc_checked = [], 0
             for n in (1, 2):
                 j = wait_until(requeued(n), 120, 0.02, f"attempt {n} to be requeued")
                 failed_at, next_at = _ts(j["updated_at"]), _ts(j["next_attempt_at"])
@@ -94,6 +100,12 @@ def test_retries_after_a_full_storage_wait_for_their_back_off(tmp_path, pair, re
                 full = BASE_S * 2 ** (n - 1)
                 # The record's next attempt time is the back-off: half to all of base·2^(n-1).
                 assert full / 2 - 0.05 <= next_at - failed_at <= full + 0.05, (n, next_at - failed_at, j)
+                # gRPC clients see the same time (read while the job still waits for it).
+                over_grpc = rpc.GetJob(pb.JobRef(job_id=jid), metadata=GRPC_AUTH)
+                if over_grpc.state == pb.JOB_STATE_QUEUED:
+                    grpc_checked += 1
+                    assert over_grpc.HasField("next_attempt_at"), over_grpc
+                    assert abs(over_grpc.next_attempt_at.ToNanoseconds() / 1e9 - next_at) < 1e-3
                 if n == 2:
                     filler.unlink()  # room again: the third attempt can store its artifacts
                 started = wait_until(
@@ -110,8 +122,11 @@ def test_retries_after_a_full_storage_wait_for_their_back_off(tmp_path, pair, re
             )
             assert done["state"] == "succeeded" and done["attempts"] == 3, done
             assert done["next_attempt_at"] is None
+            assert grpc_checked >= 1, "the back-off never outlasted one GetJob"
+            assert not rpc.GetJob(pb.JobRef(job_id=jid), metadata=GRPC_AUTH).HasField("next_attempt_at")
             assert waits[0] >= BASE_S / 2 - 0.05 and waits[1] >= BASE_S - 0.05, waits
     finally:
+        channel.close()
         if worker is not None:
             worker.stop()
         api.stop()
