@@ -1,4 +1,4 @@
-"""Small procedural Gaussian scenes for render tests and benchmarks (no dependency on gsa.synth)."""
+"""Small procedural Gaussian scenes for the render tests (test support; no dependency on gsa.synth)."""
 
 from __future__ import annotations
 

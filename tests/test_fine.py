@@ -5,8 +5,8 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from gsa.align.fine import FineOptions, fine_align
-from gsa.render.testing import blob_object
 from gsa.sim3 import Sim3
+from tests.render_scenes import blob_object
 
 GT = Sim3(1.3, Rotation.from_euler("xyz", [40, -70, 120], degrees=True).as_matrix(), np.array([0.5, -0.2, 0.3]))
 

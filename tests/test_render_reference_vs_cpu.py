@@ -300,7 +300,7 @@ def test_concurrent_renders_from_threads_agree():
 
 def test_locality_order_groups_neighbours_and_leaves_renders_unchanged():
     from gsa.render.cpu import locality_order
-    from gsa.render.testing import blob_object
+    from tests.render_scenes import blob_object
 
     model = blob_object(4000, seed=3)
     shuffled = model.subset(np.random.default_rng(0).permutation(len(model)))

@@ -8,9 +8,9 @@ import pytest
 
 from gsa.io.ply import write_ply
 from gsa.render.command import add_render_parser
-from gsa.render.testing import blob_object
 from gsa.render.views import render_model_views, write_alignment_renders, write_synchronized_renders
 from gsa.sim3 import Sim3
+from tests.render_scenes import blob_object
 
 
 def test_alignment_renders_show_the_change(tmp_path):

@@ -34,20 +34,14 @@ def main(argv=None) -> int:
     import torch
 
     from gsa.align.fine import FineOptions, fine_align
+    from gsa.canonical import canonical_features
     from gsa.sim3 import Sim3
+    from gsa.synth import make_object
 
-    try:
-        from gsa.canonical import canonical_features
-        from gsa.synth import make_object
-
-        src = make_object("car", 0, args.gaussians, sample_seed=1)
-        tgt = make_object("car", 0, args.gaussians, sample_seed=2)
-        src = src.with_features(canonical_features(src))
-        tgt = tgt.with_features(canonical_features(tgt))
-    except ImportError:
-        from gsa.render.testing import blob_object
-
-        src, tgt = blob_object(args.gaussians, 1), blob_object(args.gaussians, 2)
+    src = make_object("car", 0, args.gaussians, sample_seed=1)
+    tgt = make_object("car", 0, args.gaussians, sample_seed=2)
+    src = src.with_features(canonical_features(src))
+    tgt = tgt.with_features(canonical_features(tgt))
     if not args.keep_order:
         rng = np.random.default_rng(0)
         src, tgt = src.subset(rng.permutation(len(src))), tgt.subset(rng.permutation(len(tgt)))

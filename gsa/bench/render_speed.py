@@ -18,14 +18,9 @@ import torch
 
 
 def _scene(n: int):
-    try:
-        from gsa.synth import make_object
+    from gsa.synth import make_object
 
-        model = make_object("car", 0, n)
-    except ImportError:  # synth not present: fall back to the render test scene
-        from gsa.render.testing import blob_object
-
-        model = blob_object(n)
+    model = make_object("car", 0, n)
     if model.features is None:
         from gsa.canonical import canonical_features
 
