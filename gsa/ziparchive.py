@@ -93,7 +93,9 @@ def check_zip(
         zf = zipfile.ZipFile(path)
     except MemoryError:
         raise
-    except Exception as exc:  # BadZipFile, OSError, ValueError, struct.error, ...: all hostile bytes
+    # hostile bytes reach deep into zipfile (BadZipFile, OSError, ValueError, struct.error, ...),
+    # whose failures are no closed set: every one must become a ZipArchiveError
+    except Exception as exc:  # noqa: BLE001
         raise ZipArchiveError(f"{label}: not a readable zip archive ({_reason(exc)})") from None
     with zf:
         infos = zf.infolist()
@@ -166,7 +168,9 @@ def _reading(label: str, name: str):
         yield
     except MemoryError:
         raise
-    except Exception as exc:  # BadZipFile (CRC, header), EOFError, zlib.error, LZMAError, OSError (bz2), ...
+    # BadZipFile (CRC, header), EOFError, zlib.error, LZMAError, OSError (bz2), ...: as above,
+    # every failure to read hostile bytes must become a ZipArchiveError
+    except Exception as exc:  # noqa: BLE001
         raise ZipArchiveError(
             f"{label}: entry {name!r} is corrupt or does not hold what the archive declares ({_reason(exc)})"
         ) from None

@@ -273,7 +273,7 @@ def main() -> int:
             try:
                 os.killpg(p.pid, signal.SIGTERM)
                 p.wait(10)
-            except Exception:
+            except (ProcessLookupError, subprocess.TimeoutExpired):  # gone already, or slow: stop the rest
                 pass
         shutil.rmtree(tmp, ignore_errors=True)
     return 0

@@ -196,7 +196,7 @@ def main() -> int:
             try:
                 os.killpg(p.pid, signal.SIGTERM)
                 p.wait(10)
-            except Exception:
+            except (ProcessLookupError, subprocess.TimeoutExpired):  # gone already, or slow: stop the rest
                 pass
         if a.keep:
             print(f"logs kept in {tmp}")

@@ -127,7 +127,8 @@ class Conversions:
             finally:
                 self.slots.release()
             done.set_result(size)
-        except BaseException as exc:  # every outcome, a cancellation too, goes to the requests waiting on it
+        # forwarded, not swallowed: every outcome, a cancellation too, goes to the requests waiting on it
+        except BaseException as exc:  # noqa: BLE001
             done.set_exception(exc)
             done.exception()  # retrieved: no "never retrieved" warning when nobody waits any more
         finally:

@@ -223,7 +223,9 @@ def ingest(b: Backend, owner: str, data, filename: str | None, *, expect: str | 
                 if b.store.remove_blob_ref(key, asset_id) == 0:
                     b.storage.delete(key)
                     quotas.forget(b, owner, key)
-        except Exception:  # store unreachable: only a blob no other asset can share goes
+        # cleanup while an error is answered (re-raised below): whatever the store fails with
+        # (unreachable, full disk), only a blob no other asset can share goes
+        except Exception:  # noqa: BLE001
             if not key.startswith("cas/"):
                 b.storage.delete(key)
         raise
@@ -294,7 +296,9 @@ def release(b: Backend, owner: str, idempotency_key: str | None) -> None:
     if idempotency_key:
         try:
             b.store.release_idempotency(owner, idempotency_key)
-        except Exception:  # never hides the request's own error; an unreleased claim lapses (IDEM_PENDING_S)
+        # cleanup on a failed request: never hides the request's own error;
+        # an unreleased claim lapses (IDEM_PENDING_S)
+        except Exception:  # noqa: BLE001
             pass
 
 
@@ -391,7 +395,7 @@ def create_job(
         # half-created job behind it (a worker that got the message finds no record).
         try:
             b.store.delete(job.id)
-        except Exception:  # last resort: never hides the error being answered
+        except Exception:  # noqa: BLE001 -- cleanup, last resort: never hides the error being answered
             pass
         raise
     return job

@@ -132,7 +132,9 @@ def model_format(head: bytes, size: int, path: Path | None = None) -> str | None
                 return "sog" if "meta.json" in zf.namelist() else None
         except MemoryError:
             raise
-        except Exception:  # BadZipFile, OSError, ValueError, ...: not a SOG; validate_zip says why
+        # hostile bytes fail in zipfile in no closed set of ways (BadZipFile, OSError, ValueError,
+        # ...): not a SOG, and validate_zip then says why
+        except Exception:  # noqa: BLE001
             return None
     return fmt
 

@@ -211,7 +211,9 @@ def deliver_with_retries(store, job_id: str, settings) -> bool:
         try:
             post_job_event(store, job_id, settings)
             return True
-        except Exception as exc:  # last resort: any failure to deliver is retried, then given up
+        # the delivery thread's boundary: any failure (store, resolution, connection, HTTP status)
+        # is logged and retried, then given up, never left to end the thread unseen
+        except Exception as exc:  # noqa: BLE001
             log.warning("webhook for %s failed (attempt %d): %s", job_id, attempt + 1, exc)
             time.sleep(delay)
             delay = min(delay * 5, 600)

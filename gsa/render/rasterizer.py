@@ -39,7 +39,9 @@ def cuda_available() -> bool:
         return False
     try:
         import gsplat  # noqa: F401
-    except Exception:
+    # a native extension built against another torch/CUDA can fail in any way on import:
+    # the CUDA backend is then unavailable and "auto" uses the CPU
+    except Exception:  # noqa: BLE001
         return False
     return True
 

@@ -165,7 +165,7 @@ class ChaosRun:
         while not self.stop.is_set():
             try:
                 jobs = httpx.get(self.dep.url + "/v1/jobs?limit=200", headers=ALICE, timeout=5).json()["items"]
-            except Exception:
+            except (httpx.HTTPError, ValueError, KeyError):  # API down, or an error answer (no items)
                 jobs = []
             now = time.monotonic()
             for j in jobs:

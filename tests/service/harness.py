@@ -44,7 +44,7 @@ class RedisServer:
         def up():
             try:
                 return r.ping()
-            except Exception:
+            except redis.RedisError:  # not accepting connections (or still loading its AOF) yet
                 return False
 
         wait_until(up, 30, 0.05, "redis-server")

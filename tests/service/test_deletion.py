@@ -256,7 +256,7 @@ def test_concurrent_identical_uploads_and_deletes_never_lose_live_bytes(kind, tm
                     delete_asset(b, "racer", a.id)
                 else:
                     kept.append(a)
-        except Exception as exc:  # reported below: a thread's exception must fail the test
+        except Exception as exc:  # noqa: BLE001 -- reported below: a thread's exception must fail the test
             errors.append(exc)
 
     threads = [threading.Thread(target=racer, args=(i,)) for i in range(4)]

@@ -117,12 +117,14 @@ def follow_up(page, url: str, parent_id: str, timeout: float = 180.0) -> dict:
         assert time.monotonic() < deadline, f"the page stayed at {page.url}"
         page.wait_for_timeout(100)  # not time.sleep: the sync API learns of navigations inside its calls
     child_id = path.split("/")[3]
+    from playwright.sync_api import Error as PlaywrightError
+
     deadline = time.monotonic() + timeout
     while True:
         try:  # the page reloads itself once: its context may be gone for a moment
             if page.evaluate("() => document.documentElement.dataset.viewer") == "ready":
                 break
-        except Exception:
+        except PlaywrightError:
             pass
         assert time.monotonic() < deadline, "the follow-up's page never showed its result"
         page.wait_for_timeout(250)
