@@ -342,15 +342,7 @@ def solve_graph(
     """The global step: every model's Sim(3) into the reference frame, consistent with the
     edges; sets each edge's status, weight and residual. centres and sizes: each model's
     centroid and RMS radius in its own frame (residual units; default 0 and 1)."""
-    if n < 2:
-        raise ManyError("need at least two models")
-    if not 0 <= reference < n:
-        raise ManyError(f"reference index {reference} is not one of the {n} models")
-    if not edges:
-        raise ManyError("no edges")
-    for e in edges:
-        if not (0 <= e.source < n and 0 <= e.target < n) or e.source == e.target:
-            raise ManyError(f"edge {e.source} -> {e.target} does not join two of the {n} models")
+    _check_graph(n, edges, reference)
     t0 = time.perf_counter()
     names = list(names) if names is not None else [f"model_{k}" for k in range(n)]
     centres = [np.zeros(3)] * n if centres is None else [np.asarray(c, np.float64) for c in centres]
@@ -370,7 +362,46 @@ def solve_graph(
     x, w, res = _irls(n, reference, pairs, prior, _tree_solution(n, reference, pairs, tree))
     measured = list(res)
 
-    # Pruned edges: an alternative that agrees with the solution replaces the measured pose.
+    corrected = _correct_pruned(edges, res, x, chosen, normalised)
+    if corrected:
+        pairs = [(e.source, e.target, t) for e, t in zip(edges, chosen)]
+        x, w, res = _irls(n, reference, pairs, prior, x)
+    _set_edge_outcomes(edges, res, measured, w, support, corrected)
+
+    _, triangles_used = _triangle_support(n, [(e.source, e.target, t) for e, t in zip(edges, chosen)])
+    usable = {(e.source, e.target): k for k, e in enumerate(edges) if e.status != "pruned"}
+    usable.update({(j, i): k for (i, j), k in list(usable.items())})
+    confidences = _widest_paths(n, reference, edges, _edge_strengths(edges, triangles_used, usable))
+
+    transforms = [norm[reference].inverse() @ xk @ norm[k] for k, xk in enumerate(x)]
+    return ManyResult(
+        names=names,
+        reference=reference,
+        transforms=transforms,
+        confidences=confidences,
+        edges=edges,
+        cycles=_cycles(edges, triangles_measured, triangles_used, usable),
+        timings={"global": time.perf_counter() - t0},
+    )
+
+
+def _check_graph(n: int, edges: list[Edge], reference: int) -> None:
+    if n < 2:
+        raise ManyError("need at least two models")
+    if not 0 <= reference < n:
+        raise ManyError(f"reference index {reference} is not one of the {n} models")
+    if not edges:
+        raise ManyError("no edges")
+    for e in edges:
+        if not (0 <= e.source < n and 0 <= e.target < n) or e.source == e.target:
+            raise ManyError(f"edge {e.source} -> {e.target} does not join two of the {n} models")
+
+
+def _correct_pruned(
+    edges: list[Edge], res: list[dict], x: list[Sim3], chosen: list[Sim3], normalised: Callable[[Edge, Sim3], Sim3]
+) -> set[int]:
+    """Pruned edges: an alternative that agrees with the solution x replaces the measured
+    pose (in chosen, and as the edge's used transform). Returns the corrected edges' indices."""
     corrected = set()
     for e_idx, (edge, r) in enumerate(zip(edges, res)):
         if r["units"] <= PRUNE or not edge.alternatives:
@@ -382,10 +413,13 @@ def solve_graph(
             chosen[e_idx] = alts[best]
             edge.used = edge.alternatives[best]
             corrected.add(e_idx)
-    if corrected:
-        pairs = [(e.source, e.target, t) for e, t in zip(edges, chosen)]
-        x, w, res = _irls(n, reference, pairs, prior, x)
+    return corrected
 
+
+def _set_edge_outcomes(
+    edges: list[Edge], res: list[dict], measured: list[dict], w: np.ndarray, support: np.ndarray, corrected: set[int]
+) -> None:
+    """Each edge's residuals, weight, triangle support, status and used transform."""
     for e_idx, (edge, r) in enumerate(zip(edges, res)):
         edge.residual = r
         edge.measured_residual = measured[e_idx]
@@ -401,12 +435,11 @@ def solve_graph(
         else:
             edge.status = "kept" if r["units"] <= 1.0 else "down-weighted"
 
-    # Per-model confidence: the widest path from the reference over usable edges, an edge
-    # counting as strong as its own confidence or, when a triangle of usable edges closes
-    # through it, the weaker of that triangle's other two edges (two paths agree).
-    _, triangles_used = _triangle_support(n, [(e.source, e.target, t) for e, t in zip(edges, chosen)])
-    usable = {(e.source, e.target): k for k, e in enumerate(edges) if e.status != "pruned"}
-    usable.update({(j, i): k for (i, j), k in list(usable.items())})
+
+def _edge_strengths(edges: list[Edge], triangles_used: list[dict], usable: dict[tuple[int, int], int]) -> list[float]:
+    """Per edge, its strength for the per-model confidence (the widest path from the
+    reference over usable edges): its own confidence or, when a triangle of usable edges
+    closes through it, the weaker of that triangle's other two edges (two paths agree)."""
     strength = [float(e.confidence) for e in edges]
     for tri in triangles_used:
         a, b, c = tri["models"]
@@ -416,16 +449,20 @@ def solve_graph(
         for k in ks:
             others = [edges[o].confidence for o in ks if o != k]
             strength[k] = max(strength[k], min(others))
-    confidences = _widest_paths(n, reference, edges, strength)
+    return strength
 
-    transforms = [norm[reference].inverse() @ xk @ norm[k] for k, xk in enumerate(x)]
+
+def _cycles(
+    edges: list[Edge], triangles_measured: list[dict], triangles_used: list[dict], usable: dict[tuple[int, int], int]
+) -> dict:
+    """Cycle statistics, measured and after the global step, and the largest usable edge residuals."""
     usable_triangles = [
         t
         for t in triangles_used
         if all(p in usable for p in ((t["models"][0], t["models"][1]), (t["models"][1], t["models"][2])))
         and (t["models"][0], t["models"][2]) in usable
     ]
-    cycles = {
+    return {
         "measured": _cycle_stats(triangles_measured),
         "after": _cycle_stats(usable_triangles),
         "edge_residuals": {
@@ -436,15 +473,6 @@ def solve_graph(
         if any(e.status != "pruned" for e in edges)
         else {},
     }
-    return ManyResult(
-        names=names,
-        reference=reference,
-        transforms=transforms,
-        confidences=confidences,
-        edges=edges,
-        cycles=cycles,
-        timings={"global": time.perf_counter() - t0},
-    )
 
 
 # ---------------------------------------------------------------- edges

@@ -112,17 +112,7 @@ def clamp_infinite(model: GaussianModel, path: str | os.PathLike, *, clamped_opa
 def _parse_header(
     path: Path, fh, comments: list[str] | None = None
 ) -> tuple[str, int, list[tuple[str, int, list[tuple[str, str]]]]]:
-    head = fh.read(MAX_HEADER_BYTES)
-    if not head.startswith(b"ply"):
-        raise PlyError(path, "not a PLY file (it does not start with 'ply')")
-    end = re.search(rb"end_header\r?\n", head)
-    if end is None:
-        raise PlyError(path, f"no 'end_header' line within the first {MAX_HEADER_BYTES} bytes")
-    header_len = end.end()
-    try:
-        lines = head[:header_len].decode("ascii").splitlines()
-    except UnicodeDecodeError:
-        raise PlyError(path, "the header is not ASCII text") from None
+    lines, header_len = _header_lines(path, fh)
     fmt = None
     elements: list[tuple[str, int, list[tuple[str, str]]]] = []
     for lineno, line in enumerate(lines[1:-1], start=2):
@@ -140,21 +130,44 @@ def _parse_header(
                 raise PlyError(path, f"header line {lineno}: malformed element line {line!r}")
             elements.append((tok[1], int(tok[2]), []))
         elif tok[0] == "property":
-            if not elements:
-                raise PlyError(path, f"header line {lineno}: property before any element")
-            if len(tok) > 1 and tok[1] == "list":
-                if len(tok) != 5:
-                    raise PlyError(path, f"header line {lineno}: malformed list property {line!r}")
-                elements[-1][2].append((tok[4], "list"))
-                continue
-            if len(tok) != 3 or tok[1] not in PLY_TYPES:
-                raise PlyError(path, f"header line {lineno}: unknown property type in {line!r}")
-            elements[-1][2].append((tok[2], PLY_TYPES[tok[1]]))
+            _add_property(path, lineno, line, tok, elements)
         else:
             raise PlyError(path, f"header line {lineno}: unexpected keyword {tok[0]!r}")
     if fmt is None:
         raise PlyError(path, "the header has no 'format' line")
     return fmt, header_len, elements
+
+
+def _header_lines(path: Path, fh) -> tuple[list[str], int]:
+    """The header's lines ('ply' to 'end_header') and its length in bytes."""
+    head = fh.read(MAX_HEADER_BYTES)
+    if not head.startswith(b"ply"):
+        raise PlyError(path, "not a PLY file (it does not start with 'ply')")
+    end = re.search(rb"end_header\r?\n", head)
+    if end is None:
+        raise PlyError(path, f"no 'end_header' line within the first {MAX_HEADER_BYTES} bytes")
+    header_len = end.end()
+    try:
+        lines = head[:header_len].decode("ascii").splitlines()
+    except UnicodeDecodeError:
+        raise PlyError(path, "the header is not ASCII text") from None
+    return lines, header_len
+
+
+def _add_property(
+    path: Path, lineno: int, line: str, tok: list[str], elements: list[tuple[str, int, list[tuple[str, str]]]]
+) -> None:
+    """A 'property' header line, added to the last element (a list property as type "list")."""
+    if not elements:
+        raise PlyError(path, f"header line {lineno}: property before any element")
+    if len(tok) > 1 and tok[1] == "list":
+        if len(tok) != 5:
+            raise PlyError(path, f"header line {lineno}: malformed list property {line!r}")
+        elements[-1][2].append((tok[4], "list"))
+        return
+    if len(tok) != 3 or tok[1] not in PLY_TYPES:
+        raise PlyError(path, f"header line {lineno}: unknown property type in {line!r}")
+    elements[-1][2].append((tok[2], PLY_TYPES[tok[1]]))
 
 
 def _sh_and_feature_layout(path: Path, names: list[str]) -> tuple[int, int]:
@@ -188,41 +201,11 @@ def read_ply(path: str | os.PathLike, *, max_gaussians: int = DEFAULT_MAX_GAUSSI
     comments: list[str] = []
     with fh:
         fmt, header_len, elements = _parse_header(path, fh, comments)
-    if not elements or elements[0][0] != "vertex":
-        raise PlyError(path, "the first element must be 'vertex' (the Gaussians)")
-    _, count, props = elements[0]
+    count, props, degree, feat_dim = _vertex_layout(path, elements, max_gaussians)
     names = [n for n, _ in props]
-    if any(t == "list" for _, t in props):
-        raise PlyError(path, "the vertex element has list properties; 3DGS vertices are scalar")
-    if len(set(names)) != len(names):
-        raise PlyError(path, "the vertex element repeats a property name")
-    degree, feat_dim = _sh_and_feature_layout(path, names)
-    if count == 0:
-        raise PlyError(path, "the file holds zero Gaussians")
-    if count > max_gaussians:
-        raise PlyError(path, f"{count} Gaussians exceeds the limit of {max_gaussians}")
-
-    body = file_size - header_len
     k = sh_coeff_count(degree)
     index = {n: i for i, n in enumerate(names)}
-    if FORMATS[fmt] is not None:
-        dtype = np.dtype([(n, FORMATS[fmt] + t) for n, t in props])
-        need = count * dtype.itemsize
-        if body < need:
-            raise PlyError(
-                path,
-                f"truncated: the header declares {count} Gaussians ({need} bytes) but only {body} bytes of data follow",
-            )
-        if body > need and len(elements) == 1:
-            raise PlyError(
-                path,
-                f"the header declares {count} Gaussians ({need} bytes) but {body} bytes of "
-                f"data follow; the count in the header is wrong",
-            )
-        chunks = _binary_chunks(path, header_len, dtype, count, props, index)
-    else:
-        table = _read_ascii(path, header_len, count, len(props))
-        chunks = iter([(0, count, lambda keys: table[:, [index[key] for key in keys]])])
+    chunks = _data_chunks(path, fmt, header_len, file_size - header_len, elements, index)
 
     # The model's arrays are allocated once and filled chunk by chunk (assignment converts
     # double / big-endian columns in place), so reading holds one copy of the data plus a chunk.
@@ -266,6 +249,56 @@ def read_ply(path: str | os.PathLike, *, max_gaussians: int = DEFAULT_MAX_GAUSSI
     if provenance and feat_dim:
         model.metadata["features"] = provenance
     return model
+
+
+def _vertex_layout(
+    path: Path, elements: list[tuple[str, int, list[tuple[str, str]]]], max_gaussians: int
+) -> tuple[int, list[tuple[str, str]], int, int]:
+    """The vertex element checked as 3DGS: (count, properties, SH degree, feature dim)."""
+    if not elements or elements[0][0] != "vertex":
+        raise PlyError(path, "the first element must be 'vertex' (the Gaussians)")
+    _, count, props = elements[0]
+    names = [n for n, _ in props]
+    if any(t == "list" for _, t in props):
+        raise PlyError(path, "the vertex element has list properties; 3DGS vertices are scalar")
+    if len(set(names)) != len(names):
+        raise PlyError(path, "the vertex element repeats a property name")
+    degree, feat_dim = _sh_and_feature_layout(path, names)
+    if count == 0:
+        raise PlyError(path, "the file holds zero Gaussians")
+    if count > max_gaussians:
+        raise PlyError(path, f"{count} Gaussians exceeds the limit of {max_gaussians}")
+    return count, props, degree, feat_dim
+
+
+def _data_chunks(
+    path: Path,
+    fmt: str,
+    header_len: int,
+    body: int,
+    elements: list[tuple[str, int, list[tuple[str, str]]]],
+    index: dict[str, int],
+):
+    """The vertex data as (lo, hi, cols) chunks; cols(keys) -> the rows' columns named keys.
+    body: the bytes after the header, checked against the count for binary files."""
+    _, count, props = elements[0]
+    if FORMATS[fmt] is None:
+        table = _read_ascii(path, header_len, count, len(props))
+        return iter([(0, count, lambda keys: table[:, [index[key] for key in keys]])])
+    dtype = np.dtype([(n, FORMATS[fmt] + t) for n, t in props])
+    need = count * dtype.itemsize
+    if body < need:
+        raise PlyError(
+            path,
+            f"truncated: the header declares {count} Gaussians ({need} bytes) but only {body} bytes of data follow",
+        )
+    if body > need and len(elements) == 1:
+        raise PlyError(
+            path,
+            f"the header declares {count} Gaussians ({need} bytes) but {body} bytes of "
+            f"data follow; the count in the header is wrong",
+        )
+    return _binary_chunks(path, header_len, dtype, count, props, index)
 
 
 def _apply_3d_filter(path: Path, model: GaussianModel, filter_3d: np.ndarray) -> None:

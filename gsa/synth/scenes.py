@@ -378,17 +378,7 @@ def scene_captures(
     del proj
     second = scene
     if independent:
-        meta = scene.metadata
-        sample_seed = int(rng.integers(1 << 30))
-        if resample is not None:
-            second = resample(scene, sample_seed)
-        elif meta.get("kind") == "scene":
-            second = make_scene(meta["seed"], len(scene), sample_seed=sample_seed, **meta["scene_args"])
-        else:
-            raise ValueError(
-                "independent captures need a make_scene model (its metadata says how to resample it) or resample= "
-                "(gsa.synth.sites.resample_site for make_site models)"
-            )
+        second = _second_sampling(scene, rng, resample)
         in_dst = project(second.means) <= cut_dst
     captures, poses, indices, n_floaters = [], [], [], []
     gains, holed, ceilingless, scanners = [], [], [], []
@@ -412,33 +402,10 @@ def scene_captures(
             scanners.append(tuple(float(v) for v in scanner))
             d = np.linalg.norm(base.means[index].astype(np.float64) - scanner, axis=1)
             weight = (1.0 + d / (0.1 * extent)) ** -falloff
-        if weight is None:
-            if sizes is not None:
-                keep = min(int(sizes[side]), len(index))
-                index = np.sort(rng.choice(index, keep, replace=False))
-            else:
-                index = index[rng.random(len(index)) < rng.uniform(*density)]
-        else:
-            if sizes is not None:
-                keep = min(int(sizes[side]), len(index))
-            else:
-                keep = round(rng.uniform(*density) * len(index))
-            # Weighted sampling without replacement in O(n): the k smallest Exp(1)/w keys.
-            keys = rng.exponential(size=len(index)) / weight
-            if keep < len(index):
-                index = np.sort(index[np.argpartition(keys, max(keep - 1, 0))[:keep]])
+        index = _thin(index, weight, None if sizes is None else int(sizes[side]), density, rng)
         capture = base.subset(index)
         capture = add_floaters(capture, rng, fraction=float(rng.uniform(*floaters)), box_scale=1.0)
-        gain = np.ones(3)
-        if exposure > 0 or white_balance > 0:
-            gain = 2.0 ** rng.uniform(-exposure, exposure) * np.array(
-                [
-                    1.0 + rng.uniform(-white_balance, white_balance),
-                    1.0,
-                    1.0 + rng.uniform(-white_balance, white_balance),
-                ]
-            )
-            capture.sh[:, 0, :] = _gained_dc(capture.sh[:, 0, :], gain)
+        gain = _colour_gain(capture, exposure, white_balance, rng)
         gains.append(tuple(float(g) for g in gain))
         pose = random_sim3(rng, scale_range=scale_range, translation=extent)
         captures.append(capture.transformed(pose))
@@ -471,6 +438,64 @@ def scene_captures(
         no_ceiling=(ceilingless[0], ceilingless[1]),
         scanners=(scanners[0], scanners[1]) if scanners else None,
     )
+
+
+def _second_sampling(
+    scene: GaussianModel, rng: np.random.Generator, resample: Callable[[GaussianModel, int], GaussianModel] | None
+) -> GaussianModel:
+    """A second, independent sampling of the room: resample(scene, sample_seed), or make_scene
+    again from a make_scene model's metadata."""
+    meta = scene.metadata
+    sample_seed = int(rng.integers(1 << 30))
+    if resample is not None:
+        return resample(scene, sample_seed)
+    if meta.get("kind") == "scene":
+        return make_scene(meta["seed"], len(scene), sample_seed=sample_seed, **meta["scene_args"])
+    raise ValueError(
+        "independent captures need a make_scene model (its metadata says how to resample it) or resample= "
+        "(gsa.synth.sites.resample_site for make_site models)"
+    )
+
+
+def _thin(
+    index: np.ndarray,
+    weight: np.ndarray | None,
+    size: int | None,
+    density: tuple[float, float],
+    rng: np.random.Generator,
+) -> np.ndarray:
+    """The Gaussians a capture keeps of index: exactly `size` of them (all when fewer) or a
+    fraction drawn in `density`; uniformly, or with probability weighted by `weight`."""
+    if weight is None:
+        if size is not None:
+            keep = min(size, len(index))
+            return np.sort(rng.choice(index, keep, replace=False))
+        return index[rng.random(len(index)) < rng.uniform(*density)]
+    if size is not None:
+        keep = min(size, len(index))
+    else:
+        keep = round(rng.uniform(*density) * len(index))
+    # Weighted sampling without replacement in O(n): the k smallest Exp(1)/w keys.
+    keys = rng.exponential(size=len(index)) / weight
+    if keep < len(index):
+        index = np.sort(index[np.argpartition(keys, max(keep - 1, 0))[:keep]])
+    return index
+
+
+def _colour_gain(capture: GaussianModel, exposure: float, white_balance: float, rng: np.random.Generator) -> np.ndarray:
+    """A capture's exposure and white-balance gains (linear RGB), applied to its SH DC in place;
+    ones, with no random number drawn, when both are off."""
+    gain = np.ones(3)
+    if exposure > 0 or white_balance > 0:
+        gain = 2.0 ** rng.uniform(-exposure, exposure) * np.array(
+            [
+                1.0 + rng.uniform(-white_balance, white_balance),
+                1.0,
+                1.0 + rng.uniform(-white_balance, white_balance),
+            ]
+        )
+        capture.sh[:, 0, :] = _gained_dc(capture.sh[:, 0, :], gain)
+    return gain
 
 
 def _punch_holes(means: np.ndarray, index: np.ndarray, holes: int, extent: float, rng: np.random.Generator):

@@ -210,6 +210,42 @@ def make_site(
     rng = np.random.default_rng([seed if sample_seed is None else sample_seed, 26, 2])  # where its Gaussians fall
     w, d = layout.uniform(30.0, 60.0), layout.uniform(25.0, 45.0)
     terrain = _Terrain(w, d, layout)
+    paths = _paths(layout, w, d)
+    # Drawn whether given or not, so that giving the drawn counts (a resampling from
+    # metadata["site_args"]) leaves the layout's stream, and so the site, as it was.
+    drawn = (int(layout.integers(5, 13)), int(layout.integers(4, 11)), int(layout.integers(1, 5)))
+    drawn += (int(layout.integers(0, 3)), bool(layout.random() < 0.6))
+    given = (trees, rocks, benches, vehicles, shed)
+    n_trees, n_rocks, n_benches, n_vehicles, has_shed = (d if g is None else g for d, g in zip(drawn, given))
+    objects = _site_objects(layout, w, d, n_trees, n_rocks, n_benches, n_vehicles, has_shed)
+    areas = [w * d] + [OBJECT_DENSITY * _object_area(o) for o in objects]
+    n_sky = int(round(SKY_FLOATERS * n_gaussians))
+    counts = rng.multinomial(n_gaussians - n_sky, np.array(areas) / np.sum(areas))
+    small = counts[1:] < 20  # too few to sample a shape: give them to the ground
+    counts[0] += int(counts[1:][small].sum())
+    counts[1:][small] = 0
+    pieces = [_ground(terrain, w, d, int(counts[0]), paths, rng, seed)]
+    pieces += [_object_piece(o, terrain, int(c), rng) for o, c in zip(objects, counts[1:]) if c]
+    if n_sky:
+        pieces.append(_sky(terrain, w, d, n_sky, rng))
+    model = _assemble(pieces, n_gaussians, sh_degree)
+    z = model.means[: n_gaussians - n_sky, 2]
+    model.metadata.update(
+        kind="site",
+        seed=seed,
+        sample_seed=sample_seed,
+        site_args=dict(
+            trees=n_trees, rocks=n_rocks, benches=n_benches, vehicles=n_vehicles, shed=has_shed, sh_degree=sh_degree
+        ),
+        size=[float(w), float(d)],
+        extent=float(np.linalg.norm([w, d, float(z.max() - z.min())])),
+        objects=[{k: v for k, v in o.items() if k not in ("lobes", "boxes")} for o in objects],
+    )
+    return model
+
+
+def _paths(layout: np.random.Generator, w: float, d: float) -> list[dict]:
+    """1-2 dirt paths across the site, each a polyline of 3-5 points and a width."""
     paths = []
     for _ in range(int(layout.integers(1, 3))):
         k = int(layout.integers(3, 6))
@@ -217,12 +253,21 @@ def make_site(
         if layout.random() < 0.5:
             pts = np.stack([layout.uniform(0.2 * w, 0.8 * w, k), np.linspace(0, d, k)], 1)
         paths.append({"points": pts, "width": float(layout.uniform(1.0, 2.5))})
-    # Drawn whether given or not, so that giving the drawn counts (a resampling from
-    # metadata["site_args"]) leaves the layout's stream, and so the site, as it was.
-    drawn = (int(layout.integers(5, 13)), int(layout.integers(4, 11)), int(layout.integers(1, 5)))
-    drawn += (int(layout.integers(0, 3)), bool(layout.random() < 0.6))
-    given = (trees, rocks, benches, vehicles, shed)
-    n_trees, n_rocks, n_benches, n_vehicles, has_shed = (d if g is None else g for d, g in zip(drawn, given))
+    return paths
+
+
+def _site_objects(
+    layout: np.random.Generator,
+    w: float,
+    d: float,
+    n_trees: int,
+    n_rocks: int,
+    n_benches: int,
+    n_vehicles: int,
+    has_shed: bool,
+) -> list[dict]:
+    """The specs of what stands on the site (trees, rocks, benches, a shed, vehicles), each
+    placed at "xy"."""
     footprints: list = []
 
     def place(radius: float) -> np.ndarray:
@@ -271,54 +316,33 @@ def make_site(
         spec = dict(kind=cat, seed=int(layout.integers(10_000)), size=size, yaw=float(layout.uniform(0, 2 * np.pi)))
         spec["xy"] = place(0.5 * size).tolist()
         objects.append(spec)
-    areas = [w * d]
-    for o in objects:
-        if o["kind"] == "tree":
-            a = 2 * np.pi * o["trunk_radius"] * o["trunk_height"] + 4 * np.pi * float(np.mean(o["crown"])) ** 2
-        elif o["kind"] == "rock":
-            a = 4 * np.pi * float(np.mean(o["radii"])) ** 2
-        elif o["kind"] in ("bench", "shed"):
-            a = sum(Box((0, 0, 0), tuple(h), (0, 0, 0)).area() for _, h, _ in o["boxes"])
-        else:
-            a = 2.0 * o["size"] ** 2  # as make_scene's furniture
-        areas.append(OBJECT_DENSITY * a)
-    n_sky = int(round(SKY_FLOATERS * n_gaussians))
-    counts = rng.multinomial(n_gaussians - n_sky, np.array(areas) / np.sum(areas))
-    small = counts[1:] < 20  # too few to sample a shape: give them to the ground
-    counts[0] += int(counts[1:][small].sum())
-    counts[1:][small] = 0
-    pieces = [_ground(terrain, w, d, int(counts[0]), paths, rng, seed)]
-    for o, c in zip(objects, counts[1:]):
-        if not c:
-            continue
-        xy = np.asarray(o["xy"])
-        base = np.array([*xy, terrain.height(xy[None])[0]])
-        if o["kind"] == "tree":
-            pieces.append(_tree(o, base, int(c), rng))
-        elif o["kind"] == "rock":
-            pieces.append(_rock(o, base, int(c), rng))
-        elif o["kind"] in ("bench", "shed"):
-            pieces.append(_boxes(o["boxes"], o["yaw"], base, int(c), rng))
-        else:
-            p = _furniture(o["kind"], o["seed"], int(c), o["size"], o["yaw"], xy, rng)
-            p.means[:, 2] += np.float32(base[2])
-            pieces.append(p)
-    if n_sky:
-        pieces.append(_sky(terrain, w, d, n_sky, rng))
-    model = _assemble(pieces, n_gaussians, sh_degree)
-    z = model.means[: n_gaussians - n_sky, 2]
-    model.metadata.update(
-        kind="site",
-        seed=seed,
-        sample_seed=sample_seed,
-        site_args=dict(
-            trees=n_trees, rocks=n_rocks, benches=n_benches, vehicles=n_vehicles, shed=has_shed, sh_degree=sh_degree
-        ),
-        size=[float(w), float(d)],
-        extent=float(np.linalg.norm([w, d, float(z.max() - z.min())])),
-        objects=[{k: v for k, v in o.items() if k not in ("lobes", "boxes")} for o in objects],
-    )
-    return model
+    return objects
+
+
+def _object_area(o: dict) -> float:
+    """An object's surface area (m²), which sets its share of the Gaussians."""
+    if o["kind"] == "tree":
+        return 2 * np.pi * o["trunk_radius"] * o["trunk_height"] + 4 * np.pi * float(np.mean(o["crown"])) ** 2
+    if o["kind"] == "rock":
+        return 4 * np.pi * float(np.mean(o["radii"])) ** 2
+    if o["kind"] in ("bench", "shed"):
+        return sum(Box((0, 0, 0), tuple(h), (0, 0, 0)).area() for _, h, _ in o["boxes"])
+    return 2.0 * o["size"] ** 2  # as make_scene's furniture
+
+
+def _object_piece(o: dict, terrain: _Terrain, count: int, rng: np.random.Generator) -> _Piece:
+    """`count` Gaussians on an object's surface, standing on the terrain at its "xy"."""
+    xy = np.asarray(o["xy"])
+    base = np.array([*xy, terrain.height(xy[None])[0]])
+    if o["kind"] == "tree":
+        return _tree(o, base, count, rng)
+    if o["kind"] == "rock":
+        return _rock(o, base, count, rng)
+    if o["kind"] in ("bench", "shed"):
+        return _boxes(o["boxes"], o["yaw"], base, count, rng)
+    p = _furniture(o["kind"], o["seed"], count, o["size"], o["yaw"], xy, rng)
+    p.means[:, 2] += np.float32(base[2])
+    return p
 
 
 def _sky(terrain: _Terrain, w: float, d: float, count: int, rng) -> _Piece:
