@@ -87,89 +87,7 @@ async def parse_multipart(request: Request, max_file_bytes: int, max_files: int)
     if m.get_content_type() != "multipart/form-data" or not boundary:
         raise invalid_input("expected multipart/form-data with a boundary")
     form = Form()
-    st: dict = {
-        "headers": {},
-        "hname": b"",
-        "hval": b"",
-        "part": None,
-        "buf": None,
-        "n": 0,
-        "field_bytes": 0,
-        "spool_left": MEMORY_SPOOL_BYTES,
-    }
-
-    def on_part_begin():
-        st["headers"], st["part"], st["buf"] = {}, None, None
-        st["n"] += 1
-        if st["n"] > MAX_PARTS:
-            raise invalid_input("too many multipart parts")
-
-    def on_header_field(data, start, end):
-        st["hname"] += data[start:end]
-
-    def on_header_value(data, start, end):
-        st["hval"] += data[start:end]
-
-    def on_header_end():
-        st["headers"][st["hname"].decode("latin-1").lower()] = _header_text(st["hval"])
-        st["hname"], st["hval"] = b"", b""
-
-    def on_headers_finished():
-        name, filename = _disposition(st["headers"].get("content-disposition", ""))
-        if not name:
-            raise invalid_input("a multipart part has no name")
-        if filename is not None:
-            if sum(len(v) for v in form.files.values()) >= max_files:
-                raise too_large(f"more than {max_files} files in one request")
-            spool = min(SPOOL_PART_BYTES, st["spool_left"])
-            st["spool_left"] -= spool
-            part = FilePart(
-                name,
-                filename,
-                st["headers"].get("content-type"),
-                tempfile.SpooledTemporaryFile(max_size=spool) if spool > 0 else tempfile.TemporaryFile(),
-            )
-            form.files.setdefault(name, []).append(part)
-            st["part"] = part
-        else:
-            st["buf"] = bytearray()
-            form.fields.setdefault(name, [])
-            st["name"] = name
-
-    def on_part_data(data, start, end):
-        n = end - start
-        if st["part"] is not None:
-            p = st["part"]
-            p.size += n
-            if p.size > max_file_bytes:
-                raise too_large(f"file {p.filename!r} exceeds the limit of {max_file_bytes} bytes")
-            p.file.write(data[start:end])
-        else:
-            # Counted over all fields, not per field: 1000 parts of just under the cap
-            # each would otherwise hold a gigabyte in memory.
-            st["field_bytes"] += n
-            if st["field_bytes"] > MAX_FIELD_BYTES:
-                raise too_large(f"form fields exceed {MAX_FIELD_BYTES} bytes in total (at {st['name']!r})")
-            st["buf"] += data[start:end]
-
-    def on_part_end():
-        if st["part"] is not None:
-            st["part"].file.seek(0)
-        elif st["buf"] is not None:
-            form.fields[st["name"]].append(st["buf"].decode("utf-8", "replace"))
-
-    parser = MultipartParser(
-        boundary,
-        {
-            "on_part_begin": on_part_begin,
-            "on_header_field": on_header_field,
-            "on_header_value": on_header_value,
-            "on_header_end": on_header_end,
-            "on_headers_finished": on_headers_finished,
-            "on_part_data": on_part_data,
-            "on_part_end": on_part_end,
-        },
-    )
+    parser = MultipartParser(boundary, _FormBuilder(form, max_file_bytes, max_files).callbacks())
     try:
         async for chunk in request.stream():
             parser.write(chunk)
@@ -180,3 +98,92 @@ async def parse_multipart(request: Request, max_file_bytes: int, max_files: int)
             raise invalid_input(f"malformed multipart body: {exc}") from None
         raise
     return form
+
+
+class _FormBuilder:
+    """The parser's callbacks: fill `form` part by part, within the limits."""
+
+    def __init__(self, form: Form, max_file_bytes: int, max_files: int) -> None:
+        self.form = form
+        self.max_file_bytes = max_file_bytes
+        self.max_files = max_files
+        self.headers: dict[str, str] = {}
+        self.hname = b""
+        self.hval = b""
+        self.part: FilePart | None = None  # the file part being received
+        self.buf: bytearray | None = None  # the field being received
+        self.name: str | None = None  # that field's name
+        self.n = 0
+        self.field_bytes = 0
+        self.spool_left = MEMORY_SPOOL_BYTES
+
+    def callbacks(self) -> dict:
+        return {
+            "on_part_begin": self.on_part_begin,
+            "on_header_field": self.on_header_field,
+            "on_header_value": self.on_header_value,
+            "on_header_end": self.on_header_end,
+            "on_headers_finished": self.on_headers_finished,
+            "on_part_data": self.on_part_data,
+            "on_part_end": self.on_part_end,
+        }
+
+    def on_part_begin(self) -> None:
+        self.headers, self.part, self.buf = {}, None, None
+        self.n += 1
+        if self.n > MAX_PARTS:
+            raise invalid_input("too many multipart parts")
+
+    def on_header_field(self, data, start, end) -> None:
+        self.hname += data[start:end]
+
+    def on_header_value(self, data, start, end) -> None:
+        self.hval += data[start:end]
+
+    def on_header_end(self) -> None:
+        self.headers[self.hname.decode("latin-1").lower()] = _header_text(self.hval)
+        self.hname, self.hval = b"", b""
+
+    def on_headers_finished(self) -> None:
+        name, filename = _disposition(self.headers.get("content-disposition", ""))
+        if not name:
+            raise invalid_input("a multipart part has no name")
+        if filename is None:
+            self.buf = bytearray()
+            self.form.fields.setdefault(name, [])
+            self.name = name
+            return
+        if sum(len(v) for v in self.form.files.values()) >= self.max_files:
+            raise too_large(f"more than {self.max_files} files in one request")
+        spool = min(SPOOL_PART_BYTES, self.spool_left)
+        self.spool_left -= spool
+        part = FilePart(
+            name,
+            filename,
+            self.headers.get("content-type"),
+            tempfile.SpooledTemporaryFile(max_size=spool) if spool > 0 else tempfile.TemporaryFile(),
+        )
+        self.form.files.setdefault(name, []).append(part)
+        self.part = part
+
+    def on_part_data(self, data, start, end) -> None:
+        n = end - start
+        if self.part is not None:
+            p = self.part
+            p.size += n
+            if p.size > self.max_file_bytes:
+                raise too_large(f"file {p.filename!r} exceeds the limit of {self.max_file_bytes} bytes")
+            p.file.write(data[start:end])
+        else:
+            # Counted over all fields, not per field: 1000 parts of just under the cap
+            # each would otherwise hold a gigabyte in memory.
+            self.field_bytes += n
+            if self.field_bytes > MAX_FIELD_BYTES:
+                raise too_large(f"form fields exceed {MAX_FIELD_BYTES} bytes in total (at {self.name!r})")
+            self.buf += data[start:end]
+
+    def on_part_end(self) -> None:
+        if self.part is not None:
+            self.part.file.seek(0)
+        elif self.buf is not None:
+            self.form.fields[self.name].append(self.buf.decode("utf-8", "replace"))

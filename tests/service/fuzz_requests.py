@@ -345,79 +345,103 @@ def requests(draw, corpus: dict[str, bytes], targets: Targets, names: list[str])
     ):
         headers.append((name, draw(HEADER_VALUE)))
     if kind == "json_job":
-        own = st.sampled_from([targets.own_asset]) | targets.ids(job=False)
-        spec = draw(
-            st.fixed_dictionaries(
-                {"source": own, "target": own, "options": VALID_OPTIONS | options_strategy(names)},
-                optional={"webhook": st.fixed_dictionaries({"url": st.text(max_size=30)})},
-            )
-            | st.fixed_dictionaries(
-                {},
-                optional={
-                    "source": targets.ids(job=False),
-                    "sources": st.lists(targets.ids(job=False), max_size=20),
-                    "target": targets.ids(job=False),
-                    "options": options_strategy(names) | JSON_ANY,
-                    "webhook": st.fixed_dictionaries({"url": st.text(max_size=30)}) | JSON_ANY,
-                },
-            )
-            | JSON_ANY
-        )
-        text = json.dumps(spec).encode()
-        body = draw(mutate(text)) if one_in(draw, 5) else text
-        ctype = draw(st.sampled_from([b"application/json"] * 4 + [b"application/json; charset=latin-1", b"text/plain"]))
-        return Req(kind, "POST", b"/v1/jobs", headers + [(b"Content-Type", ctype)], body)
+        return _json_job_request(draw, headers, targets, names)
     if kind in ("multipart_job", "asset"):
         fields = ["source", "target", "source_images", "target_images", "options", "webhook_url", "file"]
         ctype, body = draw(multipart_body(corpus, fields + names[:5], kind == "multipart_job"))
         path = b"/v1/jobs" if kind == "multipart_job" else b"/v1/assets"
         return Req(kind, "POST", path, headers + [(b"Content-Type", ctype)], body)
     if kind == "get_job":
-        if draw(st.booleans()):
-            headers.append((b"If-None-Match", draw(HEADER_VALUE | st.just(b"*"))))
-        return Req(
-            kind, draw(st.sampled_from(["GET", "HEAD"])), _path(draw, "/v1/jobs/", draw(targets.ids(True))), headers
-        )
+        return _get_job_request(draw, headers, targets)
     if kind == "get_asset":
         return Req(kind, "GET", _path(draw, "/v1/assets/", draw(targets.ids(False))), headers)
     if kind == "list":
-        q = draw(
-            st.dictionaries(
-                st.sampled_from(["state", "limit", "cursor", "x"]),
-                st.sampled_from(["succeeded", "queued", "0", "201", "-1", "abc", "eyJ4Ijp9"]) | st.text(max_size=12),
-                max_size=3,
-            )
-        )
-        qs = "&".join(f"{quote(k)}={quote(v)}" for k, v in q.items())
-        return Req(kind, "GET", ("/v1/jobs" + ("?" + qs if qs else "")).encode(), headers)
+        return _list_request(draw, headers)
     if kind == "cancel":
         return Req(kind, "POST", _path(draw, "/v1/jobs/", draw(targets.ids(True)), ":cancel"), headers)
     if kind == "delete":
         prefix = draw(st.sampled_from(["/v1/jobs/", "/v1/assets/"]))
         return Req(kind, "DELETE", _path(draw, prefix, draw(targets.deletable_ids())), headers)
     if kind == "artifact":
-        own = not one_in(draw, 4)
-        job = targets.own_job if own else draw(st.sampled_from([targets.other_job]) | targets.ids(True))
-        real = draw(st.sampled_from(targets.artifacts))
-        name = real if not one_in(draw, 4) else draw(st.sampled_from(["../x", "%2e%2e/x", "s0/result.json", ""]))
-        if not one_in(draw, 3):
-            headers.append((b"Range", draw(RANGE)))
-        if one_in(draw, 2):
-            etag = targets.etags.get(real, '"none"').encode()
-            stale = st.sampled_from([b'"stale-1"', b"Wed, 21 Oct 2015 07:28:00 GMT", b"W/" + etag])
-            headers.append((b"If-Range", etag if one_in(draw, 2) else draw(stale | HEADER_VALUE)))
-        method = draw(st.sampled_from(["GET", "GET", "GET", "HEAD"]))
-        return Req(kind, method, _path(draw, "/v1/jobs/", job, "/artifacts/" + name), headers)
+        return _artifact_request(draw, headers, targets)
     if kind == "misc":
-        method = draw(st.sampled_from(["GET", "PUT", "PATCH", "OPTIONS", "TRACE", "DELETE", "POST", "FOO"]))
-        path = draw(
-            st.sampled_from(["/", "/readyz", "/healthz", "/metrics", "/openapi.json", "/docs", "/v1", "/v1/jobs/x/y/z"])
-            | st.text(max_size=30).map(lambda s: "/" + quote(s))
+        return _misc_request(draw, headers)
+    return _big_request(draw, headers, corpus)
+
+
+def _json_job_request(draw, headers: list[tuple[bytes, bytes]], targets: Targets, names: list[str]) -> Req:
+    own = st.sampled_from([targets.own_asset]) | targets.ids(job=False)
+    spec = draw(
+        st.fixed_dictionaries(
+            {"source": own, "target": own, "options": VALID_OPTIONS | options_strategy(names)},
+            optional={"webhook": st.fixed_dictionaries({"url": st.text(max_size=30)})},
         )
-        if method == "OPTIONS":
-            headers += [(b"Origin", b"https://evil.example"), (b"Access-Control-Request-Method", b"POST")]
-        return Req(kind, method, path.encode(), headers, draw(st.binary(max_size=64)))
-    # big: bodies past the limits (JSON cap 1 MiB; per-file upload cap set by the deployment)
+        | st.fixed_dictionaries(
+            {},
+            optional={
+                "source": targets.ids(job=False),
+                "sources": st.lists(targets.ids(job=False), max_size=20),
+                "target": targets.ids(job=False),
+                "options": options_strategy(names) | JSON_ANY,
+                "webhook": st.fixed_dictionaries({"url": st.text(max_size=30)}) | JSON_ANY,
+            },
+        )
+        | JSON_ANY
+    )
+    text = json.dumps(spec).encode()
+    body = draw(mutate(text)) if one_in(draw, 5) else text
+    ctype = draw(st.sampled_from([b"application/json"] * 4 + [b"application/json; charset=latin-1", b"text/plain"]))
+    return Req("json_job", "POST", b"/v1/jobs", headers + [(b"Content-Type", ctype)], body)
+
+
+def _get_job_request(draw, headers: list[tuple[bytes, bytes]], targets: Targets) -> Req:
+    if draw(st.booleans()):
+        headers.append((b"If-None-Match", draw(HEADER_VALUE | st.just(b"*"))))
+    return Req(
+        "get_job", draw(st.sampled_from(["GET", "HEAD"])), _path(draw, "/v1/jobs/", draw(targets.ids(True))), headers
+    )
+
+
+def _list_request(draw, headers: list[tuple[bytes, bytes]]) -> Req:
+    q = draw(
+        st.dictionaries(
+            st.sampled_from(["state", "limit", "cursor", "x"]),
+            st.sampled_from(["succeeded", "queued", "0", "201", "-1", "abc", "eyJ4Ijp9"]) | st.text(max_size=12),
+            max_size=3,
+        )
+    )
+    qs = "&".join(f"{quote(k)}={quote(v)}" for k, v in q.items())
+    return Req("list", "GET", ("/v1/jobs" + ("?" + qs if qs else "")).encode(), headers)
+
+
+def _artifact_request(draw, headers: list[tuple[bytes, bytes]], targets: Targets) -> Req:
+    own = not one_in(draw, 4)
+    job = targets.own_job if own else draw(st.sampled_from([targets.other_job]) | targets.ids(True))
+    real = draw(st.sampled_from(targets.artifacts))
+    name = real if not one_in(draw, 4) else draw(st.sampled_from(["../x", "%2e%2e/x", "s0/result.json", ""]))
+    if not one_in(draw, 3):
+        headers.append((b"Range", draw(RANGE)))
+    if one_in(draw, 2):
+        etag = targets.etags.get(real, '"none"').encode()
+        stale = st.sampled_from([b'"stale-1"', b"Wed, 21 Oct 2015 07:28:00 GMT", b"W/" + etag])
+        headers.append((b"If-Range", etag if one_in(draw, 2) else draw(stale | HEADER_VALUE)))
+    method = draw(st.sampled_from(["GET", "GET", "GET", "HEAD"]))
+    return Req("artifact", method, _path(draw, "/v1/jobs/", job, "/artifacts/" + name), headers)
+
+
+def _misc_request(draw, headers: list[tuple[bytes, bytes]]) -> Req:
+    method = draw(st.sampled_from(["GET", "PUT", "PATCH", "OPTIONS", "TRACE", "DELETE", "POST", "FOO"]))
+    path = draw(
+        st.sampled_from(["/", "/readyz", "/healthz", "/metrics", "/openapi.json", "/docs", "/v1", "/v1/jobs/x/y/z"])
+        | st.text(max_size=30).map(lambda s: "/" + quote(s))
+    )
+    if method == "OPTIONS":
+        headers += [(b"Origin", b"https://evil.example"), (b"Access-Control-Request-Method", b"POST")]
+    return Req("misc", method, path.encode(), headers, draw(st.binary(max_size=64)))
+
+
+def _big_request(draw, headers: list[tuple[bytes, bytes]], corpus: dict[str, bytes]) -> Req:
+    """Bodies past the limits (JSON cap 1 MiB; per-file upload cap set by the deployment)."""
     which = draw(st.sampled_from(["json", "upload", "chunked", "many_fields", "many_files", "part_header"]))
     if which in ("many_fields", "many_files", "part_header"):
         # Memory: parts under every per-part cap that add up (80 form fields or 100 files
