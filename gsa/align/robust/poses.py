@@ -4,7 +4,7 @@ ICP on the anchors, and the decision between refined poses (ties -> ambiguous)."
 
 from __future__ import annotations
 
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 from scipy.spatial import cKDTree
@@ -87,6 +87,10 @@ class SearchResult:
     colour_noise: float | None = None  # the models' own colour noise (colour_noise), when colour was checked
     # "score", or "geometry" where no pose made the colours agree (decide): colour told nothing apart
     ranked_by: str = "score"
+    # The distinct poses to offer beside the best, in order (search._with_offers): the rivals,
+    # the best turned half-way about the target's principal axes, the other candidates. Offered
+    # to a person (alternatives), never ranked against the others.
+    offered: list[Candidate] = field(default_factory=list)
 
     @property
     def best(self) -> Candidate:
@@ -292,7 +296,13 @@ def with_given_pose(given: Candidate, found: SearchResult) -> SearchResult:
     rivals = [c for c in others if key(c) >= key(given) - SCORE_TIE]
     margin = (key(given) - max(key(c) for c in others)) / SCORE_TIE if others else float("inf")
     return SearchResult(
-        [given, *others], found.colour_weight, float(margin), rivals, found.colour_noise, found.ranked_by
+        [given, *others],
+        found.colour_weight,
+        float(margin),
+        rivals,
+        found.colour_noise,
+        found.ranked_by,
+        [c for c in [found.best, *found.offered] if rotation_offset_deg(c.transform, given.transform) > DISTINCT_DEG],
     )
 
 

@@ -10,9 +10,11 @@ from gsa.align.nearest import nearest_candidate
 from gsa.align.robust.poses import (
     COLOUR_MISMATCH_LIMIT,
     COLOUR_TRUSTED,
+    DISTINCT_DEG,
     Candidate,
     SearchResult,
     colour_mismatch,
+    rotation_offset_deg,
 )
 from gsa.canonical import SIGNED_PERMUTATIONS, CanonicalFrame, relabelling_label
 from gsa.geometry import axis_rotation, rotation_distance_deg
@@ -64,6 +66,9 @@ MARGIN_SPAN = 4.0
 # margin, ties and the colour check are what catch wrong poses.
 COINCIDE_FLOOR, COINCIDE_SPAN = 0.7, 0.2
 COINCIDE_MIN_OVERLAP = 0.5
+# Poses offered beside the chosen one (verdict's `alternatives`): enough for the rivals, the
+# next candidates and the three half turns; the results page steps through them.
+MAX_ALTERNATIVES = 6
 
 
 def verdict(final: Candidate, search: SearchResult | None, coincide: tuple[float, float] | None = None) -> dict:
@@ -108,9 +113,21 @@ def verdict(final: Candidate, search: SearchResult | None, coincide: tuple[float
     if search is not None:
         out["colour_weight"] = search.colour_weight
         out["ranked_by"] = search.ranked_by
-        shown = search.rivals if ambiguous else search.candidates[1:4]
-        out["alternatives"] = [c.to_dict(final.transform) for c in shown]
+        # `tied`: a rival (within SCORE_TIE of the chosen pose, what makes a result ambiguous).
+        out["alternatives"] = [
+            c.to_dict(final.transform) | {"tied": any(c is r for r in search.rivals)}
+            for c in alternatives(final, search)
+        ]
     return out
+
+
+def alternatives(final: Candidate, search: SearchResult) -> list[Candidate]:
+    """The poses to offer beside `final` (SearchResult.offered: the rivals, the half turns of
+    the chosen pose, the other candidates), at most MAX_ALTERNATIVES and each distinct from
+    `final`. Cross-instance, the truth is often not the best-scoring pose but one of these
+    (docs/benchmarks.md, category-real), and a person picks it."""
+    offered = [c for c in search.offered if rotation_offset_deg(c.transform, final.transform) > DISTINCT_DEG]
+    return offered[:MAX_ALTERNATIVES]
 
 
 def frame_relabellings(src: CanonicalFrame, dst: CanonicalFrame) -> list[tuple[str, np.ndarray]]:

@@ -5,10 +5,11 @@ successive-halving refinement of the best starts (the candidates themselves: pos
 from __future__ import annotations
 
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numba
 import numpy as np
+from scipy.spatial import cKDTree
 
 from gsa.align.robust.anchoring import Anchors, NearestGrid, _sample, grid_index
 from gsa.align.robust.placement import placed_starts
@@ -30,6 +31,9 @@ from gsa.align.robust.poses import (
 from gsa.geometry import axis_rotation, rotation_distance_deg, super_fibonacci_rotations
 from gsa.sim3 import Sim3
 
+# Poses offered beside the best must put the source this share of the target's radius away
+# from it and from each other (mean nearest distance both ways): half the score's truncation.
+OFFER_DISTINCT = 0.5 * TRUNCATION
 # Unfinished starts scoring within this of the best finished one are finished too.
 RIVAL_WINDOW = 0.08
 # _sweep_twins: rotations of ±SWEEP_DEGREES and half that about each axis.
@@ -115,7 +119,7 @@ def global_search(
     refined = _sweep_twins(src, dst, refined, w_colour, rng, opts)
     result = decide(_dedupe(refined), w_colour, noise)
     if widen_if is None or not widen_if(result):
-        return result
+        return _with_offers(src, dst, result, w_colour, rng, opts)
     # Placed starts begin up to ~20° off and look poor after a few iterations (a partial
     # overlap converges slowly), so each runs to convergence rather than being halved.
     src_rows = _sample(rng, len(src), opts.refine_points)
@@ -139,7 +143,51 @@ def global_search(
             src, dst, init, src_rows, dst_rows, opts.early_iterations + opts.refine_iterations, w_colour
         )
         refined.append(score_pose(src, dst, transform, "placed", w_colour))
-    return decide(_dedupe(refined), w_colour, noise)
+    return _with_offers(src, dst, decide(_dedupe(refined), w_colour, noise), w_colour, rng, opts)
+
+
+def _with_offers(
+    src: Anchors, dst: Anchors, result: SearchResult, w_colour: float, rng: np.random.Generator, opts: SearchOptions
+) -> SearchResult:
+    """The result with the poses to offer beside its best (`offered`): the rivals, the best
+    turned by 180° about each principal axis of the target (through its centre) and refined by
+    the anchors' ICP, then the other candidates by score; each after the first rival kept only
+    where it puts the source somewhere else than the best and every pose kept before it (OFFER_DISTINCT of the
+    target's radius, both ways: turns of a symmetric shape that land on the same surface are one
+    pose). Cross-instance misses are mostly such half turns (a bathtub end for end, a vase upside
+    down) that the search did not refine; they are offered to pick (gsa.align.guided), never
+    ranked, so no verdict changes."""
+    best = result.best.transform
+    src_rows = _sample(rng, len(src), opts.refine_points)
+    dst_rows = _sample(rng, len(dst), opts.refine_points)
+    _, _, axes = np.linalg.svd((dst.points - dst.center) * np.sqrt(dst.weights)[:, None], full_matrices=False)
+    flips = []
+    for k, axis in enumerate(axes):
+        turn = axis_rotation(axis, np.pi)
+        # x -> turn (T(x) - c) + c: the half turn about the target's centre, after the best pose.
+        start = Sim3(best.scale, turn @ best.rotation, turn @ (best.translation - dst.center) + dst.center)
+        iterations = opts.early_iterations + opts.refine_iterations
+        transform = bidirectional_icp(src, dst, start, src_rows, dst_rows, iterations, w_colour)
+        flips.append(score_pose(src, dst, transform, f"flip:axis{k}", w_colour))
+    sample = src.points[src_rows]
+    limit = OFFER_DISTINCT * dst.radius
+    # The first rival stays whatever its surface: the turns of a symmetric shape are what the
+    # person must choose between (a bottle's many spins are one choice, though).
+    offered = list(result.rivals[:1])
+    kept_points = [c.transform.apply(sample) for c in [result.best, *offered]]
+    for c in [*result.rivals[1:], *flips, *result.candidates[1:]]:
+        if any(c is o for o in offered):
+            continue
+        moved = c.transform.apply(sample)
+        if all(_surface_gap(moved, other) > limit for other in kept_points):
+            offered.append(c)
+            kept_points.append(moved)
+    return replace(result, offered=offered)
+
+
+def _surface_gap(a: np.ndarray, b: np.ndarray) -> float:
+    """Mean nearest distance between two point sets, both ways."""
+    return 0.5 * float(cKDTree(b).query(a)[0].mean() + cKDTree(a).query(b)[0].mean())
 
 
 def _try_offsets(
