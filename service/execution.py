@@ -31,6 +31,7 @@ from service.leases import (
     heartbeat,
     worker_name,
 )
+from service.many import is_many, run_many
 from service.models import Job, JobState
 from service.options import DEFAULT_OUTPUTS, align_option_names, server_options
 from service.problems import Problem, infrastructure_problem, invalid_input
@@ -203,6 +204,8 @@ def problem_for(exc: Exception) -> Problem:
 
 
 def _run(backend: Backend, job: Job, token: str, prog: JobProgress, art_prefix: str) -> JobState | None:
+    if is_many(job):  # N models into one frame (issue 30)
+        return run_many(backend, job, token, prog, art_prefix)
     # lazy: the aligner (numba kernels, ~1 s of imports) loads in the processes that run jobs
     from gsa.align.contract import hints_from_files
     from gsa.align.outputs import result_dict, write_outputs

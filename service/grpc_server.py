@@ -15,7 +15,7 @@ from google.protobuf.timestamp_pb2 import Timestamp
 from grpc_health.v1 import health, health_pb2, health_pb2_grpc
 from grpc_reflection.v1alpha import reflection
 
-from service import core, retention
+from service import core, many, retention
 from service.backend import Backend
 from service.grpc_gen import alignment_pb2 as pb
 from service.grpc_gen import alignment_pb2_grpc as pbg
@@ -282,6 +282,35 @@ class AlignmentServicer(pbg.AlignmentServiceServicer):
             return job_to_pb(job)
 
         return self._guard(refine, context)
+
+    def SubmitManyAlignment(self, request, context):
+        owner = self._owner(context)
+
+        def submit():
+            try:
+                options = json.loads(request.options_json or "{}")
+            except ValueError:
+                raise invalid_input("options_json is not JSON") from None
+            webhook = None
+            if request.HasField("webhook") and request.webhook.url:
+                webhook = {"url": request.webhook.url}
+                if request.webhook.secret:
+                    webhook["secret"] = request.webhook.secret
+            req = many.ManyRequest(
+                assets=list(request.asset_ids),
+                reference=request.reference_asset_id or None,
+                edges=request.edges or "auto",
+                merged=request.merged,
+                merge=request.merge or "concat",
+                options=parse_options(options, "invalid options"),
+                webhook=webhook,
+            )
+            job, created = many.submit_many(self.b, owner, req, request.idempotency_key or None, "grpc")
+            if created and self.metrics is not None:
+                self.metrics.jobs_created.labels("grpc").inc()
+            return job_to_pb(job)
+
+        return self._guard(submit, context)
 
     def GetJob(self, request, context):
         owner = self._owner(context)

@@ -86,6 +86,8 @@ class JobProgress:
         self.last_write = 0.0
         self.last_check = 0.0
         self.overall = 0.0
+        # Shown before the stage while set: a many job's "edge 2/3" (service.many).
+        self.label: str | None = None
 
     def check(self, force: bool = False) -> None:
         if self.lost.is_set():
@@ -127,7 +129,7 @@ class JobProgress:
                 self.job_id,
                 states={JobState.running},
                 token=self.token,
-                stage=stage,
+                stage=f"{self.label}: {stage}" if self.label else stage,
                 progress=self.overall,
                 lease_until=time.time() + self.b.settings.lease_s,
             )

@@ -42,6 +42,8 @@ class Settings(BaseSettings):
     max_body_bytes: int = 1024 * 1024
     max_gaussians: int = 5_000_000
     max_sources: int = 16  # N in "N models to one reference"
+    # N of a many job (POST /v1/many-jobs; issue 30): all pairs up to 8 models, sparse edges beyond.
+    max_many_models: int = 32
     max_images: int = 500
     max_image_pixels: int = 40_000_000
     max_zip_entries: int = 2_000

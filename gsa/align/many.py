@@ -546,15 +546,24 @@ def pairwise_edges(
     pairs: Sequence[tuple[int, int]],
     options=None,
     progress: Callable[[int, int], None] | None = None,
+    edge_progress: Callable[[int, int, str, float], None] | None = None,
 ) -> list[Edge]:
-    """align(models[i], models[j]) for each pair; progress(done, total) after each."""
+    """align(models[i], models[j]) for each pair; progress(done, total) after each, and
+    edge_progress(edge index, total, stage, fraction) for align()'s own reports within an edge
+    (either may raise to stop: the service cancels jobs so)."""
     from gsa.align.pipeline import AlignOptions, align  # lazy: numba and scipy
 
     options = options or AlignOptions()
     out = []
     for done, (i, j) in enumerate(pairs, 1):
         t0 = time.perf_counter()
-        result = align(models[i], models[j], options)
+        report = None
+        if edge_progress is not None:
+
+            def report(stage: str, fraction: float, k: int = done - 1) -> None:
+                edge_progress(k, len(pairs), stage, fraction)
+
+        result = align(models[i], models[j], options, progress=report)
         out.append(edge_from_result(i, j, result, time.perf_counter() - t0))
         if progress:
             progress(done, len(pairs))
@@ -568,8 +577,10 @@ def align_many(
     options=None,
     edges: str = "auto",
     progress: Callable[[int, int], None] | None = None,
+    edge_progress: Callable[[int, int, str, float], None] | None = None,
 ) -> ManyResult:
-    """Every model's Sim(3) into models[reference]'s frame (see the module's docstring)."""
+    """Every model's Sim(3) into models[reference]'s frame (see the module's docstring).
+    progress(done, total) after each edge; edge_progress(edge, total, stage, fraction) within one."""
     n = len(models)
     if n < 2:
         raise ManyError(f"align_many needs at least two models, got {n}")
@@ -584,7 +595,7 @@ def align_many(
     t0 = time.perf_counter()
     pairs = select_edges(models, edges)
     t_edges = time.perf_counter()
-    graph = pairwise_edges(models, pairs, options, progress)
+    graph = pairwise_edges(models, pairs, options, progress, edge_progress)
     t_pairwise = time.perf_counter() - t_edges
     frames = [model_frame(m) for m in models]
     result = solve_graph(n, graph, reference, [c for c, _ in frames], [s for _, s in frames], names)
@@ -595,3 +606,23 @@ def align_many(
         total=time.perf_counter() - t0,
     )
     return result
+
+
+def merged_model(
+    models: Sequence[GaussianModel], result: ManyResult, mode: str = "concat"
+) -> tuple[GaussianModel, int]:
+    """Every model moved into the reference frame, as one model; returns (merged, Gaussians
+    dropped). Folded in one model at a time, so dedup compares each with all merged before it."""
+    from gsa.merge import merge_plan
+    from gsa.model import merge_models
+
+    merged = models[result.reference]
+    removed = 0
+    for k, m in enumerate(models):
+        if k == result.reference:
+            continue
+        aligned = m.transformed(result.transforms[k])
+        keep, dropped = merge_plan(aligned, merged, mode)
+        merged = merge_models(aligned, merged, keep=keep)
+        removed += dropped
+    return merged, removed

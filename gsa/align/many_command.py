@@ -82,12 +82,10 @@ def _reference_index(reference: str | None, paths: list[Path], names: list[str])
 def cmd_align_many(args) -> int:
     from dataclasses import replace
 
-    from gsa.align.many import align_many
+    from gsa.align.many import align_many, merged_model
     from gsa.align.outputs import write_json
     from gsa.align.pipeline import AlignOptions
     from gsa.io.formats import format_for_path, read_model, write_model
-    from gsa.merge import merge_plan
-    from gsa.model import merge_models
 
     stages = tuple(s.strip() for s in args.stages.split(",") if s.strip())
     if args.merged_out and format_for_path(args.merged_out) is None:
@@ -109,16 +107,7 @@ def cmd_align_many(args) -> int:
     data["files"] = [str(p) for p in paths]
     out = Path(args.out)
     if args.merged_out:
-        # Folded in one model at a time, so dedup compares each with all merged before it.
-        merged = models[reference]
-        removed = 0
-        for k, m in enumerate(models):
-            if k == reference:
-                continue
-            aligned = m.transformed(result.transforms[k])
-            keep, dropped = merge_plan(aligned, merged, args.merge)
-            merged = merge_models(aligned, merged, keep=keep)
-            removed += dropped
+        merged, removed = merged_model(models, result, args.merge)
         write_model(merged, args.merged_out, format_for_path(args.merged_out))
         data["merge"] = {"mode": args.merge, "removed": removed, "gaussians": len(merged), "path": args.merged_out}
     write_json(data, out / "many.json")

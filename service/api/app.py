@@ -15,7 +15,7 @@ from contextlib import asynccontextmanager
 from fastapi import FastAPI, Request
 from fastapi.middleware.cors import CORSMiddleware
 
-from service.api import artifacts, assets, jobs, ops, view
+from service.api import artifacts, assets, jobs, many, ops, view
 from service.api.middleware import BodyLimit, RequestMetrics, install_error_handlers, problem_response
 from service.api.openapi import custom_openapi
 from service.api.request_ids import RequestIds
@@ -106,7 +106,7 @@ def create_app(
         )
     app.add_middleware(RequestIds)  # outermost: every response, even a refused one, carries its id
     # This order is the order of the paths in the OpenAPI document.
-    for resource in (ops, assets, jobs, artifacts, view):
+    for resource in (ops, assets, jobs, many, artifacts, view):
         app.include_router(resource.router)
 
     app.openapi = lambda: custom_openapi(app)

@@ -29,51 +29,53 @@ from google.protobuf import empty_pb2 as google_dot_protobuf_dot_empty__pb2
 from google.protobuf import timestamp_pb2 as google_dot_protobuf_dot_timestamp__pb2
 
 
-DESCRIPTOR = _descriptor_pool.Default().AddSerializedFile(b'\n\x16gsa/v1/alignment.proto\x12\x06gsa.v1\x1a\x1bgoogle/protobuf/empty.proto\x1a\x1fgoogle/protobuf/timestamp.proto\"f\n\rSubmitRequest\x12&\n\x06header\x18\x01 \x01(\x0b\x32\x14.gsa.v1.SubmitHeaderH\x00\x12\"\n\x05\x63hunk\x18\x02 \x01(\x0b\x32\x11.gsa.v1.FileChunkH\x00\x42\t\n\x07payload\"\xb6\x01\n\x0cSubmitHeader\x12\x18\n\x10source_asset_ids\x18\x01 \x03(\t\x12\x17\n\x0ftarget_asset_id\x18\x02 \x01(\t\x12\x14\n\x0coptions_json\x18\x03 \x01(\t\x12\x17\n\x0fidempotency_key\x18\x04 \x01(\t\x12 \n\x07webhook\x18\x05 \x01(\x0b\x32\x0f.gsa.v1.Webhook\x12\"\n\x08guidance\x18\x06 \x01(\x0b\x32\x10.gsa.v1.Guidance\"(\n\x05Point\x12\t\n\x01x\x18\x01 \x01(\x01\x12\t\n\x01y\x18\x02 \x01(\x01\x12\t\n\x01z\x18\x03 \x01(\x01\"J\n\nPointPairs\x12\x1d\n\x06source\x18\x01 \x03(\x0b\x32\r.gsa.v1.Point\x12\x1d\n\x06target\x18\x02 \x03(\x0b\x32\r.gsa.v1.Point\"F\n\x06UpAxes\x12\x1d\n\x06source\x18\x01 \x01(\x0b\x32\r.gsa.v1.Point\x12\x1d\n\x06target\x18\x02 \x01(\x0b\x32\r.gsa.v1.Point\"\x96\x01\n\x08Guidance\x12\x16\n\x0einit_transform\x18\x01 \x03(\x01\x12\'\n\x0bpoint_pairs\x18\x02 \x01(\x0b\x32\x12.gsa.v1.PointPairs\x12\x1f\n\x07up_axes\x18\x03 \x01(\x0b\x32\x0e.gsa.v1.UpAxes\x12\x18\n\x0b\x66ixed_scale\x18\x04 \x01(\x01H\x00\x88\x01\x01\x42\x0e\n\x0c_fixed_scale\"\x86\x01\n\rRefineRequest\x12\x0e\n\x06job_id\x18\x01 \x01(\t\x12\x18\n\x0b\x61lternative\x18\x02 \x01(\x05H\x00\x88\x01\x01\x12\"\n\x08guidance\x18\x03 \x01(\x0b\x32\x10.gsa.v1.Guidance\x12\x17\n\x0fidempotency_key\x18\x04 \x01(\tB\x0e\n\x0c_alternative\"&\n\x07Webhook\x12\x0b\n\x03url\x18\x01 \x01(\t\x12\x0e\n\x06secret\x18\x02 \x01(\t\"V\n\tFileChunk\x12\x1a\n\x04role\x18\x01 \x01(\x0e\x32\x0c.gsa.v1.Role\x12\r\n\x05index\x18\x02 \x01(\r\x12\x10\n\x08\x66ilename\x18\x03 \x01(\t\x12\x0c\n\x04\x64\x61ta\x18\x04 \x01(\x0c\"\x18\n\x06JobRef\x12\x0e\n\x06job_id\x18\x01 \x01(\t\"O\n\x0f\x41rtifactRequest\x12\x0e\n\x06job_id\x18\x01 \x01(\t\x12\x0c\n\x04name\x18\x02 \x01(\t\x12\x0e\n\x06offset\x18\x03 \x01(\x03\x12\x0e\n\x06length\x18\x04 \x01(\x03\"W\n\rArtifactChunk\x12\x0c\n\x04\x64\x61ta\x18\x01 \x01(\x0c\x12\x0e\n\x06offset\x18\x02 \x01(\x03\x12\x12\n\ntotal_size\x18\x03 \x01(\x03\x12\x14\n\x0c\x63ontent_type\x18\x04 \x01(\t\"F\n\x07Problem\x12\x0c\n\x04type\x18\x01 \x01(\t\x12\r\n\x05title\x18\x02 \x01(\t\x12\x0e\n\x06status\x18\x03 \x01(\x05\x12\x0e\n\x06\x64\x65tail\x18\x04 \x01(\t\"\xb3\x02\n\tTransform\x12\x0e\n\x06matrix\x18\x01 \x03(\x01\x12\r\n\x05scale\x18\x02 \x01(\x01\x12\x10\n\x08rotation\x18\x03 \x03(\x01\x12\x12\n\nquaternion\x18\x04 \x03(\x01\x12\x13\n\x0btranslation\x18\x05 \x03(\x01\x12\x12\n\nconfidence\x18\x06 \x01(\x01\x12\x11\n\tambiguous\x18\x07 \x01(\x08\x12\x10\n\x08\x64oubtful\x18\x08 \x01(\x08\x12\x17\n\x0fquaternion_xyzw\x18\t \x03(\x01\x12\x16\n\x0einverse_matrix\x18\n \x03(\x01\x12\x18\n\x10gltf_node_matrix\x18\x0b \x03(\x01\x12#\n\x0csource_frame\x18\x0c \x01(\x0b\x32\r.gsa.v1.Frame\x12#\n\x0ctarget_frame\x18\r \x01(\x0b\x32\r.gsa.v1.Frame\"_\n\x05\x46rame\x12\x0e\n\x06\x66ormat\x18\x01 \x01(\t\x12\x12\n\nconvention\x18\x02 \x01(\t\x12\x12\n\nhandedness\x18\x03 \x01(\t\x12\x0f\n\x07up_axis\x18\x04 \x01(\t\x12\r\n\x05units\x18\x05 \x01(\t\"<\n\x08\x41rtifact\x12\x0c\n\x04name\x18\x01 \x01(\t\x12\x0c\n\x04size\x18\x02 \x01(\x03\x12\x14\n\x0c\x63ontent_type\x18\x03 \x01(\t\"\xa1\x05\n\x03Job\x12\n\n\x02id\x18\x01 \x01(\t\x12\x1f\n\x05state\x18\x02 \x01(\x0e\x32\x10.gsa.v1.JobState\x12\r\n\x05stage\x18\x03 \x01(\t\x12\x10\n\x08progress\x18\x04 \x01(\x01\x12.\n\ncreated_at\x18\x05 \x01(\x0b\x32\x1a.google.protobuf.Timestamp\x12.\n\nupdated_at\x18\x06 \x01(\x0b\x32\x1a.google.protobuf.Timestamp\x12.\n\nstarted_at\x18\x07 \x01(\x0b\x32\x1a.google.protobuf.Timestamp\x12/\n\x0b\x66inished_at\x18\x08 \x01(\x0b\x32\x1a.google.protobuf.Timestamp\x12\x10\n\x08\x61ttempts\x18\t \x01(\x05\x12\x14\n\x0cmax_attempts\x18\n \x01(\x05\x12\x18\n\x10\x63\x61ncel_requested\x18\x0b \x01(\x08\x12\x18\n\x10source_asset_ids\x18\x0c \x03(\t\x12\x17\n\x0ftarget_asset_id\x18\r \x01(\t\x12\x14\n\x0coptions_json\x18\x0e \x01(\t\x12\x1e\n\x05\x65rror\x18\x0f \x01(\x0b\x32\x0f.gsa.v1.Problem\x12$\n\ttransform\x18\x10 \x01(\x0b\x32\x11.gsa.v1.Transform\x12%\n\ntransforms\x18\x11 \x03(\x0b\x32\x11.gsa.v1.Transform\x12\x13\n\x0bresult_json\x18\x12 \x01(\t\x12#\n\tartifacts\x18\x13 \x03(\x0b\x32\x10.gsa.v1.Artifact\x12\x12\n\nparent_job\x18\x14 \x01(\t\x12\x10\n\x08\x63hildren\x18\x15 \x03(\t\x12\x33\n\x0fnext_attempt_at\x18\x16 \x01(\x0b\x32\x1a.google.protobuf.Timestamp*>\n\x04Role\x12\x14\n\x10ROLE_UNSPECIFIED\x10\x00\x12\x0f\n\x0bROLE_SOURCE\x10\x01\x12\x0f\n\x0bROLE_TARGET\x10\x02*\x9a\x01\n\x08JobState\x12\x19\n\x15JOB_STATE_UNSPECIFIED\x10\x00\x12\x14\n\x10JOB_STATE_QUEUED\x10\x01\x12\x15\n\x11JOB_STATE_RUNNING\x10\x02\x12\x17\n\x13JOB_STATE_SUCCEEDED\x10\x03\x12\x14\n\x10JOB_STATE_FAILED\x10\x04\x12\x17\n\x13JOB_STATE_CANCELLED\x10\x05\x32\xee\x02\n\x10\x41lignmentService\x12\x37\n\x0fSubmitAlignment\x12\x15.gsa.v1.SubmitRequest\x1a\x0b.gsa.v1.Job(\x01\x12%\n\x06GetJob\x12\x0e.gsa.v1.JobRef\x1a\x0b.gsa.v1.Job\x12)\n\x08WatchJob\x12\x0e.gsa.v1.JobRef\x1a\x0b.gsa.v1.Job0\x01\x12(\n\tCancelJob\x12\x0e.gsa.v1.JobRef\x1a\x0b.gsa.v1.Job\x12\x33\n\tDeleteJob\x12\x0e.gsa.v1.JobRef\x1a\x16.google.protobuf.Empty\x12?\n\x0bGetArtifact\x12\x17.gsa.v1.ArtifactRequest\x1a\x15.gsa.v1.ArtifactChunk0\x01\x12/\n\tRefineJob\x12\x15.gsa.v1.RefineRequest\x1a\x0b.gsa.v1.Jobb\x06proto3')
+DESCRIPTOR = _descriptor_pool.Default().AddSerializedFile(b'\n\x16gsa/v1/alignment.proto\x12\x06gsa.v1\x1a\x1bgoogle/protobuf/empty.proto\x1a\x1fgoogle/protobuf/timestamp.proto\"\xc4\x01\n\x14ManyAlignmentRequest\x12\x11\n\tasset_ids\x18\x01 \x03(\t\x12\x1a\n\x12reference_asset_id\x18\x02 \x01(\t\x12\r\n\x05\x65\x64ges\x18\x03 \x01(\t\x12\x0e\n\x06merged\x18\x04 \x01(\x08\x12\r\n\x05merge\x18\x05 \x01(\t\x12\x14\n\x0coptions_json\x18\x06 \x01(\t\x12\x17\n\x0fidempotency_key\x18\x07 \x01(\t\x12 \n\x07webhook\x18\x08 \x01(\x0b\x32\x0f.gsa.v1.Webhook\"f\n\rSubmitRequest\x12&\n\x06header\x18\x01 \x01(\x0b\x32\x14.gsa.v1.SubmitHeaderH\x00\x12\"\n\x05\x63hunk\x18\x02 \x01(\x0b\x32\x11.gsa.v1.FileChunkH\x00\x42\t\n\x07payload\"\xb6\x01\n\x0cSubmitHeader\x12\x18\n\x10source_asset_ids\x18\x01 \x03(\t\x12\x17\n\x0ftarget_asset_id\x18\x02 \x01(\t\x12\x14\n\x0coptions_json\x18\x03 \x01(\t\x12\x17\n\x0fidempotency_key\x18\x04 \x01(\t\x12 \n\x07webhook\x18\x05 \x01(\x0b\x32\x0f.gsa.v1.Webhook\x12\"\n\x08guidance\x18\x06 \x01(\x0b\x32\x10.gsa.v1.Guidance\"(\n\x05Point\x12\t\n\x01x\x18\x01 \x01(\x01\x12\t\n\x01y\x18\x02 \x01(\x01\x12\t\n\x01z\x18\x03 \x01(\x01\"J\n\nPointPairs\x12\x1d\n\x06source\x18\x01 \x03(\x0b\x32\r.gsa.v1.Point\x12\x1d\n\x06target\x18\x02 \x03(\x0b\x32\r.gsa.v1.Point\"F\n\x06UpAxes\x12\x1d\n\x06source\x18\x01 \x01(\x0b\x32\r.gsa.v1.Point\x12\x1d\n\x06target\x18\x02 \x01(\x0b\x32\r.gsa.v1.Point\"\x96\x01\n\x08Guidance\x12\x16\n\x0einit_transform\x18\x01 \x03(\x01\x12\'\n\x0bpoint_pairs\x18\x02 \x01(\x0b\x32\x12.gsa.v1.PointPairs\x12\x1f\n\x07up_axes\x18\x03 \x01(\x0b\x32\x0e.gsa.v1.UpAxes\x12\x18\n\x0b\x66ixed_scale\x18\x04 \x01(\x01H\x00\x88\x01\x01\x42\x0e\n\x0c_fixed_scale\"\x86\x01\n\rRefineRequest\x12\x0e\n\x06job_id\x18\x01 \x01(\t\x12\x18\n\x0b\x61lternative\x18\x02 \x01(\x05H\x00\x88\x01\x01\x12\"\n\x08guidance\x18\x03 \x01(\x0b\x32\x10.gsa.v1.Guidance\x12\x17\n\x0fidempotency_key\x18\x04 \x01(\tB\x0e\n\x0c_alternative\"&\n\x07Webhook\x12\x0b\n\x03url\x18\x01 \x01(\t\x12\x0e\n\x06secret\x18\x02 \x01(\t\"V\n\tFileChunk\x12\x1a\n\x04role\x18\x01 \x01(\x0e\x32\x0c.gsa.v1.Role\x12\r\n\x05index\x18\x02 \x01(\r\x12\x10\n\x08\x66ilename\x18\x03 \x01(\t\x12\x0c\n\x04\x64\x61ta\x18\x04 \x01(\x0c\"\x18\n\x06JobRef\x12\x0e\n\x06job_id\x18\x01 \x01(\t\"O\n\x0f\x41rtifactRequest\x12\x0e\n\x06job_id\x18\x01 \x01(\t\x12\x0c\n\x04name\x18\x02 \x01(\t\x12\x0e\n\x06offset\x18\x03 \x01(\x03\x12\x0e\n\x06length\x18\x04 \x01(\x03\"W\n\rArtifactChunk\x12\x0c\n\x04\x64\x61ta\x18\x01 \x01(\x0c\x12\x0e\n\x06offset\x18\x02 \x01(\x03\x12\x12\n\ntotal_size\x18\x03 \x01(\x03\x12\x14\n\x0c\x63ontent_type\x18\x04 \x01(\t\"F\n\x07Problem\x12\x0c\n\x04type\x18\x01 \x01(\t\x12\r\n\x05title\x18\x02 \x01(\t\x12\x0e\n\x06status\x18\x03 \x01(\x05\x12\x0e\n\x06\x64\x65tail\x18\x04 \x01(\t\"\xb3\x02\n\tTransform\x12\x0e\n\x06matrix\x18\x01 \x03(\x01\x12\r\n\x05scale\x18\x02 \x01(\x01\x12\x10\n\x08rotation\x18\x03 \x03(\x01\x12\x12\n\nquaternion\x18\x04 \x03(\x01\x12\x13\n\x0btranslation\x18\x05 \x03(\x01\x12\x12\n\nconfidence\x18\x06 \x01(\x01\x12\x11\n\tambiguous\x18\x07 \x01(\x08\x12\x10\n\x08\x64oubtful\x18\x08 \x01(\x08\x12\x17\n\x0fquaternion_xyzw\x18\t \x03(\x01\x12\x16\n\x0einverse_matrix\x18\n \x03(\x01\x12\x18\n\x10gltf_node_matrix\x18\x0b \x03(\x01\x12#\n\x0csource_frame\x18\x0c \x01(\x0b\x32\r.gsa.v1.Frame\x12#\n\x0ctarget_frame\x18\r \x01(\x0b\x32\r.gsa.v1.Frame\"_\n\x05\x46rame\x12\x0e\n\x06\x66ormat\x18\x01 \x01(\t\x12\x12\n\nconvention\x18\x02 \x01(\t\x12\x12\n\nhandedness\x18\x03 \x01(\t\x12\x0f\n\x07up_axis\x18\x04 \x01(\t\x12\r\n\x05units\x18\x05 \x01(\t\"<\n\x08\x41rtifact\x12\x0c\n\x04name\x18\x01 \x01(\t\x12\x0c\n\x04size\x18\x02 \x01(\x03\x12\x14\n\x0c\x63ontent_type\x18\x03 \x01(\t\"\xa1\x05\n\x03Job\x12\n\n\x02id\x18\x01 \x01(\t\x12\x1f\n\x05state\x18\x02 \x01(\x0e\x32\x10.gsa.v1.JobState\x12\r\n\x05stage\x18\x03 \x01(\t\x12\x10\n\x08progress\x18\x04 \x01(\x01\x12.\n\ncreated_at\x18\x05 \x01(\x0b\x32\x1a.google.protobuf.Timestamp\x12.\n\nupdated_at\x18\x06 \x01(\x0b\x32\x1a.google.protobuf.Timestamp\x12.\n\nstarted_at\x18\x07 \x01(\x0b\x32\x1a.google.protobuf.Timestamp\x12/\n\x0b\x66inished_at\x18\x08 \x01(\x0b\x32\x1a.google.protobuf.Timestamp\x12\x10\n\x08\x61ttempts\x18\t \x01(\x05\x12\x14\n\x0cmax_attempts\x18\n \x01(\x05\x12\x18\n\x10\x63\x61ncel_requested\x18\x0b \x01(\x08\x12\x18\n\x10source_asset_ids\x18\x0c \x03(\t\x12\x17\n\x0ftarget_asset_id\x18\r \x01(\t\x12\x14\n\x0coptions_json\x18\x0e \x01(\t\x12\x1e\n\x05\x65rror\x18\x0f \x01(\x0b\x32\x0f.gsa.v1.Problem\x12$\n\ttransform\x18\x10 \x01(\x0b\x32\x11.gsa.v1.Transform\x12%\n\ntransforms\x18\x11 \x03(\x0b\x32\x11.gsa.v1.Transform\x12\x13\n\x0bresult_json\x18\x12 \x01(\t\x12#\n\tartifacts\x18\x13 \x03(\x0b\x32\x10.gsa.v1.Artifact\x12\x12\n\nparent_job\x18\x14 \x01(\t\x12\x10\n\x08\x63hildren\x18\x15 \x03(\t\x12\x33\n\x0fnext_attempt_at\x18\x16 \x01(\x0b\x32\x1a.google.protobuf.Timestamp*>\n\x04Role\x12\x14\n\x10ROLE_UNSPECIFIED\x10\x00\x12\x0f\n\x0bROLE_SOURCE\x10\x01\x12\x0f\n\x0bROLE_TARGET\x10\x02*\x9a\x01\n\x08JobState\x12\x19\n\x15JOB_STATE_UNSPECIFIED\x10\x00\x12\x14\n\x10JOB_STATE_QUEUED\x10\x01\x12\x15\n\x11JOB_STATE_RUNNING\x10\x02\x12\x17\n\x13JOB_STATE_SUCCEEDED\x10\x03\x12\x14\n\x10JOB_STATE_FAILED\x10\x04\x12\x17\n\x13JOB_STATE_CANCELLED\x10\x05\x32\xb0\x03\n\x10\x41lignmentService\x12\x37\n\x0fSubmitAlignment\x12\x15.gsa.v1.SubmitRequest\x1a\x0b.gsa.v1.Job(\x01\x12%\n\x06GetJob\x12\x0e.gsa.v1.JobRef\x1a\x0b.gsa.v1.Job\x12)\n\x08WatchJob\x12\x0e.gsa.v1.JobRef\x1a\x0b.gsa.v1.Job0\x01\x12(\n\tCancelJob\x12\x0e.gsa.v1.JobRef\x1a\x0b.gsa.v1.Job\x12\x33\n\tDeleteJob\x12\x0e.gsa.v1.JobRef\x1a\x16.google.protobuf.Empty\x12?\n\x0bGetArtifact\x12\x17.gsa.v1.ArtifactRequest\x1a\x15.gsa.v1.ArtifactChunk0\x01\x12/\n\tRefineJob\x12\x15.gsa.v1.RefineRequest\x1a\x0b.gsa.v1.Job\x12@\n\x13SubmitManyAlignment\x12\x1c.gsa.v1.ManyAlignmentRequest\x1a\x0b.gsa.v1.Jobb\x06proto3')
 
 _globals = globals()
 _builder.BuildMessageAndEnumDescriptors(DESCRIPTOR, _globals)
 _builder.BuildTopDescriptorsAndMessages(DESCRIPTOR, 'gsa.v1.alignment_pb2', _globals)
 if not _descriptor._USE_C_DESCRIPTORS:
   DESCRIPTOR._loaded_options = None
-  _globals['_ROLE']._serialized_start=2406
-  _globals['_ROLE']._serialized_end=2468
-  _globals['_JOBSTATE']._serialized_start=2471
-  _globals['_JOBSTATE']._serialized_end=2625
-  _globals['_SUBMITREQUEST']._serialized_start=96
-  _globals['_SUBMITREQUEST']._serialized_end=198
-  _globals['_SUBMITHEADER']._serialized_start=201
-  _globals['_SUBMITHEADER']._serialized_end=383
-  _globals['_POINT']._serialized_start=385
-  _globals['_POINT']._serialized_end=425
-  _globals['_POINTPAIRS']._serialized_start=427
-  _globals['_POINTPAIRS']._serialized_end=501
-  _globals['_UPAXES']._serialized_start=503
-  _globals['_UPAXES']._serialized_end=573
-  _globals['_GUIDANCE']._serialized_start=576
-  _globals['_GUIDANCE']._serialized_end=726
-  _globals['_REFINEREQUEST']._serialized_start=729
-  _globals['_REFINEREQUEST']._serialized_end=863
-  _globals['_WEBHOOK']._serialized_start=865
-  _globals['_WEBHOOK']._serialized_end=903
-  _globals['_FILECHUNK']._serialized_start=905
-  _globals['_FILECHUNK']._serialized_end=991
-  _globals['_JOBREF']._serialized_start=993
-  _globals['_JOBREF']._serialized_end=1017
-  _globals['_ARTIFACTREQUEST']._serialized_start=1019
-  _globals['_ARTIFACTREQUEST']._serialized_end=1098
-  _globals['_ARTIFACTCHUNK']._serialized_start=1100
-  _globals['_ARTIFACTCHUNK']._serialized_end=1187
-  _globals['_PROBLEM']._serialized_start=1189
-  _globals['_PROBLEM']._serialized_end=1259
-  _globals['_TRANSFORM']._serialized_start=1262
-  _globals['_TRANSFORM']._serialized_end=1569
-  _globals['_FRAME']._serialized_start=1571
-  _globals['_FRAME']._serialized_end=1666
-  _globals['_ARTIFACT']._serialized_start=1668
-  _globals['_ARTIFACT']._serialized_end=1728
-  _globals['_JOB']._serialized_start=1731
-  _globals['_JOB']._serialized_end=2404
-  _globals['_ALIGNMENTSERVICE']._serialized_start=2628
-  _globals['_ALIGNMENTSERVICE']._serialized_end=2994
+  _globals['_ROLE']._serialized_start=2605
+  _globals['_ROLE']._serialized_end=2667
+  _globals['_JOBSTATE']._serialized_start=2670
+  _globals['_JOBSTATE']._serialized_end=2824
+  _globals['_MANYALIGNMENTREQUEST']._serialized_start=97
+  _globals['_MANYALIGNMENTREQUEST']._serialized_end=293
+  _globals['_SUBMITREQUEST']._serialized_start=295
+  _globals['_SUBMITREQUEST']._serialized_end=397
+  _globals['_SUBMITHEADER']._serialized_start=400
+  _globals['_SUBMITHEADER']._serialized_end=582
+  _globals['_POINT']._serialized_start=584
+  _globals['_POINT']._serialized_end=624
+  _globals['_POINTPAIRS']._serialized_start=626
+  _globals['_POINTPAIRS']._serialized_end=700
+  _globals['_UPAXES']._serialized_start=702
+  _globals['_UPAXES']._serialized_end=772
+  _globals['_GUIDANCE']._serialized_start=775
+  _globals['_GUIDANCE']._serialized_end=925
+  _globals['_REFINEREQUEST']._serialized_start=928
+  _globals['_REFINEREQUEST']._serialized_end=1062
+  _globals['_WEBHOOK']._serialized_start=1064
+  _globals['_WEBHOOK']._serialized_end=1102
+  _globals['_FILECHUNK']._serialized_start=1104
+  _globals['_FILECHUNK']._serialized_end=1190
+  _globals['_JOBREF']._serialized_start=1192
+  _globals['_JOBREF']._serialized_end=1216
+  _globals['_ARTIFACTREQUEST']._serialized_start=1218
+  _globals['_ARTIFACTREQUEST']._serialized_end=1297
+  _globals['_ARTIFACTCHUNK']._serialized_start=1299
+  _globals['_ARTIFACTCHUNK']._serialized_end=1386
+  _globals['_PROBLEM']._serialized_start=1388
+  _globals['_PROBLEM']._serialized_end=1458
+  _globals['_TRANSFORM']._serialized_start=1461
+  _globals['_TRANSFORM']._serialized_end=1768
+  _globals['_FRAME']._serialized_start=1770
+  _globals['_FRAME']._serialized_end=1865
+  _globals['_ARTIFACT']._serialized_start=1867
+  _globals['_ARTIFACT']._serialized_end=1927
+  _globals['_JOB']._serialized_start=1930
+  _globals['_JOB']._serialized_end=2603
+  _globals['_ALIGNMENTSERVICE']._serialized_start=2827
+  _globals['_ALIGNMENTSERVICE']._serialized_end=3259
 # @@protoc_insertion_point(module_scope)

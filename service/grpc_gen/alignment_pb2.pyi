@@ -38,6 +38,26 @@ JOB_STATE_SUCCEEDED: JobState
 JOB_STATE_FAILED: JobState
 JOB_STATE_CANCELLED: JobState
 
+class ManyAlignmentRequest(_message.Message):
+    __slots__ = ("asset_ids", "reference_asset_id", "edges", "merged", "merge", "options_json", "idempotency_key", "webhook")
+    ASSET_IDS_FIELD_NUMBER: _ClassVar[int]
+    REFERENCE_ASSET_ID_FIELD_NUMBER: _ClassVar[int]
+    EDGES_FIELD_NUMBER: _ClassVar[int]
+    MERGED_FIELD_NUMBER: _ClassVar[int]
+    MERGE_FIELD_NUMBER: _ClassVar[int]
+    OPTIONS_JSON_FIELD_NUMBER: _ClassVar[int]
+    IDEMPOTENCY_KEY_FIELD_NUMBER: _ClassVar[int]
+    WEBHOOK_FIELD_NUMBER: _ClassVar[int]
+    asset_ids: _containers.RepeatedScalarFieldContainer[str]
+    reference_asset_id: str
+    edges: str
+    merged: bool
+    merge: str
+    options_json: str
+    idempotency_key: str
+    webhook: Webhook
+    def __init__(self, asset_ids: _Optional[_Iterable[str]] = ..., reference_asset_id: _Optional[str] = ..., edges: _Optional[str] = ..., merged: _Optional[bool] = ..., merge: _Optional[str] = ..., options_json: _Optional[str] = ..., idempotency_key: _Optional[str] = ..., webhook: _Optional[_Union[Webhook, _Mapping]] = ...) -> None: ...
+
 class SubmitRequest(_message.Message):
     __slots__ = ("header", "chunk")
     HEADER_FIELD_NUMBER: _ClassVar[int]

@@ -73,6 +73,11 @@ class AlignmentServiceStub:
                 request_serializer=gsa_dot_v1_dot_alignment__pb2.RefineRequest.SerializeToString,
                 response_deserializer=gsa_dot_v1_dot_alignment__pb2.Job.FromString,
                 _registered_method=True)
+        self.SubmitManyAlignment = channel.unary_unary(
+                '/gsa.v1.AlignmentService/SubmitManyAlignment',
+                request_serializer=gsa_dot_v1_dot_alignment__pb2.ManyAlignmentRequest.SerializeToString,
+                response_deserializer=gsa_dot_v1_dot_alignment__pb2.Job.FromString,
+                _registered_method=True)
 
 
 class AlignmentServiceServicer:
@@ -128,6 +133,15 @@ class AlignmentServiceServicer:
         context.set_details('Method not implemented!')
         raise NotImplementedError('Method not implemented!')
 
+    def SubmitManyAlignment(self, request, context):
+        """N-way registration (issue 30), like HTTP POST /v1/many-jobs: every model's Sim(3) into the
+        reference's frame, consistent around the cycles; result_json is many.json's content.
+        INVALID_ARGUMENT for fewer than 2 or too many assets, NOT_FOUND for an asset not yours.
+        """
+        context.set_code(grpc.StatusCode.UNIMPLEMENTED)
+        context.set_details('Method not implemented!')
+        raise NotImplementedError('Method not implemented!')
+
 
 def add_AlignmentServiceServicer_to_server(servicer, server):
     rpc_method_handlers = {
@@ -164,6 +178,11 @@ def add_AlignmentServiceServicer_to_server(servicer, server):
             'RefineJob': grpc.unary_unary_rpc_method_handler(
                     servicer.RefineJob,
                     request_deserializer=gsa_dot_v1_dot_alignment__pb2.RefineRequest.FromString,
+                    response_serializer=gsa_dot_v1_dot_alignment__pb2.Job.SerializeToString,
+            ),
+            'SubmitManyAlignment': grpc.unary_unary_rpc_method_handler(
+                    servicer.SubmitManyAlignment,
+                    request_deserializer=gsa_dot_v1_dot_alignment__pb2.ManyAlignmentRequest.FromString,
                     response_serializer=gsa_dot_v1_dot_alignment__pb2.Job.SerializeToString,
             ),
     }
@@ -355,6 +374,33 @@ class AlignmentService:
             target,
             '/gsa.v1.AlignmentService/RefineJob',
             gsa_dot_v1_dot_alignment__pb2.RefineRequest.SerializeToString,
+            gsa_dot_v1_dot_alignment__pb2.Job.FromString,
+            options,
+            channel_credentials,
+            insecure,
+            call_credentials,
+            compression,
+            wait_for_ready,
+            timeout,
+            metadata,
+            _registered_method=True)
+
+    @staticmethod
+    def SubmitManyAlignment(request,
+            target,
+            options=(),
+            channel_credentials=None,
+            call_credentials=None,
+            insecure=False,
+            compression=None,
+            wait_for_ready=None,
+            timeout=None,
+            metadata=None):
+        return grpc.experimental.unary_unary(
+            request,
+            target,
+            '/gsa.v1.AlignmentService/SubmitManyAlignment',
+            gsa_dot_v1_dot_alignment__pb2.ManyAlignmentRequest.SerializeToString,
             gsa_dot_v1_dot_alignment__pb2.Job.FromString,
             options,
             channel_credentials,

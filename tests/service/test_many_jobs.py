@@ -1,0 +1,187 @@
+"""Many jobs (issue 30, N-way registration) against the real stack (uvicorn + RQ worker +
+redis-server): POST /v1/many-jobs and gRPC SubmitManyAlignment over three partial captures of
+one generated car, each under its own Sim(3); bad requests; cancel mid-edge."""
+
+from __future__ import annotations
+
+import json
+
+import grpc
+import httpx
+import numpy as np
+import pytest
+
+from service.grpc_gen import alignment_pb2 as pb
+from service.grpc_gen import alignment_pb2_grpc as pbg
+from tests.service.conftest import ALICE, BOB, assert_problem, wait_job, wait_until
+
+pytestmark = pytest.mark.slow  # starts servers and worker processes
+
+EDGE_OPTIONS = {"stages": ["coarse"], "coarse_iterations": 30, "seed": 0}
+AUTH = (("authorization", "Bearer key-alice"),)
+
+
+@pytest.fixture(scope="module")
+def captures(tmp_path_factory):
+    """Three partial captures (2,500 Gaussians each) of one car, capture k = truth[k](car)."""
+    from gsa.io.ply import write_ply
+    from gsa.synth import make_object, random_sim3
+    from gsa.synth.variants import cut_by_plane
+
+    d = tmp_path_factory.mktemp("many")
+    rng = np.random.default_rng([0, 30])
+    paths, truth = [], []
+    for k in range(3):
+        m = make_object("car", seed=0, n_gaussians=2500, sample_seed=k)
+        m = cut_by_plane(m, rng, keep=(0.8, 0.9))
+        t = random_sim3(rng, scale_range=(0.5, 2.0))
+        write_ply(m.transformed(t), d / f"capture{k}.ply")
+        paths.append(d / f"capture{k}.ply")
+        truth.append(t)
+    return {"paths": paths, "truth": truth}
+
+
+def upload(c: httpx.Client, path) -> str:
+    with open(path, "rb") as fh:
+        r = c.post("/v1/assets", files={"file": (path.name, fh)})
+    assert r.status_code == 201, r.text
+    return r.json()["id"]
+
+
+@pytest.fixture(scope="module")
+def assets(stack, captures):
+    with httpx.Client(base_url=stack["url"], headers=ALICE, timeout=60) as c:
+        return [upload(c, p) for p in captures["paths"]]
+
+
+def rotation_error_deg(matrix, want) -> float:
+    rot = np.asarray(matrix, np.float64)[:3, :3]
+    rot = rot / np.cbrt(np.linalg.det(rot))
+    cos = (np.trace(rot.T @ want.rotation) - 1) / 2
+    return float(np.degrees(np.arccos(np.clip(cos, -1, 1))))
+
+
+def check_against_truth(result: dict, assets: list[str], truth, reference: int = 0) -> None:
+    assert result["reference"] == assets[reference]
+    assert [m["asset_id"] for m in result["models"]] == assets
+    for k, m in enumerate(result["models"]):
+        want = truth[reference] @ truth[k].inverse()  # capture k -> the reference's frame
+        assert rotation_error_deg(m["transform"], want) < 3.0, (k, m)
+        assert abs(m["scale"] / want.scale - 1) < 0.03, (k, m["scale"], want.scale)
+        assert m["file_transform"] == m["transform"]  # PLY files: the internal frame is the files'
+
+
+def test_many_job_over_http(http, assets, captures):
+    r = http.post("/v1/many-jobs", json={"assets": assets, "options": EDGE_OPTIONS, "merged": True})
+    assert r.status_code == 202, r.text
+    job = r.json()
+    assert r.headers["Location"] == f"/v1/jobs/{job['id']}"
+    assert job["sources"] == assets and job["target"] == assets[0]
+    assert job["options"]["many"] == {"reference": assets[0], "edges": "auto", "merged": True, "merge": "concat"}
+    stages = set()
+
+    def done():
+        j = http.get(f"/v1/jobs/{job['id']}").json()
+        stages.add(j["stage"])
+        return j if j["state"] in ("succeeded", "failed", "cancelled") else None
+
+    final = wait_until(done, 180, 0.05, "the many job")
+    assert final["state"] == "succeeded", final
+    assert any(s and s.startswith("edge 1/3: ") for s in stages), stages  # which edge of how many
+    assert any(s and s.startswith("edge 3/3: ") for s in stages), stages
+    result = final["result"]
+    check_against_truth(result, assets, captures["truth"])
+    assert len(result["edges"]) == 3
+    for e in result["edges"]:
+        assert e["status"] in ("kept", "down-weighted", "pruned", "corrected")
+        assert {"rotation_deg", "log_scale", "translation", "units"} <= set(e["residual"])
+    assert result["pruned"] == [] and result["corrected"] == []
+    names = {a["name"] for a in final["artifacts"]}
+    assert names == {"many.json", "merged.ply"}
+    many_json = http.get(f"/v1/jobs/{job['id']}/artifacts/many.json").json()
+    assert many_json == result  # the result is many.json's content
+    assert result["merge"]["gaussians"] == sum(int(http.get(f"/v1/assets/{a}").json()["n_gaussians"]) for a in assets)
+    merged = http.get(f"/v1/jobs/{job['id']}/artifacts/merged.ply")
+    assert merged.status_code == 200 and merged.content.startswith(b"ply")
+
+
+def test_bad_many_requests(stack, http, assets, captures):
+    def post(body):
+        return http.post("/v1/many-jobs", json={"options": EDGE_OPTIONS, **body})
+
+    p = assert_problem(post({"assets": assets[:1]}), 422, "invalid-input")
+    assert p["option"] == "assets" and p["minimum"] == 2
+    p = assert_problem(post({"assets": [assets[0]] + [f"ast_{k}" for k in range(40)]}), 422, "invalid-input")
+    assert p["option"] == "assets" and p["maximum"] == 32
+    assert_problem(post({"assets": [assets[0], assets[0]]}), 422, "invalid-input")
+    p = assert_problem(post({"assets": assets[:2], "reference": assets[2]}), 422, "invalid-input")
+    assert p["option"] == "reference"
+    p = assert_problem(post({"assets": assets[:2], "edges": "some"}), 422, "invalid-input")
+    assert p["option"] == "edges"
+    p = assert_problem(post({"assets": assets[:2], "options": {"outputs": ["aligned"]}}), 422, "invalid-input")
+    assert p["option"] == "outputs"
+    p = assert_problem(post({"assets": assets[:2], "options": {"coarse_iterations": 0}}), 422, "invalid-input")
+    assert p["option"] == "coarse_iterations"
+    assert_problem(post({"assets": assets[:2], "colour": 1}), 422)  # unknown field
+    assert_problem(post({"assets": [assets[0], "ast_0123456789abcdef"]}), 404, "not-found")
+    with httpx.Client(base_url=stack["url"], headers=BOB, timeout=60) as bob:
+        bobs = upload(bob, captures["paths"][0])
+    assert_problem(post({"assets": [assets[0], bobs]}), 404, "not-found")  # another tenant's asset
+    # Idempotency: the same key and body replay the job, another body with it is 422.
+    first = http.post(
+        "/v1/many-jobs", json={"assets": assets[:2], "options": EDGE_OPTIONS}, headers={"Idempotency-Key": "m1"}
+    )
+    again = http.post(
+        "/v1/many-jobs", json={"assets": assets[:2], "options": EDGE_OPTIONS}, headers={"Idempotency-Key": "m1"}
+    )
+    assert first.status_code == again.status_code == 202
+    assert again.json()["id"] == first.json()["id"] and again.headers["Idempotent-Replayed"] == "true"
+    other = http.post(
+        "/v1/many-jobs", json={"assets": assets[1:], "options": EDGE_OPTIONS}, headers={"Idempotency-Key": "m1"}
+    )
+    assert_problem(other, 422, "idempotency-key-reused")
+    http.post(f"/v1/jobs/{first.json()['id']}:cancel")
+    wait_job(http, first.json()["id"], timeout=60)
+
+
+def test_cancel_a_running_many_job(http, assets):
+    slow = {**EDGE_OPTIONS, "coarse_iterations": 300}
+    job = http.post("/v1/many-jobs", json={"assets": assets, "options": slow}).json()
+    wait_until(
+        lambda: (http.get(f"/v1/jobs/{job['id']}").json()["stage"] or "").startswith("edge 1/3"),
+        120,
+        0.05,
+        "the first edge to start",
+    )
+    r = http.post(f"/v1/jobs/{job['id']}:cancel")
+    assert r.status_code == 202, r.text
+    final = wait_job(http, job["id"], timeout=60)
+    assert final["state"] == "cancelled", final
+    assert final["artifacts"] == [] and final["result"] is None
+
+
+def test_many_job_over_grpc(stack, assets, captures):
+    ch = grpc.insecure_channel(stack["grpc"])
+    stub = pbg.AlignmentServiceStub(ch)
+    with pytest.raises(grpc.RpcError) as e:
+        stub.SubmitManyAlignment(pb.ManyAlignmentRequest(asset_ids=assets[:1]), metadata=AUTH)
+    assert e.value.code() == grpc.StatusCode.INVALID_ARGUMENT
+    problem = json.loads(dict(e.value.trailing_metadata())["gsa-problem"])
+    assert problem["option"] == "assets"
+    job = stub.SubmitManyAlignment(
+        pb.ManyAlignmentRequest(
+            asset_ids=assets[:2], reference_asset_id=assets[1], options_json=json.dumps(EDGE_OPTIONS)
+        ),
+        metadata=AUTH,
+    )
+    assert list(job.source_asset_ids) == assets[:2] and job.target_asset_id == assets[1]
+
+    def done():
+        j = stub.GetJob(pb.JobRef(job_id=job.id), metadata=AUTH)
+        return j if j.state in (pb.JOB_STATE_SUCCEEDED, pb.JOB_STATE_FAILED, pb.JOB_STATE_CANCELLED) else None
+
+    final = wait_until(done, 120, 0.1, "the gRPC many job")
+    assert final.state == pb.JOB_STATE_SUCCEEDED, final
+    result = json.loads(final.result_json)
+    check_against_truth(result, assets[:2], captures["truth"][:2], reference=1)
+    assert [a.name for a in final.artifacts] == ["many.json"]
