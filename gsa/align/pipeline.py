@@ -346,7 +346,9 @@ class _Pair:
         _report(progress, "hypotheses", 0.0)
         if self.opts.up_axes is not None:
             # Known up axes: only turns about them (and no widened search, which would tilt).
-            options = robust.SearchOptions(rotations=0, seed=self.opts.seed)
+            options = robust.SearchOptions(
+                rotations=0, seed=self.opts.seed, offer_turn_axes=(tuple(self.opts.up_axes[1]),)
+            )
             result = robust.global_search(src, dst, guided.up_rotations(*self.opts.up_axes), options)
         else:
             options = robust.SearchOptions(rotations=self.opts.search_rotations, seed=self.opts.seed)

@@ -62,6 +62,9 @@ class SearchOptions:
     place_truncation: float = 0.25  # loose: the coarse rotation is up to ~20° off
     place_scales: tuple[float, ...] = (0.75, 1.0, 1.33)
     place_top: int = 6  # distinct placements refined to convergence
+    # Axes (target coordinates) of the half turns offered beside the best pose (_with_offers);
+    # None: the target's principal axes. A search about a known up axis offers the turn about it.
+    offer_turn_axes: tuple[tuple[float, float, float], ...] | None = None
     seed: int = 0
 
 
@@ -160,7 +163,11 @@ def _with_offers(
     best = result.best.transform
     src_rows = _sample(rng, len(src), opts.refine_points)
     dst_rows = _sample(rng, len(dst), opts.refine_points)
-    _, _, axes = np.linalg.svd((dst.points - dst.center) * np.sqrt(dst.weights)[:, None], full_matrices=False)
+    if opts.offer_turn_axes is not None:
+        axes = np.asarray(opts.offer_turn_axes, np.float64).reshape(-1, 3)
+        axes = axes / np.linalg.norm(axes, axis=1, keepdims=True)
+    else:
+        _, _, axes = np.linalg.svd((dst.points - dst.center) * np.sqrt(dst.weights)[:, None], full_matrices=False)
     flips = []
     for k, axis in enumerate(axes):
         turn = axis_rotation(axis, np.pi)
