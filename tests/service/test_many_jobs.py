@@ -103,6 +103,8 @@ def test_many_job_over_http(http, assets, captures):
     assert result["merge"]["gaussians"] == sum(int(http.get(f"/v1/assets/{a}").json()["n_gaussians"]) for a in assets)
     merged = http.get(f"/v1/jobs/{job['id']}/artifacts/merged.ply")
     assert merged.status_code == 200 and merged.content.startswith(b"ply")
+    splat = http.get(f"/v1/jobs/{job['id']}/artifacts/merged.ply", params={"format": "splat"})
+    assert splat.status_code == 200 and len(splat.content) == 32 * result["merge"]["gaussians"]
 
 
 def test_bad_many_requests(stack, http, assets, captures):
@@ -122,7 +124,7 @@ def test_bad_many_requests(stack, http, assets, captures):
     assert p["option"] == "outputs"
     p = assert_problem(post({"assets": assets[:2], "options": {"coarse_iterations": 0}}), 422, "invalid-input")
     assert p["option"] == "coarse_iterations"
-    assert_problem(post({"assets": assets[:2], "colour": 1}), 422)  # unknown field
+    assert_problem(post({"assets": assets[:2], "colour": 1}), 422, "validation-error")  # unknown field
     assert_problem(post({"assets": [assets[0], "ast_0123456789abcdef"]}), 404, "not-found")
     with httpx.Client(base_url=stack["url"], headers=BOB, timeout=60) as bob:
         bobs = upload(bob, captures["paths"][0])
@@ -185,3 +187,32 @@ def test_many_job_over_grpc(stack, assets, captures):
     result = json.loads(final.result_json)
     check_against_truth(result, assets[:2], captures["truth"][:2], reference=1)
     assert [a.name for a in final.artifacts] == ["many.json"]
+
+
+def test_many_job_memory_prediction():
+    """The largest pair's job plus every other model held, plus the merged model when asked:
+    eight 5M SH-3 captures are refused under the default 8 GB budget, three small ones are not."""
+    from types import SimpleNamespace
+
+    from service.many import check_many_memory
+    from service.models import Asset
+    from service.problems import Problem
+
+    def asset(n: int) -> Asset:
+        return Asset(
+            id=f"ast_{n}", owner="alice", kind="ply", key="k", size=n * 248, content_type="application/x-ply",
+            n_gaussians=n, sha256="0", created_at=0.0,
+        )  # fmt: skip
+
+    b = SimpleNamespace(settings=SimpleNamespace(worker_memory_mb=8192))
+    check_many_memory(b, [asset(3000)] * 3, {"stages": ["coarse"]}, merged=True)
+    check_many_memory(b, [asset(2_000_000)] * 2, {"stages": ["coarse"]}, merged=False)
+    with pytest.raises(Problem) as e:
+        check_many_memory(b, [asset(5_000_000)] * 8, {"stages": ["coarse"]}, merged=True)
+    p = e.value.to_dict()
+    assert p["status"] == 422 and p["option"] == "memory" and p["maximum"] == 8192 and p["value"] > 8192
+    # Holding more models, or the merged one, never predicts less.
+    b.settings.worker_memory_mb = 6000
+    check_many_memory(b, [asset(2_000_000)] * 2, {"stages": ["coarse"]}, merged=False)
+    with pytest.raises(Problem):
+        check_many_memory(b, [asset(2_000_000)] * 4, {"stages": ["coarse"]}, merged=True)
