@@ -200,7 +200,7 @@ def _model_entries(data: dict, job: Job, models, result) -> None:
 def run_many(backend: Backend, job: Job, token: str, prog: JobProgress, art_prefix: str) -> JobState | None:
     """One attempt of a many job: load the N models, align_many (reports per edge; a cancel
     stops it at the next report), write many.json (and merged.ply), store them."""
-    from gsa.align.many import align_many, merged_model  # lazy: the aligner's modules
+    from gsa.align.many import ManyError, align_many, merged_model  # lazy: the aligner's modules
     from gsa.align.outputs import write_json
     from gsa.io.ply import write_ply
     from service.artifacts import store_artifacts
@@ -218,15 +218,18 @@ def run_many(backend: Backend, job: Job, token: str, prog: JobProgress, art_pref
             prog("loading", i / len(job.sources))
             models.append(load_input(backend, ref, work, f"model{i}", prog))
         reports = _EdgeReports(prog)
-        result = align_many(
-            models,
-            names,
-            reference,
-            opts,
-            edges=many["edges"],
-            progress=reports.edge_done,
-            edge_progress=reports,
-        )
+        try:
+            result = align_many(
+                models,
+                names,
+                reference,
+                opts,
+                edges=many["edges"],
+                progress=reports.edge_done,
+                edge_progress=reports,
+            )
+        except ManyError as exc:  # input align_many cannot work with (a model of < 3 Gaussians): the client's
+            raise invalid_input(str(exc)) from None
         prog.label = None
         prog("writing", 0.0)
         data = result.to_dict()

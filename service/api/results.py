@@ -200,9 +200,54 @@ class SourceResult(Sim3Out):
     lifting: list[dict[str, Any]] | None = None
 
 
+class ManyResidual(_Open):
+    """An edge's disagreement with the solution: rotation (degrees), |log scale|, centroid
+    displacement over the model's size, and the largest of the three in tolerance units."""
+
+    rotation_deg: float | None = None
+    log_scale: float | None = None
+    translation: float | None = None
+    units: float | None = None
+
+
+class ManyModel(Sim3Out):
+    """A many job's model: its Sim(3) into the reference's frame (gsa's internal frame)."""
+
+    name: str | None = None
+    index: int | None = None
+    asset_id: str | None = None
+    filename: str | None = None
+    format: str | None = None
+    file_transform: Matrix | None = Field(None, description="the same map in the files' own coordinates")
+    confidence: float | None = None
+    doubtful: bool | None = None
+
+
+class ManyEdge(_Open):
+    """One aligned pair of a many job: target ≈ transform(source), and what the global step made of it."""
+
+    source: str | None = None
+    target: str | None = None
+    source_index: int | None = None
+    target_index: int | None = None
+    transform: Matrix | None = None
+    used_transform: Matrix | None = Field(None, description="an alternative's when corrected")
+    confidence: float | None = None
+    doubtful: bool | None = None
+    ambiguous: bool | None = None
+    alternatives: int | None = None
+    status: Literal["kept", "down-weighted", "pruned", "corrected"] | None = None
+    weight: float | None = None
+    residual: ManyResidual | None = None
+    measured_residual: ManyResidual | None = None
+    triangle_support: float | None = None
+    seconds: float | None = None
+
+
 class JobResult(SourceResult):
     """A succeeded job's result. A pair job carries its one source's fields at the top
-    level too; `results` always lists one entry per source."""
+    level too; `results` always lists one entry per source. A many job (POST /v1/many-jobs)
+    has many.json's members instead: reference, models, edges, pruned, corrected, cycles."""
 
     results: list[SourceResult] | None = None
     reconstructions: dict[str, dict[str, Any]] | None = Field(
@@ -210,3 +255,10 @@ class JobResult(SourceResult):
     )
     notes: list[str] | None = None
     parent_job: str | None = Field(None, description="the job this one refines (POST /v1/jobs/{id}:refine)")
+    reference: str | None = Field(None, description="many job: the reference asset")
+    models: list[ManyModel] | None = Field(None, description="many job: each model into the reference's frame")
+    edges: list[ManyEdge] | None = Field(None, description="many job: the aligned pairs")
+    pruned: list[str] | None = Field(None, description="many job: edges the cycles contradict (source -> target)")
+    corrected: list[str] | None = Field(None, description="many job: pruned edges an alternative replaced")
+    cycles: dict[str, Any] | None = None
+    merge: dict[str, Any] | None = Field(None, description="many job with merged: {mode, removed, gaussians}")

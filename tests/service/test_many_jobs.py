@@ -100,6 +100,11 @@ def test_many_job_over_http(http, assets, captures):
     assert names == {"many.json", "merged.ply"}
     many_json = http.get(f"/v1/jobs/{job['id']}/artifacts/many.json").json()
     assert many_json == result  # the result is many.json's content
+    from service.api.results import JobResult
+
+    typed = JobResult.model_validate(many_json)  # the typed result of the OpenAPI document, no fallback
+    assert typed.models[1].asset_id == assets[1] and typed.edges[0].residual.units is not None
+    assert typed.model_dump(mode="json") == many_json
     assert result["merge"]["gaussians"] == sum(int(http.get(f"/v1/assets/{a}").json()["n_gaussians"]) for a in assets)
     merged = http.get(f"/v1/jobs/{job['id']}/artifacts/merged.ply")
     assert merged.status_code == 200 and merged.content.startswith(b"ply")
@@ -216,3 +221,24 @@ def test_many_job_memory_prediction():
     check_many_memory(b, [asset(2_000_000)] * 2, {"stages": ["coarse"]}, merged=False)
     with pytest.raises(Problem):
         check_many_memory(b, [asset(2_000_000)] * 4, {"stages": ["coarse"]}, merged=True)
+
+
+def test_many_job_operation_in_openapi(http):
+    doc = http.get("/openapi.json").json()
+    op = doc["paths"]["/v1/many-jobs"]["post"]
+    assert op["operationId"] == "createManyJob"
+    assert {"422", "404", "429", "507"} <= set(op["responses"])
+    props = doc["components"]["schemas"]["JobResult"]["properties"]
+    assert {"models", "edges", "pruned", "corrected", "reference"} <= set(props)
+
+
+def test_a_model_align_many_cannot_use_fails_the_job_as_invalid_input(http, assets, captures, tmp_path):
+    from gsa.io.ply import read_ply, write_ply
+
+    tiny = read_ply(captures["paths"][0]).subset(np.arange(2))
+    write_ply(tiny, tmp_path / "tiny.ply")
+    job = http.post("/v1/many-jobs", json={"assets": [assets[0], upload(http, tmp_path / "tiny.ply")]}).json()
+    final = wait_job(http, job["id"], timeout=60)
+    assert final["state"] == "failed", final
+    assert final["error"]["status"] == 422 and final["error"]["type"].endswith("/invalid-input"), final["error"]
+    assert "at least 3 are needed" in final["error"]["detail"]
