@@ -106,7 +106,7 @@ def create_app(
         )
     app.add_middleware(RequestIds)  # outermost: every response, even a refused one, carries its id
     # This order is the order of the paths in the OpenAPI document.
-    for resource in (ops, assets, jobs, many, artifacts, view):
+    for resource in (ops, assets, jobs, artifacts, view, many):
         app.include_router(resource.router)
 
     app.openapi = lambda: custom_openapi(app)

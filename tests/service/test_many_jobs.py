@@ -242,3 +242,20 @@ def test_a_model_align_many_cannot_use_fails_the_job_as_invalid_input(http, asse
     assert final["state"] == "failed", final
     assert final["error"]["status"] == 422 and final["error"]["type"].endswith("/invalid-input"), final["error"]
     assert "at least 3 are needed" in final["error"]["detail"]
+
+
+def test_many_job_in_embedded_mode(tmp_path, captures):
+    """`gsa serve` alone (SQLite, in-process worker): the same job type, here over two captures."""
+    from tests.service.conftest import service_env, start_api
+
+    api, url, _ = start_api(tmp_path, service_env(tmp_path), name="embedded-many")
+    try:
+        with httpx.Client(base_url=url, headers=ALICE, timeout=60) as c:
+            ids = [upload(c, p) for p in captures["paths"][:2]]
+            r = c.post("/v1/many-jobs", json={"assets": ids, "options": EDGE_OPTIONS})
+            assert r.status_code == 202, r.text
+            final = wait_job(c, r.json()["id"], timeout=180)
+        assert final["state"] == "succeeded", (final, api.tail())
+        check_against_truth(final["result"], ids, captures["truth"][:2])
+    finally:
+        api.stop()
