@@ -202,6 +202,29 @@ class GSAClient:
         headers = {"Idempotency-Key": idempotency_key} if idempotency_key else {}
         return self._check(self.http.post("/v1/jobs", json=body, headers=headers)).json()
 
+    def submit_many(
+        self,
+        asset_ids: Sequence[str],
+        *,
+        reference: str | None = None,
+        edges: str = "auto",
+        merged: bool = False,
+        merge: str = "concat",
+        options: dict | None = None,
+        webhook: dict | None = None,
+        idempotency_key: str | None = None,
+    ) -> dict:
+        """A many job (POST /v1/many-jobs): every model's Sim(3) into the reference's frame; wait
+        for it as any job, its result is many.json's content (docs/service.md)."""
+        body: dict = {"assets": list(asset_ids), "edges": edges, "merged": merged, "merge": merge}
+        body["options"] = options or {}
+        if reference is not None:
+            body["reference"] = reference
+        if webhook:
+            body["webhook"] = webhook
+        headers = {"Idempotency-Key": idempotency_key} if idempotency_key else {}
+        return self._check(self.http.post("/v1/many-jobs", json=body, headers=headers)).json()
+
     def status(self, job_id: str) -> dict:
         """The job; polls reuse the ETag so an unchanged job costs a 304."""
         headers = {}

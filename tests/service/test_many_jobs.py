@@ -259,3 +259,15 @@ def test_many_job_in_embedded_mode(tmp_path, captures):
         check_against_truth(final["result"], ids, captures["truth"][:2])
     finally:
         api.stop()
+
+
+def test_many_job_from_the_python_client(stack, assets, captures):
+    from gsa.client import GSAClient, ServiceError
+
+    with GSAClient(stack["url"], "key-alice") as client:
+        job = client.submit_many(assets[1:], options=EDGE_OPTIONS)
+        final = client.wait(job["id"], timeout=120)
+        check_against_truth(final["result"], assets[1:], captures["truth"][1:])
+        with pytest.raises(ServiceError) as e:
+            client.submit_many(assets[:1])
+        assert e.value.status == 422
