@@ -110,6 +110,9 @@ def test_many_job_over_http(http, assets, captures):
     assert merged.status_code == 200 and merged.content.startswith(b"ply")
     splat = http.get(f"/v1/jobs/{job['id']}/artifacts/merged.ply", params={"format": "splat"})
     assert splat.status_code == 200 and len(splat.content) == 32 * result["merge"]["gaussians"]
+    # The results pages do not show a many job's models yet, but neither fails on one.
+    assert http.get(f"/v1/jobs/{job['id']}/view").status_code == 200
+    assert http.get("/v1/view/jobs").status_code == 200
 
 
 def test_bad_many_requests(stack, http, assets, captures):
