@@ -3,6 +3,7 @@ itself on a small pair of harder room captures, the exposure estimate, and `--sc
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import subprocess
 import sys
@@ -37,10 +38,15 @@ def _is_scene(model) -> bool:
 def test_whole_rooms_pass_the_scene_test(seed):
     """Small rooms pass by their shell and the things inside it (not by size)."""
     room = make_scene(seed=seed, n_gaussians=150_000).transformed(random_sim3(np.random.default_rng(seed)))
-    st = S.scene_structure(S.scene_anchors(room, 2000), gaussians=len(room))
+    anchors = S.scene_anchors(room, 2000)
+    st = S.scene_structure(anchors, gaussians=len(room))
     assert st.is_scene, st.to_dict()
-    assert st.shell_planes >= 4 and st.parts >= S.CONTENT_PARTS  # floor, ceiling and walls; furniture
-    assert len(room) < S.SCENE_GAUSSIANS
+    defaults = S.SceneOptions()
+    assert st.shell_planes >= 4 and st.parts >= defaults.content_parts  # floor, ceiling and walls; furniture
+    assert len(room) < defaults.scene_gaussians
+    # The thresholds are the options': asking for more parts than the room holds fails it.
+    stricter = S.SceneOptions(content_parts=st.parts + 1)
+    assert not S.scene_structure(anchors, gaussians=len(room), options=stricter).is_room
 
 
 def test_large_room_captures_pass_by_shell_and_size():
@@ -49,7 +55,7 @@ def test_large_room_captures_pass_by_shell_and_size():
     choice = S.choose(cap.source, cap.target, "auto", True, 2000)
     assert choice.run, choice.to_dict()
     for side in ("source", "target"):
-        assert choice.to_dict()["test"][side]["shell_planes"] >= S.SHELL_PLANES
+        assert choice.to_dict()["test"][side]["shell_planes"] >= S.SceneOptions().shell_planes
 
 
 @pytest.mark.parametrize(
@@ -90,7 +96,7 @@ def test_scene_path_recovers_a_harder_room_pair(room_pair):
     assert scale_error_pct(result.transform.scale, cap.truth.scale) < 0.5
     scene = result.metrics["scene"]
     assert scene["ran"] and scene["reason"] == "scene=on"
-    assert scene["anchors"][0] > 2000 and max(scene["refine_cloud"]) <= S.REFINE_CLOUD
+    assert scene["anchors"][0] > 2000 and max(scene["refine_cloud"]) <= S.SceneOptions().refine_cloud
     assert result.metrics["colour_weight"] > 0.5  # the exposures were brought together
     assert result.stages == ("coarse",) and result.fine is None
     assert {"inlier_fraction", "rms_residual", "confidence"} <= set(result.metrics)
@@ -109,6 +115,11 @@ def test_exposure_gains_are_found_pose_free(room_pair):
 def test_scene_option_is_checked():
     with pytest.raises(ValueError, match="scene"):
         AlignOptions(scene="maybe")
+
+
+def test_scene_options_are_frozen():
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        S.SceneOptions().shell_planes = 2  # type: ignore[misc]
 
 
 def test_object_path_reports_why_it_ran():

@@ -75,7 +75,7 @@ def test_sites_pass_the_site_test_and_objects_do_not(site_pair):
     assert choice.run, choice.to_dict()
     # A shed's walls and the ground can make a room test's shell too; either way the
     # path searches the pair as sites, as both grounds lie open to the sky.
-    anchors = [S.scene_anchors(m, S.SCENE_ANCHORS) for m in (cap.source, cap.target)]
+    anchors = [S.scene_anchors(m, S.SceneOptions().scene_anchors) for m in (cap.source, cap.target)]
     sites = S._sites(*anchors)
     assert sites is not None and all(s.open_ground for s in sites)
     for model in (make_object("airplane", seed=0, n_gaussians=20_000), make_object("car", seed=1, n_gaussians=20_000)):
@@ -98,12 +98,13 @@ def test_scene_path_aligns_a_site_pair(site_pair):
 
 def test_site_search_only_turns_about_the_ground():
     up = np.array([0.0, 0.6, 0.8])
-    rots = S._site_rotations(np.array([0.0, 0.0, 1.0]), up)
-    assert len(rots) == 2 * 5 * round(360 / S.SITE_YAW_DEG)
-    mapped = rots @ np.array([0.0, 0.0, 1.0])
-    tilt = np.degrees(np.arccos(np.clip(np.abs(mapped @ up), -1, 1)))
-    assert tilt.max() < S.SITE_TILT_DEG + 1e-6
-    assert np.allclose(np.einsum("nij,nkj->nik", rots, rots), np.eye(3), atol=1e-9)
+    for options in (S.SceneOptions(), S.SceneOptions(site_yaw_deg=10.0, site_tilt_deg=3.0)):
+        rots = S._site_rotations(np.array([0.0, 0.0, 1.0]), up, options)
+        assert len(rots) == 2 * 5 * round(360 / options.site_yaw_deg)
+        mapped = rots @ np.array([0.0, 0.0, 1.0])
+        tilt = np.degrees(np.arccos(np.clip(np.abs(mapped @ up), -1, 1)))
+        assert options.site_tilt_deg - 1e-6 < tilt.max() < options.site_tilt_deg + 1e-6
+        assert np.allclose(np.einsum("nij,nkj->nik", rots, rots), np.eye(3), atol=1e-9)
 
 
 def test_site_bench_pairs(tmp_path):

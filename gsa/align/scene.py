@@ -2,23 +2,23 @@
 the scene path align() takes for rooms.
 
 *The test* (`scene_structure`, on each model's floater-free anchors - at least
-TEST_DENSITY Gaussians each, so surfaces stay connected - hence scale-free and
+test_density Gaussians each, so surfaces stay connected - hence scale-free and
 O(anchors)): a captured room is a shell of large planes (floor, walls, ceiling) with
 separate things standing inside it; an object is its parts alone, or (a bus, a box) a
 shell with nothing inside. Planes are found by sequential RANSAC on the anchors (inliers
 within a quarter voxel that face the plane's way). A *shell plane* is large (its inliers
-span at least SHELL_SPAN of the extent and hold at least SHELL_SHARE of the anchor
-weight) and bounds the model (at most OUTSIDE_SHARE of the weight beyond it). The
+span at least shell_span of the extent and hold at least shell_share of the anchor
+weight) and bounds the model (at most outside_share of the weight beyond it). The
 anchors off the shell planes are then grouped into connected *parts* (linked within 1.5
-voxels); a part counts when it holds at least PART_WEIGHT of the weight, has a body (at
-least a voxel thick: not the sliver a plane's band leaves), is at most PART_SIZE of the
+voxels); a part counts when it holds at least part_weight of the weight, has a body (at
+least a voxel thick: not the sliver a plane's band leaves), is at most part_size of the
 extent long and lies inside every shell plane. The model is a scene when at least
-SHELL_PLANES shell planes hold SHELL_WEIGHT of the weight and either at least
-CONTENT_PARTS parts hold CONTENT_WEIGHT, or the model holds at least SCENE_GAUSSIANS
+shell_planes shell planes hold shell_weight of the weight and either at least
+content_parts parts hold content_weight, or the model holds at least scene_gaussians
 Gaussians: a planar shell that large is a site whichever way its parts fall, and the
 object path's full-resolution trees are what stop scaling there (a large box-like
 object then takes the scene path too, which aligns it without the frame relabellings).
-The test runs on at most TEST_SAMPLE Gaussians, so it costs the same at any size.
+The test runs on at most test_sample Gaussians, so it costs the same at any size.
 Under `scene="auto"` both models must pass; `"on"` forces the path, `"off"` never
 takes it. Measured (docs/benchmarks.md, "Scenes"): no pair of the object protocols
 (dup, same, category, partial, noisy, deform, symmetric; quick and full sizes) passes;
@@ -27,7 +27,7 @@ pieces of furniture can miss it), and a room it misses still gets the object pat
 
 *The scene path* (`align_scene`) differs from the object path where rooms differ from
 objects:
-- more anchors (SCENE_ANCHORS): 2000 voxels over a 9 m room are 20 cm wide, and the
+- more anchors (scene_anchors): 2000 voxels over a 9 m room are 20 cm wide, and the
   furniture that breaks the shell's symmetries is what the search must see;
 - no canonical-frame relabellings: a room's principal axes carry no meaning for another
   partial capture of it;
@@ -38,19 +38,22 @@ objects:
   differ in exposure and white balance, and the object path's colour trust would drop
   to zero, leaving geometry alone to tell a room's mirror-like halves apart;
 - the full-resolution refinement (robust.refine: bidirectional trimmed ICP, stopping at
-  the overlap) runs on at most REFINE_CLOUD Gaussians per capture drawn at random from
+  the overlap) runs on at most refine_cloud Gaussians per capture drawn at random from
   the floater-free ones, with their full-resolution positions: trees and neighbour
   tables stay bounded, so time and memory grow linearly only through the O(N)
   anchoring and sampling passes; it ends point-to-plane on the target Gaussians' normals
   where the captures coincide, as on the object path;
 - no canonical features (and no feature metrics) and no fine stage, which renders
   every Gaussian per view.
+
+The tunables named above in lower case are the fields of `SceneOptions`; `choose` and
+`align_scene` (and the functions they call) take one, None meaning the defaults.
 """
 
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 from scipy.sparse.csgraph import connected_components
@@ -66,55 +69,54 @@ from gsa.geometry import axis_rotation
 from gsa.model import GaussianModel, ModelError
 from gsa.sim3 import Sim3
 
-# The scene test (see the module docstring); every quantity is a fraction of the
-# model's own extent or anchor weight, so the test is scale-free.
-SHELL_SPAN = 0.5
-SHELL_SHARE = 0.03
-OUTSIDE_SHARE = 0.03
-SHELL_PLANES = 3
-SHELL_WEIGHT = 0.4
-CONTENT_PARTS = 3
-CONTENT_WEIGHT = 0.03
-PART_WEIGHT = 0.005
-PART_SIZE = 0.35
-MAX_PLANES = 8
-FACING_DEG = 25.0
-TEST_DENSITY = 16
-TEST_SAMPLE = 200_000
-SCENE_GAUSSIANS = 400_000
-VOXEL_PROBE = 200_000
 
-# The site test (see site_structure): ground normals within GROUND_DEG of the up axis,
-# the ground's band above each column's lowest up-facing anchor (voxels), its weight,
-# open sky over it, its span and things standing on it.
-GROUND_DEG = 30.0
-GROUND_BAND = 1.5
-GROUND_SHARE = 0.25
-SKY_SHARE = 0.8
-GROUND_SPAN = 0.3
-SITE_HEIGHT = 0.5
-SITE_PARTS = 1
-SITE_ANCHORS = 300
-SKY_OPEN = 0.95
+@dataclass(frozen=True)
+class SceneOptions:
+    """The tunables of the scene test and the scene path (module docstring); the defaults
+    are the values benchmarked in docs/benchmarks.md ("Scenes", "Outdoor sites"). The
+    tests' quantities are fractions of the model's own extent or anchor weight, so the
+    tests are scale-free."""
 
-# The scene path.
-SCENE_ANCHORS = 6000
-# Sites: the yaw step of the up-aligned rotations searched, the tilts tried about them
-# (the two captures' mean ground normals differ by a few degrees over hills), and the
-# ground's share of the anchors the search scores on.
-SITE_YAW_DEG = 5.0
-SITE_TILT_DEG = 6.0
-SITE_GROUND_KEEP = 0.35
-REFINE_CLOUD = 400_000
-# translation_sweep: rotations swept, lattice step and score truncation (fractions of the
-# target's anchor radius; the step below the truncation so no offset falls between),
-# source anchors scored, offsets refined per rotation, their ICP iterations.
-SWEEP_TOP = 3
-SWEEP_STEP = 0.15
-SWEEP_TRUNCATION = 0.3
-SWEEP_POINTS = 128
-SWEEP_KEEP = 2
-SWEEP_ICP = 60
+    # The room test (scene_structure).
+    shell_span: float = 0.5  # a shell plane's inliers span this much of the extent: floors and walls cross a room
+    shell_share: float = 0.03  # and hold this much of the weight (half of it ends the plane search)
+    outside_share: float = 0.03  # weight beyond a shell plane at most: it bounds the model, strays aside
+    shell_planes: int = 3  # shell planes a room needs: a floor and two walls at the least
+    shell_weight: float = 0.4  # weight on the shell planes a room needs: most of a room's surface is its shell
+    content_parts: int = 3  # parts inside the shell a room needs: a box-like object (a bus) has none
+    content_weight: float = 0.03  # weight a room's (or a site's) parts hold together: more than a few strays
+    part_weight: float = 0.005  # weight one part holds at least: smaller groups are noise, not furniture
+    part_size: float = 0.35  # a part's length at most: longer is the room's structure, not a thing inside it
+    max_planes: int = 8  # planes sought: a box room's six and two tries for edge layers merged into one
+    facing_deg: float = 25.0  # a plane's inliers face its way within this: lattice rows lie on any plane
+    test_density: int = 16  # Gaussians per test anchor at least: sparser voxels break surfaces into fragments
+    test_sample: int = 200_000  # Gaussians the test runs on at most: it costs the same at any size
+    # A shell or ground this large is a scene whatever its parts: the object path's trees stop scaling there.
+    scene_gaussians: int = 400_000
+    voxel_probe: int = 200_000  # Gaussians the anchor voxel is searched on: a few thousand voxels fill alike
+    # The site test (site_structure).
+    ground_deg: float = 30.0  # ground normals within this of the up axis: slopes are ground too
+    ground_band: float = 1.5  # the ground's band above each column's lowest up-facing anchor, in anchor voxels
+    ground_share: float = 0.25  # weight on the ground a site needs: a site is mostly its ground
+    sky_share: float = 0.8  # ground columns open to the sky a site needs: an object's underside has its top above it
+    ground_span: float = 0.3  # the ground's span across (the smaller horizontal side) over the extent, at least
+    site_height: float = 0.5  # a site's height over its width at most: a site is flat
+    site_parts: int = 1  # things standing on the ground a site needs (trees, rocks, benches)
+    site_anchors: int = 300  # test anchors a site needs: with fewer, a thin object (a wing) is one layer like a ground
+    sky_open: float = 0.95  # ground columns open to the sky that make a site with nothing on it (a lawn)
+    # The scene path (align_scene).
+    scene_anchors: int = 6000  # anchors per model at least: the furniture that breaks a shell's symmetries must show
+    site_yaw_deg: float = 5.0  # yaw step of the site search's up-aligned rotations
+    site_tilt_deg: float = 6.0  # tilts tried about them: two captures' mean ground normals differ by a few degrees
+    site_ground_keep: float = 0.35  # the ground's share of the site search's anchors: what stands on it decides
+    refine_cloud: int = 400_000  # Gaussians per capture the refinement runs on at most: trees and tables stay bounded
+    # translation_sweep; lengths are fractions of the target's anchor radius.
+    sweep_top: int = 3  # the search's best distinct rotations slid over the target
+    sweep_step: float = 0.15  # lattice step, below the truncation so no offset falls between
+    sweep_truncation: float = 0.3  # truncation of the offsets' score
+    sweep_points: int = 128  # source anchors scored per offset
+    sweep_keep: int = 2  # best distinct offsets per rotation refined by the anchor ICP
+    sweep_icp: int = 60  # iterations of that ICP
 
 
 @dataclass
@@ -129,15 +131,18 @@ class Structure:
 
     gaussians: int = 0
     site: Site | None = None  # the site test, where the shell test failed
+    options: SceneOptions = field(default_factory=SceneOptions, repr=False)  # the thresholds the test used
 
     @property
     def shell(self) -> bool:
-        return self.shell_planes >= SHELL_PLANES and self.shell_weight >= SHELL_WEIGHT
+        o = self.options
+        return self.shell_planes >= o.shell_planes and self.shell_weight >= o.shell_weight
 
     @property
     def is_room(self) -> bool:
-        things_inside = self.parts >= CONTENT_PARTS and self.parts_weight >= CONTENT_WEIGHT
-        return self.shell and (things_inside or self.gaussians >= SCENE_GAUSSIANS)
+        o = self.options
+        things_inside = self.parts >= o.content_parts and self.parts_weight >= o.content_weight
+        return self.shell and (things_inside or self.gaussians >= o.scene_gaussians)
 
     @property
     def is_site(self) -> bool:
@@ -176,30 +181,33 @@ class Site:
     parts_weight: float
     gaussians: int = 0
     anchors: int = 0
+    options: SceneOptions = field(default_factory=SceneOptions, repr=False)  # the thresholds the test used
 
     @property
     def open_ground(self) -> bool:
         """A ground open to the sky (what the path's search relies on), whatever its span."""
+        o = self.options
         return bool(
-            self.anchors >= SITE_ANCHORS
-            and self.ground_share >= GROUND_SHARE
-            and self.sky >= SKY_SHARE
-            and self.height <= SITE_HEIGHT
+            self.anchors >= o.site_anchors
+            and self.ground_share >= o.ground_share
+            and self.sky >= o.sky_share
+            and self.height <= o.site_height
         )
 
     @property
     def is_site(self) -> bool:
-        things_on_it = self.parts >= SITE_PARTS and self.parts_weight >= CONTENT_WEIGHT
+        o = self.options
+        things_on_it = self.parts >= o.site_parts and self.parts_weight >= o.content_weight
         # A ground open almost everywhere is a site with nothing on it (a lawn, a field):
         # what came closest among objects, an airplane from below, has sky 0.86.
-        open_ground = self.sky >= SKY_OPEN
+        open_ground = self.sky >= o.sky_open
         return bool(
-            self.anchors >= SITE_ANCHORS
-            and self.ground_share >= GROUND_SHARE
-            and self.sky >= SKY_SHARE
-            and self.span >= GROUND_SPAN
-            and self.height <= SITE_HEIGHT
-            and (things_on_it or open_ground or self.gaussians >= SCENE_GAUSSIANS)
+            self.anchors >= o.site_anchors
+            and self.ground_share >= o.ground_share
+            and self.sky >= o.sky_share
+            and self.span >= o.ground_span
+            and self.height <= o.site_height
+            and (things_on_it or open_ground or self.gaussians >= o.scene_gaussians)
         )
 
     def to_dict(self) -> dict:
@@ -215,8 +223,11 @@ class Site:
         }
 
 
-def scene_structure(anchors: robust.Anchors, seed: int = 0, gaussians: int = 0) -> Structure:
+def scene_structure(
+    anchors: robust.Anchors, seed: int = 0, gaussians: int = 0, options: SceneOptions | None = None
+) -> Structure:
     """Shell planes and their weight, then the separate parts inside them (module docstring)."""
+    o = options or SceneOptions()
     pts = anchors.points
     w = anchors.weights / anchors.weights.sum()
     extent = float(np.max(np.ptp(pts, axis=0)))
@@ -230,24 +241,24 @@ def scene_structure(anchors: robust.Anchors, seed: int = 0, gaussians: int = 0) 
     normals = _anchor_normals(pts)
     free = np.ones(len(pts), bool)
     planes: list[dict] = []
-    for _ in range(MAX_PLANES):
+    for _ in range(o.max_planes):
         idx = np.flatnonzero(free)
         if len(idx) < 50:
             break
-        normal, offset, inliers = _ransac_plane(pts[idx], normals[idx], w[idx], band, rng)
+        normal, offset, inliers = _ransac_plane(pts[idx], normals[idx], w[idx], band, rng, o.facing_deg)
         if normal is None:
             break
         rows = idx[inliers]
         share = float(w[rows].sum())
-        if share < 0.5 * SHELL_SHARE:
+        if share < 0.5 * o.shell_share:
             break
         free[rows] = False
         # Voxel anchors along an edge (a wall's bottom row of voxels holds floor too) form
         # a second layer beside the plane: it belongs to the plane found first.
-        twin = next((p for p in planes if _same_plane(p, normal, offset, 2 * voxel)), None)
+        twin = next((p for p in planes if _same_plane(p, normal, offset, 2 * voxel, o.facing_deg)), None)
         if twin is not None:
             twin["share"] += share
-            twin["shell"] = _is_shell(twin["share"], twin["span"], twin["outside"])
+            twin["shell"] = _is_shell(twin["share"], twin["span"], twin["outside"], o)
             continue
         signed = pts @ normal - offset
         beyond_pos, beyond_neg = float(w[signed > 2 * voxel].sum()), float(w[signed < -2 * voxel].sum())
@@ -262,7 +273,7 @@ def scene_structure(anchors: robust.Anchors, seed: int = 0, gaussians: int = 0) 
                 "share": share,
                 "span": span,
                 "outside": beyond_neg,
-                "shell": _is_shell(share, span, beyond_neg),
+                "shell": _is_shell(share, span, beyond_neg, o),
             }
         )
     shell = [p for p in planes if p["shell"]]
@@ -271,34 +282,41 @@ def scene_structure(anchors: robust.Anchors, seed: int = 0, gaussians: int = 0) 
         on_shell |= np.abs(pts @ p["normal"] - p["offset"]) <= voxel
     shell_weight = float(w[on_shell].sum()) if shell else 0.0
     parts, parts_weight = 0, 0.0
-    if len(shell) >= SHELL_PLANES and shell_weight >= SHELL_WEIGHT:  # else decided: skip the parts
-        parts, parts_weight = _inner_parts(pts, w, ~on_shell, shell, voxel, extent)
-    out = Structure(len(shell), shell_weight, parts, parts_weight, planes, gaussians)
+    if len(shell) >= o.shell_planes and shell_weight >= o.shell_weight:  # else decided: skip the parts
+        parts, parts_weight = _inner_parts(pts, w, ~on_shell, shell, voxel, extent, o)
+    out = Structure(len(shell), shell_weight, parts, parts_weight, planes, gaussians, options=o)
     if not out.is_room:
-        out.site = site_structure(pts, w, normals, voxel, extent, gaussians)
+        out.site = site_structure(pts, w, normals, voxel, extent, gaussians, o)
     return out
 
 
 def site_structure(
-    pts: np.ndarray, w: np.ndarray, normals: np.ndarray, voxel: float, extent: float, gaussians: int = 0
+    pts: np.ndarray,
+    w: np.ndarray,
+    normals: np.ndarray,
+    voxel: float,
+    extent: float,
+    gaussians: int = 0,
+    options: SceneOptions | None = None,
 ) -> Site:
     """The site test on anchors (weights w summing to 1, unit normals, the anchor voxel):
     an outdoor site has no shell; it is a ground - an open heightfield - with things
     standing on it. The up axis is the dominant normal direction (the weighted normals'
     principal axis). Seen along it, the ground is each column's lowest anchors that face
-    up (within GROUND_DEG), up to GROUND_BAND voxels above the lowest (columns two voxels
-    wide). A site's ground holds GROUND_SHARE of the weight, lies open to the sky in
-    SKY_SHARE of its columns (no other up- or down-facing surface above it: an object's
-    underside has its top above it, a site's ground has the sky), spans GROUND_SPAN of
-    the extent across (the smaller horizontal side), is at most SITE_HEIGHT as tall as
-    wide, and has SITE_PARTS separate things standing on it (trees, rocks, benches: as
-    the room test's parts), or is open to the sky in SKY_OPEN of its columns (a lawn),
-    or has SCENE_GAUSSIANS Gaussians, as a room; and the test sees
-    at least SITE_ANCHORS anchors (TEST_DENSITY Gaussians each): with fewer, a thin
+    up (within ground_deg), up to ground_band voxels above the lowest (columns two voxels
+    wide). A site's ground holds ground_share of the weight, lies open to the sky in
+    sky_share of its columns (no other up- or down-facing surface above it: an object's
+    underside has its top above it, a site's ground has the sky), spans ground_span of
+    the extent across (the smaller horizontal side), is at most site_height as tall as
+    wide, and has site_parts separate things standing on it (trees, rocks, benches: as
+    the room test's parts), or is open to the sky in sky_open of its columns (a lawn),
+    or has scene_gaussians Gaussians, as a room; and the test sees
+    at least site_anchors anchors (test_density Gaussians each): with fewer, a thin
     object (a wing, a wheel face-on) is one layer of columns like a ground. Measured
     (docs/benchmarks.md, "Outdoor sites"): an airplane seen from below comes closest
     (sky 0.67: its fuselage's top covers the columns under it). Both signs of the axis are tried; the site's up is the one
     that passes (else the one with the more ground)."""
+    o = options or SceneOptions()
     m = np.einsum("n,ni,nj->ij", w, normals, normals)
     axis = np.linalg.eigh(m)[1][:, 2]
     helper = np.array([1.0, 0, 0]) if abs(axis[0]) < 0.9 else np.array([0, 1.0, 0])
@@ -306,13 +324,13 @@ def site_structure(
     u /= np.linalg.norm(u)
     v = np.cross(axis, u)
     xy = np.stack([pts @ u, pts @ v], 1)
-    facing = np.abs(normals @ axis) >= np.cos(np.radians(GROUND_DEG))
+    facing = np.abs(normals @ axis) >= np.cos(np.radians(o.ground_deg))
     cell = 2.0 * voxel
     ij = np.floor((xy - xy.min(0)) / cell).astype(np.int64)
     _, col = np.unique(ij[:, 0] * (ij[:, 1].max() + 1) + ij[:, 1], return_inverse=True)
     col = col.ravel()
     n_col = int(col.max()) + 1
-    band = GROUND_BAND * voxel
+    band = o.ground_band * voxel
     horizontal = float(np.max(np.ptp(xy, axis=0)))
     best = None
     for sign in (1.0, -1.0):
@@ -335,9 +353,9 @@ def site_structure(
         height = float(np.ptp(h) / max(horizontal, 1e-12))
         # Things standing on the ground: the room test's parts, off the ground and above it.
         standing = ~ground & (rel > -band)
-        parts, parts_weight = _inner_parts(pts, w, standing, [], voxel, extent)
+        parts, parts_weight = _inner_parts(pts, w, standing, [], voxel, extent, o)
         site = Site(
-            sign * axis, ground, float(w[ground].sum()), sky, span, height, parts, parts_weight, gaussians, len(pts)
+            sign * axis, ground, float(w[ground].sum()), sky, span, height, parts, parts_weight, gaussians, len(pts), o
         )
         if site.is_site:
             return site
@@ -346,10 +364,10 @@ def site_structure(
     return best
 
 
-def _inner_parts(pts, w, rest_mask, shell, voxel: float, extent: float) -> tuple[int, float]:
+def _inner_parts(pts, w, rest_mask, shell, voxel: float, extent: float, o: SceneOptions) -> tuple[int, float]:
     """Separate things inside the shell: connected groups of the anchors off the shell
-    planes (linked within 1.5 voxels), each holding at least PART_WEIGHT of the weight,
-    with a body (at least a voxel thick) and at most PART_SIZE of the extent long, with
+    planes (linked within 1.5 voxels), each holding at least part_weight of the weight,
+    with a body (at least a voxel thick) and at most part_size of the extent long, with
     its centre a voxel inside every shell plane."""
     rest = np.flatnonzero(rest_mask)
     if len(rest) < 2:
@@ -363,24 +381,24 @@ def _inner_parts(pts, w, rest_mask, shell, voxel: float, extent: float) -> tuple
     for p in shell:
         inside &= centre @ p["normal"] - p["offset"] >= voxel
     part = np.zeros(n, bool)
-    for k in np.flatnonzero((weight >= PART_WEIGHT) & inside):
+    for k in np.flatnonzero((weight >= o.part_weight) & inside):
         y = x[label == k]
         if len(y) < 4:
             continue
         # Principal extents (4 sigma ~ the full width of a uniform spread): a thing has a
         # body; what is left of a plane's band after the shell is removed is a sliver.
         sigma = np.sqrt(np.maximum(np.linalg.eigvalsh(np.cov(y.T)), 0.0))
-        part[k] = 4 * sigma[0] >= voxel and 4 * sigma[2] <= PART_SIZE * extent
+        part[k] = 4 * sigma[0] >= voxel and 4 * sigma[2] <= o.part_size * extent
     return int(part.sum()), float(weight[part].sum())
 
 
-def _is_shell(share: float, span: float, outside: float) -> bool:
-    return bool(share >= SHELL_SHARE and span >= SHELL_SPAN and outside <= OUTSIDE_SHARE)
+def _is_shell(share: float, span: float, outside: float, o: SceneOptions) -> bool:
+    return bool(share >= o.shell_share and span >= o.shell_span and outside <= o.outside_share)
 
 
-def _same_plane(plane: dict, normal: np.ndarray, offset: float, gap: float) -> bool:
+def _same_plane(plane: dict, normal: np.ndarray, offset: float, gap: float, facing_deg: float) -> bool:
     cos = float(plane["normal"] @ normal)
-    return abs(cos) >= np.cos(np.radians(FACING_DEG)) and abs(plane["offset"] - np.sign(cos) * offset) <= gap
+    return abs(cos) >= np.cos(np.radians(facing_deg)) and abs(plane["offset"] - np.sign(cos) * offset) <= gap
 
 
 def _anchor_normals(pts: np.ndarray, k: int = 10) -> np.ndarray:
@@ -392,16 +410,22 @@ def _anchor_normals(pts: np.ndarray, k: int = 10) -> np.ndarray:
 
 
 def _ransac_plane(
-    pts: np.ndarray, normals: np.ndarray, w: np.ndarray, band: float, rng: np.random.Generator, trials: int = 128
+    pts: np.ndarray,
+    normals: np.ndarray,
+    w: np.ndarray,
+    band: float,
+    rng: np.random.Generator,
+    facing_deg: float,
+    trials: int = 128,
 ):
     """The plane through an anchor, along its normal, holding the most anchor weight
-    within `band` among anchors facing its way (within FACING_DEG), refitted to those
+    within `band` among anchors facing its way (within facing_deg), refitted to those
     inliers by least squares; vectorised over all trials."""
     if len(pts) < 3:
         return None, 0.0, None
     seeds = rng.integers(0, len(pts), trials)
     n, a = normals[seeds], pts[seeds]
-    cos = np.cos(np.radians(FACING_DEG))
+    cos = np.cos(np.radians(facing_deg))
     inl = (np.abs(pts @ n.T - np.sum(n * a, axis=1)) <= band) & (np.abs(normals @ n.T) >= cos)
     inliers = inl[:, int(np.argmax(w @ inl))]
     # A seed's normal is a few degrees off, which over the model's extent leaves the band:
@@ -464,7 +488,15 @@ def check_models(source: GaussianModel, target: GaussianModel) -> None:
             raise AlignmentError(f"{name} has {len(m)} Gaussians; at least 3 are needed")
 
 
-def choose(source: GaussianModel, target: GaussianModel, mode: str, eligible: bool, anchor_count: int, seed: int = 0):
+def choose(
+    source: GaussianModel,
+    target: GaussianModel,
+    mode: str,
+    eligible: bool,
+    anchor_count: int,
+    seed: int = 0,
+    options: SceneOptions | None = None,
+):
     """The scene test under `mode` (auto/on/off). eligible: the object path would run its
     robust global search (no learned features); auto only tests then."""
     if mode == "off":
@@ -476,7 +508,8 @@ def choose(source: GaussianModel, target: GaussianModel, mode: str, eligible: bo
     check_models(source, target)
     # scene_anchors, not robust.anchors: the same summary, many times faster at millions
     # of Gaussians; the object path makes its own.
-    s, t = (scene_structure(_test_anchors(m, anchor_count, seed), seed, len(m)) for m in (source, target))
+    o = options or SceneOptions()
+    s, t = (scene_structure(_test_anchors(m, anchor_count, seed, o), seed, len(m), o) for m in (source, target))
     if s.is_room and t.is_room:
         reason = "auto: both models are shells of large planes with things inside (scene test passed)"
     elif s.is_scene and t.is_scene:
@@ -487,28 +520,32 @@ def choose(source: GaussianModel, target: GaussianModel, mode: str, eligible: bo
     return SceneChoice(s.is_scene and t.is_scene, reason, s, t)
 
 
-def _test_anchors(model: GaussianModel, anchor_count: int, seed: int) -> robust.Anchors:
-    """The test's anchors, from at most TEST_SAMPLE Gaussians drawn at random: the test
+def _test_anchors(model: GaussianModel, anchor_count: int, seed: int, o: SceneOptions) -> robust.Anchors:
+    """The test's anchors, from at most test_sample Gaussians drawn at random: the test
     costs the same at any size, and anchors of a few thousand voxels do not change."""
-    if len(model) > TEST_SAMPLE:
-        model = model.subset(np.sort(np.random.default_rng(seed).choice(len(model), TEST_SAMPLE, replace=False)))
-    return scene_anchors(model, test_anchor_count(len(model), anchor_count), seed)
+    if len(model) > o.test_sample:
+        model = model.subset(np.sort(np.random.default_rng(seed).choice(len(model), o.test_sample, replace=False)))
+    return scene_anchors(model, test_anchor_count(len(model), anchor_count, o), seed, o)
 
 
-def test_anchor_count(gaussians: int, anchor_count: int) -> int:
-    """The object path's anchor count, but at least TEST_DENSITY Gaussians per anchor: the
+def test_anchor_count(gaussians: int, anchor_count: int, options: SceneOptions | None = None) -> int:
+    """The object path's anchor count, but at least test_density Gaussians per anchor: the
     test follows surfaces through neighbouring anchors, and a voxel of one or two
     Gaussians leaves holes that break a surface into fragments."""
-    return int(max(min(anchor_count, gaussians // TEST_DENSITY), 100))
+    return int(max(min(anchor_count, gaussians // (options or SceneOptions()).test_density), 100))
 
 
 # --- the scene path ---------------------------------------------------------------------
 
 
-def scene_anchors(model: GaussianModel, count: int = SCENE_ANCHORS, seed: int = 0) -> robust.Anchors:
+def scene_anchors(
+    model: GaussianModel, count: int | None = None, seed: int = 0, options: SceneOptions | None = None
+) -> robust.Anchors:
     """robust.anchors' summary (robust.voxel_anchors), with the voxel size searched on a
     sample: occupancy at a few thousand voxels is the same on 200k Gaussians as on millions,
-    and one pass over all of them follows."""
+    and one pass over all of them follows. count: the anchors sought (None: scene_anchors)."""
+    o = options or SceneOptions()
+    count = o.scene_anchors if count is None else count
     kept = robust.floater_mask(model)
     x = model.means[kept].astype(np.float64)
     lo = x.min(0)
@@ -516,7 +553,9 @@ def scene_anchors(model: GaussianModel, count: int = SCENE_ANCHORS, seed: int = 
     if not extent > 0:
         raise AlignmentError("all Gaussians coincide; the model has no extent to align")
     voxel = extent / np.sqrt(count)
-    probe = x if len(x) <= VOXEL_PROBE else x[np.random.default_rng(seed).choice(len(x), VOXEL_PROBE, replace=False)]
+    probe = (
+        x if len(x) <= o.voxel_probe else x[np.random.default_rng(seed).choice(len(x), o.voxel_probe, replace=False)]
+    )
     for _ in range(4):
         _, counts = robust.voxelise(probe, lo, voxel)
         if 0.7 * count <= len(counts) <= 1.4 * count or len(counts) >= 0.9 * len(probe):
@@ -532,23 +571,25 @@ def align_scene(
     opts,
     choice: SceneChoice,
     progress: Progress | None = None,
+    options: SceneOptions | None = None,
 ):
     """The scene path (module docstring): anchors, global search without frame
     relabellings, trimmed refinement on thinned full-resolution clouds, verdict."""
+    o = options or SceneOptions()
     t_start = time.perf_counter()
     timings: dict[str, float] = {}
     check_models(source, target)
     _report(progress, "features", 0.0)
     t = time.perf_counter()
-    count = max(opts.anchor_count, SCENE_ANCHORS)
-    dst = scene_anchors(target, count, opts.seed)
-    src = robust.match_exposure(scene_anchors(source, count, opts.seed), dst)
+    count = max(opts.anchor_count, o.scene_anchors)
+    dst = scene_anchors(target, count, opts.seed, o)
+    src = robust.match_exposure(scene_anchors(source, count, opts.seed, o), dst)
     timings["anchors"] = time.perf_counter() - t
     _report(progress, "features", 1.0)
 
     _report(progress, "hypotheses", 0.0)
     t = time.perf_counter()
-    sites = _sites(src, dst)
+    sites = _sites(src, dst, o)
     if sites is None:
         search = robust.global_search(
             src,
@@ -557,16 +598,16 @@ def align_scene(
             robust.SearchOptions(rotations=opts.search_rotations, seed=opts.seed),
             widen_if=lambda first: robust.verdict(first.best, first)["doubtful"],
         )
-        search = translation_sweep(src, dst, search, opts.seed)
+        search = translation_sweep(src, dst, search, opts.seed, o)
     else:
-        search = site_search(src, dst, *sites, opts.seed)
+        search = site_search(src, dst, *sites, opts.seed, o)
     timings["hypotheses"] = time.perf_counter() - t
     _report(progress, "hypotheses", 1.0)
     scored = [c.to_dict(search.best.transform) | {"chosen": c is search.best} for c in search.candidates]
 
     t = time.perf_counter()
     rng = np.random.default_rng(opts.seed)
-    p_idx, q_idx = (_thinned(a.kept, REFINE_CLOUD, rng) for a in (src, dst))
+    p_idx, q_idx = (_thinned(a.kept, o.refine_cloud, rng) for a in (src, dst))
     p_cloud, q_cloud = source.means[p_idx].astype(np.float64), target.means[q_idx].astype(np.float64)
     p_tree, q_tree = cKDTree(p_cloud), cKDTree(q_cloud)
     half = opts.refine_points // 2
@@ -629,44 +670,50 @@ def align_scene(
     )
 
 
-def _sites(src: robust.Anchors, dst: robust.Anchors) -> tuple[Site, Site] | None:
+def _sites(src: robust.Anchors, dst: robust.Anchors, options: SceneOptions | None = None) -> tuple[Site, Site] | None:
     """Both models' site test on the path's own anchors, its ground alone (Site.open_ground:
     the pair is already taken as scenes, and far background anchors of a real capture
     can shrink the ground's span against the extent): a pair whose grounds both lie open
     to the sky is searched as sites, whichever test took it - a walled garden passes the room
     test too, and the room search, blind to the ground, misses it. A room with its ceiling
     has no sky."""
-    found = tuple(_site_of(a) for a in (src, dst))
+    found = tuple(_site_of(a, options or SceneOptions()) for a in (src, dst))
     return found if all(f.open_ground for f in found) else None
 
 
-def _site_of(a: robust.Anchors) -> Site:
+def _site_of(a: robust.Anchors, o: SceneOptions) -> Site:
     w = a.weights / a.weights.sum()
     extent = float(np.max(np.ptp(a.points, axis=0)))
     voxel = extent / np.sqrt(len(a.points))
-    return site_structure(a.points, w, _anchor_normals(a.points), voxel, extent, SCENE_GAUSSIANS)
+    return site_structure(a.points, w, _anchor_normals(a.points), voxel, extent, o.scene_gaussians, o)
 
 
 def site_search(
-    src: robust.Anchors, dst: robust.Anchors, src_site: Site, dst_site: Site, seed: int = 0
+    src: robust.Anchors,
+    dst: robust.Anchors,
+    src_site: Site,
+    dst_site: Site,
+    seed: int = 0,
+    options: SceneOptions | None = None,
 ) -> robust.SearchResult:
     """The scene path's search for sites. Two things differ from a room's:
     - the ground fixes two of the three rotation angles: only rotations taking the
       source's up axis onto the target's (either sign: the test's sign can be fooled by
-      tree crowns seen from above), tilted by up to SITE_TILT_DEG, turned about it in
-      SITE_YAW_DEG steps, are searched (robust.global_search with these as its only
+      tree crowns seen from above), tilted by up to site_tilt_deg, turned about it in
+      site_yaw_deg steps, are searched (robust.global_search with these as its only
       rotations; no widening: these rotations are all a site can be in);
     - the ground, which holds most of the weight and which any turn of the site lays on
-      itself within the search's truncation, is thinned to SITE_GROUND_KEEP of the
+      itself within the search's truncation, is thinned to site_ground_keep of the
       anchors the search scores on, so the things standing on it decide.
     The translation sweep follows, as for rooms; the verdict scores on all anchors."""
+    o = options or SceneOptions()
     rng = np.random.default_rng(seed)
-    s_thin, d_thin = (_ground_thinned(a, site.ground, rng) for a, site in ((src, src_site), (dst, dst_site)))
-    rotations = _site_rotations(src_site.up, dst_site.up)
+    s_thin, d_thin = (_ground_thinned(a, site.ground, rng, o) for a, site in ((src, src_site), (dst, dst_site)))
+    rotations = _site_rotations(src_site.up, dst_site.up, o)
     search = robust.global_search(
         s_thin, d_thin, [("site", r) for r in rotations], robust.SearchOptions(rotations=0, seed=seed)
     )
-    search = translation_sweep(s_thin, d_thin, search, seed)
+    search = translation_sweep(s_thin, d_thin, search, seed, o)
     # Re-scored on all anchors, so the verdict and the alternatives read what rooms' do,
     # each pose's colours compared under the exposure that pose implies.
     w = search.colour_weight
@@ -709,11 +756,11 @@ def _site_polish(
     return polished if polished.score > search.best.score else search.best
 
 
-def _ground_thinned(a: robust.Anchors, ground: np.ndarray, rng: np.random.Generator) -> robust.Anchors:
-    """The anchors with the ground's cut to SITE_GROUND_KEEP of them (at random); centre
+def _ground_thinned(a: robust.Anchors, ground: np.ndarray, rng: np.random.Generator, o: SceneOptions) -> robust.Anchors:
+    """The anchors with the ground's cut to site_ground_keep of them (at random); centre
     and radius stay the whole model's."""
     g, rest = np.flatnonzero(ground), np.flatnonzero(~ground)
-    keep = int(SITE_GROUND_KEEP / (1 - SITE_GROUND_KEEP) * len(rest))
+    keep = int(o.site_ground_keep / (1 - o.site_ground_keep) * len(rest))
     if keep >= len(g) or len(rest) < 50:
         return a
     rows = np.sort(np.concatenate([rest, rng.choice(g, keep, replace=False)]))
@@ -727,15 +774,16 @@ def _ground_thinned(a: robust.Anchors, ground: np.ndarray, rng: np.random.Genera
     )
 
 
-def _site_rotations(up_src: np.ndarray, up_dst: np.ndarray) -> np.ndarray:
-    """Rotations taking up_src onto ±up_dst, tilted by 0 and ±SITE_TILT_DEG about two
-    axes across up_dst, each turned about up_dst in SITE_YAW_DEG steps."""
+def _site_rotations(up_src: np.ndarray, up_dst: np.ndarray, options: SceneOptions | None = None) -> np.ndarray:
+    """Rotations taking up_src onto ±up_dst, tilted by 0 and ±site_tilt_deg about two
+    axes across up_dst, each turned about up_dst in site_yaw_deg steps."""
+    o = options or SceneOptions()
     helper = np.array([1.0, 0, 0]) if abs(up_dst[0]) < 0.9 else np.array([0, 1.0, 0])
     a = np.cross(up_dst, helper)
     a /= np.linalg.norm(a)
     b = np.cross(up_dst, a)
-    tilts = [np.eye(3)] + [axis_rotation(x, sgn * np.radians(SITE_TILT_DEG)) for x in (a, b) for sgn in (1, -1)]
-    yaws = [axis_rotation(up_dst, y) for y in np.radians(np.arange(0.0, 360.0, SITE_YAW_DEG))]
+    tilts = [np.eye(3)] + [axis_rotation(x, sgn * np.radians(o.site_tilt_deg)) for x in (a, b) for sgn in (1, -1)]
+    yaws = [axis_rotation(up_dst, y) for y in np.radians(np.arange(0.0, 360.0, o.site_yaw_deg))]
     out = []
     for sign in (1.0, -1.0):
         base = _rotation_between(up_src, sign * up_dst)
@@ -756,7 +804,11 @@ def _rotation_between(a: np.ndarray, b: np.ndarray) -> np.ndarray:
 
 
 def translation_sweep(
-    src: robust.Anchors, dst: robust.Anchors, search: robust.SearchResult, seed: int = 0
+    src: robust.Anchors,
+    dst: robust.Anchors,
+    search: robust.SearchResult,
+    seed: int = 0,
+    options: SceneOptions | None = None,
 ) -> robust.SearchResult:
     """The search's best distinct rotations, each slid over a lattice of translations
     covering the target, then refined; the best of all poses wins.
@@ -766,23 +818,24 @@ def translation_sweep(
     good part of the room apart, and their planes (floor, walls) let a pose slide along
     them: the right rotation then ends a metre or two off, scoring low in colour. Here
     the source's mapped centre runs over the target's box grown by half its radius, in
-    steps of SWEEP_STEP radii; each offset is scored one way (source anchors onto the
-    target's nearest-anchor grid, truncated at SWEEP_TRUNCATION radii, with the colour
-    term of robust's score), and the SWEEP_KEEP best distinct offsets per rotation run
+    steps of sweep_step radii; each offset is scored one way (source anchors onto the
+    target's nearest-anchor grid, truncated at sweep_truncation radii, with the colour
+    term of robust's score), and the sweep_keep best distinct offsets per rotation run
     the anchor ICP and robust's score like the search's own candidates."""
+    o = options or SceneOptions()
     rng = np.random.default_rng(seed)
     w_colour = search.colour_weight
-    tau = SWEEP_TRUNCATION * dst.radius
+    tau = o.sweep_truncation * dst.radius
     grid = robust.NearestGrid(dst.points, 0.25 * tau, tau)
-    rows = _rows(rng, len(src), SWEEP_POINTS)
+    rows = _rows(rng, len(src), o.sweep_points)
     p, p_lab = src.points[rows] - src.center, src.lab[rows]
-    step = SWEEP_STEP * dst.radius
+    step = o.sweep_step * dst.radius
     lo, hi = dst.points.min(0) - 0.5 * dst.radius, dst.points.max(0) + 0.5 * dst.radius
     axes = [np.arange(a, b + step, step) for a, b in zip(lo, hi)]
     centres = np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3)
     src_rows, dst_rows = _rows(rng, len(src), 800), _rows(rng, len(dst), 800)
     found = list(search.candidates)
-    for cand in search.candidates[:SWEEP_TOP]:
+    for cand in search.candidates[: o.sweep_top]:
         u = cand.transform.scale * p @ cand.transform.rotation.T
         score = np.empty(len(centres))
         for a in range(0, len(centres), 1024):
@@ -795,14 +848,14 @@ def translation_sweep(
             score[a : a + 1024] = closeness.mean(axis=1)
         kept: list[np.ndarray] = []
         for k in np.argsort(-score):
-            if len(kept) == SWEEP_KEEP:
+            if len(kept) == o.sweep_keep:
                 break
             if all(np.linalg.norm(centres[k] - o) > 3 * step for o in kept):
                 kept.append(centres[k])
         for centre in kept:
             r, sc = cand.transform.rotation, cand.transform.scale
             init = Sim3(sc, r, centre - sc * r @ src.center)
-            pose = robust.bidirectional_icp(src, dst, init, src_rows, dst_rows, SWEEP_ICP, w_colour)
+            pose = robust.bidirectional_icp(src, dst, init, src_rows, dst_rows, o.sweep_icp, w_colour)
             found.append(robust.score_pose(src, dst, pose, "sweep", w_colour))
     return robust.decide(_distinct_poses(found), w_colour)
 
