@@ -170,9 +170,8 @@ def test_colourless_symmetric_shape_is_reported_ambiguous_with_the_symmetric_pos
     m = result.metrics
     assert m["ambiguous"] and m["doubtful"] and m["confidence"] < 0.5
     tied = [a for a in m["alternatives"] if a["tied"]]
-    assert len(tied) >= 1
-    # The rivals come first, before the other poses offered (half turns, other candidates).
-    assert m["alternatives"][: len(tied)] == tied
+    # A rival comes first, before the other poses offered (half turns, other candidates).
+    assert m["alternatives"][0]["tied"]
     # Every pose tied (the chosen one and its rivals) is one of the shape's symmetric poses.
     poses = [result.transform] + [Sim3.from_matrix(np.array(a["transform"])) for a in tied]
     sym = [truth.rotation @ r for r in symmetry_rotations(source)]

@@ -66,9 +66,9 @@ MARGIN_SPAN = 4.0
 # margin, ties and the colour check are what catch wrong poses.
 COINCIDE_FLOOR, COINCIDE_SPAN = 0.7, 0.2
 COINCIDE_MIN_OVERLAP = 0.5
-# Poses offered beside the chosen one (verdict's `alternatives`): enough for the rivals, the
-# next candidates and the three half turns; the results page steps through them.
-MAX_ALTERNATIVES = 6
+# Poses offered beside the chosen one (verdict's `alternatives`): the first rival, the three
+# half turns and the next candidates; the results page steps through them.
+MAX_ALTERNATIVES = 8
 
 
 def verdict(final: Candidate, search: SearchResult | None, coincide: tuple[float, float] | None = None) -> dict:
@@ -122,8 +122,8 @@ def verdict(final: Candidate, search: SearchResult | None, coincide: tuple[float
 
 
 def alternatives(final: Candidate, search: SearchResult) -> list[Candidate]:
-    """The poses to offer beside `final` (SearchResult.offered: the rivals, the half turns of
-    the chosen pose, the other candidates), at most MAX_ALTERNATIVES and each distinct from
+    """The poses to offer beside `final` (SearchResult.offered: the first rival, the half turns
+    of the chosen pose, the other candidates), at most MAX_ALTERNATIVES and each distinct from
     `final`. Cross-instance, the truth is often not the best-scoring pose but one of these
     (docs/benchmarks.md, category-real), and a person picks it."""
     offered = [c for c in search.offered if rotation_offset_deg(c.transform, final.transform) > DISTINCT_DEG]

@@ -32,8 +32,11 @@ from gsa.geometry import axis_rotation, rotation_distance_deg, super_fibonacci_r
 from gsa.sim3 import Sim3
 
 # Poses offered beside the best must put the source this share of the target's radius away
-# from it and from each other (mean nearest distance both ways): half the score's truncation.
-OFFER_DISTINCT = 0.5 * TRUNCATION
+# from it and from each other (mean nearest distance both ways): a quarter of the score's
+# truncation merges the spins of a turned shape (a bottle's: 0.04-0.06 of the radius apart on
+# ~800 anchors) only where they coincide, and keeps the near-symmetric twins (a table turned by
+# 90 degrees, 0.25 apart) that a person must choose between.
+OFFER_DISTINCT = 0.25 * TRUNCATION
 # Unfinished starts scoring within this of the best finished one are finished too.
 RIVAL_WINDOW = 0.08
 # _sweep_twins: rotations of ±SWEEP_DEGREES and half that about each axis.
@@ -152,10 +155,11 @@ def global_search(
 def _with_offers(
     src: Anchors, dst: Anchors, result: SearchResult, w_colour: float, rng: np.random.Generator, opts: SearchOptions
 ) -> SearchResult:
-    """The result with the poses to offer beside its best (`offered`): the rivals, the best
+    """The result with the poses to offer beside its best (`offered`): the first rival, the best
     turned by 180° about each principal axis of the target (through its centre) and refined by
-    the anchors' ICP, then the other candidates by score; each after the first rival kept only
-    where it puts the source somewhere else than the best and every pose kept before it (OFFER_DISTINCT of the
+    the anchors' ICP, then the other candidates by score (the other rivals among them); each
+    after the first rival kept only where it puts the source somewhere else than the best and
+    every pose kept before it (OFFER_DISTINCT of the
     target's radius, both ways: turns of a symmetric shape that land on the same surface are one
     pose). Cross-instance misses are mostly such half turns (a bathtub end for end, a vase upside
     down) that the search did not refine; they are offered to pick (gsa.align.guided), never
@@ -182,7 +186,7 @@ def _with_offers(
     # person must choose between (a bottle's many spins are one choice, though).
     offered = list(result.rivals[:1])
     kept_points = [c.transform.apply(sample) for c in [result.best, *offered]]
-    for c in [*result.rivals[1:], *flips, *result.candidates[1:]]:
+    for c in [*flips, *result.candidates[1:]]:
         if any(c is o for o in offered):
             continue
         moved = c.transform.apply(sample)
