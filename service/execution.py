@@ -9,15 +9,10 @@ from __future__ import annotations
 import gc
 import logging
 import random
-import shutil
 import sys
-import tempfile
 import threading
 import time
 import uuid
-from collections.abc import Iterator
-from contextlib import contextmanager
-from pathlib import Path
 
 from service.artifacts import collect_outputs, store_artifacts, synchronized_renders
 from service.backend import Backend, notify_webhook
@@ -29,6 +24,7 @@ from service.leases import (
     LeaseLost,
     finish_attempt,
     heartbeat,
+    job_workspace,
     worker_name,
 )
 from service.many import is_many, run_many
@@ -299,22 +295,6 @@ def _run(backend: Backend, job: Job, token: str, prog: JobProgress, art_prefix: 
         stage="done",
     )
     return JobState.succeeded if ok else None
-
-
-WORKSPACE_PREFIX = "gsa-job-"
-
-
-@contextmanager
-def job_workspace(job_id: str, token: str) -> Iterator[Path]:
-    """The attempt's temp folder, <tmp>/gsa-job-<job id>-<token[:12]>-<random>, removed
-    on every way out (success, failure, cancel, lease lost, timeout, and SIGTERM of
-    the work horse, which run_job turns into SystemExit). What a SIGKILL leaves behind
-    is swept by service.leases.sweep_workspaces (its name says whose it was)."""
-    d = Path(tempfile.mkdtemp(prefix=f"{WORKSPACE_PREFIX}{job_id}-{token[:12]}-"))
-    try:
-        yield d
-    finally:
-        shutil.rmtree(d, ignore_errors=True)
 
 
 def _release_memory() -> None:

@@ -20,6 +20,8 @@ import socket
 import tempfile
 import threading
 import time
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 
 from service import quotas
@@ -273,7 +275,23 @@ def resend_lost(backend: Backend) -> list[str]:
     return out
 
 
-_WORKSPACE = re.compile(r"^gsa-job-(job_[0-9a-f]+)-([0-9a-f]{12})-")
+WORKSPACE_PREFIX = "gsa-job-"
+
+
+@contextmanager
+def job_workspace(job_id: str, token: str) -> Iterator[Path]:
+    """The attempt's temp folder, <tmp>/gsa-job-<job id>-<token[:12]>-<random>, removed
+    on every way out (success, failure, cancel, lease lost, timeout, and SIGTERM of
+    the work horse, which run_job turns into SystemExit). What a SIGKILL leaves behind
+    is swept by service.leases.sweep_workspaces (its name says whose it was)."""
+    d = Path(tempfile.mkdtemp(prefix=f"{WORKSPACE_PREFIX}{job_id}-{token[:12]}-"))
+    try:
+        yield d
+    finally:
+        shutil.rmtree(d, ignore_errors=True)
+
+
+_WORKSPACE = re.compile(rf"^{re.escape(WORKSPACE_PREFIX)}(job_[0-9a-f]+)-([0-9a-f]{{12}})-")
 
 
 def sweep_workspaces(backend: Backend, root: str | os.PathLike | None = None) -> list[Path]:
@@ -288,7 +306,7 @@ def sweep_workspaces(backend: Backend, root: str | os.PathLike | None = None) ->
     s = backend.settings
     now = time.time()
     removed = []
-    for d in Path(root or tempfile.gettempdir()).glob("gsa-job-*"):
+    for d in Path(root or tempfile.gettempdir()).glob(f"{WORKSPACE_PREFIX}*"):
         try:
             age = now - d.stat().st_mtime
         except OSError:

@@ -16,7 +16,7 @@ from typing import Any
 
 from service import core, quotas
 from service.backend import Backend
-from service.leases import JobProgress, finish_attempt
+from service.leases import JobProgress, finish_attempt, job_workspace
 from service.models import Asset, Job, JobState
 from service.options import GUIDANCE_OPTIONS, SERVICE_OPTIONS, align_option_names, server_options, validate_options
 from service.problems import invalid_input
@@ -204,7 +204,6 @@ def run_many(backend: Backend, job: Job, token: str, prog: JobProgress, art_pref
     from gsa.align.outputs import write_json
     from gsa.io.ply import write_ply
     from service.artifacts import store_artifacts
-    from service.execution import job_workspace
     from service.inputs import load_input
 
     many = job.options["many"]
