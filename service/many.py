@@ -5,8 +5,8 @@ SubmitManyAlignment).
 A many job is an ordinary job record: `sources` are its N assets in the order given, `target`
 its reference asset (so deletion, retention, quotas, cancel and artifacts work as for any job),
 and `options` holds the per-edge align() options plus `many` ({reference, edges, merged, merge}),
-which marks it. Its result is many.json's content; its artifacts many.json and, when asked,
-merged.ply."""
+which marks it. Its result is many.json's content; its artifacts many.json, when asked merged.ply, and
+each model's preview for the results page (preview/model{k}.splat)."""
 
 from __future__ import annotations
 
@@ -197,6 +197,23 @@ def _model_entries(data: dict, job: Job, models, result) -> None:
         entry["file_transform"] = frames.file_transform(t, fmt, ref_fmt).matrix().tolist()
 
 
+def many_preview_name(k: int) -> str:
+    """The artifact of model k's preview for the results page: a .splat in its own frame."""
+    return f"preview/model{k}.splat"
+
+
+def _previews(models, work) -> list[tuple[str, object]]:
+    """Each model's .splat preview in its own (internal) frame, which the results page places by
+    its transform; together at most the one-model preview cap (gsa.viewer.preview)."""
+    from gsa.viewer.preview import DEFAULT_MAX_GAUSSIANS, downsample, write_splat
+
+    cap = max(DEFAULT_MAX_GAUSSIANS // len(models), 20_000)
+    return [
+        (many_preview_name(k), write_splat(downsample(m, cap), work / many_preview_name(k)))
+        for k, m in enumerate(models)
+    ]
+
+
 def run_many(backend: Backend, job: Job, token: str, prog: JobProgress, art_prefix: str) -> JobState | None:
     """One attempt of a many job: load the N models, align_many (reports per edge; a cancel
     stops it at the next report), write many.json (and merged.ply), store them."""
@@ -245,6 +262,7 @@ def run_many(backend: Backend, job: Job, token: str, prog: JobProgress, art_pref
         files.insert(0, ("many.json", work / "many.json"))
         if many.get("merged"):
             files.append(("merged.ply", work / "merged.ply"))
+        files += _previews(models, work)
         prog.check(force=True)
         artifacts = store_artifacts(backend, files, art_prefix, progress=prog)
     ok = finish_attempt(

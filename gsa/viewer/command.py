@@ -10,7 +10,11 @@ import threading
 
 def add_view_parser(subparsers) -> None:
     p = subparsers.add_parser("view", help="serve the results page of a local result on 127.0.0.1")
-    p.add_argument("result", help="result.json of `gsa align`, or a folder with result.json or s0/, s1/, ...")
+    p.add_argument(
+        "result",
+        help="result.json of `gsa align`, many.json of `gsa align-many`, or a folder with result.json, "
+        "many.json or s0/, s1/, ...",
+    )
     p.add_argument("--port", type=int, default=0, help="port (default: a free one)")
     p.set_defaults(func=cmd_view)
 

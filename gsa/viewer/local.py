@@ -2,7 +2,9 @@
 
 A result is `gsa align`'s result.json (previews from `--preview`, or made here from the
 input files it names) or a folder of a service job's artifacts (`gsa fetch JOB --out DIR`:
-result.json or s0/, s1/, ... with preview/ and renders/ beside them). Every URL starts
+result.json or s0/, s1/, ... with preview/ and renders/ beside them), or many.json of
+`gsa align-many` (previews made from the model files it names) or of a many job (its
+preview/model{k}.splat beside it): all models in the reference frame. Every URL starts
 with a random token, so other local users cannot read the result through the port.
 """
 
@@ -18,7 +20,15 @@ from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 from pathlib import Path
 
 from gsa.errors import GSAError
-from gsa.viewer.page import PAGE_HEADERS, STATIC_FILES, ResultView, render_page, static_file
+from gsa.viewer.page import (
+    PAGE_HEADERS,
+    STATIC_FILES,
+    ResultView,
+    is_many_result,
+    render_many_page,
+    render_page,
+    static_file,
+)
 from gsa.viewer.preview import PREVIEW_NAMES
 
 CONTENT_TYPES = {".splat": "application/octet-stream", ".png": "image/png", ".json": "application/json"}
@@ -96,6 +106,57 @@ def collect(path: str | Path, work: Path) -> tuple[str, list[ResultView], dict[s
     return str(p), views, files, extra
 
 
+def many_json(path: str | Path) -> dict | None:
+    """many.json's content when the path is one (`gsa align-many --out DIR`'s, a many job's
+    fetched artifacts) or a folder holding one, else None."""
+    p = Path(path)
+    f = p / "many.json" if p.is_dir() else p
+    if not f.is_file() or f.suffix.lower() != ".json":
+        return None
+    try:
+        data = json.loads(f.read_text(encoding="utf-8"))
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError):
+        return None
+    return data if is_many_result(data) else None
+
+
+def many_previews(path: str | Path, data: dict, work: Path) -> dict[str, Path]:
+    """{url name: file} of each model's .splat preview in its own frame: preview/model{k}.splat
+    beside many.json (a many job's artifacts), else made from the model files it names
+    (`files`, gsa align-many); a model with neither has none."""
+    from gsa.viewer.preview import DEFAULT_MAX_GAUSSIANS, downsample, write_splat
+
+    p = Path(path)
+    folder = p if p.is_dir() else p.parent
+    names = data.get("files") if isinstance(data.get("files"), list) else []
+    n = len(data["models"])
+    out = {}
+    for k in range(n):
+        found = folder / f"preview/model{k}.splat"
+        if found.is_file():
+            out[f"m{k}.splat"] = found
+            continue
+        try:
+            from gsa.io.formats import read_model
+
+            model = read_model(names[k])
+        except (IndexError, TypeError, OSError, ValueError):
+            continue
+        out[f"m{k}.splat"] = write_splat(
+            downsample(model, max(DEFAULT_MAX_GAUSSIANS // n, 20_000)), work / f"m{k}.splat"
+        )
+    return out
+
+
+def _many_page(path: str | Path, data: dict, work: Path) -> tuple[bytes, dict[str, Path]]:
+    files = many_previews(path, data, work)
+    previews = [f"files/m{k}.splat" if f"m{k}.splat" in files else None for k in range(len(data["models"]))]
+    page = render_many_page(
+        f"GSA many: {path}", data, previews, "static/", subtitle=f"{len(previews)} models into one frame"
+    )
+    return page.encode(), files
+
+
 def cli_guide(path: str | Path, views: list[ResultView]) -> dict:
     """The page's guide shows `gsa align` commands (there is no job to refine locally): the
     input files result.json names (placeholders for a fetched service result) and the result
@@ -111,16 +172,8 @@ def cli_guide(path: str | Path, views: list[ResultView]) -> dict:
     }
 
 
-def make_server(path: str | Path, host: str = "127.0.0.1", port: int = 0) -> tuple[ThreadingHTTPServer, str]:
-    """A server for the result's page (not yet serving); returns it and the page URL."""
-    work = Path(tempfile.mkdtemp(prefix="gsa-view-"))  # previews made here; removed with the server
-    try:
-        title, views, files, extra = collect(path, work)
-        static_file("viewer.js")  # fail now, with the build hint, rather than on the first request
-    except BaseException:
-        shutil.rmtree(work, ignore_errors=True)
-        raise
-    token = secrets.token_urlsafe(16)
+def _pair_page(path: str | Path, work: Path) -> tuple[bytes, dict[str, Path]]:
+    title, views, files, extra = collect(path, work)
     target = (
         views[0].result.get("inputs", {}).get("target") if isinstance(views[0].result.get("inputs"), dict) else None
     )
@@ -131,7 +184,24 @@ def make_server(path: str | Path, host: str = "127.0.0.1", port: int = 0) -> tup
         subtitle=f"target: {Path(str(target)).name}" if target else "",
         extra_renders=extra,
         guide=cli_guide(path, views),
-    ).encode()
+    )
+    return page.encode(), files
+
+
+def make_server(path: str | Path, host: str = "127.0.0.1", port: int = 0) -> tuple[ThreadingHTTPServer, str]:
+    """A server for the result's page (not yet serving); returns it and the page URL."""
+    work = Path(tempfile.mkdtemp(prefix="gsa-view-"))  # previews made here; removed with the server
+    try:
+        many = many_json(path)
+        if many is not None:
+            page, files = _many_page(path, many, work)
+        else:
+            page, files = _pair_page(path, work)
+        static_file("viewer.js")  # fail now, with the build hint, rather than on the first request
+    except BaseException:
+        shutil.rmtree(work, ignore_errors=True)
+        raise
+    token = secrets.token_urlsafe(16)
 
     class Handler(BaseHTTPRequestHandler):
         def do_GET(self):  # noqa: N802 - http.server's name

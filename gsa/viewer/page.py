@@ -380,3 +380,208 @@ def render_page(
         + f'<script type="application/json" id=gsa-config>{script_json(config)}</script>'
     )
     return layout(title, body, static_url, script=True)
+
+
+# ---------------------------------------------------------------- many jobs (issue 30)
+
+# How the graph draws an edge of each verdict (gsa.align.many Edge.status): pruned edges red and
+# dashed (inconsistent with the cycles, not used), corrected ones purple and dotted (re-estimated).
+EDGE_STYLES = {
+    "kept": ("#2e9e48", ""),
+    "down-weighted": ("#e67e00", ""),
+    "pruned": ("#d62828", "6 4"),
+    "corrected": ("#7b3fbf", "2 3"),
+}
+MANY_TINTS = ("#2673ff", "#ff801a", "#f233bf", "#4de64d", "#ffe633")  # web/src/main.js MANY_TINTS
+
+
+def is_many_result(result) -> bool:
+    """many.json's content (gsa align-many, a many job's result): models and edges."""
+    return isinstance(result, dict) and isinstance(result.get("models"), list) and isinstance(result.get("edges"), list)
+
+
+def many_labels(result: dict) -> list[str]:
+    """Each model's display name: its uploaded file name, else its name in many.json."""
+    out = []
+    for k, m in enumerate(result.get("models") or []):
+        m = m if isinstance(m, dict) else {}
+        out.append(str(m.get("filename") or m.get("name") or f"model {k + 1}"))
+    return out
+
+
+def _reference_index(result: dict) -> int | None:
+    for k, m in enumerate(result.get("models") or []):
+        if isinstance(m, dict) and m.get("name") == result.get("reference"):
+            return k
+    return None
+
+
+def _edge_parts(e: dict, n: int) -> tuple[int, int, str, float | None] | None:
+    i, j = e.get("source_index"), e.get("target_index")
+    if not (isinstance(i, int) and isinstance(j, int) and 0 <= i < n and 0 <= j < n):
+        return None
+    status = e.get("status") if e.get("status") in EDGE_STYLES else "kept"
+    res = e.get("residual") if isinstance(e.get("residual"), dict) else {}
+    return i, j, status, _number(res.get("units"))
+
+
+def many_graph_svg(result: dict, size: int = 360) -> str:
+    """The models as nodes on a circle (the reference on top, ringed) and the pairwise edges
+    as lines styled by verdict (EDGE_STYLES), each labelled with its residual in tolerance
+    units; a <title> on each for the full numbers. '' without models."""
+    labels = many_labels(result)
+    n = len(labels)
+    if not n:
+        return ""
+    ref = _reference_index(result)
+    c, r = size / 2, size / 2 - 56
+    start = ref or 0
+    pos = [
+        (c + r * math.sin(2 * math.pi * (k - start) / n), c - r * math.cos(2 * math.pi * (k - start) / n))
+        for k in range(n)
+    ]
+    edges = []
+    for e in result.get("edges") or []:
+        parts = _edge_parts(e, n) if isinstance(e, dict) else None
+        if parts is None:
+            continue
+        i, j, status, units = parts
+        colour, dash = EDGE_STYLES[status]
+        (x1, y1), (x2, y2) = pos[i], pos[j]
+        dash_attr = f' stroke-dasharray="{dash}"' if dash else ""
+        label = f"{units:.2g}" if units is not None else ""
+        title = f"{labels[i]} → {labels[j]}: {status}, residual {fmt(units, 3)} tolerance units"
+        edges.append(
+            f'<g class="edge {status}" data-status="{status}" data-source="{i}" data-target="{j}">'
+            f"<title>{esc(title)}</title>"
+            f'<line x1="{x1:.1f}" y1="{y1:.1f}" x2="{x2:.1f}" y2="{y2:.1f}" stroke="{colour}" stroke-width="3"{dash_attr} />'
+            f'<text x="{(x1 + x2) / 2:.1f}" y="{(y1 + y2) / 2 - 4:.1f}" fill="{colour}">{esc(label)}</text></g>'
+        )
+    nodes = []
+    for k, (x, y) in enumerate(pos):
+        m = result["models"][k] if isinstance(result["models"][k], dict) else {}
+        is_ref = k == ref
+        name = labels[k] if len(labels[k]) <= 22 else labels[k][:21] + "…"
+        ring = (
+            f'<circle cx="{x:.1f}" cy="{y:.1f}" r="17" fill="none" stroke="#1d2127" stroke-width="2" />'
+            if is_ref
+            else ""
+        )
+        nodes.append(
+            f'<g class="node{" reference" if is_ref else ""}" data-model="{k}">'
+            f"<title>{esc(labels[k])}{' (reference)' if is_ref else ''}: confidence {fmt(m.get('confidence'), 3)}</title>"
+            f'{ring}<circle cx="{x:.1f}" cy="{y:.1f}" r="12" fill="{MANY_TINTS[k % len(MANY_TINTS)]}" />'
+            f'<text x="{x:.1f}" y="{y + (30 if y >= c else -20):.1f}" text-anchor="middle">'
+            f"{esc(name)}{' (reference)' if is_ref else ''}</text></g>"
+        )
+    return (
+        f'<svg class="graph" id="many-graph" viewBox="0 0 {size} {size}" width="{size}" height="{size}" role="img" '
+        f'aria-label="the pairwise alignments: models as nodes, edges by verdict">'
+        + "".join(edges)
+        + "".join(nodes)
+        + "</svg>"
+    )
+
+
+def _many_edges_table(result: dict, labels: list[str]) -> str:
+    rows = []
+    for e in result.get("edges") or []:
+        parts = _edge_parts(e, len(labels)) if isinstance(e, dict) else None
+        if parts is None:
+            continue
+        i, j, status, units = parts
+        res = e.get("residual") if isinstance(e.get("residual"), dict) else {}
+        rows.append(
+            f'<tr class="edge-{status}"><td>{esc(labels[i])} → {esc(labels[j])}</td><td>{esc(status)}</td>'
+            f"<td>{fmt(e.get('confidence'), 3)}</td><td>{fmt(units, 3)}</td><td>{fmt(res.get('rotation_deg'), 3)}</td>"
+            f"<td>{fmt(res.get('log_scale'), 3)}</td><td>{fmt(res.get('translation'), 3)}</td></tr>"
+        )
+    head = "".join(
+        f"<th>{h}</th>"
+        for h in ("edge", "verdict", "confidence", "residual (tol. units)", "rotation °", "|log scale|", "translation")
+    )
+    return f"<table class=edges><tr>{head}</tr>{''.join(rows)}</table>"
+
+
+def _many_section(result: dict) -> str:
+    labels = many_labels(result)
+    ref = _reference_index(result)
+    doubtful = [labels[k] for k, m in enumerate(result["models"]) if isinstance(m, dict) and m.get("doubtful")]
+    pruned, corrected = result.get("pruned") or [], result.get("corrected") or []
+    verdict = (
+        f'<p class="verdict doubtful">{len(doubtful)} of {len(labels)} model(s) doubtful: {esc(", ".join(doubtful))}</p>'
+        if doubtful
+        else f'<p class="verdict ok">All {len(labels)} models placed confidently.</p>'
+    )
+    legend = "".join(
+        f'<li><svg width="36" height="10"><line x1="0" y1="5" x2="36" y2="5" stroke="{c}" stroke-width="3"'
+        + (f' stroke-dasharray="{d}"' if d else "")
+        + f" /></svg> {esc(s)}</li>"
+        for s, (c, d) in EDGE_STYLES.items()
+    )
+    return (
+        "<section class=result id=many-result>"
+        f"<h3>Reference: {esc(labels[ref]) if ref is not None else '—'}</h3>{verdict}"
+        f"<p>Pruned (inconsistent with the cycles): {esc(', '.join(pruned)) or 'none'}. "
+        f"Corrected: {esc(', '.join(corrected)) or 'none'}.</p>"
+        f"<div class=tables><div><h4>Graph</h4>{many_graph_svg(result)}<ul class=legend>{legend}</ul></div>"
+        f"<div><h4>Edges</h4>{_many_edges_table(result, labels)}</div></div></section>"
+    )
+
+
+def _many_viewer(result: dict) -> str:
+    labels = many_labels(result)
+    ref = _reference_index(result)
+    boxes = "".join(
+        f'<label class="tint-many{k % len(MANY_TINTS)}"><input type=checkbox data-many-model="{k}" checked> '
+        f"{esc(name)}{' (reference)' if k == ref else ''} "
+        f"<span class=conf>{fmt((result['models'][k] or {}).get('confidence'), 3)}</span></label>"
+        for k, name in enumerate(labels)
+    )
+    up = "".join(f'<option value="{u}">{u} up</option>' for u in ("+z", "+y", "-y"))
+    return (
+        "<section class=viewer><div class=panes>"
+        f"<figure class='pane many'><figcaption>All models in the reference frame</figcaption>{_canvas('many')}</figure>"
+        f"</div><div class=toggles id=many-toggles>{boxes}<label><input type=checkbox id=toggle-tint checked> tint</label>"
+        f"<select id=pick-up aria-label=up>{up}</select></div>"
+        "<p id=viewer-status class=status>loading the models…</p>"
+        "<p class=hint>Drag to orbit, scroll to zoom; the boxes show or hide each model (its confidence beside it).</p>"
+        "</section>"
+    )
+
+
+def render_many_page(
+    title: str,
+    result: dict,
+    previews: list[str | None],
+    static_url: str,
+    *,
+    subtitle: str = "",
+    notes: list[str] | None = None,
+    links: list[tuple[str, str]] | None = None,
+    up: str = "+z",
+) -> str:
+    """The results page of N models aligned into one frame (many.json): every model's preview
+    (previews[k]: a URL of model k's .splat in its own frame, or None) placed by its transform
+    into the reference frame, one toggle per model, and the graph of pairwise edges."""
+    models = []
+    for k, m in enumerate(result["models"]):
+        m = m if isinstance(m, dict) else {}
+        models.append(
+            {
+                "label": many_labels(result)[k],
+                "transform": _finite_matrix(m.get("transform"), 4),
+                "preview": previews[k] if k < len(previews) else None,
+                "reference": k == _reference_index(result),
+            }
+        )
+    config = {"up": up if up in ("+z", "+y", "-y") else "+z", "results": [], "many": {"models": models}}
+    nav = " · ".join(f'<a href="{esc(u)}">{esc(t)}</a>' for t, u in links or [])
+    note_list = "".join(f"<li>{esc(n)}</li>" for n in notes or [])
+    note_list = f"<section><h3>Notes</h3><ul>{note_list}</ul></section>" if note_list else ""
+    body = (
+        f"<header><h1>{esc(title)}</h1><p class=sub>{esc(subtitle)}</p><nav>{nav}</nav></header>"
+        f"{_many_viewer(result)}{_many_section(result)}{note_list}"
+        f'<script type="application/json" id=gsa-config>{script_json(config)}</script>'
+    )
+    return layout(title, body, static_url, script=True)

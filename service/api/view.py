@@ -19,13 +19,25 @@ from fastapi.concurrency import run_in_threadpool
 from fastapi.responses import HTMLResponse, JSONResponse, RedirectResponse, StreamingResponse
 from pydantic import BaseModel
 
-from gsa.viewer.page import PAGE_HEADERS, STATIC_FILES, ResultView, ViewerNotBuilt, esc, fmt, layout, render_page
+from gsa.viewer.page import (
+    PAGE_HEADERS,
+    STATIC_FILES,
+    ResultView,
+    ViewerNotBuilt,
+    esc,
+    fmt,
+    is_many_result,
+    layout,
+    render_many_page,
+    render_page,
+)
 from gsa.viewer.preview import PREVIEW_NAMES
 from service import core
 from service.api.deps import B, Owner, get_backend
 from service.api.openapi import problem_responses
 from service.api.schemas import JobOut, RefineIn
 from service.backend import Backend
+from service.many import is_many, many_preview_name
 from service.models import Job, JobState
 from service.problems import Problem, invalid_input, not_found
 from service.view_links import LinkError, sign, verify
@@ -152,6 +164,8 @@ def job_page(job_id: str, request: Request, token: str | None = None):
         notes.insert(0, f"The job is {job.state.value} (stage {job.stage or '—'}, {job.progress:.0%}); reload later.")
         if job.error:
             notes.insert(1, f"{job.error.get('title', 'error')}: {job.error.get('detail', '')}")
+    if job.state == JobState.succeeded and is_many(job) and is_many_result(job.result):
+        return HTMLResponse(_many_page(job, notes), headers=PAGE_HEADERS)
     views, extra = job_views(job) if job.state == JobState.succeeded else ([], [])
     # Guided alignment: the job it refines and its follow-ups, each through its own signed link.
     links = [(f"refines job {job.parent_job}", _page_link(b, owner, job.parent_job))] if job.parent_job else []
@@ -168,6 +182,23 @@ def job_page(job_id: str, request: Request, token: str | None = None):
         poll=None if job.terminal else f"/v1/jobs/{job_id}/view/state",
     )
     return HTMLResponse(page, headers=PAGE_HEADERS)
+
+
+def _many_page(job: Job, notes: list[str]) -> str:
+    """A many job's page: its models in the reference frame (their previews, preview/model{k}.splat),
+    a toggle each, and the graph of its edges (gsa.viewer.page.render_many_page)."""
+    names = {a.name for a in job.artifacts}
+    files = f"/v1/jobs/{job.id}/view/files/"
+    n = len(job.result["models"])
+    previews = [files + many_preview_name(k) if many_preview_name(k) in names else None for k in range(n)]
+    return render_many_page(
+        f"Job {job.id}",
+        job.result,
+        previews,
+        STATIC,
+        subtitle=f"{n} models into one frame · {job.state.value}",
+        notes=notes,
+    )
 
 
 def _page_link(b: Backend, owner: str, job_id: str) -> str:
@@ -286,8 +317,11 @@ def _age(seconds: float) -> str:
 
 
 def _confidence(job: Job) -> tuple[float | None, bool]:
-    results = (job.result or {}).get("results") or []
-    metrics = [r.get("metrics") or {} for r in results if isinstance(r, dict)]
+    result = job.result or {}
+    if is_many_result(result):  # a many job: its models' confidences
+        metrics = [m for m in result["models"] if isinstance(m, dict)]
+    else:
+        metrics = [r.get("metrics") or {} for r in result.get("results") or [] if isinstance(r, dict)]
     conf = [m["confidence"] for m in metrics if isinstance(m.get("confidence"), int | float)]
     return (min(conf) if conf else None), any(m.get("doubtful") for m in metrics)
 

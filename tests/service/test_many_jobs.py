@@ -97,7 +97,7 @@ def test_many_job_over_http(http, assets, captures):
         assert {"rotation_deg", "log_scale", "translation", "units"} <= set(e["residual"])
     assert result["pruned"] == [] and result["corrected"] == []
     names = {a["name"] for a in final["artifacts"]}
-    assert names == {"many.json", "merged.ply"}
+    assert names == {"many.json", "merged.ply", *(f"preview/model{k}.splat" for k in range(3))}
     many_json = http.get(f"/v1/jobs/{job['id']}/artifacts/many.json").json()
     assert many_json == result  # the result is many.json's content
     from service.api.results import JobResult
@@ -110,8 +110,9 @@ def test_many_job_over_http(http, assets, captures):
     assert merged.status_code == 200 and merged.content.startswith(b"ply")
     splat = http.get(f"/v1/jobs/{job['id']}/artifacts/merged.ply", params={"format": "splat"})
     assert splat.status_code == 200 and len(splat.content) == 32 * result["merge"]["gaussians"]
-    # The results pages do not show a many job's models yet, but neither fails on one.
-    assert http.get(f"/v1/jobs/{job['id']}/view").status_code == 200
+    # The results page shows the models and the graph (tests/service/test_view_many.py).
+    page = http.get(f"/v1/jobs/{job['id']}/view")
+    assert page.status_code == 200 and page.text.count("data-many-model=") == 3
     assert http.get("/v1/view/jobs").status_code == 200
 
 
@@ -194,7 +195,7 @@ def test_many_job_over_grpc(stack, assets, captures):
     assert final.state == pb.JOB_STATE_SUCCEEDED, final
     result = json.loads(final.result_json)
     check_against_truth(result, assets[:2], captures["truth"][:2], reference=1)
-    assert [a.name for a in final.artifacts] == ["many.json"]
+    assert [a.name for a in final.artifacts] == ["many.json", "preview/model0.splat", "preview/model1.splat"]
 
 
 def test_many_job_memory_prediction():

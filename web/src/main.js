@@ -16,6 +16,8 @@ const SOURCE_TINTS = [
   [0.3, 0.9, 0.3],
   [1.0, 0.9, 0.2],
 ];
+// A many job's models (gsa/viewer/page.py MANY_TINTS): the reference first colour, then the sources'.
+const MANY_TINTS = [TARGET_TINT, ...SOURCE_TINTS];
 const UPS = { "+z": [0, 0, 1], "+y": [0, 1, 0], "-y": [0, -1, 0] };
 
 const state = (window.gsaViewer = { ready: false, firstFrameMs: null, error: null, frames: 0, panes: {} });
@@ -193,9 +195,105 @@ function controls(panes, view, onChange, onClick) {
   }
 }
 
+// The render loop: places and draws each dirty pane, marks the page ready once all have pixels.
+function startLoop(panes, view) {
+  const loop = () => {
+    for (const p of Object.values(panes)) {
+      p.resize();
+      if (!p.dirty && p.painted) continue;
+      p.dirty = false;
+      p.place(p.view || view);
+      p.renderer.render(p.scene, p.camera);
+      if (!p.painted && p.hasPixels()) p.painted = true;
+    }
+    state.frames += 1;
+    if (!state.ready && Object.values(panes).every((p) => p.painted)) {
+      state.firstFrameMs = performance.now();
+      state.ready = true;
+      document.documentElement.dataset.viewer = "ready";
+      document.getElementById("viewer-status").textContent = `ready: first frame ${(state.firstFrameMs / 1000).toFixed(2)} s after navigation`;
+    }
+    requestAnimationFrame(loop);
+  };
+  requestAnimationFrame(loop);
+}
+
+// A row-major 4x4 (many.json) as a THREE.Matrix4.
+function matrix4(rows) {
+  return new THREE.Matrix4().set(...rows.flat());
+}
+
+// A many job (issue 30): every model's preview (its own frame) placed by its transform into the
+// reference frame in one view, a checkbox per model (data-many-model="k"), the tint toggle.
+// state.visible: {model0: true, ...}; state.many: {models, shown}.
+async function mainMany(config) {
+  const el = (id) => document.getElementById(id);
+  const models = config.many.models;
+  const usable = models.map((m) => Boolean(m.preview && m.transform));
+  state.many = { models: models.length, shown: models.length };
+  if (!usable.some(Boolean)) {
+    el("viewer-status").textContent = "no 3D previews in this result";
+    document.documentElement.dataset.viewer = "no-preview";
+    state.ready = true;
+    return;
+  }
+  const bytes = await Promise.all(models.map((m, k) => (usable[k] ? fetchBytes(m.preview) : null)));
+  // The view's frame: the reference's bounds moved into the reference frame (its transform is
+  // the identity), else the first model's.
+  const first = models.findIndex((m, k) => usable[k] && m.reference);
+  const k0 = first >= 0 ? first : usable.indexOf(true);
+  const b0 = bounds(bytes[k0]);
+  const m0 = matrix4(models[k0].transform);
+  const frame = { center: b0.center.clone().applyMatrix4(m0), radius: 1.4 * b0.radius * m0.getMaxScaleOnAxis() };
+  const pane = new Pane("many", el("view-many"), frame);
+  const panes = { many: pane };
+  state.panes = panes;
+  const meshes = { tinted: {}, natural: {} };
+  const placed = (b, k) => {
+    const mesh = makeMesh(b);
+    matrix4(models[k].transform).decompose(mesh.position, mesh.quaternion, mesh.scale);
+    return mesh;
+  };
+  bytes.forEach((b, k) => {
+    if (b) pane.add(`model${k}`, (meshes.tinted[k] = placed(tinted(b, MANY_TINTS[k % MANY_TINTS.length]), k)));
+  });
+  const view = { azimuth: 0.8, elevation: 0.45, distance: 4.2, up: config.up || "+z" };
+  controls([pane], view, () => (pane.dirty = true), () => {});
+  const tint = el("toggle-tint");
+  const apply = () => {
+    const useTint = !tint || tint.checked;
+    const on = {};
+    for (const box of document.querySelectorAll("input[data-many-model]")) on[`model${box.dataset.manyModel}`] = box.checked;
+    bytes.forEach((b, k) => {
+      if (!b) return;
+      if (!useTint && !meshes.natural[k]) pane.add(`natural${k}`, (meshes.natural[k] = placed(b, k)));
+      meshes.tinted[k].visible = useTint && on[`model${k}`] !== false;
+      if (meshes.natural[k]) meshes.natural[k].visible = !useTint && on[`model${k}`] !== false;
+    });
+    pane.dirty = true;
+    state.visible = { ...on, tint: useTint };
+    state.many.shown = Object.values(on).filter(Boolean).length;
+  };
+  for (const box of document.querySelectorAll("input[data-many-model]")) box.addEventListener("change", apply);
+  if (tint) tint.addEventListener("change", apply);
+  const upPick = el("pick-up");
+  if (upPick) {
+    upPick.value = view.up;
+    upPick.addEventListener("change", () => {
+      view.up = upPick.value;
+      pane.dirty = true;
+    });
+  }
+  apply();
+  await Promise.all(Object.values(meshes.tinted).map((m) => m.initialized));
+  state.loadedMs = performance.now();
+  startLoop(panes, view);
+}
+
 async function main() {
   const config = JSON.parse(document.getElementById("gsa-config").textContent);
   if (config.poll) pollJob(config.poll); // a job still running: reload when it has finished
+  if (config.many) return mainMany(config);
   const models = config.results;
   const el = (id) => document.getElementById(id);
   if (!models.length || !models[0].preview.target) {
@@ -312,25 +410,7 @@ async function main() {
     Object.values(panes).flatMap((p) => Object.values(p.meshes).map((m) => m.initialized)),
   );
   state.loadedMs = performance.now();
-  const loop = () => {
-    for (const p of Object.values(panes)) {
-      p.resize();
-      if (!p.dirty && p.painted) continue;
-      p.dirty = false;
-      p.place(p.view || view);
-      p.renderer.render(p.scene, p.camera);
-      if (!p.painted && p.hasPixels()) p.painted = true;
-    }
-    state.frames += 1;
-    if (!state.ready && Object.values(panes).every((p) => p.painted)) {
-      state.firstFrameMs = performance.now();
-      state.ready = true;
-      document.documentElement.dataset.viewer = "ready";
-      el("viewer-status").textContent = `ready: first frame ${(state.firstFrameMs / 1000).toFixed(2)} s after navigation`;
-    }
-    requestAnimationFrame(loop);
-  };
-  requestAnimationFrame(loop);
+  startLoop(panes, view);
 }
 
 main().catch(fail);
