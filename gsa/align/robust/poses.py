@@ -87,9 +87,9 @@ class SearchResult:
     colour_noise: float | None = None  # the models' own colour noise (colour_noise), when colour was checked
     # "score", or "geometry" where no pose made the colours agree (decide): colour told nothing apart
     ranked_by: str = "score"
-    # The distinct poses to offer beside the best, in order (search._with_offers): the rivals,
-    # the best turned half-way about the target's principal axes, the other candidates. Offered
-    # to a person (alternatives), never ranked against the others.
+    # The distinct poses to offer beside the best, in order (search._with_offers): the first
+    # rival, the best turned half-way about the target's principal axes, the other candidates.
+    # Offered to a person (alternatives), never ranked against the others.
     offered: list[Candidate] = field(default_factory=list)
 
     @property

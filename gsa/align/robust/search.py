@@ -156,14 +156,13 @@ def _with_offers(
     src: Anchors, dst: Anchors, result: SearchResult, w_colour: float, rng: np.random.Generator, opts: SearchOptions
 ) -> SearchResult:
     """The result with the poses to offer beside its best (`offered`): the first rival, the best
-    turned by 180° about each principal axis of the target (through its centre) and refined by
-    the anchors' ICP, then the other candidates by score (the other rivals among them); each
-    after the first rival kept only where it puts the source somewhere else than the best and
-    every pose kept before it (OFFER_DISTINCT of the
-    target's radius, both ways: turns of a symmetric shape that land on the same surface are one
-    pose). Cross-instance misses are mostly such half turns (a bathtub end for end, a vase upside
-    down) that the search did not refine; they are offered to pick (gsa.align.guided), never
-    ranked, so no verdict changes."""
+    turned by 180° about each of opts.offer_turn_axes (default: the target's principal axes),
+    through the target's centre, and refined by the anchors' ICP, then the other candidates by
+    score (the other rivals among them). Each after the first rival is kept only where it puts
+    the source OFFER_DISTINCT away from the best and from every pose kept before it: turns of a
+    symmetric shape that land on one surface are one pose. Cross-instance misses are mostly such
+    half turns (a bathtub end for end, a vase upside down) that the search did not refine; they
+    are offered to pick (gsa.align.guided), never ranked, so no verdict changes."""
     best = result.best.transform
     src_rows = _sample(rng, len(src), opts.refine_points)
     dst_rows = _sample(rng, len(dst), opts.refine_points)
