@@ -55,6 +55,31 @@ def test_unreadable_image(tmp_path):
         load_image_set(d)
 
 
+def test_a_few_blurred_views_are_left_out(tmp_path):
+    d = _noise_images(tmp_path / "a", 9, size=(96, 64))
+    for name in ("im2.png", "im7.png"):  # camera shake: a 2-pixel blur
+        img = cv2.imread(str(d / name))
+        cv2.imwrite(str(d / name), cv2.GaussianBlur(img, (0, 0), 2.0))
+    with pytest.warns(UserWarning, match="2 blurred view.s. left out .*: im2.png, im7.png"):
+        s = load_image_set(d)
+    assert s.notes["blurred"] == ["im2.png", "im7.png"]
+    assert len(s) == 7 and "im2.png" not in s.names and "im7.png" not in s.names
+
+
+def test_blur_is_judged_against_the_set_itself(tmp_path, recwarn):
+    # A set soft throughout loses nothing; nor does one where the "blurred" are not a few.
+    soft = _noise_images(tmp_path / "soft", 6, size=(96, 64))
+    for p in soft.iterdir():
+        cv2.imwrite(str(p), cv2.GaussianBlur(cv2.imread(str(p)), (0, 0), 2.0))
+    assert len(load_image_set(soft)) == 6
+    half = _noise_images(tmp_path / "half", 6, size=(96, 64))
+    for name in ("im0.png", "im1.png", "im2.png"):
+        cv2.imwrite(str(half / name), cv2.GaussianBlur(cv2.imread(str(half / name)), (0, 0), 2.0))
+    s = load_image_set(half)
+    assert len(s) == 6 and "blurred" not in s.notes
+    assert not [w for w in recwarn if "blurred" in str(w.message)]
+
+
 def _exif_jpeg(path, bgr, orientation):
     """A JPEG of `bgr` (as stored) whose EXIF says how to turn it for display (1-8)."""
     import struct
@@ -250,6 +275,7 @@ def test_phone_like_set_registers_with_a_camera_per_size(rendered, tmp_path, cap
     with pytest.warns(UserWarning, match="zz_broken.jpg"):
         s = load_image_set(d)
     assert (s.width, s.height) == (size, size * 3 // 4) and s.notes["cameras"] == 2
+    assert s.notes["blurred"] == [rendered.names[4]] and len(s) == len(rendered.names) - 1
     sfm = run_sfm(s, tmp_path / "w")
     assert sfm.n_registered >= 2 / 3 * len(s), sfm.unregistered  # the square set: 21 of 24
     stem = {Path(n).stem: i for i, n in enumerate(rendered.names)}
@@ -268,10 +294,12 @@ def test_phone_like_set_registers_with_a_camera_per_size(rendered, tmp_path, cap
     rc = main(["reconstruct", str(d), "--out", str(out), "--iterations", "40", "--features", "none"])
     assert rc == 0
     warned = [ln for ln in capsys.readouterr().err.splitlines() if "gsa: warning:" in ln]
-    assert len(warned) == 1 and "left out: zz_broken.jpg" in warned[0], warned
+    assert len(warned) == 2 and "left out: zz_broken.jpg" in warned[0], warned
+    assert "1 blurred view(s) left out" in warned[1] and warned[1].endswith(rendered.names[4]), warned
     report = json.loads((out / "report.json").read_text())
     assert report["registered"] >= 2 / 3 * len(s) and report["gaussians"] > 100
     assert report["image_set"]["unreadable"] == ["zz_broken.jpg"] and report["image_set"]["cameras"] == 2
+    assert report["image_set"]["blurred"] == [rendered.names[4]]
 
 
 def test_masks_separate_object(rendered):

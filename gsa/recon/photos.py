@@ -16,7 +16,11 @@ read the same pixels:
   landscape shots of one phone share one, a second phone gets its own (gsa.recon.sfm).
 
 Files that do not decode are left out with one warning, as long as at least `min_images`
-remain; otherwise the set is refused (ImageSetError, one line).
+remain; otherwise the set is refused (ImageSetError, one line). So are a few blurred views
+(camera shake, missed focus): an image whose sharpness (`sharpness`) is below BLUR_RATIO of the
+set's median is left out with one warning, where at most MAX_BLURRED_SHARE of the set is and
+`min_images` remain. The test is relative to the set itself, so a set that is soft throughout
+(a small sensor, a dim room) loses nothing.
 """
 
 from __future__ import annotations
@@ -44,6 +48,17 @@ _WRITE_PARAMS = {
     ".jpeg": [cv2.IMWRITE_JPEG_QUALITY, 98],
     ".webp": [cv2.IMWRITE_WEBP_QUALITY, 101],  # lossless
 }
+
+
+# Sharpness is measured on a copy whose long side is SHARPNESS_SIDE pixels, so that sizes compare.
+SHARPNESS_SIDE = 512
+# A view is blurred when its sharpness is under this share of the set's median: a Gaussian blur
+# of 2 px (at SHARPNESS_SIDE) takes the Laplacian's variance below 0.1 of a sharp view's, while
+# sharp views of one object differ by a few times at most (less texture, more background).
+BLUR_RATIO = 0.1
+# At most this share of a set is left out as blurred: "a few" views; beyond it the set is
+# what it is, and every view is kept.
+MAX_BLURRED_SHARE = 1 / 3
 
 
 class ImageSetWarning(ReaderWarning):
@@ -118,6 +133,7 @@ def prepare_photos(
     """The set's images at one size (see the module's docstring); `error` is raised, one line,
     when the set cannot be used."""
     sizes: dict[str, tuple[int, int]] = {}
+    sharp: dict[str, float] = {}
     rotated_by_exif, unreadable = [], []
     for n in names:
         # Decode fully: a truncated or mislabelled file must show here, not inside SfM.
@@ -129,6 +145,7 @@ def prepare_photos(
         if h * w > max_pixels:
             raise error(f"{n}: {w}x{h} exceeds the {max_pixels}-pixel limit")
         sizes[n] = (w, h)
+        sharp[n] = sharpness(img)
         if exif_orientation(directory / n) != 1:
             rotated_by_exif.append(n)
     used = [n for n in names if n in sizes]
@@ -144,6 +161,18 @@ def prepare_photos(
             ImageSetWarning,
             stacklevel=3,
         )
+    blurred = blurred_views(sharp, min_images)
+    if blurred:
+        notes["blurred"] = blurred
+        warnings.warn(
+            f"{directory.name}: {len(blurred)} blurred view(s) left out (sharpness under {BLUR_RATIO:g} of the "
+            f"set's median): {_listing(blurred)}",
+            ImageSetWarning,
+            stacklevel=3,
+        )
+        used = [n for n in used if n not in blurred]
+        sizes = {n: sizes[n] for n in used}
+        rotated_by_exif = [n for n in rotated_by_exif if n in sizes]
     if len(set(sizes.values())) == 1 and not rotated_by_exif:
         ((w, h),) = set(sizes.values())
         return PreparedSet(directory, used, w, h, None, notes)
@@ -184,6 +213,30 @@ def prepare_photos(
         }
     )
     return PreparedSet(out, used, width, height, groups if len(kinds) > 1 else None, notes, tmp)
+
+
+def sharpness(img: np.ndarray) -> float:
+    """Variance of the Laplacian of the image's grey levels (in [0, 1]) at SHARPNESS_SIDE pixels on
+    its long side: how much fine detail it holds, which blur removes."""
+    grey = cv2.cvtColor(img, cv2.COLOR_BGR2GRAY).astype(np.float32)
+    grey /= 65535.0 if img.dtype == np.uint16 else 255.0
+    h, w = grey.shape
+    s = SHARPNESS_SIDE / max(h, w)
+    if s < 1:
+        grey = cv2.resize(grey, (max(1, round(w * s)), max(1, round(h * s))), interpolation=cv2.INTER_AREA)
+    return float(cv2.Laplacian(grey, cv2.CV_32F).var())
+
+
+def blurred_views(sharp: dict[str, float], min_images: int) -> list[str]:
+    """The views to leave out as blurred (sorted by name): sharpness under BLUR_RATIO of the
+    median, where they are at most MAX_BLURRED_SHARE of the set and min_images remain."""
+    if not sharp:
+        return []
+    limit = BLUR_RATIO * float(np.median(list(sharp.values())))
+    blurred = sorted(n for n, v in sharp.items() if v < limit)
+    if len(blurred) > MAX_BLURRED_SHARE * len(sharp) or len(sharp) - len(blurred) < min_images:
+        return []
+    return blurred
 
 
 def _cover(img: np.ndarray, width: int, height: int) -> np.ndarray:
