@@ -261,3 +261,36 @@ def test_guide_controls_on_gsa_view(spz_pair, tmp_path):
     finally:
         proc.terminate()
         proc.wait(10)
+
+
+@pytest.mark.slow
+def test_known_scale_on_gsa_view(spz_pair, tmp_path):
+    """The scale input: a bad value stops the control with a message beside it; a good one puts
+    --scale S in the command of "use this one" and of the up axes (the first run: its scale is S)."""
+    proc, url = serve(spz_pair["dir"] / "out" / "result.json")
+    try:
+        with browser_page() as (page, messages):
+            page.goto(url)
+            assert wait_ready(page)["error"] is None
+            page.click("#alt-next")
+            for bad in ("0", "-1", "two"):
+                page.fill("#scale-input", bad)
+                page.click("#alt-use")
+                assert page.locator("#scale-error").is_visible()
+                assert "positive number" in page.locator("#scale-error").inner_text()
+                assert page.locator("#guide-command").count() == 0
+            assert page.evaluate("() => gsaViewer.guide.requests.length") == 0
+            page.fill("#scale-input", "1.7")
+            assert not page.locator("#scale-error").is_visible()
+            page.click("#alt-use")
+            command = page.locator("#guide-command").inner_text()
+            assert " --alternative 0 --scale 1.7 " in command
+            refined = run_shown_command(command, tmp_path / "alt")
+            assert refined["scale"] == pytest.approx(1.7, abs=1e-6)
+            page.click("#up-submit")
+            assert " --scale 1.7 " in page.locator("#guide-command").inner_text()
+            assert page.evaluate("() => gsaViewer.guide.requests.map((r) => r.fixed_scale)") == [1.7, 1.7]
+            assert errors(messages) == [], messages
+    finally:
+        proc.terminate()
+        proc.wait(10)

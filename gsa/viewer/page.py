@@ -262,7 +262,8 @@ def guide_config(result: dict) -> dict:
 
 
 def _guide(view: ResultView, mode: str) -> str:
-    """The guide's controls (web/src/main.js drives them): alternatives, point pairs, up axes."""
+    """The guide's controls (web/src/main.js drives them): alternatives, point pairs, up axes and
+    a known scale (sent with each of the others)."""
     m = view.result.get("metrics") if isinstance(view.result.get("metrics"), dict) else {}
     n_alt = len(m.get("alternatives") or [])
     axes = "".join(f'<option value="{a}">{a}</option>' for a in AXES)
@@ -292,6 +293,12 @@ def _guide(view: ResultView, mode: str) -> str:
         f"<label>source up <select id=up-source>{axes}</select></label> "
         f"<label>target up <select id=up-target>{axes}</select></label> "
         "<button type=button id=up-submit>Align with these up axes</button></fieldset>"
+        "<fieldset><legend>Scale</legend>"
+        "<label>known scale (target units per source unit) "
+        '<input id=scale-input type=text inputmode=decimal size=10 placeholder="not fixed" '
+        "aria-describedby=scale-error autocomplete=off></label>"
+        "<p class=hint>Optional: when given, each control above keeps the answer at this scale.</p>"
+        "<p id=scale-error class=error role=alert hidden></p></fieldset>"
         "<div id=guide-out aria-live=polite></div></section>"
     )
 

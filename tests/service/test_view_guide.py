@@ -192,3 +192,28 @@ def test_point_pairs_and_up_axes(guide_stack):
         assert rre_deg(np.asarray(child["result"]["rotation"]), TRUTH.rotation) < 5.0
         assert len(children(url, parent["id"])) >= 2
         assert errors(messages) == [], messages
+
+
+@pytest.mark.slow
+def test_known_scale_with_an_alternative(guide_stack):
+    """The scale input: a bad value (0, -1, text) shows its message and sends nothing; a good one
+    goes with "use this one" as fixed_scale, and the follow-up's result has that scale."""
+    url, parent = guide_stack["url"], guide_stack["parent"]
+    before = children(url, parent["id"])
+    with browser_page() as (page, messages):
+        open_page(page, url, parent["id"])
+        page.click("#alt-next")
+        for bad in ("0", "-1", "text"):
+            page.fill("#scale-input", bad)
+            page.click("#alt-use")
+            assert page.locator("#scale-error").is_visible()
+            assert "positive number" in page.locator("#scale-error").inner_text()
+        assert page.evaluate("() => gsaViewer.guide.requests.length") == 0
+        assert f"/{parent['id']}/view" in page.url
+        assert children(url, parent["id"]) == before
+        page.fill("#scale-input", "1.7")
+        page.click("#alt-use")
+        child = follow_up(page, url, parent["id"])
+        assert child["options"]["fixed_scale"] == 1.7
+        assert child["result"]["scale"] == pytest.approx(1.7, abs=1e-6)
+        assert errors(messages) == [], messages

@@ -2,7 +2,9 @@
 // step through the result's alternatives on the overlay, pick point pairs on the source and
 // target views, choose each model's up axis. Each control asks for a follow-up alignment: on the
 // service's page a POST to the page's refine route, then the follow-up job's page opens; on
-// `gsa view`'s page (no job to refine) the equivalent `gsa align` command, to copy.
+// `gsa view`'s page (no job to refine) the equivalent `gsa align` command, to copy. A known scale
+// (its input; empty: not fixed) goes with whichever control is used: fixed_scale in the request,
+// --scale S in the command; an invalid one stops the control, with a message beside the input.
 //
 // Frames: the previews, and so every point picked here, are in align()'s internal frame; the
 // requests and commands take each file's own coordinates (config.guide.to_file rotates one into
@@ -128,6 +130,32 @@ export function setupGuide(guide, { panes, sourceBytes, targetBytes, redraw, sho
   const cli = (args) =>
     `gsa align ${guide.source} ${guide.target} ${args} --out refined/result.json --preview && gsa view refined/result.json`;
 
+  // The known scale: null when empty, a positive finite number, or undefined (and the message
+  // shown) when it is anything else.
+  const scaleInput = el("scale-input");
+  const scaleError = el("scale-error");
+  const showScaleError = (message) => {
+    scaleError.textContent = message;
+    scaleError.hidden = !message;
+    scaleInput.setAttribute("aria-invalid", String(Boolean(message)));
+  };
+  function knownScale() {
+    const raw = scaleInput.value.trim();
+    if (raw === "") {
+      showScaleError("");
+      return null;
+    }
+    const v = Number(raw);
+    if (!Number.isFinite(v) || v <= 0) {
+      showScaleError(`"${raw}" is not a scale: give a positive number (e.g. 2.5), or leave it empty`);
+      scaleInput.focus();
+      return undefined;
+    }
+    showScaleError("");
+    return v;
+  }
+  scaleInput.addEventListener("input", () => showScaleError(""));
+
   function showCommand(command) {
     const intro = document.createElement("p");
     intro.textContent = "Run this where the input files are (then the refined result opens in a new page):";
@@ -146,7 +174,15 @@ export function setupGuide(guide, { panes, sourceBytes, targetBytes, redraw, sho
     out.replaceChildren(intro, pre, copy);
   }
 
-  async function submit(hints, command) {
+  // hints: the request's body; args: the command's (after `prefix`, lines to run before it).
+  async function submit(hints, args, prefix = "") {
+    const scale = knownScale();
+    if (scale === undefined) return; // nothing sent
+    if (scale !== null) {
+      hints = { ...hints, fixed_scale: scale };
+      args += ` --scale ${scale}`;
+    }
+    const command = prefix + cli(args);
     g.requests.push(hints);
     if (guide.mode !== "service") {
       showCommand(command);
@@ -198,7 +234,7 @@ export function setupGuide(guide, { panes, sourceBytes, targetBytes, redraw, sho
   el("alt-prev").disabled = el("alt-next").disabled = alts.length === 0;
   use.addEventListener("click", () => {
     const a = alts[g.position];
-    if (a) submit({ alternative: a.index }, cli(`--init ${guide.result} --alternative ${a.index}`));
+    if (a) submit({ alternative: a.index }, `--init ${guide.result} --alternative ${a.index}`);
   });
   step(-1);
 
@@ -266,7 +302,7 @@ export function setupGuide(guide, { panes, sourceBytes, targetBytes, redraw, sho
       target: g.pairs.map((p) => fileCoords("target", p.target)),
     };
     const file = `cat > pairs.json <<'EOF'\n${JSON.stringify(point_pairs)}\nEOF\n`;
-    submit({ point_pairs }, file + cli("--pairs pairs.json"));
+    submit({ point_pairs }, "--pairs pairs.json", file);
   });
   renderPairs();
 
@@ -285,7 +321,7 @@ export function setupGuide(guide, { panes, sourceBytes, targetBytes, redraw, sho
   upTarget.addEventListener("change", turn);
   el("up-submit").addEventListener("click", () => {
     const up_axes = [AXES[upSource.value], AXES[upTarget.value]];
-    submit({ up_axes }, cli(`--up ${up_axes[0].join(",")}:${up_axes[1].join(",")}`));
+    submit({ up_axes }, `--up ${up_axes[0].join(",")}:${up_axes[1].join(",")}`);
   });
 
   return (pane, x, y) => {
