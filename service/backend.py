@@ -54,12 +54,16 @@ class RQQueue:
             self.q.enqueue(task, job_id, **kw)
         return ref
 
-    def lost(self, ref: str) -> bool:
+    def lost(self, ref: str | None) -> bool:
         """True if RQ no longer holds a live message for this ref (dropped, failed,
-        or "started" by a worker that died before claiming the job)."""
+        or "started" by a worker that died before claiming the job), or none was ever
+        sent (ref None: the API died, or Redis went, between creating the job and
+        enqueuing it)."""
         from rq.exceptions import NoSuchJobError  # lazy: see RQQueue.__init__
         from rq.job import Job as RQJob
 
+        if ref is None:
+            return True
         try:
             status = RQJob.fetch(ref, connection=self.q.connection).get_status(refresh=False)
         except NoSuchJobError:
@@ -100,7 +104,7 @@ class EmbeddedQueue:
         self.wake.set()
         return None
 
-    def lost(self, ref: str) -> bool:
+    def lost(self, ref: str | None) -> bool:
         return False  # the store is the queue: nothing to lose
 
     def enqueue_webhook(self, job_id: str) -> None:

@@ -257,17 +257,21 @@ def _requeue(backend: Backend, job_id: str) -> None:
 
 def resend_lost(backend: Backend) -> list[str]:
     """Queued jobs whose queue message is gone (e.g. the worker died between
-    dequeuing and claiming) are enqueued again. Duplicates are harmless: the
-    claim is a compare-and-set, so only one delivery ever runs the job."""
+    dequeuing and claiming) or was never sent (the API SIGKILLed between creating
+    the job and enqueuing it: the client's retry with its Idempotency-Key finds that
+    job, so nothing else would ever send it) are enqueued again. Duplicates are
+    harmless: the claim is a compare-and-set, so only one delivery ever runs the job."""
     now = time.time()
     grace = 2 * backend.settings.lease_s
     out = []
     for job_id in backend.store.queued_ids():
         job = backend.store.get(job_id)
-        if job is None or job.state != JobState.queued or not job.queue_ref:
+        if job is None or job.state != JobState.queued:
             continue
-        if job.enqueued_at is not None and now - job.enqueued_at < grace:
+        if now - (job.enqueued_at or job.created_at) < grace:
             continue
+        if job.next_attempt_at is not None and job.next_attempt_at > now:
+            continue  # waiting out a back-off (its message is scheduled)
         if backend.queue.lost(job.queue_ref):
             log.warning("re-sending lost queue message for job %s", job_id)
             _requeue(backend, job_id)

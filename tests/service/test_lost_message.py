@@ -1,6 +1,7 @@
 """A queue message taken by a worker that died before marking it started: RQ still
 says "queued", but no list holds it any more. The reaper must send it again (found
-by the chaos run: one job of 100 stayed queued for good)."""
+by the chaos run: one job of 100 stayed queued for good). Nor may a job whose message
+was never sent stay queued (the API SIGKILLed between creating and enqueuing it)."""
 
 from __future__ import annotations
 
@@ -37,3 +38,28 @@ def test_a_queued_message_no_list_holds_is_resent(redis_url, tmp_path):
     assert resend_lost(b) == [job.id]
     new_ref = b.store.get(job.id).queue_ref
     assert new_ref != ref and b.queue.q.job_ids == [new_ref]
+
+
+def _asset() -> Asset:
+    return Asset(
+        id="ast_1", owner="o", kind="ply", key="uploads/x/a.ply", size=1, content_type="x", sha256="0", created_at=0
+    )
+
+
+def test_a_job_whose_message_was_never_sent_is_sent(redis_url, tmp_path):
+    redislib.Redis.from_url(redis_url + "/5").flushdb()  # private test server, db 5
+    b = make_backend(Settings(redis_url=redis_url + "/5", storage_root=tmp_path, queue_name="unsent", lease_s=1))
+    a = _asset()
+    job = create_job(b, "o", "job_unsent", [a], a, {}, None, None)
+    # What the store holds when the API died right after creating the record: no message.
+    b.redis.delete(b.queue.q.key)
+    b.store.update(job.id, queue_ref=None, enqueued_at=None)
+    assert resend_lost(b) == []  # within the grace a submission may still be enqueuing
+    b.store.update(job.id, created_at=time.time() - 10)
+    b.store.update(job.id, next_attempt_at=time.time() + 60)
+    assert resend_lost(b) == []  # waiting out a back-off is not lost
+    b.store.update(job.id, next_attempt_at=None)
+    assert resend_lost(b) == [job.id]
+    ref = b.store.get(job.id).queue_ref
+    assert ref is not None and b.queue.q.job_ids == [ref]
+    assert resend_lost(b) == []  # sent now: not sent again
