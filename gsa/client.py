@@ -183,25 +183,6 @@ class GSAClient:
             r = self.http.post("/v1/jobs", files=files, data=data, headers=headers)
         return self._check(r).json()
 
-    def submit_assets(
-        self,
-        source_ids: Sequence[str],
-        target_id: str,
-        options: dict | None = None,
-        *,
-        webhook: dict | None = None,
-        idempotency_key: str | None = None,
-    ) -> dict:
-        body = {
-            "sources": list(source_ids),
-            "target": target_id,
-            "options": options or {},
-        }
-        if webhook:
-            body["webhook"] = webhook
-        headers = {"Idempotency-Key": idempotency_key} if idempotency_key else {}
-        return self._check(self.http.post("/v1/jobs", json=body, headers=headers)).json()
-
     def submit_many(
         self,
         asset_ids: Sequence[str],

@@ -1,6 +1,6 @@
 """One validator for zip archives that come from users (image sets), shared by the
 library (gsa.recon.images.check_zip: `gsa align photos.zip`, `gsa reconstruct`) and
-the service (service.inputs.validate_zip: uploads, multipart jobs, the worker).
+the service (service.jobs.inputs.validate_zip: uploads, multipart jobs, the worker).
 
 Everything is checked before anything is extracted, and everything that is refused
 raises one ZipArchiveError (a ValueError) with a one-line message, never zipfile's

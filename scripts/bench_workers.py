@@ -12,6 +12,10 @@ Uploads one small pair as assets, then:
 2. runs --warm sequential jobs on the now-warm workers (median submit -> succeeded);
 3. submits --jobs jobs at once and reports jobs/min from the first submission
    to the last job's end.
+
+With --many N it instead runs one many job (POST /v1/many-jobs) over N partial captures of one
+generated car (--gaussians each, coarse stage) and reports its wall time, edges, seconds per
+edge and which workers ran the edges: run it with --workers 1 and --workers 2 to compare.
 """
 
 from __future__ import annotations
@@ -97,6 +101,50 @@ def registered_workers(redis_url: str) -> int:
     return len(Worker.all(connection=redis.Redis.from_url(redis_url)))
 
 
+def many_captures(tmp: Path, n: int, gaussians: int) -> list[Path]:
+    """N partial captures (70-90 % kept) of one generated car, each under its own random Sim(3)."""
+    import numpy as np
+
+    from gsa.io.ply import write_ply
+    from gsa.synth import make_object, random_sim3
+    from gsa.synth.variants import cut_by_plane
+
+    rng = np.random.default_rng([0, 30, n])
+    paths = []
+    for k in range(n):
+        m = make_object("car", seed=0, n_gaussians=gaussians, sample_seed=k)
+        m = cut_by_plane(m, rng, keep=(0.7, 0.9))
+        paths.append(tmp / f"capture{k}.ply")
+        write_ply(m.transformed(random_sim3(rng, scale_range=(0.5, 2.0))), paths[-1])
+    return paths
+
+
+def many_job(c: httpx.Client, paths: list[Path], workers: int) -> int:
+    ids = []
+    for p in paths:
+        with open(p, "rb") as fh:
+            ids.append(c.post("/v1/assets", files={"file": (p.name, fh)}).json()["id"])
+    t0 = time.perf_counter()
+    r = c.post("/v1/many-jobs", json={"assets": ids, "options": {"stages": ["coarse"], "seed": 0}})
+    assert r.status_code == 202, r.text
+    job = wait_final(c, [r.json()["id"]], timeout=7200)[r.json()["id"]]
+    wall = time.perf_counter() - t0
+    assert job["state"] == "succeeded", job
+    res = job["result"]
+    edges = res["edges"]
+    by_worker: dict[str, int] = {}
+    for e in edges:
+        by_worker[e["worker"]] = by_worker.get(e["worker"], 0) + 1
+    print(
+        f"many job: N={len(paths)} workers={workers} edges={len(edges)} helpers={res['timings']['helpers']} "
+        f"wall (submit->result) {wall:.1f} s, edges phase {res['timings']['pairwise']:.1f} s, "
+        f"{res['timings']['per_edge']:.2f} s per edge (mean of its own time), global step incl.: total "
+        f"{res['timings']['total']:.1f} s; edges per process: {sorted(by_worker.values(), reverse=True)}; "
+        f"pruned {len(res['pruned'])}, corrected {len(res['corrected'])}"
+    )
+    return 0
+
+
 def main() -> int:
     ap = argparse.ArgumentParser()
     ap.add_argument("--workers", type=int, default=2)
@@ -105,6 +153,7 @@ def main() -> int:
     ap.add_argument("--gaussians", type=int, default=3000)
     ap.add_argument("--outputs", default="all", help="comma list, or 'all' (the service default)")
     ap.add_argument("--keep", action="store_true", help="keep the temp folder (logs) for a look")
+    ap.add_argument("--many", type=int, default=0, help="run one many job over this many captures instead")
     ap.add_argument(
         "--cold-cache",
         action="store_true",
@@ -150,6 +199,9 @@ def main() -> int:
                     raise TimeoutError("workers did not register")
                 time.sleep(0.05)
             ready = time.perf_counter() - t_start
+            if a.many:
+                print(f"workers={a.workers} gaussians={a.gaussians} cores={os.cpu_count()} load={os.getloadavg()}")
+                return many_job(c, many_captures(tmp, a.many, a.gaussians), a.workers)
             first, job = one_job(c, ids, options)
             assert job["state"] == "succeeded", job
             first_phases = phases(job)

@@ -1,10 +1,10 @@
 """Peak memory of one alignment job, as a worker runs it, in a fresh child process.
 
 The child reads the two models, runs `align()` with the job's options and writes the job's
-outputs (what `service.execution` does for a single-source job), then reports its own peak
+outputs (what `service.worker.execution` does for a single-source job), then reports its own peak
 RSS (`ru_maxrss`, which includes the interpreter, numpy, numba and torch: the worker's cost of
 one job from a cold process). The parent prints one JSON line per run with the prediction of
-`service.memory.predict_job_memory` beside it.
+`service.jobs.memory.predict_job_memory` beside it.
 
     PYTHONPATH=. .venv/bin/python scripts/measure_job_memory.py --gaussians 3000 \
         --options '{"stages": ["coarse", "fine"], "fine_views": 8, "fine_image_size": 256, "fine_iterations": 1}'
@@ -27,7 +27,7 @@ def child(src: str, tgt: str, options: dict, out: str) -> dict:
     from gsa.align.outputs import write_outputs
     from gsa.align.pipeline import AlignOptions, align
     from gsa.io import read_model
-    from service.options import DEFAULT_OUTPUTS
+    from service.jobs.options import DEFAULT_OUTPUTS
 
     opts = dict(options)
     outputs = set(opts.pop("outputs", None) or DEFAULT_OUTPUTS)
@@ -102,7 +102,7 @@ def main() -> None:
         c = json.loads(a.child)
         print(json.dumps(child(c["src"], c["tgt"], c["options"], c["out"])))
         return
-    from service.memory import predict_job_memory
+    from service.jobs.memory import predict_job_memory
 
     for n in a.gaussians:
         with tempfile.TemporaryDirectory() as d:

@@ -13,12 +13,12 @@ from dataclasses import dataclass, field
 from datetime import timedelta
 from pathlib import Path
 
-from service.redis_store import RedisJobStore
 from service.settings import Settings, get_settings
-from service.sqlite_store import SQLiteJobStore
-from service.storage import Storage, make_storage
-from service.store import JobStore
-from service.webhook_delivery import deliver_with_retries
+from service.storage.blobs import Storage, make_storage
+from service.stores.base import JobStore
+from service.stores.redis_store import RedisJobStore
+from service.stores.sqlite_store import SQLiteJobStore
+from service.webhooks.delivery import deliver_with_retries
 
 log = logging.getLogger("gsa.worker")
 

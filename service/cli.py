@@ -161,7 +161,7 @@ def cmd_serve(args) -> int:
 
 def cmd_worker(args) -> int:
     from service.logs import configure_logging
-    from service.worker import run_rq_worker
+    from service.worker.runners import run_rq_worker
 
     settings = _settings(args)
     configure_logging("INFO", settings.log_format)

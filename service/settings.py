@@ -43,16 +43,18 @@ class Settings(BaseSettings):
     max_gaussians: int = 5_000_000
     max_sources: int = 16  # N in "N models to one reference"
     # N of a many job (POST /v1/many-jobs; issue 30): all pairs up to 8 models, sparse edges beyond.
-    max_many_models: int = 32
+    max_many_models: int = 64
+    # Pairwise alignments one many job may ask for: `edges: all` grows as N(N-1)/2 (20 models: 190).
+    max_many_edges: int = 200
     max_images: int = 500
     max_image_pixels: int = 40_000_000
     max_zip_entries: int = 2_000
     max_zip_uncompressed_bytes: int = 4 * 1024 * 1024 * 1024
     max_zip_ratio: float = 200.0
     # Per-job work of the fine stage: fine_views × fine_image_size² × fine_iterations
-    # (the per-option bounds are in service.options.OPTION_BOUNDS).
+    # (the per-option bounds are in service.jobs.options.OPTION_BOUNDS).
     max_fine_work: int = 2_000_000_000
-    # Memory a job may take on a worker: a job whose predicted peak (service.memory: its
+    # Memory a job may take on a worker: a job whose predicted peak (service.jobs.memory: its
     # options and its inputs' sizes) is above this is refused at submission (422). 0 = no check.
     worker_memory_mb: int = 8192
 
@@ -76,7 +78,7 @@ class Settings(BaseSettings):
     # from worker_reconnect_min_s, capped at worker_reconnect_max_s.
     worker_reconnect_min_s: float = 0.5
     worker_reconnect_max_s: float = 30.0
-    # Artifacts converted on request (?format=, service.convert) run in child processes: at
+    # Artifacts converted on request (?format=, service.worker.convert) run in child processes: at
     # most max_conversions at once per API process; a request finding none free waits up to
     # conversion_wait_s, then gets 503 with Retry-After; a child past conversion_timeout_s is
     # killed (504).
@@ -90,7 +92,7 @@ class Settings(BaseSettings):
     # Local storage only: bytes the blobs may take in all (0 = no quota). A write past it
     # fails as on a full disk (507 / a retried job), and /readyz counts what is left of it.
     storage_quota_bytes: int = 0
-    # Per tenant (owner), so one cannot take what all share (service.quotas): bytes of uploads
+    # Per tenant (owner), so one cannot take what all share (service.jobs.quotas): bytes of uploads
     # and job artifacts one owner may store (507 past it; unset: half of storage_quota_bytes
     # when that is set, else none; 0 = none), queued + running jobs at once (429 past it;
     # 0 = none), and API requests a second with a burst (token bucket, in Redis when there is
@@ -114,7 +116,7 @@ class Settings(BaseSettings):
 
     # Retention: finished jobs (with their artifacts) and assets no remaining job uses are
     # deleted this many days after they finished / were uploaded; 0 keeps everything.
-    # The API process sweeps every retention_sweep_interval_s (service.retention).
+    # The API process sweeps every retention_sweep_interval_s (service.storage.retention).
     retention_days: float = 0.0
     retention_sweep_interval_s: float = 3600.0
 

@@ -88,10 +88,10 @@ def test_safe_names(name):
 
 
 def test_the_service_uses_the_same_validator():
-    import service.inputs
+    import service.jobs.inputs
 
-    assert service.inputs.check_zip is shared_check_zip
-    assert service.inputs.unsafe_member_name is unsafe_member_name
+    assert service.jobs.inputs.check_zip is shared_check_zip
+    assert service.jobs.inputs.unsafe_member_name is unsafe_member_name
 
 
 @pytest.mark.slow

@@ -65,12 +65,6 @@ class Cameras:
         """(C, 4) rows fx, fy, cx, cy."""
         return np.stack([self.fx, self.fy, self.cx, self.cy], axis=1)
 
-    def K(self) -> np.ndarray:
-        """(C, 3, 3) intrinsic matrices."""
-        k = np.zeros((len(self), 3, 3))
-        k[:, 0, 0], k[:, 1, 1], k[:, 0, 2], k[:, 1, 2], k[:, 2, 2] = self.fx, self.fy, self.cx, self.cy, 1.0
-        return k
-
     def centers(self) -> np.ndarray:
         """(C, 3) camera centres in world coordinates (valid for similarity view matrices too)."""
         a = self.viewmats[:, :3, :3]

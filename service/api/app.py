@@ -20,12 +20,12 @@ from service.api.middleware import BodyLimit, RequestMetrics, install_error_hand
 from service.api.openapi import custom_openapi
 from service.api.request_ids import RequestIds
 from service.backend import Backend, make_backend
-from service.leases import start_reaper
 from service.metrics import Metrics
 from service.problems import Problem, infrastructure_problem
-from service.retention import start_retention
-from service.runners import start_embedded_workers
 from service.settings import Settings, get_settings
+from service.storage.retention import start_retention
+from service.worker.leases import start_reaper
+from service.worker.runners import start_embedded_workers
 
 log = logging.getLogger("gsa.api")
 
@@ -50,7 +50,7 @@ def create_app(
             start_embedded_workers(b, stop)
         grpc_server = None
         if b.settings.grpc_port:
-            from service.grpc_server import serve_grpc  # lazy: grpcio loads only when gRPC is on
+            from service.rpc.server import serve_grpc  # lazy: grpcio loads only when gRPC is on
 
             grpc_server = serve_grpc(b, b.settings.grpc_port, metrics=app.state.metrics)
         try:

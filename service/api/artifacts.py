@@ -10,12 +10,12 @@ from fastapi import APIRouter, Header, Query, Response
 from fastapi.responses import StreamingResponse
 from starlette.concurrency import run_in_threadpool
 
-from service import core
 from service.api.deps import B, Owner
 from service.api.jobs import _etag_matches
 from service.api.openapi import problem_responses
-from service.convert import conversions
+from service.jobs import core
 from service.problems import Problem as ProblemError
+from service.worker.convert import conversions
 
 router = APIRouter()
 

@@ -5,12 +5,13 @@ from __future__ import annotations
 from fastapi import APIRouter, Request, Response
 from fastapi.concurrency import run_in_threadpool
 
-from service import core, retention
 from service.api.deps import B, Owner
 from service.api.openapi import UPLOAD_BODY, problem_responses
 from service.api.schemas import AssetOut
 from service.api.upload import parse_multipart
+from service.jobs import core
 from service.problems import invalid_input
+from service.storage import retention
 
 router = APIRouter()
 

@@ -11,8 +11,8 @@ from typing import Annotated
 from fastapi import Depends, Request
 from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
 
-from service import core
 from service.backend import Backend
+from service.jobs import core
 
 bearer = HTTPBearer(auto_error=False, description="API key: `Authorization: Bearer <key>`")
 
@@ -25,7 +25,7 @@ async def require_owner(
     request: Request,
     creds: HTTPAuthorizationCredentials | None = Depends(bearer),
 ) -> str:
-    """401 without a valid key, 429 past the tenant's request rate (service.core.authenticate)."""
+    """401 without a valid key, 429 past the tenant's request rate (service.jobs.core.authenticate)."""
     return core.authenticate(get_backend(request), creds.credentials if creds else None)
 
 

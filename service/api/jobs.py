@@ -13,15 +13,16 @@ from fastapi.concurrency import run_in_threadpool
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
 
-from service import core, retention
 from service.api.deps import B, Owner
 from service.api.openapi import JOB_BODY, problem_responses
 from service.api.schemas import JobCreate, JobList, JobOut, RefineIn, WebhookIn
 from service.api.upload import Form, parse_multipart
 from service.backend import Backend
-from service.models import JobState
-from service.options import parse_options
+from service.jobs import core
+from service.jobs.models import JobState
+from service.jobs.options import parse_options
 from service.problems import Problem, invalid_input
+from service.storage import retention
 
 router = APIRouter()
 

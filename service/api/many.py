@@ -1,5 +1,5 @@
 """Many jobs (issue 30): N previously uploaded models into one reference frame
-(service.many; the job is then read, cancelled, deleted and its artifacts fetched as any job's
+(service.jobs.many; the job is then read, cancelled, deleted and its artifacts fetched as any job's
 under /v1/jobs/{id})."""
 
 from __future__ import annotations
@@ -10,12 +10,12 @@ from fastapi import APIRouter, Header, Request
 from fastapi.concurrency import run_in_threadpool
 from pydantic import BaseModel, ConfigDict, Field
 
-from service import many
 from service.api.deps import B, Owner
 from service.api.jobs import _job_response
 from service.api.openapi import problem_responses
 from service.api.schemas import JobOut, WebhookIn
-from service.options import AlignOptionsIn
+from service.jobs import many
+from service.jobs.options import AlignOptionsIn
 
 router = APIRouter()
 

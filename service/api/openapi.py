@@ -107,7 +107,7 @@ def custom_openapi(app: FastAPI) -> dict:
     return schema
 
 
-# Operations that store bytes for the caller: 507 past the tenant's storage quota (service.quotas).
+# Operations that store bytes for the caller: 507 past the tenant's storage quota (service.jobs.quotas).
 _STORING = {"uploadAsset", "createJob", "refineJob", "refineJobSlash"}
 
 

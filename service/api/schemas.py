@@ -9,8 +9,8 @@ from typing import Any, Literal
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
 from service.api.results import JobResult
-from service.models import Asset, Job, JobState
-from service.options import AlignOptionsIn, hint_field
+from service.jobs.models import Asset, Job, JobState
+from service.jobs.options import AlignOptionsIn, hint_field
 
 log = logging.getLogger("gsa.api")
 
@@ -29,7 +29,7 @@ class Problem(BaseModel):
 class RefineIn(BaseModel):
     """POST /v1/jobs/{id}:refine: where the follow-up job starts (exactly one of alternative,
     init_transform, point_pairs) and, optionally, new up_axes / fixed_scale (null drops the
-    parent's). Checked by service.core.refine_options and service.options (422 naming the field)."""
+    parent's). Checked by service.jobs.core.refine_options and service.jobs.options (422 naming the field)."""
 
     model_config = ConfigDict(extra="forbid")
     alternative: Any = Field(None, description="index into the parent result's metrics.alternatives", examples=[0])

@@ -3,7 +3,7 @@ renders), its files, the viewer's static code and the operator's list of jobs.
 
 Browsers cannot send `Authorization: Bearer`, and an API key must never sit in a URL.
 So an API call (`POST /v1/jobs/{id}/view-link`, `POST /v1/view-link`) returns a
-short-lived signed link (service.view_links); opening it moves the token into an
+short-lived signed link (service.api.view_links); opening it moves the token into an
 HttpOnly cookie scoped to that page's path and redirects to the clean URL. A bearer
 key still works on every route here (curl, scripts).
 """
@@ -32,15 +32,15 @@ from gsa.viewer.page import (
     render_page,
 )
 from gsa.viewer.preview import PREVIEW_NAMES
-from service import core
 from service.api.deps import B, Owner, get_backend
 from service.api.openapi import problem_responses
 from service.api.schemas import JobOut, RefineIn
+from service.api.view_links import LinkError, sign, verify
 from service.backend import Backend
-from service.many import is_many, many_preview_name
-from service.models import Job, JobState
+from service.jobs import core
+from service.jobs.many import is_many, many_preview_name
+from service.jobs.models import Job, JobState
 from service.problems import Problem, invalid_input, not_found
-from service.view_links import LinkError, sign, verify
 
 router = APIRouter()
 COOKIE = "gsa_view"

@@ -161,7 +161,7 @@ OPTION_VALUES = st.one_of(
 
 
 def option_names() -> list[str]:
-    from service.options import SERVICE_OPTIONS, align_option_names
+    from service.jobs.options import SERVICE_OPTIONS, align_option_names
 
     return sorted(align_option_names() | SERVICE_OPTIONS)
 

@@ -107,9 +107,9 @@ def test_full_disk_create_is_507_with_nothing_behind_and_deletes_free_space(smal
 def test_a_failed_update_surfaces_its_own_error_not_the_rollbacks(tmp_path):
     """A write that fails inside update()'s transaction raises that error ("database or disk
     is full", a 507), never the ROLLBACK's "no transaction is active" (a 500)."""
-    from service.models import InputRef, Job
+    from service.jobs.models import InputRef, Job
     from service.problems import infrastructure_problem
-    from service.sqlite_store import SQLiteJobStore
+    from service.stores.sqlite_store import SQLiteJobStore
 
     store = SQLiteJobStore(tmp_path / "jobs.sqlite3", reserve_bytes=0)
     ref = InputRef(asset_id="a", key="k", kind="ply")
@@ -124,7 +124,7 @@ def test_a_failed_update_surfaces_its_own_error_not_the_rollbacks(tmp_path):
 
 
 def test_the_reserve_is_given_up_for_a_delete_and_taken_back(tmp_path):
-    from service.sqlite_store import SQLiteJobStore
+    from service.stores.sqlite_store import SQLiteJobStore
 
     store = SQLiteJobStore(tmp_path / "jobs.sqlite3", reserve_bytes=1 << 20)
     reserve = Path(str(tmp_path / "jobs.sqlite3") + ".reserve")

@@ -9,8 +9,8 @@ import json
 import grpc
 import pytest
 
-from service.grpc_gen import alignment_pb2 as pb
-from service.grpc_gen import alignment_pb2_grpc as pbg
+from service.rpc.generated import alignment_pb2 as pb
+from service.rpc.generated import alignment_pb2_grpc as pbg
 from tests.service.conftest import assert_problem, submit_pair
 
 pytestmark = pytest.mark.slow  # starts servers and worker processes
@@ -53,7 +53,7 @@ def test_learned_features_without_weights_are_refused_at_submission(stack, pair,
 def test_configured_weights_make_them_available():
     from types import SimpleNamespace
 
-    from service.options import check_feature_weights
+    from service.jobs.options import check_feature_weights
 
     s = SimpleNamespace(dinov2_weights="/w/dinov2", spheremap_weights=None)
     check_feature_weights({"features": "dinov2"}, s)

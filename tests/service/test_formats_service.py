@@ -94,8 +94,8 @@ def test_aligned_artifact_in_a_requested_format(http, done_job, tmp_path):
 
 
 def test_grpc_transform_carries_the_contract(stack, done_job):
-    from service.grpc_gen import alignment_pb2 as pb
-    from service.grpc_gen import alignment_pb2_grpc as pbg
+    from service.rpc.generated import alignment_pb2 as pb
+    from service.rpc.generated import alignment_pb2_grpc as pbg
 
     with grpc.insecure_channel(stack["grpc"]) as ch:
         stub = pbg.AlignmentServiceStub(ch)

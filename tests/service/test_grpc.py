@@ -11,8 +11,8 @@ import httpx
 import numpy as np
 import pytest
 
-from service.grpc_gen import alignment_pb2 as pb
-from service.grpc_gen import alignment_pb2_grpc as pbg
+from service.rpc.generated import alignment_pb2 as pb
+from service.rpc.generated import alignment_pb2_grpc as pbg
 from tests.service.conftest import ALICE, ROOT, library_result
 
 ALIGN = {"stages": ["coarse"], "coarse_iterations": 30, "seed": 0}
@@ -22,12 +22,12 @@ AUTH = (("authorization", "Bearer key-alice"),)
 
 
 def test_generated_code_in_sync(tmp_path):
-    from service.grpc_gen.generate import FILES, generate
+    from service.rpc.generated.generate import FILES, generate
 
     generate(tmp_path)
     for name in FILES:
-        assert (tmp_path / name).read_text() == (ROOT / "service" / "grpc_gen" / name).read_text(), (
-            f"{name} is stale: run python -m service.grpc_gen.generate"
+        assert (tmp_path / name).read_text() == (ROOT / "service" / "rpc" / "generated" / name).read_text(), (
+            f"{name} is stale: run python -m service.rpc.generated.generate"
         )
 
 

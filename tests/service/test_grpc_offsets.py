@@ -9,8 +9,8 @@ import grpc
 import httpx
 import pytest
 
-from service.grpc_gen import alignment_pb2 as pb
-from service.grpc_gen import alignment_pb2_grpc as pbg
+from service.rpc.generated import alignment_pb2 as pb
+from service.rpc.generated import alignment_pb2_grpc as pbg
 from tests.service.conftest import ALICE, submit_pair, wait_job
 
 AUTH = (("authorization", "Bearer key-alice"),)

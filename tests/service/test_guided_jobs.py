@@ -11,8 +11,8 @@ import httpx
 import numpy as np
 import pytest
 
-from service.grpc_gen import alignment_pb2 as pb
-from service.grpc_gen import alignment_pb2_grpc as pbg
+from service.rpc.generated import alignment_pb2 as pb
+from service.rpc.generated import alignment_pb2_grpc as pbg
 from tests.service.conftest import ALICE, BOB, assert_problem, submit_slow_job, wait_job
 
 pytestmark = pytest.mark.slow  # starts servers and worker processes

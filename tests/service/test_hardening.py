@@ -9,8 +9,8 @@ import json
 import grpc
 import pytest
 
-from service.grpc_gen import alignment_pb2 as pb
-from service.grpc_gen import alignment_pb2_grpc as pbg
+from service.rpc.generated import alignment_pb2 as pb
+from service.rpc.generated import alignment_pb2_grpc as pbg
 from tests.service.conftest import assert_problem, submit_pair
 
 AUTH = (("authorization", "Bearer key-alice"),)
@@ -154,7 +154,7 @@ def test_grpc_binds_loopback_by_default(stack):
 
 def test_grpc_listens_on_the_configured_host_only(tmp_path):
     from service.backend import make_backend
-    from service.grpc_server import serve_grpc
+    from service.rpc.server import serve_grpc
     from service.settings import Settings
     from tests.service.conftest import free_port
 
@@ -285,8 +285,8 @@ def test_bad_model_errors_name_the_asset_not_server_paths(http, pair, tmp_path):
 
 
 def test_redact_work_paths_maps_every_workspace_file():
-    from service.inputs import redact_work_paths
-    from service.models import InputRef, Job
+    from service.jobs.inputs import redact_work_paths
+    from service.jobs.models import InputRef, Job
 
     def ref(i, name, kind="ply"):
         return InputRef(asset_id=i, key="k", kind=kind, filename=name)

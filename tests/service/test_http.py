@@ -446,7 +446,7 @@ def test_ops_endpoints_and_openapi(stack, http):
 
 @pytest.mark.parametrize("bad", ["../etc/passwd", "a/../../b", "/abs", "C:\\x", "a\\b"])
 def test_unsafe_zip_names(bad):
-    from service.inputs import unsafe_member_name
+    from service.jobs.inputs import unsafe_member_name
 
     assert unsafe_member_name(bad)
     assert not unsafe_member_name("views/0001.png")

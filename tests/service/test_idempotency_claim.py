@@ -7,12 +7,13 @@ from __future__ import annotations
 import pytest
 import redis as redislib
 
-from service import redis_store, store
 from service.backend import make_backend
-from service.core import claim, create_job
-from service.models import Asset
+from service.jobs.core import claim, create_job
+from service.jobs.models import Asset
 from service.problems import Problem
 from service.settings import Settings
+from service.stores import base as store
+from service.stores import redis_store
 
 
 def test_a_claim_without_its_job_lapses_and_a_created_job_keeps_its_key(redis_url, tmp_path):

@@ -15,9 +15,9 @@ import grpc
 import httpx
 import pytest
 
-from service.grpc_gen import alignment_pb2 as pb
-from service.grpc_gen import alignment_pb2_grpc as pbg
-from service.memory import MB, predict_job_memory
+from service.jobs.memory import MB, predict_job_memory
+from service.rpc.generated import alignment_pb2 as pb
+from service.rpc.generated import alignment_pb2_grpc as pbg
 from service.settings import Settings
 from tests.service.conftest import ALICE, assert_problem, submit_pair
 

@@ -10,10 +10,10 @@ import time
 import redis as redislib
 
 from service.backend import make_backend
-from service.core import create_job
-from service.leases import resend_lost
-from service.models import Asset
+from service.jobs.core import create_job
+from service.jobs.models import Asset
 from service.settings import Settings
+from service.worker.leases import resend_lost
 
 
 def test_a_queued_message_no_list_holds_is_resent(redis_url, tmp_path):

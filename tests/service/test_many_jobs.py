@@ -11,8 +11,8 @@ import httpx
 import numpy as np
 import pytest
 
-from service.grpc_gen import alignment_pb2 as pb
-from service.grpc_gen import alignment_pb2_grpc as pbg
+from service.rpc.generated import alignment_pb2 as pb
+from service.rpc.generated import alignment_pb2_grpc as pbg
 from tests.service.conftest import ALICE, BOB, assert_problem, wait_job, wait_until
 
 pytestmark = pytest.mark.slow  # starts servers and worker processes
@@ -122,8 +122,13 @@ def test_bad_many_requests(stack, http, assets, captures):
 
     p = assert_problem(post({"assets": assets[:1]}), 422, "invalid-input")
     assert p["option"] == "assets" and p["minimum"] == 2
-    p = assert_problem(post({"assets": [assets[0]] + [f"ast_{k}" for k in range(40)]}), 422, "invalid-input")
-    assert p["option"] == "assets" and p["maximum"] == 32
+    p = assert_problem(post({"assets": [assets[0]] + [f"ast_{k}" for k in range(70)]}), 422, "invalid-input")
+    assert p["option"] == "assets" and p["maximum"] == 64
+    # All pairs of 21 models is 210 alignments, past GSA_MAX_MANY_EDGES (200); 20 models' 190 pass that check.
+    many = [assets[0]] + [f"ast_{k}" for k in range(20)]
+    p = assert_problem(post({"assets": many, "edges": "all"}), 422, "invalid-input")
+    assert p["option"] == "edges" and p["maximum"] == 200 and p["value"] == 210 and "'auto'" in p["detail"]
+    assert_problem(post({"assets": many[:20], "edges": "all"}), 404, "not-found")
     assert_problem(post({"assets": [assets[0], assets[0]]}), 422, "invalid-input")
     p = assert_problem(post({"assets": assets[:2], "reference": assets[2]}), 422, "invalid-input")
     assert p["option"] == "reference"
@@ -171,6 +176,32 @@ def test_cancel_a_running_many_job(http, assets):
     assert final["artifacts"] == [] and final["result"] is None
 
 
+def test_edges_spread_over_the_workers(stack, http, assets, captures):
+    """One RQ job per edge: with a second worker registered, the job enqueues a helper task and
+    its edges run in two processes; the result is the same job result (truth within 3°)."""
+    import redis
+    import rq
+
+    from tests.service.conftest import start_worker
+
+    queue = rq.Queue("gsa", connection=redis.Redis.from_url(stack["redis_url"]))
+    second = start_worker(stack["tmp"], stack["env"], "edge-helper")
+    try:
+        wait_until(lambda: rq.Worker.count(queue=queue) >= 2, 60, 0.2, "a second worker")
+        options = {**EDGE_OPTIONS, "coarse_iterations": 60}
+        r = http.post("/v1/many-jobs", json={"assets": assets, "edges": "all", "options": options})
+        assert r.status_code == 202, r.text
+        final = wait_job(http, r.json()["id"], timeout=240)
+    finally:
+        second.stop()
+    assert final["state"] == "succeeded", final
+    result = final["result"]
+    check_against_truth(result, assets, captures["truth"])
+    assert result["timings"]["helpers"] == 1  # min(edges - 1, workers - 1)
+    workers = [e["worker"] for e in result["edges"]]
+    assert len(set(workers)) == 2, (workers, result["timings"])
+
+
 def test_many_job_over_grpc(stack, assets, captures):
     ch = grpc.insecure_channel(stack["grpc"])
     stub = pbg.AlignmentServiceStub(ch)
@@ -195,6 +226,12 @@ def test_many_job_over_grpc(stack, assets, captures):
     assert final.state == pb.JOB_STATE_SUCCEEDED, final
     result = json.loads(final.result_json)
     check_against_truth(result, assets[:2], captures["truth"][:2], reference=1)
+    # Job.transforms: one per model, each its file_transform with its confidence (the pair jobs' contract).
+    assert len(final.transforms) == 2 and final.transform == final.transforms[0]
+    for t, m in zip(final.transforms, result["models"]):
+        assert np.allclose(np.reshape(t.matrix, (4, 4)), m["file_transform"], atol=1e-9)
+        assert t.scale == pytest.approx(m["scale"]) and t.confidence == m["confidence"] and t.doubtful == m["doubtful"]
+    assert np.allclose(np.reshape(final.transforms[1].matrix, (4, 4)), np.eye(4), atol=1e-9)  # the reference
     assert [a.name for a in final.artifacts] == ["many.json", "preview/model0.splat", "preview/model1.splat"]
 
 
@@ -203,8 +240,8 @@ def test_many_job_memory_prediction():
     eight 5M SH-3 captures are refused under the default 8 GB budget, three small ones are not."""
     from types import SimpleNamespace
 
-    from service.many import check_many_memory
-    from service.models import Asset
+    from service.jobs.many import check_many_memory
+    from service.jobs.models import Asset
     from service.problems import Problem
 
     def asset(n: int) -> Asset:

@@ -169,9 +169,9 @@ def test_storage_errors_are_507_or_503_and_jobs_retry_them(tmp_path, pair, monke
 
     from service.api.app import create_app
     from service.backend import make_backend
-    from service.execution import execute
-    from service.models import JobState
+    from service.jobs.models import JobState
     from service.settings import Settings
+    from service.worker.execution import execute
 
     # No back-off here, so the retry can run at once (back-off: test_retry_backoff.py).
     s = Settings(storage_root=tmp_path / "data", api_keys={"k": "me"}, max_attempts=2, retry_backoff_base_s=0)
@@ -226,9 +226,9 @@ def test_every_exit_path_removes_the_job_temp_folder(tmp_path, pair, monkeypatch
 
     import gsa.align.pipeline as pipeline
     from service.backend import make_backend
-    from service.execution import execute
-    from service.models import JobState
+    from service.jobs.models import JobState
     from service.settings import Settings
+    from service.worker.execution import execute
 
     tmp = tmp_path / "tmp"
     tmp.mkdir()
@@ -308,9 +308,9 @@ def test_sweep_removes_only_workspaces_no_live_attempt_owns(tmp_path):
     import time as _time
 
     from service.backend import make_backend
-    from service.leases import sweep_workspaces
-    from service.models import InputRef, Job, JobState
+    from service.jobs.models import InputRef, Job, JobState
     from service.settings import Settings
+    from service.worker.leases import sweep_workspaces
 
     b = make_backend(Settings(storage_root=tmp_path / "data", lease_s=30, job_timeout_s=600))
     ref = InputRef(asset_id="a", key="uploads/x/y", kind="ply")

@@ -12,10 +12,10 @@ import grpc
 import httpx
 import pytest
 
-from service.execution import retry_delay
-from service.grpc_gen import alignment_pb2 as pb
-from service.grpc_gen import alignment_pb2_grpc as pbg
+from service.rpc.generated import alignment_pb2 as pb
+from service.rpc.generated import alignment_pb2_grpc as pbg
 from service.settings import Settings
+from service.worker.execution import retry_delay
 from tests.service.conftest import ALICE, service_env, start_api, start_worker, wait_until
 
 pytestmark = pytest.mark.slow  # starts servers and worker processes

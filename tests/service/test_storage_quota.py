@@ -9,7 +9,7 @@ import httpx
 import pytest
 
 from service.problems import infrastructure_problem
-from service.storage import LocalStorage
+from service.storage.blobs import LocalStorage
 from tests.service.conftest import ALICE, assert_problem, service_env, start_api
 
 
@@ -46,7 +46,7 @@ def test_no_quota_by_default(tmp_path):
 @pytest.mark.slow
 def test_upload_past_the_quota_is_507_and_readyz_reports_it(tmp_path, pair):
     size = pair["source"].stat().st_size
-    # The global quota alone: a tenant's own (by default half of it, service.quotas) is tested in test_tenant_limits.
+    # The global quota alone: a tenant's own (by default half of it, service.jobs.quotas) is tested in test_tenant_limits.
     env = service_env(
         tmp_path, GSA_STORAGE_QUOTA_BYTES=int(size * 1.05), GSA_MIN_FREE_BYTES=size, GSA_TENANT_STORAGE_QUOTA_BYTES=0
     )

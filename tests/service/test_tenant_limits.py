@@ -55,7 +55,7 @@ def test_metrics_are_for_operators_only(stack):
         assert_problem(c.get("/metrics"), 401)
 
 
-# ------------------------------------------------------------------ per-tenant quotas (service.quotas)
+# ------------------------------------------------------------------ per-tenant quotas (service.jobs.quotas)
 # Each test starts its own deployment, in both modes: embedded (SQLite, in-process worker) and
 # Redis (a database of the session's redis-server of its own, a `gsa worker` where jobs must run).
 
@@ -131,8 +131,8 @@ def _long_job(c: httpx.Client, ids: list[str]) -> httpx.Response:
 def test_concurrent_job_limit_is_429_with_retry_after(tmp_path, pair, redis_url, mode):
     import grpc
 
-    from service.grpc_gen import alignment_pb2 as pb
-    from service.grpc_gen import alignment_pb2_grpc as pbg
+    from service.rpc.generated import alignment_pb2 as pb
+    from service.rpc.generated import alignment_pb2_grpc as pbg
 
     # Redis mode runs no worker, so accepted jobs stay queued; the embedded worker runs one at a time.
     urls, gaddr, procs = _deploy(
@@ -193,8 +193,8 @@ def test_concurrent_job_limit_is_429_with_retry_after(tmp_path, pair, redis_url,
 def test_request_rate_is_429_with_retry_after(tmp_path, pair, redis_url, mode):
     import grpc
 
-    from service.grpc_gen import alignment_pb2 as pb
-    from service.grpc_gen import alignment_pb2_grpc as pbg
+    from service.rpc.generated import alignment_pb2 as pb
+    from service.rpc.generated import alignment_pb2_grpc as pbg
 
     # Redis mode: two API processes draw from one bucket per tenant, kept in Redis.
     urls, gaddr, procs = _deploy(

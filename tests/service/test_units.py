@@ -11,11 +11,11 @@ import zipfile
 import numpy as np
 import pytest
 
-from service.models import InputRef, Job, JobState
+from service.jobs.models import InputRef, Job, JobState
 from service.problems import Problem
 from service.settings import Settings
-from service.sqlite_store import SQLiteJobStore
-from service.storage import LocalStorage, new_key
+from service.storage.blobs import LocalStorage, new_key
+from service.stores.sqlite_store import SQLiteJobStore
 from tests.service.conftest import ROOT
 
 
@@ -64,8 +64,8 @@ def _job(jid, owner="o", t=None):
 
 def test_both_stores_implement_the_store_protocol():
     """Each store defines every JobStore method itself (the protocol's bodies are `...`)."""
-    from service.redis_store import RedisJobStore
-    from service.store import JobStore
+    from service.stores.base import JobStore
+    from service.stores.redis_store import RedisJobStore
 
     wanted = {n for n, v in vars(JobStore).items() if callable(v) and not n.startswith("_")}
     assert {"create", "get", "update", "list", "ping"} <= wanted
@@ -105,7 +105,7 @@ def test_sqlite_store_cas_persistence_and_pages(tmp_path):
 def test_redis_store_matches_sqlite_semantics(redis_url):
     import redis as redislib
 
-    from service.redis_store import RedisJobStore
+    from service.stores.redis_store import RedisJobStore
 
     r = redislib.Redis.from_url(redis_url + "/2")
     r.flushdb()  # our private test server's db 2 only
@@ -148,7 +148,7 @@ def _ply_header(n, extra=""):
 
 
 def test_validate_ply_limits(tmp_path):
-    from service.inputs import validate_ply
+    from service.jobs.inputs import validate_ply
 
     p = tmp_path / "a.ply"
     body = np.zeros((10, 14), "<f4")
@@ -165,7 +165,7 @@ def test_validate_ply_limits(tmp_path):
 
 
 def test_zip_limits(tmp_path):
-    from service.inputs import validate_zip
+    from service.jobs.inputs import validate_zip
     from tests.service.test_http import _png
 
     def make(entries):
@@ -190,7 +190,7 @@ def test_zip_limits(tmp_path):
 
 
 def test_webhook_signature_and_ssrf():
-    from service.webhook_delivery import check_url, sign, verify
+    from service.webhooks.delivery import check_url, sign, verify
 
     sig = sign("k", "123", b"{}")
     assert verify("k", "123", b"{}", sig) and not verify("k", "124", b"{}", sig)
@@ -293,7 +293,7 @@ def test_cancel_queued_and_job_timeout_in_process(tmp_path, pair):
 
     from service.api.app import create_app
     from service.backend import make_backend
-    from service.execution import execute
+    from service.worker.execution import execute
 
     s = Settings(storage_root=tmp_path, api_keys={"k": "me"}, job_timeout_s=0.0)
     H = {"Authorization": "Bearer k"}
@@ -352,7 +352,7 @@ def test_fingerprint_counts_uploads_by_their_bytes():
     import hashlib
     import json
 
-    from service.core import Upload, fingerprint, sha256_file
+    from service.jobs.core import Upload, fingerprint, sha256_file
 
     data = io.BytesIO(b"ply\n" * 1000)
     sha = hashlib.sha256(data.getvalue()).hexdigest()
@@ -371,4 +371,4 @@ def test_grpc_front_end_does_not_import_the_http_one():
     from tests.test_import_graph import ROOT, import_graph
 
     graph = import_graph(ROOT, ("service",))
-    assert not sorted(m for m in graph["service.grpc_server"] if m.startswith("service.api"))
+    assert not sorted(m for m in graph["service.rpc.server"] if m.startswith("service.api"))

@@ -12,7 +12,7 @@ from urllib.parse import urlsplit
 import httpx
 import pytest
 
-from service.view_links import sign
+from service.api.view_links import sign
 from tests.browser import browser_page, errors, wait_colours, wait_drawn, wait_ready
 from tests.service.conftest import ALICE, BOB, assert_problem, service_env, start_api, wait_job
 

@@ -1,10 +1,10 @@
-"""Signed browser links (service.view_links): what opens a page and what does not."""
+"""Signed browser links (service.api.view_links): what opens a page and what does not."""
 
 from __future__ import annotations
 
 import pytest
 
-from service.view_links import LinkError, sign, verify
+from service.api.view_links import LinkError, sign, verify
 
 
 def test_a_link_opens_its_page_for_its_owner_until_it_expires():

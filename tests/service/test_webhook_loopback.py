@@ -23,7 +23,7 @@ import httpx
 import pytest
 from hypothesis import HealthCheck, given, settings
 
-from service.webhook_delivery import check_url
+from service.webhooks.delivery import check_url
 from tests.service.conftest import ALICE, assert_problem, service_env, start_api, submit_pair
 
 LOOPBACK_HOSTS = {"127.0.0.1", "localhost", "::1"}

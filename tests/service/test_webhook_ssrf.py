@@ -18,9 +18,9 @@ import grpc
 import httpx
 import pytest
 
-from service.grpc_gen import alignment_pb2 as pb
-from service.grpc_gen import alignment_pb2_grpc as pbg
-from service.webhook_delivery import check_url, non_global, pinned_request, post_job_event
+from service.rpc.generated import alignment_pb2 as pb
+from service.rpc.generated import alignment_pb2_grpc as pbg
+from service.webhooks.delivery import check_url, non_global, pinned_request, post_job_event
 from tests.service.conftest import ALICE, assert_problem, service_env, start_api
 
 NON_GLOBAL = [

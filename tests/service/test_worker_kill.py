@@ -51,9 +51,9 @@ def test_lost_job_is_failed_when_attempts_are_spent(tmp_path):
     import time
 
     from service.backend import make_backend
-    from service.leases import reap
-    from service.models import InputRef, Job, JobState
+    from service.jobs.models import InputRef, Job, JobState
     from service.settings import Settings
+    from service.worker.leases import reap
 
     b = make_backend(Settings(storage_root=tmp_path, max_attempts=2))
     ref = InputRef(asset_id="a", key="uploads/x/y", kind="ply")
@@ -104,10 +104,10 @@ def test_lost_queue_message_is_resent(redis_url, tmp_path):
     from rq.job import Job as RQJob
 
     from service.backend import make_backend
-    from service.core import create_job
-    from service.leases import resend_lost
-    from service.models import Asset
+    from service.jobs.core import create_job
+    from service.jobs.models import Asset
     from service.settings import Settings
+    from service.worker.leases import resend_lost
 
     redislib.Redis.from_url(redis_url + "/3").flushdb()  # private test server, db 3
     b = make_backend(

@@ -1,4 +1,4 @@
-"""The RQ worker's warm-up (service.runners._warm_up): the parent loads the aligner
+"""The RQ worker's warm-up (service.worker.runners._warm_up): the parent loads the aligner
 and the renderer's kernels, so a forked work horse neither compiles nor hangs."""
 
 from __future__ import annotations
@@ -16,7 +16,7 @@ pytestmark = pytest.mark.slow  # a fresh interpreter that imports torch and numb
 CHILD = textwrap.dedent(
     """
     import os, sys, time
-    from service import runners
+    from service.worker import runners
     runners._warm_up()
     import torch
     from gsa.render.cpu import composite

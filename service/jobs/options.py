@@ -43,6 +43,22 @@ def server_options(settings, known: set[str]) -> dict:
     return out
 
 
+def align_options(settings, options: dict[str, Any]):
+    """The AlignOptions of a job's options (the names this library build knows; the rest, such
+    as a many job's own fields, are not align()'s), with the deployment's server options."""
+    from gsa.align.pipeline import AlignOptions  # lazy: see align_option_names
+
+    known = align_option_names()
+    opts = {k: v for k, v in options.items() if k in known}
+    if isinstance(opts.get("stages"), list):
+        opts["stages"] = tuple(opts["stages"])
+    opts.update(server_options(settings, known))
+    try:
+        return AlignOptions(**opts)
+    except (TypeError, ValueError) as exc:
+        raise invalid_input(f"invalid options: {exc}") from None
+
+
 def align_option_names() -> set[str]:
     """The option names this library build's AlignOptions accepts."""
     from gsa.align.pipeline import AlignOptions  # lazy: ~1 s of imports, kept off API start-up

@@ -11,16 +11,25 @@ each model's preview for the results page (preview/model{k}.splat)."""
 from __future__ import annotations
 
 import json
+import time
 from dataclasses import dataclass
 from typing import Any
 
-from service import core, quotas
-from service.backend import Backend
-from service.leases import JobProgress, finish_attempt, job_workspace
-from service.models import Asset, Job, JobState
-from service.options import GUIDANCE_OPTIONS, SERVICE_OPTIONS, align_option_names, server_options, validate_options
+from service.backend import Backend, RQQueue
+from service.jobs import core, quotas
+from service.jobs.models import Asset, Job, JobState
+from service.jobs.options import GUIDANCE_OPTIONS, SERVICE_OPTIONS, align_options, validate_options
 from service.problems import invalid_input
-from service.webhook_delivery import check_url
+from service.webhooks.delivery import check_url
+from service.worker.edges import (
+    LocalEdgePool,
+    RedisEdgePool,
+    edge_from_payload,
+    enqueue_helpers,
+    live_workers,
+    work_through,
+)
+from service.worker.leases import JobProgress, finish_attempt, job_workspace
 
 EDGE_MODES = ("auto", "all", "sparse")
 MERGE_MODES = ("concat", "dedup")
@@ -38,7 +47,7 @@ class ManyRequest:
     edges: str
     merged: bool
     merge: str
-    options: dict[str, Any]  # align() options for every edge (service.options.parse_options)
+    options: dict[str, Any]  # align() options for every edge (service.jobs.options.parse_options)
     webhook: dict | None
 
     def identity(self, api: str) -> dict[str, Any]:
@@ -75,6 +84,15 @@ def _check_shape(b: Backend, req: ManyRequest) -> None:
         raise invalid_input("'reference' must be one of 'assets'", option="reference")
     if req.edges not in EDGE_MODES:
         raise invalid_input(f"'edges' must be one of {', '.join(EDGE_MODES)}", option="edges", allowed=list(EDGE_MODES))
+    if req.edges == "all" and n * (n - 1) // 2 > b.settings.max_many_edges:
+        raise invalid_input(
+            f"'edges: all' over {n} models is {n * (n - 1) // 2} pairwise alignments, past the limit of "
+            f"{b.settings.max_many_edges} per many job (GSA_MAX_MANY_EDGES): use 'auto' or 'sparse', "
+            "which align each model with its most similar few",
+            option="edges",
+            maximum=b.settings.max_many_edges,
+            value=n * (n - 1) // 2,
+        )
     if req.merge not in MERGE_MODES:
         raise invalid_input(
             f"'merge' must be one of {', '.join(MERGE_MODES)}", option="merge", allowed=list(MERGE_MODES)
@@ -90,12 +108,12 @@ def _check_shape(b: Backend, req: ManyRequest) -> None:
 
 def check_many_memory(b: Backend, assets: list[Asset], options: dict[str, Any], merged: bool) -> None:
     """422 (option memory) when the job's predicted peak is above the workers' budget: the
-    largest pair's job (service.memory) plus every other model held in memory, plus the
+    largest pair's job (service.jobs.memory) plus every other model held in memory, plus the
     merged model when asked."""
     budget_mb = b.settings.worker_memory_mb
     if not budget_mb:
         return
-    from service.memory import MARGIN, MB, gaussian_bytes, predict_job_memory
+    from service.jobs.memory import MARGIN, MB, gaussian_bytes, predict_job_memory
 
     sized = sorted(((a.n_gaussians or 0, gaussian_bytes(a.n_gaussians, a.size)) for a in assets), reverse=True)
     (n1, b1), (n2, b2) = sized[0], sized[1]
@@ -150,37 +168,33 @@ def submit_many(b: Backend, owner: str, req: ManyRequest, idempotency_key: str |
 
 
 class _EdgeReports:
-    """align_many's reports as the job's stage and progress: while edge k of E runs, the stage
-    reads "edge k/E: <align stage>" and progress is (k + that stage's span) / E."""
+    """The edges' reports as the job's stage and progress: while this attempt runs edge k of E
+    the stage reads "edge k/E: <align stage>"; while it waits on the helpers' edges,
+    "d/E edges done: waiting". Progress is (edges done + the running stage's span) / E."""
 
     def __init__(self, prog: JobProgress):
         self.prog = prog
         self.edge: int | None = None
+        self.done = 0
 
     def __call__(self, k: int, total: int, stage: str, fraction: float) -> None:
         p = self.prog
         if k != self.edge:
             self.edge = k
-            p.n, p.part, p.label = total, k, f"edge {k + 1}/{total}"
+            p.n, p.part, p.label = total, min(self.done, total - 1), f"edge {k + 1}/{total}"
             p.last_write = 0.0  # show the new edge at once
         p(stage, fraction)
 
-    def edge_done(self, done: int, total: int) -> None:
-        self.prog.check(force=True)
-
-
-def _align_options(backend: Backend, options: dict[str, Any]):
-    from gsa.align.pipeline import AlignOptions
-
-    known = align_option_names()
-    opts = {k: v for k, v in options.items() if k in known}
-    if isinstance(opts.get("stages"), list):
-        opts["stages"] = tuple(opts["stages"])
-    opts.update(server_options(backend.settings, known))
-    try:
-        return AlignOptions(**opts)
-    except (TypeError, ValueError) as exc:
-        raise invalid_input(f"invalid options: {exc}") from None
+    def edges_done(self, done: int, total: int, waiting: bool) -> None:
+        p = self.prog
+        if waiting and (done > self.done or self.edge is not None):
+            self.edge = None
+            p.n, p.part, p.label = total, min(done, total - 1), f"{done}/{total} edges done"
+            p.overall = max(p.overall, min(done / total, 0.999))
+            p.last_write = 0.0
+            p("waiting", 0.0)
+        self.done = done
+        p.check(force=waiting)
 
 
 def _model_entries(data: dict, job: Job, models, result) -> None:
@@ -214,17 +228,52 @@ def _previews(models, work) -> list[tuple[str, object]]:
     ]
 
 
+def _run_edges(backend: Backend, job: Job, token: str, prog: JobProgress, models, names, reference, pairs, opts):
+    """Every edge's pairwise alignment (spread over the workers: service.worker.edges), then the
+    global step; the edges' results say which worker ran each."""
+    from gsa.align.many import ManyError, model_frame, solve_graph
+
+    t0 = time.perf_counter()
+    reports = _EdgeReports(prog)
+    helpers = 0
+    if isinstance(backend.queue, RQQueue) and all(ref.kind == "ply" for ref in job.sources):
+        pool = RedisEdgePool(backend.redis, job.id, token)
+        pool.create(pairs, ttl_s=backend.settings.job_timeout_s + backend.settings.lease_s)
+        helpers = enqueue_helpers(backend, job, token, min(len(pairs) - 1, live_workers(backend) - 1))
+    else:
+        pool = LocalEdgePool(pairs)
+    try:
+        payloads = work_through(pool, models, opts, check=prog.check, on_edge=reports, on_progress=reports.edges_done)
+    finally:
+        pool.delete()
+    graph = [edge_from_payload(i, j, p) for (i, j), p in zip(pairs, payloads)]
+    frames = [model_frame(m) for m in models]
+    t_pairwise = time.perf_counter() - t0
+    try:
+        result = solve_graph(len(models), graph, reference, [c for c, _ in frames], [s for _, s in frames], names)
+    except ManyError as exc:  # input the global step cannot work with: the client's
+        raise invalid_input(str(exc)) from None
+    result.timings.update(
+        pairwise=t_pairwise,
+        per_edge=sum(e.seconds for e in graph) / max(len(graph), 1),
+        edges=len(graph),
+        helpers=helpers,
+        total=time.perf_counter() - t0,
+    )
+    return result, [p["worker"] for p in payloads]
+
+
 def run_many(backend: Backend, job: Job, token: str, prog: JobProgress, art_prefix: str) -> JobState | None:
     """One attempt of a many job: load the N models, align_many (reports per edge; a cancel
     stops it at the next report), write many.json (and merged.ply), store them."""
-    from gsa.align.many import ManyError, align_many, merged_model  # lazy: the aligner's modules
+    from gsa.align.many import merged_model, select_edges  # lazy: the aligner's modules
     from gsa.align.outputs import write_json
     from gsa.io.ply import write_ply
-    from service.artifacts import store_artifacts
-    from service.inputs import load_input
+    from service.jobs.inputs import load_input
+    from service.storage.artifacts import store_artifacts
 
     many = job.options["many"]
-    opts = _align_options(backend, job.options)
+    opts = align_options(backend.settings, job.options)
     names = [ref.asset_id for ref in job.sources]
     reference = names.index(many["reference"])
     with job_workspace(job.id, token) as work:
@@ -233,22 +282,16 @@ def run_many(backend: Backend, job: Job, token: str, prog: JobProgress, art_pref
         for i, ref in enumerate(job.sources):
             prog("loading", i / len(job.sources))
             models.append(load_input(backend, ref, work, f"model{i}", prog))
-        reports = _EdgeReports(prog)
-        try:
-            result = align_many(
-                models,
-                names,
-                reference,
-                opts,
-                edges=many["edges"],
-                progress=reports.edge_done,
-                edge_progress=reports,
-            )
-        except ManyError as exc:  # input align_many cannot work with (a model of < 3 Gaussians): the client's
-            raise invalid_input(str(exc)) from None
+        for name, m in zip(names, models):
+            if len(m) < 3:  # as align_many refuses it, before any edge runs
+                raise invalid_input(f"{name}: {len(m)} Gaussians; at least 3 are needed")
+        pairs = select_edges(models, many["edges"])
+        result, workers = _run_edges(backend, job, token, prog, models, names, reference, pairs, opts)
         prog.label = None
         prog("writing", 0.0)
         data = result.to_dict()
+        for entry, worker in zip(data["edges"], workers):
+            entry["worker"] = worker  # which worker ran the edge (they spread over the queue's workers)
         _model_entries(data, job, models, result)
         files = []
         if many.get("merged"):

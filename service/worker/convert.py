@@ -1,7 +1,7 @@
 """Model artifacts in a requested 3DGS format (GET .../artifacts/aligned.ply?format=spz).
 
 A conversion reads the whole model, so it never runs in the API process: a child process
-(`python -m service.convert_child`) reads the stored artifact and writes the requested
+(`python -m service.worker.convert_child`) reads the stored artifact and writes the requested
 format through the library (gsa.io.formats); the API waits for it without holding a thread,
 stores the result in storage next to the job's artifacts, and serves that file like any
 other artifact (Range, If-Range, ETag, If-None-Match, HEAD). So:
@@ -33,10 +33,10 @@ from pathlib import Path, PurePosixPath
 
 from starlette.concurrency import run_in_threadpool
 
-from service.convert_child import BAD_INPUT_EXIT
-from service.inputs import model_content_type
-from service.models import Artifact
+from service.jobs.inputs import model_content_type
+from service.jobs.models import Artifact
 from service.problems import Problem, invalid_input
+from service.worker.convert_child import BAD_INPUT_EXIT
 
 log = logging.getLogger("gsa.api")
 
@@ -163,7 +163,7 @@ async def _run_child(b, art: Artifact, fmt: str, key: str) -> int:
         out = tmp / f"out{extensions[fmt]}"
         # The service wrote this file: a merged model is a source plus the target, each
         # within max_gaussians, so it may hold up to twice that many.
-        args = [sys.executable, "-m", "service.convert_child", str(src), str(out), fmt]
+        args = [sys.executable, "-m", "service.worker.convert_child", str(src), str(out), fmt]
         args += [str(2 * s.max_gaussians), str(os.getpid())]
         child = await asyncio.create_subprocess_exec(
             *args,

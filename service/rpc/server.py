@@ -10,18 +10,20 @@ import time
 from concurrent import futures
 
 import grpc
+import numpy as np
 from google.protobuf import empty_pb2
 from google.protobuf.timestamp_pb2 import Timestamp
 from grpc_health.v1 import health, health_pb2, health_pb2_grpc
 from grpc_reflection.v1alpha import reflection
 
-from service import core, many, retention
 from service.backend import Backend
-from service.grpc_gen import alignment_pb2 as pb
-from service.grpc_gen import alignment_pb2_grpc as pbg
-from service.models import Job, JobState
-from service.options import parse_options
+from service.jobs import core, many
+from service.jobs.models import Job, JobState
+from service.jobs.options import parse_options
 from service.problems import Problem, invalid_input, too_large
+from service.rpc.generated import alignment_pb2 as pb
+from service.rpc.generated import alignment_pb2_grpc as pbg
+from service.storage import retention
 
 log = logging.getLogger("gsa.grpc")
 SERVICE_NAME = "gsa.v1.AlignmentService"
@@ -40,7 +42,7 @@ _CODE = {
     404: grpc.StatusCode.NOT_FOUND,
     409: grpc.StatusCode.FAILED_PRECONDITION,
     413: grpc.StatusCode.RESOURCE_EXHAUSTED,
-    429: grpc.StatusCode.RESOURCE_EXHAUSTED,  # a tenant's rate or job limit (service.quotas)
+    429: grpc.StatusCode.RESOURCE_EXHAUSTED,  # a tenant's rate or job limit (service.jobs.quotas)
     415: grpc.StatusCode.INVALID_ARGUMENT,
     416: grpc.StatusCode.OUT_OF_RANGE,
     422: grpc.StatusCode.INVALID_ARGUMENT,
@@ -74,6 +76,15 @@ def _transform(d: dict) -> pb.Transform:
         source_frame=_frame((d.get("frames") or {}).get("source")),
         target_frame=_frame((d.get("frames") or {}).get("target")),
     )
+
+
+def _many_model(m: dict) -> dict:
+    """A many job's model entry in a pair result's shape: its file_transform (the transform
+    contract's file coordinates) with its own confidence."""
+    from gsa.sim3 import Sim3  # numpy only
+
+    t = Sim3.from_matrix(np.asarray(m["file_transform"], np.float64))
+    return {**t.to_dict(), "metrics": {"confidence": m["confidence"], "doubtful": m["doubtful"]}}
 
 
 def _frame(f: dict | None) -> pb.Frame | None:
@@ -117,6 +128,8 @@ def job_to_pb(job: Job) -> pb.Job:
         msg.result_json = json.dumps(job.result)
         results = job.result.get("results") or []
         try:
+            if "models" in job.result:  # a many job: one per model, into the reference's file coordinates
+                results = [_many_model(m) for m in job.result["models"]]
             msg.transforms.extend(_transform(r) for r in results)
             if results:
                 msg.transform.CopyFrom(msg.transforms[0])

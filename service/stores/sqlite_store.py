@@ -12,8 +12,8 @@ import threading
 import time
 from pathlib import Path
 
-from service.models import Asset, Job, JobState
-from service.store import IDEM_PENDING_S, IDEM_TTL_S
+from service.jobs.models import Asset, Job, JobState
+from service.stores.base import IDEM_PENDING_S, IDEM_TTL_S
 
 RESERVE_BYTES = 4 << 20
 

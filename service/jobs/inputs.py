@@ -21,7 +21,7 @@ import numpy as np
 from gsa.ziparchive import ZipArchiveError, ZipLimits, check_zip
 from gsa.ziparchive import unsafe_member_name as unsafe_member_name  # re-exported: one rule for zip names
 from service.backend import Backend
-from service.models import InputRef, Job
+from service.jobs.models import InputRef, Job
 from service.problems import Problem, invalid_input, too_large
 
 IMAGE_EXTS = {".png", ".jpg", ".jpeg"}
@@ -328,7 +328,7 @@ def load_input(
 
 
 # ------------------------------------------- worker paths out of client-facing errors
-# A job's inputs live in a worker temp folder (service.execution: tempfile prefix "gsa-job-")
+# A job's inputs live in a worker temp folder (service.worker.execution: tempfile prefix "gsa-job-")
 # as <role>.ply, <role>.zip, <role>-images/..., <role>-recon/... (load_input above), role
 # "target" or "source<i>". Library errors name those paths; clients know their files by name.
 _WORK_PATH = re.compile(r"(?:/[\w.-]+)*/gsa-job-[\w.-]+((?:/[\w.-]+)*)")

@@ -1,8 +1,8 @@
-"""The conversion child process (service.convert runs it): read a model file, write it in
+"""The conversion child process (service.worker.convert runs it): read a model file, write it in
 another 3DGS format. Its memory (the whole model, and the writer's) is returned to the OS
 when it exits, so the API process that started it stays small.
 
-    python -m service.convert_child SRC OUT FORMAT MAX_GAUSSIANS PARENT_PID
+    python -m service.worker.convert_child SRC OUT FORMAT MAX_GAUSSIANS PARENT_PID
 
 Exit 0: OUT written. Exit 3 (BAD_INPUT_EXIT): the model cannot be read,
 {"detail": ...} on stdout. Anything else: a failure (its traceback on stderr).
@@ -14,12 +14,12 @@ import json
 import sys
 from pathlib import Path
 
-BAD_INPUT_EXIT = 3  # a model it cannot read: service.convert answers 422
+BAD_INPUT_EXIT = 3  # a model it cannot read: service.worker.convert answers 422
 
 
 def main(argv: list[str]) -> int:
     src, out, fmt, max_gaussians, parent = argv
-    from service.runners import _die_with_parent
+    from service.worker.runners import _die_with_parent
 
     _die_with_parent(int(parent))  # an API that dies takes its conversions with it
 

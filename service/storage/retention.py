@@ -3,7 +3,7 @@
 A job is deleted only once it is final (queued and running jobs answer 409:
 cancel first), with every attempt's artifacts. An asset is deleted only while
 no queued or running job uses it (409), and its bytes go with the last asset
-that references them (uploads are content-addressed, see service.core.blob_key).
+that references them (uploads are content-addressed, see service.jobs.core.blob_key).
 
 Retention (settings.retention_days > 0): finished jobs older than that, and
 assets older than that which no remaining job refers to, are deleted by a
@@ -18,9 +18,9 @@ import logging
 import threading
 import time
 
-from service import core, quotas
 from service.backend import Backend
-from service.models import Job, JobState
+from service.jobs import core, quotas
+from service.jobs.models import Job, JobState
 from service.problems import Problem, infrastructure_problem
 
 log = logging.getLogger("gsa.retention")

@@ -8,7 +8,7 @@ the others can still store). A tenant is an owner: the value `GSA_API_KEYS` maps
 The rate limiter is a token bucket per owner: in Redis mode one bucket in Redis shared by every
 API process (a Lua script reading Redis' clock, so processes need no synchronised clocks),
 in embedded mode one in this process. Stored bytes are a ledger per owner in the job store
-(service.store: `set_usage` / `drop_usage` / `usage`) keyed by what holds the bytes (an
+(service.stores.base: `set_usage` / `drop_usage` / `usage`) keyed by what holds the bytes (an
 upload's blob key, `job:<id>` for a job's artifacts): setting an entry twice counts it once,
 so a retried write never counts double.
 """

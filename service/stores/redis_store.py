@@ -14,8 +14,8 @@ from typing import Any
 
 from pydantic import BaseModel
 
-from service.models import Asset, Job, JobState
-from service.store import IDEM_PENDING_S, IDEM_TTL_S
+from service.jobs.models import Asset, Job, JobState
+from service.stores.base import IDEM_PENDING_S, IDEM_TTL_S
 
 
 def _enc(v: Any) -> str:
@@ -54,7 +54,7 @@ return 1
 """
 
 
-# Per-owner storage ledger (service.quotas). KEYS: the owner's item hash, its total.
+# Per-owner storage ledger (service.jobs.quotas). KEYS: the owner's item hash, its total.
 # ARGV: item, bytes. The total moves by the difference, so setting an item twice counts it once.
 _USAGE_SET = """
 local old = tonumber(redis.call('HGET', KEYS[1], ARGV[1]) or '0')

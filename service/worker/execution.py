@@ -1,6 +1,6 @@
 """Running one attempt of a job: claim it, load inputs, call the library, store artifacts.
 
-The attempt's lease, heartbeat and progress reports are service.leases'; a
+The attempt's lease, heartbeat and progress reports are service.worker.leases'; a
 failure becomes an RFC 9457 problem (service.problems) chosen by exception type.
 """
 
@@ -14,10 +14,14 @@ import threading
 import time
 import uuid
 
-from service.artifacts import collect_outputs, store_artifacts, synchronized_renders
 from service.backend import Backend, notify_webhook
-from service.inputs import load_input
-from service.leases import (
+from service.jobs.inputs import load_input
+from service.jobs.many import is_many, run_many
+from service.jobs.models import Job, JobState
+from service.jobs.options import DEFAULT_OUTPUTS, align_option_names, server_options
+from service.problems import Problem, infrastructure_problem, invalid_input
+from service.storage.artifacts import collect_outputs, store_artifacts, synchronized_renders
+from service.worker.leases import (
     JobCancelled,
     JobProgress,
     JobTimeout,
@@ -27,10 +31,6 @@ from service.leases import (
     job_workspace,
     worker_name,
 )
-from service.many import is_many, run_many
-from service.models import Job, JobState
-from service.options import DEFAULT_OUTPUTS, align_option_names, server_options
-from service.problems import Problem, infrastructure_problem, invalid_input
 
 log = logging.getLogger("gsa.worker")
 

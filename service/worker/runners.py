@@ -15,10 +15,10 @@ import uuid
 from pathlib import Path
 
 from service.backend import Backend, process_backend
-from service.execution import execute
-from service.leases import reap, start_reaper, sweep_workspaces
 from service.problems import store_errors
 from service.settings import Settings
+from service.worker.execution import execute
+from service.worker.leases import reap, start_reaper, sweep_workspaces
 
 log = logging.getLogger("gsa.worker")
 
@@ -63,8 +63,7 @@ def run_job(job_id: str) -> str | None:
     the reaper requeues the job when its lease expires."""
     main = threading.current_thread() is threading.main_thread()
     previous = signal.signal(signal.SIGTERM, _terminated) if main else None
-    if _HORSE_TORCH_THREADS and "torch" in sys.modules:
-        sys.modules["torch"].set_num_threads(_HORSE_TORCH_THREADS)
+    restore_horse_threads()
     try:
         state = execute(job_id, process_backend())
     finally:
@@ -77,6 +76,12 @@ def run_job(job_id: str) -> str | None:
 # (an OpenMP thread team does not survive fork(): the horse's first parallel op hangs), and
 # each horse restores this count before its job.
 _HORSE_TORCH_THREADS: int | None = None
+
+
+def restore_horse_threads() -> None:
+    """Each RQ task's first step in its work horse (see _HORSE_TORCH_THREADS)."""
+    if _HORSE_TORCH_THREADS and "torch" in sys.modules:
+        sys.modules["torch"].set_num_threads(_HORSE_TORCH_THREADS)
 
 
 def _warm_up() -> None:

@@ -17,9 +17,9 @@ from typing import Any, BinaryIO
 
 import numpy as np
 
-from service import quotas
 from service.backend import Backend, notify_webhook
-from service.inputs import (
+from service.jobs import quotas
+from service.jobs.inputs import (
     check_image,
     model_content_type,
     model_format,
@@ -28,11 +28,11 @@ from service.inputs import (
     validate_ply,
     validate_zip,
 )
-from service.models import TERMINAL, Asset, InputRef, Job, JobState, new_id
-from service.options import validate_options
+from service.jobs.models import TERMINAL, Asset, InputRef, Job, JobState, new_id
+from service.jobs.options import validate_options
 from service.problems import Problem, invalid_input, not_found, too_large
-from service.storage import CHUNK, new_key
-from service.webhook_delivery import check_url
+from service.storage.blobs import CHUNK, new_key
+from service.webhooks.delivery import check_url
 
 
 class _Hashing:
@@ -160,7 +160,7 @@ def release_blob(b: Backend, asset: Asset) -> None:
 
 def ingest(b: Backend, owner: str, data, filename: str | None, *, expect: str | None = None) -> Asset:
     """Stream one upload to storage, validate it, record it. Nothing remains on failure.
-    Bytes this owner already uploaded are stored once (service.core.blob_key)."""
+    Bytes this owner already uploaded are stored once (service.jobs.core.blob_key)."""
     s = b.settings
     sha = _digest(data, s.max_upload_bytes)
     if sha is not None:
@@ -331,7 +331,7 @@ def check_memory(b: Backend, sources: list[Asset], target: Asset, options: dict[
     budget_mb = b.settings.worker_memory_mb
     if not budget_mb:
         return
-    from service.memory import MB, predict_for_assets
+    from service.jobs.memory import MB, predict_for_assets
 
     predicted = predict_for_assets(options, sources, target)
     if predicted > budget_mb * MB:
@@ -427,7 +427,7 @@ class JobRequest:
 
     sources: list[Input]
     target: Input
-    options: dict[str, Any]  # parsed (service.options.parse_options), checked by submit_job
+    options: dict[str, Any]  # parsed (service.jobs.options.parse_options), checked by submit_job
     webhook: dict | None
     # What makes a retry with the same Idempotency-Key the same request; an Upload in it counts
     # by its bytes' sha256. With the JSON separators its fingerprint is made with: each front

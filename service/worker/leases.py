@@ -24,9 +24,9 @@ from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
 
-from service import quotas
 from service.backend import Backend, notify_webhook
-from service.models import Job, JobState
+from service.jobs import quotas
+from service.jobs.models import Job, JobState
 from service.problems import Problem, infrastructure_problem, store_errors
 
 log = logging.getLogger("gsa.worker")
@@ -88,7 +88,7 @@ class JobProgress:
         self.last_write = 0.0
         self.last_check = 0.0
         self.overall = 0.0
-        # Shown before the stage while set: a many job's "edge 2/3" (service.many).
+        # Shown before the stage while set: a many job's "edge 2/3" (service.jobs.many).
         self.label: str | None = None
 
     def check(self, force: bool = False) -> None:
@@ -174,7 +174,7 @@ def finish_attempt(backend: Backend, job_id: str, token: str, state: JobState, *
     """End this attempt in `state`; False if the attempt no longer owns the job.
     An error's worker temp paths become the names of the client's assets."""
     if isinstance(fields.get("error"), dict):
-        from service.inputs import redact_problem  # lazy: inputs loads numpy
+        from service.jobs.inputs import redact_problem  # lazy: inputs loads numpy
 
         job = backend.store.get(job_id)
         if job is not None:
@@ -189,7 +189,7 @@ def finish_attempt(backend: Backend, job_id: str, token: str, state: JobState, *
         **fields,
     )
     if ok and fields.get("artifacts"):
-        # The artifacts count against their owner's storage quota (service.quotas) until the job is deleted.
+        # The artifacts count against their owner's storage quota (service.jobs.quotas) until the job is deleted.
         job = backend.store.get(job_id)
         if job is not None:
             try:
@@ -287,7 +287,7 @@ def job_workspace(job_id: str, token: str) -> Iterator[Path]:
     """The attempt's temp folder, <tmp>/gsa-job-<job id>-<token[:12]>-<random>, removed
     on every way out (success, failure, cancel, lease lost, timeout, and SIGTERM of
     the work horse, which run_job turns into SystemExit). What a SIGKILL leaves behind
-    is swept by service.leases.sweep_workspaces (its name says whose it was)."""
+    is swept by service.worker.leases.sweep_workspaces (its name says whose it was)."""
     d = Path(tempfile.mkdtemp(prefix=f"{WORKSPACE_PREFIX}{job_id}-{token[:12]}-"))
     try:
         yield d

@@ -1,0 +1,1 @@
+"""Blob storage for uploads and artifacts (blobs), artifact records (artifacts) and retention."""

@@ -1,0 +1,1 @@
+"""Job stores behind one interface (base): Redis (distributed mode) and SQLite (embedded mode)."""
