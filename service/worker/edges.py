@@ -21,6 +21,7 @@ from typing import Any
 
 from service.backend import Backend, RQQueue
 from service.jobs.models import Job, JobState
+from service.worker.horse import restore_torch_threads
 from service.worker.leases import JobCancelled, LeaseLost, job_workspace, worker_name
 
 log = logging.getLogger("gsa.worker")
@@ -284,9 +285,8 @@ def help_with_edges(job_id: str, token: str) -> int:
     from service.backend import process_backend
     from service.jobs.inputs import load_input
     from service.jobs.options import align_options
-    from service.worker.runners import restore_horse_threads
 
-    restore_horse_threads()
+    restore_torch_threads()
     backend = process_backend()
     job = backend.store.get(job_id)
     if job is None or job.state != JobState.running or job.run_token != token:

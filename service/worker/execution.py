@@ -16,7 +16,7 @@ import uuid
 
 from service.backend import Backend, notify_webhook
 from service.jobs.inputs import load_input
-from service.jobs.many import is_many, run_many
+from service.jobs.many import is_many
 from service.jobs.models import Job, JobState
 from service.jobs.options import DEFAULT_OUTPUTS, align_option_names, server_options
 from service.problems import Problem, infrastructure_problem, invalid_input
@@ -31,6 +31,7 @@ from service.worker.leases import (
     job_workspace,
     worker_name,
 )
+from service.worker.many import run_many
 
 log = logging.getLogger("gsa.worker")
 

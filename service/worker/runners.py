@@ -18,6 +18,7 @@ from service.backend import Backend, process_backend
 from service.problems import store_errors
 from service.settings import Settings
 from service.worker.execution import execute
+from service.worker.horse import remember_torch_threads, restore_torch_threads
 from service.worker.leases import reap, start_reaper, sweep_workspaces
 
 log = logging.getLogger("gsa.worker")
@@ -63,25 +64,13 @@ def run_job(job_id: str) -> str | None:
     the reaper requeues the job when its lease expires."""
     main = threading.current_thread() is threading.main_thread()
     previous = signal.signal(signal.SIGTERM, _terminated) if main else None
-    restore_horse_threads()
+    restore_torch_threads()
     try:
         state = execute(job_id, process_backend())
     finally:
         if main:
             signal.signal(signal.SIGTERM, previous if previous is not None else signal.SIG_DFL)
     return state.value if state else None
-
-
-# torch's intra-op threads for the work horses: the worker parent runs torch single-threaded
-# (an OpenMP thread team does not survive fork(): the horse's first parallel op hangs), and
-# each horse restores this count before its job.
-_HORSE_TORCH_THREADS: int | None = None
-
-
-def restore_horse_threads() -> None:
-    """Each RQ task's first step in its work horse (see _HORSE_TORCH_THREADS)."""
-    if _HORSE_TORCH_THREADS and "torch" in sys.modules:
-        sys.modules["torch"].set_num_threads(_HORSE_TORCH_THREADS)
 
 
 def _warm_up() -> None:
@@ -93,8 +82,7 @@ def _warm_up() -> None:
     numba's default GNU-OpenMP threading layer aborts a child that forks after
     the parent ran parallel code, so the worker uses the fork-safe `workqueue`
     layer (fine here: one job thread per process); torch runs on one thread here
-    (see _HORSE_TORCH_THREADS)."""
-    global _HORSE_TORCH_THREADS
+    (see service.worker.horse)."""
     if "numba" not in sys.modules:
         os.environ.setdefault("NUMBA_THREADING_LAYER", "workqueue")
     t = time.perf_counter()
@@ -113,7 +101,7 @@ def _warm_up() -> None:
         from gsa.align.pipeline import AlignOptions, align
         from gsa.synth import make_object
 
-        _HORSE_TORCH_THREADS = torch.get_num_threads()
+        remember_torch_threads(torch.get_num_threads())
         torch.set_num_threads(1)
         m = make_object("car", seed=0, n_gaussians=500)
         res = align(m, m, AlignOptions(coarse_iterations=2))

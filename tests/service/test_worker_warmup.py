@@ -16,15 +16,15 @@ pytestmark = pytest.mark.slow  # a fresh interpreter that imports torch and numb
 CHILD = textwrap.dedent(
     """
     import os, sys, time
-    from service.worker import runners
+    from service.worker import horse, runners
     runners._warm_up()
     import torch
     from gsa.render.cpu import composite
     assert composite._forward.signatures, "the render kernels were not loaded in the parent"
-    assert runners._HORSE_TORCH_THREADS and torch.get_num_threads() == 1
+    assert horse.torch_threads() and torch.get_num_threads() == 1
     pid = os.fork()
     if pid == 0:  # what run_job does in a work horse, then parallel torch work
-        torch.set_num_threads(runners._HORSE_TORCH_THREADS)
+        horse.restore_torch_threads()
         a = torch.randn(1500, 1500)
         (a @ a).sum()
         torch.randn(4_000_000).exp().sum()
