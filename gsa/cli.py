@@ -373,9 +373,9 @@ def _number(value) -> float | None:
 
 
 def _colour_mismatch_limit() -> float:
-    from gsa.align.robust.poses import COLOUR_MISMATCH_LIMIT  # lazy: the robust stage loads numba
+    from gsa.align.robust.poses import PoseCriteria  # lazy: the robust stage loads numba
 
-    return COLOUR_MISMATCH_LIMIT
+    return PoseCriteria().colour_mismatch_limit
 
 
 def doubt_warning(metrics: dict | None, out: str | None = None) -> str | None:

@@ -53,7 +53,7 @@ def test_noisy_colour_does_not_reward_less_overlap(pair):
     dst = robust.anchors(b)
     src = robust.match_exposure(src, dst)
     noise = 0.5 * (robust.colour_noise(src) + robust.colour_noise(dst))
-    assert noise > robust.NOISE_TRUST  # the case this file is about: texture finer than the anchors
+    assert noise > robust.PoseCriteria().noise_trust  # the case this file is about: texture finer than the anchors
     w = robust.colour_trust(src, dst, noise)
     right = robust.score_pose(src, dst, truth, "truth", w)
     centre = truth.apply(src.center)
@@ -65,7 +65,7 @@ def test_noisy_colour_does_not_reward_less_overlap(pair):
             pose = Sim3(1.0, np.eye(3), centre) @ turn @ Sim3(1.0, np.eye(3), -centre) @ truth
             wrong.append(robust.score_pose(src, dst, pose, "wrong", w))
     assert right.score > 0  # full trust: -0.32, below poses that overlap half as much
-    assert right.score > max(c.score for c in wrong) + robust.SCORE_TIE
+    assert right.score > max(c.score for c in wrong) + robust.PoseCriteria().score_tie
 
 
 def test_reconstructions_align(pair):

@@ -12,7 +12,6 @@ from scipy.spatial import cKDTree
 
 from gsa.align import robust
 from gsa.align.pipeline import align
-from gsa.align.robust import refinement
 from gsa.align.robust.refinement import _plane_step
 from gsa.bench.pairs import exposure_pairs
 from gsa.geometry import axis_rotation, quat_to_rotation, super_fibonacci_rotations
@@ -220,9 +219,9 @@ def test_unrelated_shapes_are_flagged():
     assert result.metrics["doubtful"]
 
 
-def _refine(source, target, init=None):
+def _refine(source, target, init=None, criteria=None):
     p, q = source.means.astype(np.float64), target.means.astype(np.float64)
-    return robust.refine(p, q, cKDTree(p), cKDTree(q), init or Sim3.identity())
+    return robust.refine(p, q, cKDTree(p), cKDTree(q), init or Sim3.identity(), criteria=criteria)
 
 
 @functools.cache
@@ -258,14 +257,14 @@ def _turned(model, seed: int, degrees: float) -> Sim3:
     return Sim3(1.0, rotation, centre - rotation @ centre)
 
 
-def test_fitting_every_pair_averages_a_deformation_better_than_trimming(monkeypatch):
+def test_fitting_every_pair_averages_a_deformation_better_than_trimming():
     """From the search's pose (a few degrees off), a fit trimmed to the best-matching part of a
     deformed copy locks onto that part, away from the natural alignment; one over all pairs
     drifts less."""
     pairs = [(s, deformed, _turned(s, k, 3.0)) for k, (s, _, deformed, _) in enumerate(_deformed_pairs())]
     every_pair = [rre_deg(_refine(s, t, init)[0].rotation, np.eye(3)) for s, t, init in pairs]
-    monkeypatch.setattr(refinement, "WHOLE_OVERLAP", 2.0)  # never: trim only
-    trimmed = [rre_deg(_refine(s, t, init)[0].rotation, np.eye(3)) for s, t, init in pairs]
+    trim_only = robust.RefineCriteria(whole_overlap=2.0)  # never "differ everywhere": trim only
+    trimmed = [rre_deg(_refine(s, t, init, trim_only)[0].rotation, np.eye(3)) for s, t, init in pairs]
     assert np.mean(every_pair) < np.mean(trimmed), (every_pair, trimmed)
 
 
@@ -377,3 +376,30 @@ def test_refinement_holds_two_halves_of_a_real_capture():
     p, q = (x[rng.choice(len(x), 6000, replace=False)] for x in (src_all, dst_all))
     found, _ = robust.refine(p, q, cKDTree(src_all), cKDTree(dst_all), _turned(source, 1, 2.0))
     assert rre_deg(found.rotation, np.eye(3)) < 0.2
+
+
+def test_search_options_default_to_what_align_searches():
+    from gsa.align import AlignOptions
+
+    assert robust.SearchOptions().rotations == AlignOptions().search_rotations
+    with pytest.raises(AttributeError):
+        robust.SearchOptions().rotations = 64  # type: ignore[misc]
+    with pytest.raises(AttributeError):
+        robust.PoseCriteria().score_tie = 0.1  # type: ignore[misc]
+
+
+def test_criteria_passed_in_take_effect():
+    """The thresholds are options, not module globals: a wider tie or a stricter verdict
+    changes the decision it is given to, and the result keeps the criteria it was decided by."""
+    best, second = _candidate(0.70, 0.95, 0.0), _candidate(0.60, 0.95, 90.0)
+    assert not robust.decide([best, second], w_colour=0.0).ambiguous  # 0.1 apart: beyond the default tie
+    wide = robust.PoseCriteria(score_tie=0.12)
+    tied = robust.decide([best, second], w_colour=0.0, criteria=wide)
+    assert tied.ambiguous and tied.criteria is wide
+    clear = robust.decide([best, second], w_colour=0.0)
+    assert not robust.verdict(best, clear)["doubtful"]
+    assert robust.verdict(best, clear, criteria=robust.VerdictCriteria(confidence_threshold=0.99))["doubtful"]
+    # alternatives follow the search's distinct_deg: at 100° apart, the 90° pose is one with the best.
+    wider = robust.decide([best, second], w_colour=0.0, criteria=robust.PoseCriteria(distinct_deg=100.0))
+    wider.offered = [second]
+    assert robust.verdict(best, wider)["alternatives"] == []

@@ -371,7 +371,10 @@ class _Pair:
         rng = np.random.default_rng(self.opts.seed)
         rows = [_subsample(rng, len(a), options.refine_points) for a in (src, dst)]
         iterations = options.early_iterations + options.refine_iterations
-        return robust.bidirectional_icp(src, dst, start, *rows, iterations, robust.colour_weight(src, dst))
+        k = options.criteria
+        return robust.bidirectional_icp(
+            src, dst, start, *rows, iterations, robust.colour_weight(src, dst, k.palette), k
+        )
 
     def check_given(self, transform: Sim3, progress: Progress | None) -> robust.SearchResult:
         """The automatic search's poses, with the given one first (robust.with_given_pose)."""

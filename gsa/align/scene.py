@@ -62,7 +62,6 @@ from scipy.spatial import cKDTree
 from gsa.align import robust
 from gsa.align.choices import Progress
 from gsa.align.coarse import AlignmentError, CoarseResult
-from gsa.align.robust.anchoring import MAX_EXPOSURE_GAIN
 from gsa.align.types import AlignmentResult
 from gsa.colour import linear_to_lab, srgb_to_linear
 from gsa.geometry import axis_rotation
@@ -631,7 +630,7 @@ def align_scene(
         # full-resolution refinement can slide to a pose that the anchors - the whole
         # site, in colour - score clearly lower: the start is kept then.
         refined = robust.score_pose(src, dst, transform, "refined", search.colour_weight)
-        if refined.score < start.score - robust.SCORE_TIE:
+        if refined.score < start.score - search.criteria.score_tie:
             transform, refine_kept = start.transform, False
     coarse = CoarseResult(
         transform=transform,
@@ -716,11 +715,13 @@ def site_search(
     search = translation_sweep(s_thin, d_thin, search, seed, o)
     # Re-scored on all anchors, so the verdict and the alternatives read what rooms' do,
     # each pose's colours compared under the exposure that pose implies.
-    w = search.colour_weight
-    return robust.decide(_distinct_poses([_pose_gain_score(src, dst, c, w) for c in search.candidates]), w)
+    w, k = search.colour_weight, search.criteria
+    return robust.decide(robust.dedupe([_pose_gain_score(src, dst, c, w, k) for c in search.candidates], k), w, None, k)
 
 
-def _pose_gain_score(src: robust.Anchors, dst: robust.Anchors, cand, w_colour: float) -> robust.Candidate:
+def _pose_gain_score(
+    src: robust.Anchors, dst: robust.Anchors, cand, w_colour: float, criteria: robust.PoseCriteria
+) -> robust.Candidate:
     """robust.score_pose with the source's colours under the linear-RGB gains that the
     pose's own close pairs give (per channel, the median ratio). The palettes alone
     (robust.match_exposure) often cannot tell an exposure change on a site: grass and
@@ -728,20 +729,20 @@ def _pose_gain_score(src: robust.Anchors, dst: robust.Anchors, cand, w_colour: f
     then counts the truth's pairs as disagreeing. At the true pose the pairs are the same
     surfaces and the gains are the exposure's; a wrong pose pairs unrelated surfaces, and
     no gain makes them agree. The gains are held within robust's exposure bounds."""
-    plain = robust.score_pose(src, dst, cand.transform, cand.origin, w_colour)
+    plain = robust.score_pose(src, dst, cand.transform, cand.origin, w_colour, criteria)
     if src.rgb is None or dst.rgb is None or w_colour <= 0:
         return plain
     d, j = dst.tree.query(cand.transform.apply(src.points), k=1)
-    near = d <= robust.COLOUR_PAIR_DISTANCE * dst.radius
+    near = d <= criteria.colour_pair_distance * dst.radius
     if near.sum() < 50:
         return plain
     lin_s = srgb_to_linear(src.rgb)
     lin_d = srgb_to_linear(dst.rgb)
     ratio = np.median(lin_d[j[near]] / np.maximum(lin_s[near], 1e-4), axis=0)
-    limit = MAX_EXPOSURE_GAIN
+    limit = criteria.palette.max_exposure_gain
     gain = np.clip(ratio, 1 / limit, limit)
     shifted = replace(src, lab=linear_to_lab(np.clip(lin_s * gain, 0.0, 1.0)))
-    gained = robust.score_pose(shifted, dst, cand.transform, cand.origin, w_colour)
+    gained = robust.score_pose(shifted, dst, cand.transform, cand.origin, w_colour, criteria)
     return gained if gained.score > plain.score else plain
 
 
@@ -823,6 +824,7 @@ def translation_sweep(
     term of robust's score), and the sweep_keep best distinct offsets per rotation run
     the anchor ICP and robust's score like the search's own candidates."""
     o = options or SceneOptions()
+    crit = search.criteria
     rng = np.random.default_rng(seed)
     w_colour = search.colour_weight
     tau = o.sweep_truncation * dst.radius
@@ -844,7 +846,7 @@ def translation_sweep(
             closeness = np.where(idx >= 0, 1.0 - np.minimum(d, tau) / tau, 0.0)
             if w_colour > 0:
                 de2 = np.sum((p_lab[None] - dst.lab[np.maximum(idx, 0)]) ** 2, axis=-1)
-                closeness *= 1.0 - 2.0 * w_colour * (1.0 - np.exp(-0.5 * de2 / robust.COLOUR_SIGMA**2))
+                closeness *= 1.0 - 2.0 * w_colour * (1.0 - np.exp(-0.5 * de2 / crit.colour_sigma**2))
             score[a : a + 1024] = closeness.mean(axis=1)
         kept: list[np.ndarray] = []
         for k in np.argsort(-score):
@@ -855,23 +857,10 @@ def translation_sweep(
         for centre in kept:
             r, sc = cand.transform.rotation, cand.transform.scale
             init = Sim3(sc, r, centre - sc * r @ src.center)
-            pose = robust.bidirectional_icp(src, dst, init, src_rows, dst_rows, o.sweep_icp, w_colour)
-            found.append(robust.score_pose(src, dst, pose, "sweep", w_colour))
-    return robust.decide(_distinct_poses(found), w_colour)
-
-
-def _distinct_poses(cands: list) -> list:
-    """Best first, one per pose (rotation within robust.DISTINCT_DEG and scale within
-    20 %: robust's rule, under which a slid copy of a pose is that pose)."""
-    out: list = []
-    for c in sorted(cands, key=lambda c: -c.score):
-        if all(
-            robust.rotation_offset_deg(c.transform, o.transform) > robust.DISTINCT_DEG
-            or abs(np.log(c.transform.scale / o.transform.scale)) > 0.2
-            for o in out
-        ):
-            out.append(c)
-    return out
+            pose = robust.bidirectional_icp(src, dst, init, src_rows, dst_rows, o.sweep_icp, w_colour, crit)
+            found.append(robust.score_pose(src, dst, pose, "sweep", w_colour, crit))
+    # One per pose (robust.dedupe): a slid copy of a pose is that pose.
+    return robust.decide(robust.dedupe(found, crit), w_colour, None, crit)
 
 
 def _report(progress: Progress | None, stage: str, fraction: float) -> None:

@@ -35,12 +35,17 @@ Modules: anchoring (1, and the colour trust), search (2-3, with the numba scorin
 capture kernels), placement (the widened search for doubtful answers), poses (one
 pose's score, the anchor ICP, the decision), refinement (`refine`: the full-resolution refinement,
 frame relabellings, verdict).
+
+Tunables are fields of frozen option dataclasses, each function taking one (None: the defaults):
+SearchOptions (what the search tries) holds PoseCriteria (how poses are scored and decided,
+with the PaletteOptions of the colour comparison); RefineCriteria (the full-resolution
+refinement), VerdictCriteria (confidence and doubt).
 """
 
 from gsa.align.robust.anchoring import (
-    SHARED_DELTA_E,
     Anchors,
     NearestGrid,
+    PaletteOptions,
     anchors,
     colour_weight,
     floater_mask,
@@ -51,29 +56,22 @@ from gsa.align.robust.anchoring import (
     voxelise,
 )
 from gsa.align.robust.poses import (
-    COLOUR_MATCH,
-    COLOUR_PAIR_DISTANCE,
-    COLOUR_SIGMA,
-    DISTINCT_DEG,
-    NOISE_TRUST,
-    SCORE_TIE,
-    TRUNCATION,
     Candidate,
+    Convergence,
+    PoseCriteria,
     SearchResult,
     bidirectional_icp,
     colour_noise,
     colour_trust,
     decide,
+    dedupe,
     rotation_offset_deg,
     score_pose,
     with_given_pose,
 )
 from gsa.align.robust.refinement import (
-    CONFIDENCE_THRESHOLD,
-    FIT_FLOOR,
-    FIT_SPAN,
-    MARGIN_SPAN,
-    OVERLAP_LAMBDA,
+    RefineCriteria,
+    VerdictCriteria,
     coincidence,
     frame_relabellings,
     overlap_fraction,
@@ -81,28 +79,19 @@ from gsa.align.robust.refinement import (
     refine,
     verdict,
 )
-from gsa.align.robust.search import RIVAL_WINDOW, SearchOptions, global_search
+from gsa.align.robust.search import SearchOptions, global_search
 
 __all__ = [
     "Anchors",
-    "COLOUR_MATCH",
-    "COLOUR_PAIR_DISTANCE",
-    "COLOUR_SIGMA",
-    "CONFIDENCE_THRESHOLD",
     "Candidate",
-    "DISTINCT_DEG",
-    "FIT_FLOOR",
-    "FIT_SPAN",
-    "MARGIN_SPAN",
-    "NOISE_TRUST",
+    "Convergence",
     "NearestGrid",
-    "OVERLAP_LAMBDA",
-    "RIVAL_WINDOW",
-    "SCORE_TIE",
-    "SHARED_DELTA_E",
+    "PaletteOptions",
+    "PoseCriteria",
+    "RefineCriteria",
     "SearchOptions",
     "SearchResult",
-    "TRUNCATION",
+    "VerdictCriteria",
     "anchors",
     "bidirectional_icp",
     "coincidence",
@@ -110,6 +99,7 @@ __all__ = [
     "colour_trust",
     "colour_weight",
     "decide",
+    "dedupe",
     "floater_mask",
     "frame_relabellings",
     "global_search",

@@ -1,6 +1,7 @@
 """Anchors: a floater-free, voxel-downsampled summary of a model (mean position, CIELAB
 colour, weight per voxel), the nearest-anchor grid that scores poses in O(1) per point, and
-how far two models' palettes agree."""
+how far two models' palettes agree. Tunables: `PaletteOptions` (colours) and `anchors`'
+floater_voxel_share."""
 
 from __future__ import annotations
 
@@ -14,22 +15,35 @@ from scipy.spatial import cKDTree
 from gsa.colour import linear_to_lab, srgb_to_lab, srgb_to_linear
 from gsa.model import GaussianModel
 
-# A colour of one model is "shared" when the other has one within this ΔE.
-SHARED_DELTA_E = 8.0
 # anchors: share of occupied voxels that are a floater's (sparse) above which the voxel size
-# is set by the surface's voxels alone.
+# is set by the surface's voxels alone (its default).
 FLOATER_VOXEL_SHARE = 0.1
-# match_exposure: gains between two captures of one object stay within this factor per
-# channel (two stops of exposure), their white balance within MAX_WHITE_BALANCE
-# (channel gains' max/min: daylight against tungsten light), and are used only if they bring
-# the palettes this much closer (mean nearest-colour ΔE) and make them agree as captures of
-# one object do (EXPOSURE_EXPLAINS). EXPOSURE_STEPS refinement steps on EXPOSURE_SAMPLE anchors converge to ~1 %.
-MAX_EXPOSURE_GAIN = 4.0
-MAX_WHITE_BALANCE = 2.5
-EXPOSURE_CLOSER = 0.25
-EXPOSURE_EXPLAINS = 0.86  # shared fraction: colour_weight 0.9
-EXPOSURE_STEPS = 8
-EXPOSURE_SAMPLE = 512
+
+
+@dataclass(frozen=True)
+class PaletteOptions:
+    """How two models' colours are compared without a pose (colour_weight, match_exposure).
+    Colour differences are CIELAB ΔE."""
+
+    shared_delta_e: float = 8.0  # a colour of one model is "shared" when the other has one within this
+    # colour_weight maps the shared fraction from shared_floor..shared_floor+shared_span onto 0..1.
+    shared_floor: float = 0.5
+    shared_span: float = 0.4
+    # match_exposure: gains between two captures of one object stay within this factor per
+    # channel (two stops of exposure), their white balance within max_white_balance (channel
+    # gains' max/min: daylight against tungsten light), and are used only if they bring the
+    # palettes exposure_closer closer (mean nearest-colour ΔE) and make them agree as captures
+    # of one object do (exposure_explains, a shared fraction: colour_weight 0.9).
+    # exposure_steps refinement steps on exposure_sample anchors converge to ~1 %.
+    max_exposure_gain: float = 4.0
+    max_white_balance: float = 2.5
+    exposure_closer: float = 0.25
+    exposure_explains: float = 0.86
+    exposure_steps: int = 8
+    exposure_sample: int = 512
+
+
+_PALETTE = PaletteOptions()
 
 
 @dataclass
@@ -58,13 +72,16 @@ def floater_mask(model: GaussianModel) -> np.ndarray:
     return keep if keep.sum() >= 3 else np.ones(len(model), bool)
 
 
-def anchors(model: GaussianModel, count: int = 2000, seed: int = 0) -> Anchors:
+def anchors(
+    model: GaussianModel, count: int = 2000, seed: int = 0, floater_voxel_share: float = FLOATER_VOXEL_SHARE
+) -> Anchors:
     """Voxel-downsample the model to about `count` anchors, dropping floaters.
 
     The voxel size is found from the model's own extent (a surface's voxel count
     grows as size⁻²), so the same object at any scale gets comparable anchors.
     Voxels holding far fewer Gaussians than a typical surface voxel are floaters
-    spread through space (an unpruned capture), not surface."""
+    spread through space (an unpruned capture), not surface; where more than
+    floater_voxel_share of the occupied voxels are such, the surface's voxels alone set the size."""
     pts = model.means.astype(np.float64)
     kept = floater_mask(model)
     x = pts[kept]
@@ -80,7 +97,7 @@ def anchors(model: GaussianModel, count: int = 2000, seed: int = 0) -> Anchors:
         # would coarsen the surface's anchors by as many, so the surface's voxels alone set
         # the size. Where they are few, the sparse voxels are mostly thin parts and cut edges
         # of the surface itself, and every occupied voxel counts (as calibrated).
-        floaters_many = np.mean(~solid) > FLOATER_VOXEL_SHARE
+        floaters_many = np.mean(~solid) > floater_voxel_share
         occupied = int(solid.sum()) if floaters_many else len(counts)
         if 0.7 * count <= occupied <= 1.4 * count or len(counts) >= len(x) * 0.9:
             break
@@ -156,31 +173,35 @@ class NearestGrid:
         return np.where(inside, idx, -1), np.where(inside, d, np.inf)
 
 
-def colour_weight(src: Anchors, dst: Anchors) -> float:
+def colour_weight(src: Anchors, dst: Anchors, options: PaletteOptions | None = None) -> float:
     """How far colour can be trusted to compare poses, from the colours alone (no
     pose): two captures of one object share their palette, and then colour is what
     tells a symmetric object's sides apart; two different instances (another paint)
     do not, and then only geometry counts. Fraction of each model's anchors with a
-    colour the other also has, both ways, mapped from [0.5, 0.9] to [0, 1]."""
-    return float(np.clip((_shared_fraction(src.lab, src.weights, dst.lab, dst.weights) - 0.5) / 0.4, 0.0, 1.0))
+    colour the other also has (within shared_delta_e), both ways, mapped from
+    [shared_floor, shared_floor + shared_span] to [0, 1]."""
+    o = options or _PALETTE
+    shared = _shared_fraction(src.lab, src.weights, dst.lab, dst.weights, o.shared_delta_e)
+    return float(np.clip((shared - o.shared_floor) / o.shared_span, 0.0, 1.0))
 
 
-def _shared_fraction(lab_a: np.ndarray, w_a: np.ndarray, lab_b: np.ndarray, w_b: np.ndarray) -> float:
+def _shared_fraction(lab_a: np.ndarray, w_a: np.ndarray, lab_b: np.ndarray, w_b: np.ndarray, within: float) -> float:
     d1, _ = cKDTree(lab_b).query(lab_a, k=1)
     d2, _ = cKDTree(lab_a).query(lab_b, k=1)
-    return float(0.5 * (np.average(d1 <= SHARED_DELTA_E, weights=w_a) + np.average(d2 <= SHARED_DELTA_E, weights=w_b)))
+    return float(0.5 * (np.average(d1 <= within, weights=w_a) + np.average(d2 <= within, weights=w_b)))
 
 
-def match_exposure(src: Anchors, dst: Anchors) -> Anchors:
+def match_exposure(src: Anchors, dst: Anchors, options: PaletteOptions | None = None) -> Anchors:
     """The source anchors with their colours corrected for an exposure or white-balance
     change between the two captures (another day, camera or auto-exposure): per-channel
     gains in linear RGB, the physical model of both, found from the palettes alone (no
     pose). Starts: no gain, the ratios of the two palettes' quantiles per channel and in
     luminance; each is refined by matching every colour to its nearest in the other
     palette. The gains are kept only if they bring the palettes markedly closer
-    (EXPOSURE_CLOSER) without sharing less of them, stay within MAX_EXPOSURE_GAIN and
-    leave a plausible white balance, so two differently painted instances keep their
-    own colours."""
+    (exposure_closer) without sharing less of them, stay within max_exposure_gain and
+    leave a plausible white balance (max_white_balance), so two differently painted
+    instances keep their own colours (PaletteOptions)."""
+    o = options or _PALETTE
     if src.rgb is None or dst.rgb is None:
         return src
     lin_s, lin_d = srgb_to_linear(src.rgb), srgb_to_linear(dst.rgb)
@@ -195,12 +216,12 @@ def match_exposure(src: Anchors, dst: Anchors) -> Anchors:
         """(truncated mean nearest-colour ΔE both ways, shared fraction)."""
         d1, _ = dst_tree.query(lab_s, k=1)
         d2, _ = cKDTree(np.unique(np.round(lab_s * 2.0), axis=0) / 2.0).query(dst.lab, k=1)
-        cap = 2 * SHARED_DELTA_E
+        cap = 2 * o.shared_delta_e
         distance = 0.5 * (
             np.average(np.minimum(d1, cap), weights=src_w) + np.average(np.minimum(d2, cap), weights=dst_w)
         )
         shared = 0.5 * (
-            np.average(d1 <= SHARED_DELTA_E, weights=src_w) + np.average(d2 <= SHARED_DELTA_E, weights=dst_w)
+            np.average(d1 <= o.shared_delta_e, weights=src_w) + np.average(d2 <= o.shared_delta_e, weights=dst_w)
         )
         return float(distance), float(shared)
 
@@ -211,32 +232,35 @@ def match_exposure(src: Anchors, dst: Anchors) -> Anchors:
     ratio = np.median(qd / np.maximum(qs, 1e-4), axis=0)
     lum = np.array([0.2126, 0.7152, 0.0722])
     grey = float(np.median((qd @ lum) / np.maximum(qs @ lum, 1e-4)))
-    best_gain, best_distance = None, (1.0 - EXPOSURE_CLOSER) * base_distance
-    rows = _sample(np.random.default_rng(0), len(src), EXPOSURE_SAMPLE)  # the gains' fit needs few colours
+    best_gain, best_distance = None, (1.0 - o.exposure_closer) * base_distance
+    rows = _sample(np.random.default_rng(0), len(src), o.exposure_sample)  # the gains' fit needs few colours
+    limit = o.max_exposure_gain
     for start in (np.ones(3), ratio, np.full(3, grey)):
-        gain = np.clip(start, 1 / MAX_EXPOSURE_GAIN, MAX_EXPOSURE_GAIN)
-        for _ in range(EXPOSURE_STEPS):
-            step = _refine_gain(lin_s[rows] * gain, lin_d, src_w[rows], dst_tree)
-            gain = np.clip(step * gain, 1 / MAX_EXPOSURE_GAIN, MAX_EXPOSURE_GAIN)
+        gain = np.clip(start, 1 / limit, limit)
+        for _ in range(o.exposure_steps):
+            step = _refine_gain(lin_s[rows] * gain, lin_d, src_w[rows], dst_tree, o.shared_delta_e)
+            gain = np.clip(step * gain, 1 / limit, limit)
             if np.max(np.abs(np.log(step))) < 1e-3:
                 break
-        if gain.max() / gain.min() > MAX_WHITE_BALANCE:
+        if gain.max() / gain.min() > o.max_white_balance:
             continue
         distance, shared = judge(linear_to_lab(lin_s * gain))
         # A gain explains the difference only if under it the palettes agree as two
         # captures of one object do; two instances of other paints may come closer, never that close.
-        if distance < best_distance and shared >= max(base_shared, EXPOSURE_EXPLAINS):
+        if distance < best_distance and shared >= max(base_shared, o.exposure_explains):
             best_gain, best_distance = gain, distance
     if best_gain is None:
         return src
     return replace(src, lab=linear_to_lab(lin_s * best_gain), colour_gain=tuple(float(g) for g in best_gain))
 
 
-def _refine_gain(lin_s: np.ndarray, lin_d: np.ndarray, w_s: np.ndarray, dst_tree: cKDTree) -> np.ndarray:
+def _refine_gain(
+    lin_s: np.ndarray, lin_d: np.ndarray, w_s: np.ndarray, dst_tree: cKDTree, shared_delta_e: float
+) -> np.ndarray:
     """One step: each source colour's nearest target colour (CIELAB), pairs within
-    2·SHARED_DELTA_E, gain per channel = Σ w·target / Σ w·source over them."""
+    2·shared_delta_e, gain per channel = Σ w·target / Σ w·source over them."""
     d, j = dst_tree.query(linear_to_lab(lin_s), k=1)
-    near = d <= 2 * SHARED_DELTA_E
+    near = d <= 2 * shared_delta_e
     if near.sum() < 8:
         return np.ones(3)
     w = w_s[near, None]

@@ -1,6 +1,9 @@
 """Pose candidates of the robust search: the overlap score of one pose (truncated
 closeness both ways, colour as far as the models share it), the bidirectional coloured
-ICP on the anchors, and the decision between refined poses (ties -> ambiguous)."""
+ICP on the anchors, and the decision between refined poses (ties -> ambiguous).
+
+The thresholds are the fields of `PoseCriteria`; the functions take one (None: the
+defaults), and a SearchResult keeps the criteria it was decided under."""
 
 from __future__ import annotations
 
@@ -9,45 +12,82 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 from scipy.spatial import cKDTree
 
-from gsa.align.robust.anchoring import Anchors, colour_weight
+from gsa.align.robust.anchoring import Anchors, PaletteOptions, colour_weight
 from gsa.geometry import rotation_distance_deg
 from gsa.sim3 import DegenerateCorrespondencesError, Sim3, solve_sim3
 
-# Truncation of distances in the overlap score, as a fraction of the target's
-# anchor RMS radius: far enough to count near misses, near enough that a wrong
-# pose gains nothing from points that merely lie inside the other model's box.
-TRUNCATION = 0.1
-# Pairs closer than this (fraction of the target radius) compare colours.
-COLOUR_PAIR_DISTANCE = 0.05
-# Colour similarity of a pair: exp(−ΔE² / 2σ²) in CIELAB.
-COLOUR_SIGMA = 12.0
-# In coloured matching, a ΔE of COLOUR_SIGMA weighs like this fraction of the truncation distance.
-COLOUR_MATCH = 0.5
-# Poses whose scores differ by less than this are a tie (a symmetric shape whose
-# colours cannot tell its sides apart): the result is ambiguous.
-SCORE_TIE = 0.03
-# Rotations closer than this are one pose, not alternatives.
-DISTINCT_DEG = 15.0
-# The colour check (colour_mismatch), where the models share a palette (colour weight at
-# least COLOUR_TRUSTED): a pose whose overlapping pairs disagree in colour more than
-# COLOUR_MISMATCH_LIMIT times the models' own neighbour-to-neighbour colour noise (floored
-# at COLOUR_NOISE_FLOOR) pairs unlike parts. Measured on 11 sampled pairs (docs/benchmarks.md): 0.35-1.24 at right
-# poses, 2.27-2.49 at two partial airplane flips (verdict). decide()
-# prefers a pose to one scoring at most COLOUR_SWITCH_WINDOW more whose mismatch is beyond the
-# noise and COLOUR_SWITCH_RATIO times its own.
-COLOUR_TRUSTED = 0.5
-COLOUR_MISMATCH_LIMIT = 2.0
-COLOUR_NOISE_FLOOR = 0.02
-COLOUR_SWITCH_WINDOW = 2 * SCORE_TIE
-COLOUR_SWITCH_RATIO = 2.0
-# A pair's colour factor is 1 − 2w(1 − k) (_pair_scores). Two captures of one surface, aligned,
-# disagree about as much as each model's neighbouring anchors do (colour_noise n), so a right
-# pose's pairs get 1 − 2wn on average. Where a texture varies at the anchors' spacing (n ≈ 0.75
-# on reconstructions of a finely printed object) full trust made that negative: every pose
-# scored below zero and the one overlapping least won (a 180° flip, issue 26). colour_trust caps
-# w at NOISE_TRUST / n, where the right pose's pairs stop counting against it; no capture the
-# protocols use has n above 0.5 (docs/benchmarks.md, reconstruction), so their trust is unchanged.
-NOISE_TRUST = 0.5
+
+@dataclass(frozen=True)
+class Convergence:
+    """When an iterative fit stops: its last step turned by less than rotation_deg, changed
+    the scale by less than log_scale (|log s|) and, where translation is given, moved by less
+    than that fraction of the target's radius."""
+
+    rotation_deg: float
+    log_scale: float
+    translation: float | None = None
+
+    def reached(self, step: Sim3, radius: float = 1.0, angle_deg: float | None = None) -> bool:
+        """Whether `step` (the last update) is below every tolerance; angle_deg: its rotation
+        angle where the caller has it already."""
+        angle = rotation_distance_deg(step.rotation, np.eye(3)) if angle_deg is None else angle_deg
+        if not (angle < self.rotation_deg and abs(np.log(step.scale)) < self.log_scale):
+            return False
+        return self.translation is None or bool(np.linalg.norm(step.translation) < self.translation * radius)
+
+
+@dataclass(frozen=True)
+class PoseCriteria:
+    """How poses are scored, refined on the anchors and decided between. Lengths are fractions
+    of the target's anchor RMS radius; colour differences are CIELAB ΔE. The defaults are the
+    values benchmarked in docs/benchmarks.md."""
+
+    # Truncation of distances in the overlap score: far enough to count near misses, near
+    # enough that a wrong pose gains nothing from points that merely lie inside the other
+    # model's box.
+    truncation: float = 0.1
+    colour_pair_distance: float = 0.05  # pairs closer than this compare colours
+    colour_sigma: float = 12.0  # colour similarity of a pair: exp(−ΔE² / 2σ²)
+    # In coloured matching (bidirectional_icp), a ΔE of colour_sigma weighs like this
+    # fraction of the truncation distance.
+    colour_match: float = 0.5
+    # Poses whose scores differ by less than this are a tie (a symmetric shape whose colours
+    # cannot tell its sides apart): the result is ambiguous.
+    score_tie: float = 0.03
+    distinct_deg: float = 15.0  # rotations closer than this are one pose, not alternatives
+    distinct_log_scale: float = 0.2  # ... and scales within this (|log ratio|, ~20 %)
+    # The colour check (colour_mismatch), where the models share a palette (colour weight at
+    # least colour_trusted): a pose whose overlapping pairs disagree in colour more than
+    # colour_mismatch_limit times the models' own neighbour-to-neighbour colour noise
+    # (floored at colour_noise_floor) pairs unlike parts. Measured on 11 sampled pairs
+    # (docs/benchmarks.md): 0.35-1.24 at right poses, 2.27-2.49 at two partial airplane flips
+    # (verdict). decide() prefers a pose to one scoring at most colour_switch_ties × score_tie
+    # more whose mismatch is beyond the noise and colour_switch_ratio times its own.
+    colour_trusted: float = 0.5
+    colour_mismatch_limit: float = 2.0
+    colour_noise_floor: float = 0.02
+    colour_switch_ties: float = 2.0
+    colour_switch_ratio: float = 2.0
+    # A pair's colour factor is 1 − 2w(1 − k) (_pair_scores). Two captures of one surface,
+    # aligned, disagree about as much as each model's neighbouring anchors do (colour_noise n),
+    # so a right pose's pairs get 1 − 2wn on average. Where a texture varies at the anchors'
+    # spacing (n ≈ 0.75 on reconstructions of a finely printed object) full trust made that
+    # negative: every pose scored below zero and the one overlapping least won (a 180° flip).
+    # colour_trust caps w at noise_trust / n, where the right pose's pairs stop counting against
+    # it; no capture the protocols use has n above 0.5 (docs/benchmarks.md, reconstruction).
+    noise_trust: float = 0.5
+    # The anchors' ICP (bidirectional_icp): Tukey cut-off in median pair distances, and when it
+    # stops (anchors are a summary: the full-resolution refinement does the last digits).
+    icp_trim: float = 4.0
+    icp_convergence: Convergence = Convergence(rotation_deg=0.01, log_scale=1e-4, translation=1e-4)
+    palette: PaletteOptions = field(default_factory=PaletteOptions)  # how the palettes are compared (no pose)
+
+    @property
+    def colour_switch_window(self) -> float:
+        return self.colour_switch_ties * self.score_tie
+
+
+_DEFAULT = PoseCriteria()
 
 
 @dataclass
@@ -57,7 +97,7 @@ class Candidate:
     score: float = 0.0  # what poses are ranked by: overlap, with colour as far as the models share it
     geometry: float = 0.0  # overlap alone: truncated closeness both ways, in [0, 1]
     colour: float = 0.0  # colour agreement of overlapping pairs in [0, 1]
-    overlap: float = 0.0  # fraction of anchors (both ways) with a partner within COLOUR_PAIR_DISTANCE
+    overlap: float = 0.0  # fraction of anchors (both ways) with a partner within colour_pair_distance
 
     def to_dict(self, reference: Sim3 | None = None) -> dict:
         out = {
@@ -82,7 +122,7 @@ def rotation_offset_deg(a: Sim3, b: Sim3) -> float:
 class SearchResult:
     candidates: list[Candidate]  # refined and de-duplicated, the chosen one first
     colour_weight: float  # how far colour counted in the scores (0: not shared by the models)
-    margin: float  # lead over the best distinct alternative, in units of SCORE_TIE
+    margin: float  # lead over the best distinct alternative, in units of score_tie
     rivals: list[Candidate]  # the poses tied with the best
     colour_noise: float | None = None  # the models' own colour noise (colour_noise), when colour was checked
     # "score", or "geometry" where no pose made the colours agree (decide): colour told nothing apart
@@ -91,6 +131,7 @@ class SearchResult:
     # rival, the best turned half-way about the target's principal axes, the other candidates.
     # Offered to a person (alternatives), never ranked against the others.
     offered: list[Candidate] = field(default_factory=list)
+    criteria: PoseCriteria = field(default=_DEFAULT, repr=False)  # what the poses were scored and decided by
 
     @property
     def best(self) -> Candidate:
@@ -102,7 +143,9 @@ class SearchResult:
         return bool(self.rivals)
 
 
-def _pair_scores(d: np.ndarray, lab_a: np.ndarray, lab_b: np.ndarray, tau: float, w_colour: float) -> np.ndarray:
+def _pair_scores(
+    d: np.ndarray, lab_a: np.ndarray, lab_b: np.ndarray, tau: float, w_colour: float, sigma: float
+) -> np.ndarray:
     """Per point: truncated closeness to its partner, c·(1 − 2w(1 − k)) with k the
     colour similarity and w the trust in colour. With trusted colour a close pair of
     the wrong colour counts against a pose (one object cannot disagree with itself),
@@ -112,7 +155,7 @@ def _pair_scores(d: np.ndarray, lab_a: np.ndarray, lab_b: np.ndarray, tau: float
     if w_colour <= 0:
         return closeness
     de2 = np.sum((lab_a - lab_b) ** 2, axis=-1)
-    return closeness * (1.0 - 2.0 * w_colour * (1.0 - np.exp(-0.5 * de2 / COLOUR_SIGMA**2)))
+    return closeness * (1.0 - 2.0 * w_colour * (1.0 - np.exp(-0.5 * de2 / sigma**2)))
 
 
 def bidirectional_icp(
@@ -123,21 +166,22 @@ def bidirectional_icp(
     dst_rows: np.ndarray,
     iterations: int,
     w_colour: float = 0.0,
-    trim: float = 4.0,
+    criteria: PoseCriteria | None = None,
 ) -> Sim3:
     """Robust ICP with Horn's symmetric scale on correspondences from both
     directions: a source anchor's nearest target anchor, and a target anchor's
     nearest mapped source anchor. One direction alone lets a partial model's
     scale drift (it matches into the other's interior); both pin it. Pairs get
-    Tukey weights (cut-off trim × median distance) times their colour similarity
+    Tukey weights (cut-off icp_trim × median distance) times their colour similarity
     as far as colour is trusted: where two partial captures do not overlap, the
     nearest partner is close in space but the wrong colour."""
+    c = criteria or _DEFAULT
     p, q = src.points[src_rows], dst.points[dst_rows]
     transform = init
     # With trusted colour, partners are searched in (position, λ·Lab): a colour
-    # difference of COLOUR_SIGMA weighs like a fraction of the truncation distance,
+    # difference of colour_sigma weighs like a fraction of the truncation distance,
     # so matches reach across a misalignment towards the same-coloured part.
-    lam = COLOUR_MATCH * TRUNCATION * dst.radius / COLOUR_SIGMA * w_colour
+    lam = c.colour_match * c.truncation * dst.radius / c.colour_sigma * w_colour
     if lam > 0:
         dst_tree = cKDTree(np.hstack([dst.points, lam * dst.lab]))
         # In source units the colour axis shrinks with the scale; the start's scale is
@@ -158,13 +202,13 @@ def bidirectional_icp(
         a = np.concatenate([p, src.points[i]])
         b = np.concatenate([dst.points[j], q])
         d = np.concatenate([d_f, d_r])
-        cut = trim * max(float(np.median(d)), 1e-12 * dst.radius)
+        cut = c.icp_trim * max(float(np.median(d)), 1e-12 * dst.radius)
         weight = np.clip(1.0 - (d / cut) ** 2, 0.0, None) ** 2
         if w_colour > 0:
             de2 = np.concatenate(
                 [np.sum((src.lab[src_rows] - dst.lab[j]) ** 2, 1), np.sum((dst.lab[dst_rows] - src.lab[i]) ** 2, 1)]
             )
-            colour = (1.0 - w_colour) + w_colour * np.exp(-0.5 * de2 / COLOUR_SIGMA**2)
+            colour = (1.0 - w_colour) + w_colour * np.exp(-0.5 * de2 / c.colour_sigma**2)
             weight = weight * colour
         keep = weight > 1e-6
         try:
@@ -173,19 +217,22 @@ def bidirectional_icp(
             break
         step = new @ transform.inverse()
         transform = new
-        # Anchors are a summary: the full-resolution refinement does the last digits.
-        if (
-            rotation_distance_deg(step.rotation, np.eye(3)) < 0.01
-            and abs(np.log(step.scale)) < 1e-4
-            and np.linalg.norm(step.translation) < 1e-4 * dst.radius
-        ):
+        if c.icp_convergence.reached(step, dst.radius):
             break
     return transform
 
 
-def score_pose(src: Anchors, dst: Anchors, transform: Sim3, origin: str = "", w_colour: float = 0.0) -> Candidate:
+def score_pose(
+    src: Anchors,
+    dst: Anchors,
+    transform: Sim3,
+    origin: str = "",
+    w_colour: float = 0.0,
+    criteria: PoseCriteria | None = None,
+) -> Candidate:
     """Score, overlap-only geometry, colour agreement and overlap fraction of a pose (all anchors)."""
-    tau = TRUNCATION * dst.radius
+    c = criteria or _DEFAULT
+    tau = c.truncation * dst.radius
     d_f, j = dst.tree.query(transform.apply(src.points), k=1)
     d_r, i = src.tree.query(transform.inverse().apply(dst.points), k=1)
     d_r = d_r * transform.scale
@@ -194,10 +241,11 @@ def score_pose(src: Anchors, dst: Anchors, transform: Sim3, origin: str = "", w_
         return float(0.5 * (np.average(fwd, weights=src.weights) + np.average(rev, weights=dst.weights)))
 
     score = both(
-        _pair_scores(d_f, src.lab, dst.lab[j], tau, w_colour), _pair_scores(d_r, dst.lab, src.lab[i], tau, w_colour)
+        _pair_scores(d_f, src.lab, dst.lab[j], tau, w_colour, c.colour_sigma),
+        _pair_scores(d_r, dst.lab, src.lab[i], tau, w_colour, c.colour_sigma),
     )
     geometry = both(1 - np.minimum(d_f, tau) / tau, 1 - np.minimum(d_r, tau) / tau)
-    near = COLOUR_PAIR_DISTANCE * dst.radius
+    near = c.colour_pair_distance * dst.radius
     pair_f, pair_r = d_f <= near, d_r <= near
     de = np.concatenate(
         [
@@ -205,19 +253,21 @@ def score_pose(src: Anchors, dst: Anchors, transform: Sim3, origin: str = "", w_
             np.linalg.norm(dst.lab[pair_r] - src.lab[i[pair_r]], axis=1),
         ]
     )
-    colour = float(np.mean(np.exp(-0.5 * (de / COLOUR_SIGMA) ** 2))) if len(de) else 0.0
+    colour = float(np.mean(np.exp(-0.5 * (de / c.colour_sigma) ** 2))) if len(de) else 0.0
     overlap = float(0.5 * (pair_f.mean() + pair_r.mean()))
     return Candidate(transform, origin, score, geometry, colour, overlap)
 
 
-def colour_trust(src: Anchors, dst: Anchors, noise: float) -> float:
+def colour_trust(src: Anchors, dst: Anchors, noise: float, criteria: PoseCriteria | None = None) -> float:
     """How far colour counts in the scores: the palettes' agreement (colour_weight), capped
     where the models' own colour noise (mean colour_noise) would make a right pose's pairs
-    count against it (NOISE_TRUST)."""
-    return min(colour_weight(src, dst), NOISE_TRUST / noise) if noise > 0 else colour_weight(src, dst)
+    count against it (noise_trust)."""
+    c = criteria or _DEFAULT
+    weight = colour_weight(src, dst, c.palette)
+    return min(weight, c.noise_trust / noise) if noise > 0 else weight
 
 
-def colour_noise(a: Anchors) -> float:
+def colour_noise(a: Anchors, criteria: PoseCriteria | None = None) -> float:
     """1 − the colour agreement (as in score_pose) of each anchor with its nearest
     neighbour in its own model: how much one capture's colour varies between
     neighbouring samples of its surface. Two captures of one object, aligned, disagree
@@ -226,75 +276,83 @@ def colour_noise(a: Anchors) -> float:
         return 0.0
     _, j = a.tree.query(a.points, k=2)
     de2 = np.sum((a.lab - a.lab[j[:, 1]]) ** 2, axis=1)
-    return float(1.0 - np.average(np.exp(-0.5 * de2 / COLOUR_SIGMA**2), weights=a.weights))
+    sigma = (criteria or _DEFAULT).colour_sigma
+    return float(1.0 - np.average(np.exp(-0.5 * de2 / sigma**2), weights=a.weights))
 
 
-def _dedupe(cands: list[Candidate]) -> list[Candidate]:
-    """Several starts converge to one pose: keep the best-scoring copy of each."""
+def dedupe(cands: list[Candidate], criteria: PoseCriteria | None = None) -> list[Candidate]:
+    """Several starts converge to one pose: keep the best-scoring copy of each (best first;
+    one pose: rotations within distinct_deg and scales within distinct_log_scale)."""
+    k = criteria or _DEFAULT
     cands = sorted(cands, key=lambda c: -c.score)
     out: list[Candidate] = []
     for c in cands:
         if all(
-            rotation_offset_deg(c.transform, o.transform) > DISTINCT_DEG
-            or abs(np.log(c.transform.scale / o.transform.scale)) > 0.2
+            rotation_offset_deg(c.transform, o.transform) > k.distinct_deg
+            or abs(np.log(c.transform.scale / o.transform.scale)) > k.distinct_log_scale
             for o in out
         ):
             out.append(c)
     return out
 
 
-def colour_mismatch(c: Candidate, noise: float) -> float:
+def colour_mismatch(c: Candidate, noise: float, criteria: PoseCriteria | None = None) -> float:
     """How many times the models' own colour noise (colour_noise) the pose's overlapping
     pairs disagree in colour: about 1 or less for captures of one object aligned."""
-    return (1.0 - c.colour) / max(noise, COLOUR_NOISE_FLOOR)
+    return (1.0 - c.colour) / max(noise, (criteria or _DEFAULT).colour_noise_floor)
 
 
-def decide(cands: list[Candidate], w_colour: float, noise: float | None = None) -> SearchResult:
-    """The best score wins; a distinct pose within SCORE_TIE of it makes the result ambiguous.
+def decide(
+    cands: list[Candidate], w_colour: float, noise: float | None = None, criteria: PoseCriteria | None = None
+) -> SearchResult:
+    """The best score wins; a distinct pose within score_tie of it makes the result ambiguous.
 
     With a shared palette and the models' colour noise, colour also vetoes: a pose whose
-    pairs disagree beyond the noise, COLOUR_SWITCH_RATIO times more than another pose
-    within COLOUR_SWITCH_WINDOW of its score, yields to that pose, and such contradicted
+    pairs disagree beyond the noise, colour_switch_ratio times more than another pose
+    within colour_switch_window of its score, yields to that pose, and such contradicted
     poses are no rivals. A partial capture's flip can overlap the other capture better
     than the truth does, but one object does not disagree with itself.
 
     Where even the pose whose colours agree best disagrees beyond the noise, the models
     do not share their colours where they overlap (another instance with another paint,
     a repainted object) whatever their palettes share: poses are ranked by geometry."""
+    k = criteria or _DEFAULT
     ranked_by = "score"
     if (
         noise is not None
         and w_colour > 0
         and cands
-        and min(colour_mismatch(c, noise) for c in cands) > COLOUR_MISMATCH_LIMIT
+        and min(colour_mismatch(c, noise, k) for c in cands) > k.colour_mismatch_limit
     ):
         cands = sorted((replace(c, score=c.geometry) for c in cands), key=lambda c: -c.score)
         ranked_by = "geometry"
-    if ranked_by == "score" and noise is not None and w_colour >= COLOUR_TRUSTED and len(cands) > 1:
-        near = [c for c in cands if c.score >= cands[0].score - COLOUR_SWITCH_WINDOW]
-        cleanest = min(near, key=lambda c: colour_mismatch(c, noise))
-        if _contradicted(cands[0], cleanest, noise):
+    if ranked_by == "score" and noise is not None and w_colour >= k.colour_trusted and len(cands) > 1:
+        near = [c for c in cands if c.score >= cands[0].score - k.colour_switch_window]
+        cleanest = min(near, key=lambda c: colour_mismatch(c, noise, k))
+        if _contradicted(cands[0], cleanest, noise, k):
             cands = [cleanest] + [c for c in cands if c is not cleanest]
         best = cands[0]
-        others = [c for c in cands[1:] if not _contradicted(c, best, noise)]
+        others = [c for c in cands[1:] if not _contradicted(c, best, noise, k)]
     else:
         best, others = cands[0], cands[1:]
-    rivals = [c for c in others if c.score >= best.score - SCORE_TIE]
-    margin = (best.score - max(c.score for c in others)) / SCORE_TIE if others else float("inf")
-    return SearchResult(cands, w_colour, float(margin), rivals, noise, ranked_by)
+    rivals = [c for c in others if c.score >= best.score - k.score_tie]
+    margin = (best.score - max(c.score for c in others)) / k.score_tie if others else float("inf")
+    return SearchResult(cands, w_colour, float(margin), rivals, noise, ranked_by, criteria=k)
 
 
 def with_given_pose(given: Candidate, found: SearchResult) -> SearchResult:
     """The search's result re-judged around a pose the user gave (gsa.align.guided): `given`
     comes first whatever it scores, and its margin over the distinct poses the search found
-    is negative where one of them beats it, so the verdict says so (and lists it)."""
-    others = [c for c in found.candidates if rotation_offset_deg(c.transform, given.transform) > DISTINCT_DEG]
+    is negative where one of them beats it, so the verdict says so (and lists it); the
+    criteria are the search's."""
+    k = found.criteria
+    others = [c for c in found.candidates if rotation_offset_deg(c.transform, given.transform) > k.distinct_deg]
 
     def key(c: Candidate) -> float:
         return c.geometry if found.ranked_by == "geometry" else c.score
 
-    rivals = [c for c in others if key(c) >= key(given) - SCORE_TIE]
-    margin = (key(given) - max(key(c) for c in others)) / SCORE_TIE if others else float("inf")
+    rivals = [c for c in others if key(c) >= key(given) - k.score_tie]
+    margin = (key(given) - max(key(c) for c in others)) / k.score_tie if others else float("inf")
     return SearchResult(
         [given, *others],
         found.colour_weight,
@@ -302,12 +360,13 @@ def with_given_pose(given: Candidate, found: SearchResult) -> SearchResult:
         rivals,
         found.colour_noise,
         found.ranked_by,
-        [c for c in [found.best, *found.offered] if rotation_offset_deg(c.transform, given.transform) > DISTINCT_DEG],
+        [c for c in [found.best, *found.offered] if rotation_offset_deg(c.transform, given.transform) > k.distinct_deg],
+        k,
     )
 
 
-def _contradicted(pose: Candidate, reference: Candidate, noise: float) -> bool:
-    """Whether `pose` disagrees in colour beyond the noise and COLOUR_SWITCH_RATIO times
+def _contradicted(pose: Candidate, reference: Candidate, noise: float, criteria: PoseCriteria) -> bool:
+    """Whether `pose` disagrees in colour beyond the noise and colour_switch_ratio times
     more than `reference`."""
-    m = colour_mismatch(pose, noise)
-    return m > 1.0 and m >= COLOUR_SWITCH_RATIO * colour_mismatch(reference, noise)
+    m = colour_mismatch(pose, noise, criteria)
+    return m > 1.0 and m >= criteria.colour_switch_ratio * colour_mismatch(reference, noise, criteria)

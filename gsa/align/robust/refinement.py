@@ -1,17 +1,19 @@
 """Full-resolution bidirectional trimmed ICP with an overlap estimate, the frame relabellings
-that seed the search, and the GT-free verdict (confidence, ambiguity) on a final pose."""
+that seed the search, and the GT-free verdict (confidence, ambiguity) on a final pose. Their
+tunables: `RefineCriteria` and `VerdictCriteria` (None: the defaults); the verdict's colour
+check and ties follow the search's PoseCriteria (SearchResult.criteria)."""
 
 from __future__ import annotations
+
+from dataclasses import dataclass
 
 import numpy as np
 from scipy.spatial import cKDTree
 
 from gsa.align.nearest import nearest_candidate
 from gsa.align.robust.poses import (
-    COLOUR_MISMATCH_LIMIT,
-    COLOUR_TRUSTED,
-    DISTINCT_DEG,
     Candidate,
+    Convergence,
     SearchResult,
     colour_mismatch,
     rotation_offset_deg,
@@ -20,58 +22,79 @@ from gsa.canonical import SIGNED_PERMUTATIONS, CanonicalFrame, relabelling_label
 from gsa.geometry import axis_rotation, rotation_distance_deg
 from gsa.sim3 import DegenerateCorrespondencesError, Sim3, solve_sim3
 
-# Overlap estimation in the final refinement (see overlap_trim): Chetverikov et al. use
-# λ = 2; a larger λ keeps more pairs. Measured on the partial and deform protocols
-# (docs/benchmarks.md): λ = 4 keeps partial overlaps precise (median 0.15°) and
-# averages smooth deformations better than λ = 2 (success 75 % vs 58 % on 12 pairs).
-OVERLAP_LAMBDA = 4.0
-# refine's test for models that differ everywhere (_Fit.differ_everywhere): the overlap
-# estimate keeps at least WHOLE_OVERLAP of the pairs, and fewer than COINCIDENT_SHARE of
-# those lie within COINCIDENT_SPACINGS sampling spacings. Measured at final poses
-# (docs/benchmarks.md): the share is 0.77-1.0 for converged captures of one object
-# (partial, noisy, same), 0.17-0.44 for deformed copies; partial captures whose trimmed
-# fit stopped a few degrees off share 0.2-0.3 too, but their overlap estimate is < 0.9.
-WHOLE_OVERLAP = 0.875  # between the estimate's grid values 0.85 and 0.9
-COINCIDENT_SPACINGS = 2.0
-COINCIDENT_SHARE = 0.5
+
+@dataclass(frozen=True)
+class RefineCriteria:
+    """The full-resolution refinement (refine, coincidence, overlap_fraction); the defaults are
+    the values benchmarked in docs/benchmarks.md."""
+
+    # Overlap estimation (overlap_fraction): Chetverikov et al. use λ = 2; a larger λ keeps
+    # more pairs. Measured on the partial and deform protocols: λ = 4 keeps partial overlaps
+    # precise (median 0.15°) and averages smooth deformations better than λ = 2 (success 75 %
+    # vs 58 % on 12 pairs).
+    overlap_lambda: float = 4.0
+    # The test for models that differ everywhere (_Fit.differ_everywhere): the overlap estimate
+    # keeps at least whole_overlap of the pairs (between the estimate's grid values 0.85 and
+    # 0.9), and fewer than coincident_share of those lie within coincident_spacings sampling
+    # spacings. Measured at final poses: the share is 0.77-1.0 for converged captures of one
+    # object (partial, noisy, same), 0.17-0.44 for deformed copies; partial captures whose
+    # trimmed fit stopped a few degrees off share 0.2-0.3 too, but their overlap estimate is < 0.9.
+    whole_overlap: float = 0.875
+    coincident_spacings: float = 2.0
+    coincident_share: float = 0.5
+    # The fit of two captures of one surface holds the core_fraction closest pairs (the floor
+    # of overlap_fraction's grid) from the search's pose to the end. From a pose a degree or two
+    # off, residuals grow smoothly everywhere and the overlap estimate reads most pairs as
+    # overlap; a fit on them drifts where one capture has parts the other lacks and real
+    # captures fill volumes rather than thin surfaces. The closest pairs lie where the two
+    # coincide, and their fit is exact there (docs/benchmarks.md, "real captures").
+    core_fraction: float = 0.3
+    plane_iterations: int = 8  # point-to-plane polish steps after the point-to-point fit converged
+    # Steps below these sit in the sampling noise of the correspondences (point-to-point fit),
+    # and end the point-to-plane polish.
+    convergence: Convergence = Convergence(rotation_deg=2e-3, log_scale=2e-5)
+    plane_convergence: Convergence = Convergence(rotation_deg=1e-4, log_scale=1e-6)
 
 
-# The fit of two captures of one surface holds the CORE_FRACTION closest pairs (the floor of
-# overlap_fraction's grid) from the search's pose to the end. From a pose a degree or two off,
-# residuals grow smoothly everywhere and the overlap estimate reads most pairs as overlap; a
-# fit on them drifts where one capture has parts the other lacks and real captures fill
-# volumes rather than thin surfaces (a split pair of a real capture: 1.3° -> 27°). The closest
-# pairs lie where the two coincide, and their fit is exact there (docs/benchmarks.md, "real
-# captures": split pairs 96 -> 100 %, median 0.09 -> 0.04°; partial median 0.015 -> 0.006°).
-CORE_FRACTION = 0.3
+@dataclass(frozen=True)
+class VerdictCriteria:
+    """The GT-free verdict on a final pose (verdict); calibrated on all benchmark protocols
+    together (docs/benchmarks.md, "confidence")."""
 
-# Point-to-plane polish steps after the point-to-point fit converged (refine).
-PLANE_ITERATIONS = 8
-
-# A result is reported doubtful below this confidence.
-CONFIDENCE_THRESHOLD = 0.5
-# confidence = min(fit, separation): fit maps the final overlap score (truncated
-# closeness both ways, anchors) from FIT_FLOOR..FIT_FLOOR+FIT_SPAN onto 0..1, so a
-# pose whose models overlap less than FIT_FLOOR + FIT_SPAN/2 = 0.55 is doubtful; two
-# complete captures of one object score 0.6-0.8, duplicates 0.8-0.9. Separation maps
-# the lead over the best distinct alternative (units of SCORE_TIE) from 0..MARGIN_SPAN.
-# Calibrated on all benchmark protocols together (docs/benchmarks.md, "confidence").
-FIT_FLOOR, FIT_SPAN = 0.45, 0.2
-MARGIN_SPAN = 4.0
-# The overlap's coincidence (verdict's `coincide`) maps COINCIDE_FLOOR..+COINCIDE_SPAN onto 0..1
-# where the trimmed overlap estimate keeps at least COINCIDE_MIN_OVERLAP of the pairs. Measured
-# at final poses (docs/benchmarks.md, "fifth pass"): share 0.81-0.96 for 27 of 30 right
-# partial captures (ξ 0.55-0.95), 0.92-0.95 for complete ones, 0.25-0.6 for deformed copies;
-# wrong poses reach 0.77-0.93 too, so it only tells how well the models overlap: the
-# margin, ties and the colour check are what catch wrong poses.
-COINCIDE_FLOOR, COINCIDE_SPAN = 0.7, 0.2
-COINCIDE_MIN_OVERLAP = 0.5
-# Poses offered beside the chosen one (verdict's `alternatives`): the first rival, the three
-# half turns and the next candidates; the results page steps through them.
-MAX_ALTERNATIVES = 8
+    confidence_threshold: float = 0.5  # a result is reported doubtful below this confidence
+    # confidence = min(fit, separation): fit maps the final overlap score (truncated closeness
+    # both ways, anchors) from fit_floor..fit_floor+fit_span onto 0..1, so a pose whose models
+    # overlap less than fit_floor + fit_span/2 = 0.55 is doubtful; two complete captures of one
+    # object score 0.6-0.8, duplicates 0.8-0.9. Separation maps the lead over the best distinct
+    # alternative (units of score_tie) from 0..margin_span.
+    fit_floor: float = 0.45
+    fit_span: float = 0.2
+    margin_span: float = 4.0
+    # The overlap's coincidence (verdict's `coincide`) maps coincide_floor..+coincide_span onto
+    # 0..1 where the trimmed overlap estimate keeps at least coincide_min_overlap of the pairs.
+    # Measured at final poses: share 0.81-0.96 for 27 of 30 right partial captures (ξ 0.55-0.95),
+    # 0.92-0.95 for complete ones, 0.25-0.6 for deformed copies; wrong poses reach 0.77-0.93 too,
+    # so it only tells how well the models overlap: the margin, ties and the colour check are
+    # what catch wrong poses.
+    coincide_floor: float = 0.7
+    coincide_span: float = 0.2
+    coincide_min_overlap: float = 0.5
+    doubt_cap: float = 0.25  # the confidence at most of a tie or a colour contradiction
+    # Poses offered beside the chosen one (`alternatives`): the first rival, the three half
+    # turns and the next candidates; the results page steps through them.
+    max_alternatives: int = 8
 
 
-def verdict(final: Candidate, search: SearchResult | None, coincide: tuple[float, float] | None = None) -> dict:
+_REFINE = RefineCriteria()
+_VERDICT = VerdictCriteria()
+
+
+def verdict(
+    final: Candidate,
+    search: SearchResult | None,
+    coincide: tuple[float, float] | None = None,
+    criteria: VerdictCriteria | None = None,
+) -> dict:
     """GT-free judgement of a final pose: `confidence` in [0, 1] combines how well the
     two models overlap there with how clearly the pose beat the best distinct
     alternative of the search; `ambiguous` marks a tie nothing could break
@@ -79,28 +102,33 @@ def verdict(final: Candidate, search: SearchResult | None, coincide: tuple[float
 
     coincide: (ξ, share) of `coincidence` at full resolution. How well the models overlap
     is the larger of the overlap score (how much of both models lies close) and how much
-    of their overlap coincides, where the overlap is at least COINCIDE_MIN_OVERLAP of the
+    of their overlap coincides, where the overlap is at least coincide_min_overlap of the
     pairs: two captures that each missed a side overlap in part, and coincide there."""
-    fit = float(np.clip((final.geometry - FIT_FLOOR) / FIT_SPAN, 0.0, 1.0))
-    if coincide is not None and coincide[0] >= COINCIDE_MIN_OVERLAP:
-        fit = max(fit, float(np.clip((coincide[1] - COINCIDE_FLOOR) / COINCIDE_SPAN, 0.0, 1.0)))
+    v = criteria or _VERDICT
+    fit = float(np.clip((final.geometry - v.fit_floor) / v.fit_span, 0.0, 1.0))
+    if coincide is not None and coincide[0] >= v.coincide_min_overlap:
+        fit = max(fit, float(np.clip((coincide[1] - v.coincide_floor) / v.coincide_span, 0.0, 1.0)))
     ambiguous = bool(search is not None and search.ambiguous)
-    separation = 1.0 if search is None else float(np.clip(search.margin / MARGIN_SPAN, 0.0, 1.0))
+    separation = 1.0 if search is None else float(np.clip(search.margin / v.margin_span, 0.0, 1.0))
     confidence = min(fit, separation)
     if ambiguous:
-        confidence = min(confidence, 0.25)
+        confidence = min(confidence, v.doubt_cap)
     # Colour contradiction: where the models share a palette, aligned captures of one
     # object disagree in colour about as much as neighbouring samples of one capture
     # (colour_noise); a pose that pairs unlike parts (a flip that overlaps well) does not.
     mismatch = None
-    if search is not None and search.colour_noise is not None and search.colour_weight >= COLOUR_TRUSTED:
-        mismatch = colour_mismatch(final, search.colour_noise)
-        if mismatch > COLOUR_MISMATCH_LIMIT:
-            confidence = min(confidence, 0.25)
+    if (
+        search is not None
+        and search.colour_noise is not None
+        and search.colour_weight >= search.criteria.colour_trusted
+    ):
+        mismatch = colour_mismatch(final, search.colour_noise, search.criteria)
+        if mismatch > search.criteria.colour_mismatch_limit:
+            confidence = min(confidence, v.doubt_cap)
     out = {
         "confidence": confidence,
         "ambiguous": ambiguous,
-        "doubtful": ambiguous or confidence < CONFIDENCE_THRESHOLD,
+        "doubtful": ambiguous or confidence < v.confidence_threshold,
         "score": final.score,
         "margin": None if search is None else search.margin,
         "overlap_score": final.geometry,
@@ -113,21 +141,24 @@ def verdict(final: Candidate, search: SearchResult | None, coincide: tuple[float
     if search is not None:
         out["colour_weight"] = search.colour_weight
         out["ranked_by"] = search.ranked_by
-        # `tied`: a rival (within SCORE_TIE of the chosen pose, what makes a result ambiguous).
+        # `tied`: a rival (within score_tie of the chosen pose, what makes a result ambiguous).
         out["alternatives"] = [
             c.to_dict(final.transform) | {"tied": any(c is r for r in search.rivals)}
-            for c in alternatives(final, search)
+            for c in alternatives(final, search, v.max_alternatives)
         ]
     return out
 
 
-def alternatives(final: Candidate, search: SearchResult) -> list[Candidate]:
+def alternatives(
+    final: Candidate, search: SearchResult, count: int = VerdictCriteria.max_alternatives
+) -> list[Candidate]:
     """The poses to offer beside `final` (SearchResult.offered: the first rival, the half turns
-    of the chosen pose, the other candidates), at most MAX_ALTERNATIVES and each distinct from
-    `final`. Cross-instance, the truth is often not the best-scoring pose but one of these
-    (docs/benchmarks.md, category-real), and a person picks it."""
-    offered = [c for c in search.offered if rotation_offset_deg(c.transform, final.transform) > DISTINCT_DEG]
-    return offered[:MAX_ALTERNATIVES]
+    of the chosen pose, the other candidates), at most `count` and each distinct from `final`
+    (the search's distinct_deg). Cross-instance, the truth is often not the best-scoring pose
+    but one of these (docs/benchmarks.md, category-real), and a person picks it."""
+    distinct = search.criteria.distinct_deg
+    offered = [c for c in search.offered if rotation_offset_deg(c.transform, final.transform) > distinct]
+    return offered[:count]
 
 
 def frame_relabellings(src: CanonicalFrame, dst: CanonicalFrame) -> list[tuple[str, np.ndarray]]:
@@ -146,6 +177,7 @@ def refine(
     iterations: int = 40,
     neighbours: int = 6,
     target_normals: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None = None,
+    criteria: RefineCriteria | None = None,
 ) -> tuple[Sim3, list[dict]]:
     """Full-resolution trimmed ICP on correspondences from both directions.
 
@@ -156,7 +188,7 @@ def refine(
     one direction. Both directions: where two captures overlap only in part, a
     one-way match pulls the overlap's boundary inwards and biases the scale.
 
-    The fit holds the CORE_FRACTION closest pairs (see there). Where its pose shows two
+    The fit holds the core_fraction closest pairs (RefineCriteria). Where its pose shows two
     models that coincide nowhere (see
     `coincide`: another instance, a deformed copy), the fit goes on with every
     pair, so that it averages the difference instead of locking onto one part.
@@ -166,18 +198,19 @@ def refine(
     of one surface is polished point-to-plane: two independent samplings of a surface
     never share points, and point-to-point pairs between them carry the sampling's
     offsets, which a pair's distance along the normal does not."""
-    fit = _Fit(source_points, target_points, source_tree, target_tree, neighbours)
-    core, history = fit.run(init, iterations, lambda d: CORE_FRACTION)
+    k = criteria or _REFINE
+    fit = _Fit(source_points, target_points, source_tree, target_tree, neighbours, k)
+    core, history = fit.run(init, iterations, lambda d: k.core_fraction)
     for step in history:
         step["stage"] = "refine-core"
     if not fit.differ_everywhere(core):
         if target_normals is None:
             return core, history
-        transform, more = fit.polish(core, target_normals, PLANE_ITERATIONS, CORE_FRACTION, start=len(history))
+        transform, more = fit.polish(core, target_normals, k.plane_iterations, k.core_fraction, start=len(history))
         return transform, history + more
     # Models that coincide nowhere (a deformed copy): the fit on the estimated overlap from the
     # search's pose, then on every pair, so that it averages the difference.
-    transform, more = fit.run(init, iterations, overlap_fraction, start=len(history))
+    transform, more = fit.run(init, iterations, lambda d: overlap_fraction(d, k.overlap_lambda), start=len(history))
     history += more
     # Its own budget: a trimmed fit on a deformed copy wanders rather than converges.
     transform, more = fit.run(transform, iterations, lambda d: 1.0, start=len(history))
@@ -187,13 +220,14 @@ def refine(
 
 
 class _Fit:
-    def __init__(self, source_points, target_points, source_tree, target_tree, neighbours: int):
+    def __init__(self, source_points, target_points, source_tree, target_tree, neighbours: int, criteria):
         self.p = np.ascontiguousarray(source_points, np.float64)
         self.q = np.ascontiguousarray(target_points, np.float64)
         self.src_tree, self.dst_tree = source_tree, target_tree
         self.src_all = np.ascontiguousarray(source_tree.data, np.float64)
         self.dst_all = np.ascontiguousarray(target_tree.data, np.float64)
         self.neighbours = neighbours
+        self.criteria: RefineCriteria = criteria
 
     def run(self, transform: Sim3, iterations: int, fraction_of, start: int = 0) -> tuple[Sim3, list[dict]]:
         p, q, src_all, dst_all = self.p, self.q, self.src_all, self.dst_all
@@ -234,8 +268,7 @@ class _Fit:
                     }
                 )
                 transform = new
-                # Steps below these sit in the sampling noise of the correspondences.
-                if angle < 2e-3 and abs(np.log(step.scale)) < 2e-5:
+                if self.criteria.convergence.reached(step, angle_deg=angle):
                     if inner <= 2:
                         return transform, history
                     break  # converged on the cached tables: re-query once to confirm
@@ -279,7 +312,7 @@ class _Fit:
                     "scale": transform.scale,
                 }
             )
-            if angle < 1e-4 and abs(np.log(step.scale)) < 1e-6:
+            if self.criteria.plane_convergence.reached(step, angle_deg=angle):
                 break
         return transform, history
 
@@ -297,25 +330,32 @@ class _Fit:
         their overlap, and where one of them misses a part the estimate stops at the
         overlap instead; another instance or a deformed copy is near everywhere and
         coincides nowhere."""
-        fraction, share = coincidence(self.p, self.q, self.src_tree, self.dst_tree, transform)
-        return fraction >= WHOLE_OVERLAP and share < COINCIDENT_SHARE
+        k = self.criteria
+        fraction, share = coincidence(self.p, self.q, self.src_tree, self.dst_tree, transform, k)
+        return fraction >= k.whole_overlap and share < k.coincident_share
 
 
 def coincidence(
-    source_points: np.ndarray, target_points: np.ndarray, source_tree: cKDTree, target_tree: cKDTree, transform: Sim3
+    source_points: np.ndarray,
+    target_points: np.ndarray,
+    source_tree: cKDTree,
+    target_tree: cKDTree,
+    transform: Sim3,
+    criteria: RefineCriteria | None = None,
 ) -> tuple[float, float]:
     """(ξ, share) at a pose: the overlap estimate (overlap_fraction) of the pairs both ways
     between the sampled points and the other model's tree, and the share of those overlapping
-    pairs closer than COINCIDENT_SPACINGS sampling spacings: how much of the overlap
+    pairs closer than coincident_spacings sampling spacings: how much of the overlap
     coincides, whatever the share of each model the overlap is."""
+    k = criteria or _REFINE
     d_f, _ = target_tree.query(transform.apply(source_points), workers=_workers(len(source_points)))
     d_r, _ = source_tree.query(transform.inverse().apply(target_points), workers=_workers(len(target_points)))
     d = np.concatenate([d_f, d_r * transform.scale])
     spacing = max(sampling_spacing(target_tree), sampling_spacing(source_tree) * transform.scale)
-    fraction = overlap_fraction(d)
+    fraction = overlap_fraction(d, k.overlap_lambda)
     kept = np.sort(d)[: max(int(fraction * len(d)), 3)]
     # ≤: where a model's median spacing is 0 (stacked duplicate Gaussians), pairs at 0 coincide.
-    return fraction, float(np.mean(kept <= COINCIDENT_SPACINGS * spacing))
+    return fraction, float(np.mean(kept <= k.coincident_spacings * spacing))
 
 
 def _plane_step(x: np.ndarray, y: np.ndarray, n: np.ndarray, w: np.ndarray) -> Sim3 | None:
@@ -353,7 +393,7 @@ def sampling_spacing(points: np.ndarray | cKDTree, probes: int = 2000) -> float:
     return float(np.median(d[:, 1]))
 
 
-def overlap_trim(d: np.ndarray, lam: float = OVERLAP_LAMBDA) -> np.ndarray:
+def overlap_trim(d: np.ndarray, lam: float = RefineCriteria.overlap_lambda) -> np.ndarray:
     """The pairs that overlap_fraction keeps (a boolean mask over d)."""
     return _smallest(d, overlap_fraction(d, lam))
 
@@ -364,7 +404,7 @@ def _smallest(d: np.ndarray, fraction: float) -> np.ndarray:
     return keep
 
 
-def overlap_fraction(d: np.ndarray, lam: float = OVERLAP_LAMBDA) -> float:
+def overlap_fraction(d: np.ndarray, lam: float = RefineCriteria.overlap_lambda) -> float:
     """Trimmed-ICP overlap estimate (Chetverikov et al. 2005): the fraction ξ of
     pairs with the smallest residuals that minimises RMS(ξ) / ξ^(1+λ), ξ ≥ 0.3. Where the two
     models overlap only in part the residuals jump and ξ stops at the overlap; where

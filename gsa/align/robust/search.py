@@ -5,7 +5,7 @@ successive-halving refinement of the best starts (the candidates themselves: pos
 from __future__ import annotations
 
 from collections.abc import Callable
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 
 import numba
 import numpy as np
@@ -14,38 +14,29 @@ from scipy.spatial import cKDTree
 from gsa.align.robust.anchoring import Anchors, NearestGrid, _sample, grid_index
 from gsa.align.robust.placement import placed_starts
 from gsa.align.robust.poses import (
-    COLOUR_SIGMA,
-    COLOUR_TRUSTED,
-    DISTINCT_DEG,
-    SCORE_TIE,
-    TRUNCATION,
     Candidate,
+    PoseCriteria,
     SearchResult,
-    _dedupe,
     bidirectional_icp,
     colour_noise,
     colour_trust,
     decide,
+    dedupe,
     score_pose,
 )
 from gsa.geometry import axis_rotation, rotation_distance_deg, super_fibonacci_rotations
 from gsa.sim3 import Sim3
 
-# Poses offered beside the best must put the source this share of the target's radius away
-# from it and from each other (mean nearest distance both ways): a quarter of the score's
-# truncation merges the spins of a turned shape (a bottle's: 0.04-0.06 of the radius apart on
-# ~800 anchors) only where they coincide, and keeps the near-symmetric twins (a table turned by
-# 90 degrees, 0.25 apart) that a person must choose between.
-OFFER_DISTINCT = 0.25 * TRUNCATION
-# Unfinished starts scoring within this of the best finished one are finished too.
-RIVAL_WINDOW = 0.08
-# _sweep_twins: rotations of ±SWEEP_DEGREES and half that about each axis.
-SWEEP_DEGREES = 16.0
 
-
-@dataclass
+@dataclass(frozen=True)
 class SearchOptions:
-    rotations: int = 2048  # super-Fibonacci samples: any rotation within ~10° (median), 17° (worst)
+    """What the global search tries (counts, grids, schedules) and, in `criteria`, how it
+    scores and decides between poses. align() sets rotations and seed from AlignOptions
+    (search_rotations, seed)."""
+
+    # super-Fibonacci samples; the default is AlignOptions.search_rotations' (a test holds them
+    # equal). 2048 already put any rotation within ~10° (median), 17° (worst) of one.
+    rotations: int = 4096
     score_points: int = 256  # anchors per model used to score every rotation
     # Capture radii (in units of the truncation τ) of the translation/scale steps per rotation.
     capture_steps: tuple[float, ...] = (8.0, 8.0, 6.0, 4.0, 3.0, 2.0, 1.5)
@@ -68,7 +59,16 @@ class SearchOptions:
     # Axes (target coordinates) of the half turns offered beside the best pose (_with_offers);
     # None: the target's principal axes. A search about a known up axis offers the turn about it.
     offer_turn_axes: tuple[tuple[float, float, float], ...] | None = None
+    # Poses offered beside the best must put the source this share of the score's truncation
+    # away from it and from each other (mean nearest distance both ways): a quarter merges the
+    # spins of a turned shape (a bottle's: 0.04-0.06 of the radius apart on ~800 anchors) only
+    # where they coincide, and keeps the near-symmetric twins (a table turned by 90 degrees,
+    # 0.25 of the radius apart) that a person must choose between.
+    offer_distinct: float = 0.25
+    rival_window: float = 0.08  # unfinished starts scoring within this of the best finished one are finished too
+    sweep_degrees: float = 16.0  # _sweep_twins: rotations of ± this and half this about each axis
     seed: int = 0
+    criteria: PoseCriteria = field(default_factory=PoseCriteria)  # scoring and decision (gsa.align.robust.poses)
 
 
 def global_search(
@@ -83,6 +83,7 @@ def global_search(
     not trust centroids join the candidates (gsa.align.robust.placement) and the best
     of all wins."""
     opts = options or SearchOptions()
+    k = opts.criteria
     rng = np.random.default_rng(opts.seed)
     rotations = super_fibonacci_rotations(opts.rotations)
     origins = ["grid"] * len(rotations)
@@ -90,15 +91,15 @@ def global_search(
         rotations = np.concatenate([rotations, r[None]])
         origins.append(f"frame:{label}")
     scale0 = dst.radius / src.radius
-    tau = TRUNCATION * dst.radius
+    tau = k.truncation * dst.radius
     # Cells of τ/2 bound the lookup error well inside the truncation; a radius of
     # padding covers poses that overhang the other model (beyond it a point scores zero).
     dst_grid = NearestGrid(dst.points, 0.5 * tau, dst.radius)
     src_grid = NearestGrid(src.points, 0.5 * tau / scale0, src.radius)
 
-    noise = 0.5 * (colour_noise(src) + colour_noise(dst))
-    w_colour = colour_trust(src, dst, noise)
-    scorer = _GridScorer(src, dst, dst_grid, src_grid, rng, opts.score_points, tau, w_colour)
+    noise = 0.5 * (colour_noise(src, k) + colour_noise(dst, k))
+    w_colour = colour_trust(src, dst, noise, k)
+    scorer = _GridScorer(src, dst, dst_grid, src_grid, rng, opts.score_points, tau, w_colour, k.colour_sigma)
     # Centres and RMS radii are only a first guess: a capture that missed a side has
     # its centroid moved by up to a radius and its radius off by up to ~40 %.
     scale = np.full(len(rotations), scale0)
@@ -109,21 +110,21 @@ def global_search(
     # rank below a geometric flip; the geometric half keeps it in the running, and
     # colour decides after ICP, where the pose is exact enough for colours to compare.
     score = scorer.score(rotations, scale, t, blend=True)
-    top = _distinct(np.argsort(-score), rotations, opts.translation_top, DISTINCT_DEG / 2)
+    top = _distinct(np.argsort(-score), rotations, opts.translation_top, k.distinct_deg / 2)
     _try_offsets(scorer, rotations, scale, t, score, top, opts)
 
     # Refine the best distinct rotations, and the best frame relabelling (exact on clean copies).
     frames = np.arange(opts.rotations, len(rotations))
     first = [int(frames[np.argmax(score[frames])])] if len(frames) else []
     chosen = _distinct(
-        np.concatenate([first, np.argsort(-score)]).astype(int), rotations, opts.refine_top, DISTINCT_DEG
+        np.concatenate([first, np.argsort(-score)]).astype(int), rotations, opts.refine_top, k.distinct_deg
     )
     starts = [
         (origins[i], Sim3(float(scale[i]), rotations[i], t[i] - scale[i] * rotations[i] @ src.center)) for i in chosen
     ]
     refined = _refine_starts(src, dst, starts, w_colour, rng, opts)
     refined = _sweep_twins(src, dst, refined, w_colour, rng, opts)
-    result = decide(_dedupe(refined), w_colour, noise)
+    result = decide(dedupe(refined, k), w_colour, noise, k)
     if widen_if is None or not widen_if(result):
         return _with_offers(src, dst, result, w_colour, rng, opts)
     # Placed starts begin up to ~20° off and look poor after a few iterations (a partial
@@ -140,16 +141,16 @@ def global_search(
         truncation=opts.place_truncation,
         scales=opts.place_scales,
         count=opts.place_top,
-        min_deg=DISTINCT_DEG,
+        min_deg=k.distinct_deg,
         capture=scorer.capture,
         capture_steps=opts.capture_steps[-3:],
     ):
         init = Sim3(s_, r, t_ - s_ * r @ src.center)
         transform = bidirectional_icp(
-            src, dst, init, src_rows, dst_rows, opts.early_iterations + opts.refine_iterations, w_colour
+            src, dst, init, src_rows, dst_rows, opts.early_iterations + opts.refine_iterations, w_colour, k
         )
-        refined.append(score_pose(src, dst, transform, "placed", w_colour))
-    return _with_offers(src, dst, decide(_dedupe(refined), w_colour, noise), w_colour, rng, opts)
+        refined.append(score_pose(src, dst, transform, "placed", w_colour, k))
+    return _with_offers(src, dst, decide(dedupe(refined, k), w_colour, noise, k), w_colour, rng, opts)
 
 
 def _with_offers(
@@ -159,11 +160,12 @@ def _with_offers(
     turned by 180° about each of opts.offer_turn_axes (default: the target's principal axes),
     through the target's centre, and refined by the anchors' ICP, then the other candidates by
     score (the other rivals among them). Each after the first rival is kept only where it puts
-    the source OFFER_DISTINCT away from the best and from every pose kept before it: turns of a
+    the source opts.offer_distinct truncations away from the best and from every pose kept before it: turns of a
     symmetric shape that land on one surface are one pose. Cross-instance misses are mostly such
     half turns (a bathtub end for end, a vase upside down) that the search did not refine; they
     are offered to pick (gsa.align.guided), never ranked, so no verdict changes."""
     best = result.best.transform
+    k = opts.criteria
     src_rows = _sample(rng, len(src), opts.refine_points)
     dst_rows = _sample(rng, len(dst), opts.refine_points)
     if opts.offer_turn_axes is not None:
@@ -172,15 +174,15 @@ def _with_offers(
     else:
         _, _, axes = np.linalg.svd((dst.points - dst.center) * np.sqrt(dst.weights)[:, None], full_matrices=False)
     flips = []
-    for k, axis in enumerate(axes):
+    for n, axis in enumerate(axes):
         turn = axis_rotation(axis, np.pi)
         # x -> turn (T(x) - c) + c: the half turn about the target's centre, after the best pose.
         start = Sim3(best.scale, turn @ best.rotation, turn @ (best.translation - dst.center) + dst.center)
         iterations = opts.early_iterations + opts.refine_iterations
-        transform = bidirectional_icp(src, dst, start, src_rows, dst_rows, iterations, w_colour)
-        flips.append(score_pose(src, dst, transform, f"flip:axis{k}", w_colour))
+        transform = bidirectional_icp(src, dst, start, src_rows, dst_rows, iterations, w_colour, k)
+        flips.append(score_pose(src, dst, transform, f"flip:axis{n}", w_colour, k))
     sample = src.points[src_rows]
-    limit = OFFER_DISTINCT * dst.radius
+    limit = opts.offer_distinct * k.truncation * dst.radius
     # The first rival stays whatever its surface: the turns of a symmetric shape are what the
     # person must choose between (a bottle's many spins are one choice, though).
     offered = list(result.rivals[:1])
@@ -243,15 +245,17 @@ def _refine_starts(
     opts: SearchOptions,
 ) -> list[Candidate]:
     """Successive halving: every start gets a few ICP iterations, the leaders the rest."""
+    crit = opts.criteria
     src_rows = _sample(rng, len(src), opts.refine_points)
     dst_rows = _sample(rng, len(dst), opts.refine_points)
     early = [
         score_pose(
             src,
             dst,
-            bidirectional_icp(src, dst, init, src_rows, dst_rows, opts.early_iterations, w_colour),
+            bidirectional_icp(src, dst, init, src_rows, dst_rows, opts.early_iterations, w_colour, crit),
             origin,
             w_colour,
+            crit,
         )
         for origin, init in starts
     ]
@@ -261,11 +265,11 @@ def _refine_starts(
         # Past the finalists, a start still runs to convergence if its unfinished score
         # is close to the best: a symmetric pose half-way there must not look worse
         # than it is, or a tie would pass for a clear win.
-        if k >= opts.finalists and c.score < max(r.score for r in refined) - RIVAL_WINDOW:
+        if k >= opts.finalists and c.score < max(r.score for r in refined) - opts.rival_window:
             refined.append(c)
             continue
-        transform = bidirectional_icp(src, dst, c.transform, src_rows, dst_rows, opts.refine_iterations, w_colour)
-        refined.append(score_pose(src, dst, transform, c.origin, w_colour))
+        transform = bidirectional_icp(src, dst, c.transform, src_rows, dst_rows, opts.refine_iterations, w_colour, crit)
+        refined.append(score_pose(src, dst, transform, c.origin, w_colour, crit))
     return refined
 
 
@@ -274,41 +278,40 @@ def _sweep_twins(
 ) -> list[Candidate]:
     """Where the shape is symmetric — distinct poses whose geometry ties with the best
     (geometric twins) — and colour is trusted to tell them apart, the best-scoring poses
-    also try rotations of up to SWEEP_DEGREES about their centres, kept by their coloured
+    also try rotations of up to opts.sweep_degrees about their centres, kept by their coloured
     score, and the anchor ICP again from the best of them. Geometry holds no such pose in place, and
     the coloured ICP's pull fades a few degrees out: on a 5-fold wheel it stopped 10° off
     the truth, and a flip that had converged outscored it."""
-    if w_colour < COLOUR_TRUSTED or len(refined) < 2:
+    k = opts.criteria
+    if w_colour < k.colour_trusted or len(refined) < 2:
         return refined
-    distinct = _dedupe(refined)
+    distinct = dedupe(refined, k)
     top = max(c.geometry for c in distinct)
-    if sum(c.geometry >= top - SCORE_TIE for c in distinct) < 2:
+    if sum(c.geometry >= top - k.score_tie for c in distinct) < 2:
         return refined
     src_rows = _sample(rng, len(src), opts.refine_points)
     dst_rows = _sample(rng, len(dst), opts.refine_points)
     out = list(refined)
+    turns = _sweep_turns(opts.sweep_degrees)
     for c in distinct[: opts.finalists]:
         centre = c.transform.apply(src.center)
         best, best_score = c.transform, c.score
-        for turn in _SWEEP_TURNS:
+        for turn in turns:
             pose = Sim3(1.0, turn, centre - turn @ centre) @ c.transform
-            score = score_pose(src, dst, pose, "", w_colour).score
+            score = score_pose(src, dst, pose, "", w_colour, k).score
             if score > best_score:
                 best, best_score = pose, score
         if best is not c.transform:
-            transform = bidirectional_icp(src, dst, best, src_rows, dst_rows, opts.refine_iterations, w_colour)
-            swept = score_pose(src, dst, transform, c.origin + "+sweep", w_colour)
+            transform = bidirectional_icp(src, dst, best, src_rows, dst_rows, opts.refine_iterations, w_colour, k)
+            swept = score_pose(src, dst, transform, c.origin + "+sweep", w_colour, k)
             if swept.score > c.score:
                 out.append(swept)
     return out
 
 
-def _sweep_turns() -> np.ndarray:
-    angles = np.radians([-SWEEP_DEGREES, -SWEEP_DEGREES / 2, SWEEP_DEGREES / 2, SWEEP_DEGREES])
+def _sweep_turns(degrees: float) -> np.ndarray:
+    angles = np.radians([-degrees, -degrees / 2, degrees / 2, degrees])
     return np.array([axis_rotation(axis, a) for axis in np.eye(3) for a in angles])
-
-
-_SWEEP_TURNS = _sweep_turns()
 
 
 def _distinct(order: np.ndarray, rotations: np.ndarray, count: int, min_deg: float) -> list[int]:
@@ -336,13 +339,14 @@ class _GridScorer:
         points: int,
         tau: float,
         w_colour: float,
+        sigma: float,
     ):
         self.src, self.dst, self.dst_grid, self.src_grid = src, dst, dst_grid, src_grid
         p_rows, q_rows = _sample(rng, len(src), points), _sample(rng, len(dst), points)
         self.ps, self.qs = src.points[p_rows], dst.points[q_rows]
         self.p_lab, self.q_lab = src.lab[p_rows], dst.lab[q_rows]
         self.src_mean = self.ps.mean(0)
-        self.tau, self.w_colour = tau, w_colour
+        self.tau, self.w_colour, self.sigma = tau, w_colour, sigma
 
     def capture(self, rotations, scale, t, reaches):
         """Shrinking capture radii (units of τ) pull each pose's translation and scale
@@ -376,6 +380,7 @@ class _GridScorer:
             self.dst.lab,
             self.tau,
             self.w_colour,
+            self.sigma,
         )
         # Reverse: x_s = Rᵀ (q − t) / s + c_s, distances back in target units (× s).
         inv = np.transpose(rotations, (0, 2, 1)) / scale[:, None, None]
@@ -395,6 +400,7 @@ class _GridScorer:
             self.src.lab,
             self.tau,
             self.w_colour,
+            self.sigma,
         )
         both = 0.5 * (fwd + rev)  # (poses, 2): coloured, geometric
         return both.mean(axis=1) if blend else both[:, 0]
@@ -402,13 +408,13 @@ class _GridScorer:
 
 @numba.njit(parallel=True, cache=True)
 def _score_poses(
-    lin, off, dist_scale, pts, lab, nearest, lo, inv_cell, shape, other, other_lab, tau, w
+    lin, off, dist_scale, pts, lab, nearest, lo, inv_cell, shape, other, other_lab, tau, w, sigma
 ):  # pragma: no cover
     """Per pose k, the mean over `pts` mapped by x -> lin[k] x + off[k] of _pair_scores
-    (column 0) and of the truncated closeness alone (column 1)."""
+    (column 0) and of the truncated closeness alone (column 1); sigma: the colour similarity's σ."""
     n_pose, n_pt = lin.shape[0], pts.shape[0]
     out = np.zeros((n_pose, 2))
-    inv_2s2 = 0.5 / COLOUR_SIGMA**2
+    inv_2s2 = 0.5 / sigma**2
     for k in numba.prange(n_pose):
         total = 0.0
         geometric = 0.0
