@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from gsa.align.contract import hints_from_files
-from gsa.align.guided import pairs_transform
+from gsa.align.guided import GuidanceCriteria, honours_pairs, pairs_transform, up_rotations
 from gsa.align.pipeline import AlignOptions, align
 from gsa.geometry import axis_rotation
 from gsa.io import frames
@@ -42,6 +42,18 @@ def test_pairs_solve_in_closed_form_and_leave_out_one_wrong_pair():
     assert abs(fit.scale / truth.scale - 1) < 0.02
     fixed, _ = pairs_transform(src[:3], truth.apply(src[:3]), fixed_scale=2.5)
     assert fixed.scale == 2.5
+    # The thresholds are options: a misclick must miss by more than the pairs' spread here.
+    _, lenient = pairs_transform(src, dst, criteria=GuidanceCriteria(misclick_share=100.0))
+    assert lenient["left_out"] is None
+
+
+def test_guidance_criteria_take_effect():
+    up = (0.0, 0.0, 1.0)
+    assert len(up_rotations(up, up)) == 360 / GuidanceCriteria().up_step_deg
+    assert len(up_rotations(up, up, GuidanceCriteria(up_step_deg=10.0))) == 36
+    turned = Sim3(1.0, axis_rotation(np.array([0.0, 0.0, 1.0]), np.radians(40.0)), np.zeros(3))
+    assert not honours_pairs(turned, Sim3.identity())
+    assert honours_pairs(turned, Sim3.identity(), GuidanceCriteria(pairs_max_turn_deg=45.0))
 
 
 def test_picked_pairs_align_a_model_and_say_so(pair):

@@ -9,31 +9,44 @@ Hints (AlignOptions fields; each optional):
   is brought back onto it (a cross-instance refinement can tilt).
 - fixed_scale: the answer's scale, kept through every stage.
 
-Functions taking `opts` take a gsa.align.AlignOptions (not imported here: it imports this module).
+Functions taking `opts` take a gsa.align.AlignOptions (not imported here: it imports this module);
+the tunables of the pairs' fit, the up-axis search and the refinement's leash are the fields of
+`GuidanceCriteria`, taken by the functions that use them (None: the defaults).
 `check_guidance` validates and normalises the hints once (AlignOptions.__post_init__), so the
 CLI, both APIs and the library refuse the same things with the same words.
 """
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 
 from gsa.geometry import axis_rotation, rotation_distance_deg
 from gsa.sim3 import Sim3, solve_sim3
 
+# Picked pairs accepted at most: a bound on the input (the CLI, both APIs), not a tunable.
 MAX_PAIRS = 1000
-# Turns about the up axis tried by the constrained search (degrees apart).
-UP_SEARCH_STEP_DEG = 2.0
-# A pair the others' fit misses by this multiple of the full fit's median residual, and by this
-# share of the pairs' spread, is a misclick (pairs_transform).
-OUTLIER_RATIO = 4.0
-MISCLICK_SHARE = 0.25
-# ... and only where the fit of all pairs misses them by this share of their spread (RMS).
-MISFIT_SHARE = 0.05
-# Pairs left after a misclick must spread this far off a line (second/first singular value).
-WELL_SPREAD = 0.25
-# The refinement after picked pairs is kept while it turns the pairs' fit by at most this.
-PAIRS_MAX_TURN_DEG = 30.0
+
+
+@dataclass(frozen=True)
+class GuidanceCriteria:
+    """The tunables of guided alignment; the defaults are the values benchmarked in
+    docs/benchmarks.md (category-real, guided rows)."""
+
+    up_step_deg: float = 2.0  # turns about the up axis tried by the constrained search (degrees apart)
+    # A pair the others' fit misses by outlier_ratio times their median residual, and by
+    # misclick_share of the pairs' spread, is a misclick (pairs_transform) ...
+    outlier_ratio: float = 4.0
+    misclick_share: float = 0.25
+    misfit_share: float = 0.05  # ... looked for only where the fit of all pairs misses them by this share (RMS)
+    well_spread: float = 0.25  # pairs left after a misclick spread this far off a line (2nd/1st singular value)
+    pairs_max_turn_deg: float = (
+        30.0  # the refinement after picked pairs is kept while it turns their fit by this at most
+    )
+
+
+_DEFAULT = GuidanceCriteria()
 
 
 def is_guided(opts) -> bool:
@@ -116,16 +129,19 @@ def pair_arrays(point_pairs) -> tuple[np.ndarray, np.ndarray]:
     return src, dst
 
 
-def pairs_transform(src: np.ndarray, dst: np.ndarray, fixed_scale: float | None = None) -> tuple[Sim3, dict]:
+def pairs_transform(
+    src: np.ndarray, dst: np.ndarray, fixed_scale: float | None = None, criteria: GuidanceCriteria | None = None
+) -> tuple[Sim3, dict]:
     """Closed-form Sim(3) of picked pairs. With ≥ 4 pairs, the fit without each pair in turn
     is tried; where one pair's residual under the fit of the others stands out, it is left out
     (a misclick), and the report names it."""
+    k = criteria or _DEFAULT
     fit = _fit(src, dst, fixed_scale)
     report: dict = {"pairs": len(src), "left_out": None}
     full_rms = float(np.sqrt(np.mean(np.sum((fit.apply(src) - dst) ** 2, axis=1))))
     spread = float(np.sqrt(np.mean(np.sum((dst - dst.mean(0)) ** 2, axis=1))))
     # Only a fit that misses its own pairs visibly has a misclick to look for.
-    if len(src) >= 4 and full_rms > MISFIT_SHARE * spread:
+    if len(src) >= 4 and full_rms > k.misfit_share * spread:
         # A pair is a misclick when the fit of the others misses it by far more than it misses
         # them, and by a visible share of the pairs' spread: three pairs fit each other almost
         # exactly, so a noisy click's leave-one-out residual alone looks large (not a misclick).
@@ -133,12 +149,16 @@ def pairs_transform(src: np.ndarray, dst: np.ndarray, fixed_scale: float | None 
         for i in range(len(src)):
             keep = np.arange(len(src)) != i
             sv = np.linalg.svd(src[keep] - src[keep].mean(0), compute_uv=False)
-            if sv[1] < WELL_SPREAD * sv[0]:
+            if sv[1] < k.well_spread * sv[0]:
                 continue  # the others nearly on a line: their fit says nothing about pair i
             sub = _fit(src[keep], dst[keep], fixed_scale)
             miss = float(np.linalg.norm(sub.apply(src[i]) - dst[i]))
             typical = float(np.median(np.linalg.norm(sub.apply(src[keep]) - dst[keep], axis=1)))
-            if miss > OUTLIER_RATIO * typical and miss > MISCLICK_SHARE * spread and (best is None or miss > best[1]):
+            if (
+                miss > k.outlier_ratio * typical
+                and miss > k.misclick_share * spread
+                and (best is None or miss > best[1])
+            ):
                 best = (i, miss, sub)
         if best is not None:
             fit = best[2]
@@ -155,8 +175,9 @@ def _fit(src: np.ndarray, dst: np.ndarray, fixed_scale: float | None) -> Sim3:
     return Sim3(fixed_scale, fit.rotation, dst.mean(0) - fixed_scale * fit.rotation @ src.mean(0))
 
 
-def up_rotations(src_up, dst_up, step_deg: float = UP_SEARCH_STEP_DEG) -> list[tuple[str, np.ndarray]]:
-    """Every rotation taking the source's up onto the target's, turned about it in steps."""
+def up_rotations(src_up, dst_up, criteria: GuidanceCriteria | None = None) -> list[tuple[str, np.ndarray]]:
+    """Every rotation taking the source's up onto the target's, turned about it in steps of up_step_deg."""
+    step_deg = (criteria or _DEFAULT).up_step_deg
     base = _min_rotation(np.asarray(src_up, np.float64), np.asarray(dst_up, np.float64))
     return [(f"up:{deg:g}", axis_rotation(dst_up, np.radians(deg)) @ base) for deg in np.arange(0.0, 360.0, step_deg)]
 
@@ -189,24 +210,24 @@ def constrain(transform: Sim3, opts, pivot: np.ndarray) -> Sim3:
     return Sim3(scale, rotation, mapped - scale * rotation @ pivot)
 
 
-def start_transform(opts) -> tuple[Sim3, dict] | None:
+def start_transform(opts, criteria: GuidanceCriteria | None = None) -> tuple[Sim3, dict] | None:
     """Where a local refinement starts: init_transform or the pairs' fit (None: neither given)."""
     if opts.init_transform is not None:
         return init_sim3(opts.init_transform), {"from": "init_transform"}
     if opts.point_pairs is not None:
         src, dst = (np.asarray(p, np.float64) for p in opts.point_pairs)
-        fit, report = pairs_transform(src, dst, opts.fixed_scale)
+        fit, report = pairs_transform(src, dst, opts.fixed_scale, criteria)
         return fit, {"from": "point_pairs", **report}
     return None
 
 
-def honours_pairs(refined: Sim3, start: Sim3) -> bool:
-    """Whether the refinement from the pairs' fit stayed near it (within PAIRS_MAX_TURN_DEG).
+def honours_pairs(refined: Sim3, start: Sim3, criteria: GuidanceCriteria | None = None) -> bool:
+    """Whether the refinement from the pairs' fit stayed near it (within pairs_max_turn_deg).
     The local refinement corrects clicks that are a few % off, and between two instances of
     different proportions it finds the pose better than the clicks do (the pairs themselves
     then disagree with any one similarity); but it must not carry the answer to another side
     of the object, away from the parts the user matched."""
-    return rotation_distance_deg(refined.rotation, start.rotation) <= PAIRS_MAX_TURN_DEG
+    return rotation_distance_deg(refined.rotation, start.rotation) <= (criteria or _DEFAULT).pairs_max_turn_deg
 
 
 def describe(opts) -> dict:
@@ -220,6 +241,7 @@ def describe(opts) -> dict:
 
 
 __all__ = [
+    "GuidanceCriteria",
     "check_guidance",
     "constrain",
     "describe",
