@@ -14,7 +14,7 @@ import numpy as np
 
 from gsa.errors import GSAError
 from gsa.geometry import normalize_quats, quat_multiply, quat_to_rotation, rotation_to_quat
-from gsa.sh import SH_C0, rotate_sh
+from gsa.sh import rgb_to_sh_dc, rotate_sh, sh_dc_to_rgb
 
 # Rows per block where whole-model work is done block by block to bound its temporaries.
 ROW_BLOCK = 1 << 18
@@ -123,7 +123,7 @@ class GaussianModel:
     @property
     def base_colors(self) -> np.ndarray:
         """(N, 3) view-independent RGB from the DC coefficient, clipped to [0, 1]."""
-        return np.clip(0.5 + SH_C0 * self.sh[:, 0, :], 0.0, 1.0)
+        return np.clip(sh_dc_to_rgb(self.sh[:, 0, :]), 0.0, 1.0)
 
     def surface_normals(self, rows: np.ndarray | slice = slice(None)) -> tuple[np.ndarray, np.ndarray]:
         """((N, 3) unit normals, (N,) flatness in [0, 1]) of the Gaussians at `rows`: a
@@ -159,7 +159,7 @@ class GaussianModel:
             scales = np.full((n, 3), 0.01, np.float32)
         op = np.clip(np.broadcast_to(np.asarray(opacities, np.float64), (n,)), 1e-6, 1 - 1e-6)
         sh = np.zeros((n, sh_coeff_count(sh_degree), 3), np.float32)
-        sh[:, 0, :] = (np.asarray(colors, np.float64) - 0.5) / SH_C0
+        sh[:, 0, :] = rgb_to_sh_dc(np.asarray(colors, np.float64))
         return cls(
             means=means,
             quats=normalize_quats(quats),

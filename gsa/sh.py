@@ -26,6 +26,16 @@ SH_C3 = (
 )
 
 
+def sh_dc_to_rgb(dc: np.ndarray) -> np.ndarray:
+    """The RGB colour a DC coefficient encodes (the 3DGS convention, not clipped): 0.5 + C0·dc."""
+    return 0.5 + SH_C0 * dc
+
+
+def rgb_to_sh_dc(rgb: np.ndarray) -> np.ndarray:
+    """The DC coefficient of an RGB colour (the inverse of sh_dc_to_rgb)."""
+    return (rgb - 0.5) / SH_C0
+
+
 def sh_basis(dirs: np.ndarray, degree: int) -> np.ndarray:
     """(M, 3) unit directions -> (M, (degree+1)**2) basis values, float64."""
     d = np.asarray(dirs, np.float64)

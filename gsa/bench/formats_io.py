@@ -20,7 +20,8 @@ from pathlib import Path
 import numpy as np
 from scipy.spatial import cKDTree
 
-from gsa.model import SH_C0, GaussianModel
+from gsa.model import GaussianModel
+from gsa.sh import SH_C0
 
 # Formats whose writer reorders the Gaussians (SOG sorts them along a space-filling curve).
 REORDERING = frozenset({"sog"})

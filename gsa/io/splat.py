@@ -11,7 +11,8 @@ from __future__ import annotations
 import numpy as np
 
 from gsa.io.ply import ALPHA_EPS
-from gsa.model import SH_C0, GaussianModel
+from gsa.model import GaussianModel
+from gsa.sh import rgb_to_sh_dc, sh_dc_to_rgb
 
 SPLAT_DTYPE = np.dtype([("pos", "<f4", 3), ("scale", "<f4", 3), ("rgba", "u1", 4), ("rot", "u1", 4)])
 
@@ -26,7 +27,7 @@ def decode_splat(buf: np.ndarray) -> GaussianModel:
     quats = np.where(norm > 0, quats / np.maximum(norm, 1e-12), np.array([1.0, 0, 0, 0], np.float32))
     with np.errstate(divide="ignore", invalid="ignore"):
         log_scales = np.log(buf["scale"].astype(np.float32))
-    sh = ((rgba[:, :3] - 0.5) / SH_C0)[:, None, :]
+    sh = rgb_to_sh_dc(rgba[:, :3])[:, None, :]
     return GaussianModel(
         means=buf["pos"],
         quats=quats,
@@ -42,7 +43,7 @@ def encode_splat(model: GaussianModel) -> np.ndarray:
     out["pos"] = model.means
     out["scale"] = np.exp(model.log_scales)
     rgba = np.empty((len(model), 4), np.float64)
-    rgba[:, :3] = 0.5 + SH_C0 * model.sh[:, 0, :]
+    rgba[:, :3] = sh_dc_to_rgb(model.sh[:, 0, :])
     rgba[:, 3] = model.opacities
     out["rgba"] = np.clip(np.rint(rgba * 255.0), 0, 255).astype(np.uint8)
     q = model.quats / np.linalg.norm(model.quats, axis=1, keepdims=True)

@@ -15,10 +15,11 @@ from pathlib import Path
 
 import numpy as np
 
-from gsa.model import SH_C0, GaussianModel
+from gsa.model import GaussianModel
 from gsa.recon.images import write_rgb
 from gsa.render import Cameras, render_model
 from gsa.render.cameras import look_at
+from gsa.sh import rgb_to_sh_dc
 from gsa.sim3 import Sim3
 from gsa.synth import make_object
 
@@ -74,7 +75,7 @@ def textured_object(
     rgb[inside] = (1 - contrast) * rgb[inside] + contrast * spot_rgb[k[inside]]
     rgb = np.clip(rgb, 0.02, 0.98)
     sh = model.sh.copy()
-    sh[:, 0, :] = (rgb - 0.5) / SH_C0
+    sh[:, 0, :] = rgb_to_sh_dc(rgb)
     sh[:, 1:, :] = 0.0
     return GaussianModel(model.means, model.quats, model.log_scales, model.opacity_logits, sh, None)
 

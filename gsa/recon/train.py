@@ -37,11 +37,12 @@ import torch
 from scipy.spatial import cKDTree
 
 from gsa.canonical import canonical_features
-from gsa.model import SH_C0, GaussianModel, sh_coeff_count
+from gsa.model import GaussianModel, sh_coeff_count
 from gsa.recon.density import Adam, densify_and_prune
 from gsa.recon.losses import psnr, rgb_loss, ssim  # noqa: F401  (ssim: public here before the split)
 from gsa.render import rasterize, render_model
 from gsa.render.cameras import Cameras
+from gsa.sh import rgb_to_sh_dc
 
 Progress = Callable[[str, float], None]
 
@@ -126,7 +127,7 @@ class TrainResult:
 
 # ----------------------------------------------------------------------------- init
 def _rgb_to_sh0(rgb: np.ndarray) -> np.ndarray:
-    return (np.asarray(rgb, np.float64) - 0.5) / SH_C0
+    return rgb_to_sh_dc(np.asarray(rgb, np.float64))
 
 
 def init_from_points(points: np.ndarray, colors: np.ndarray, n_target: int, seed: int = 0) -> dict[str, np.ndarray]:

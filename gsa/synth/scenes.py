@@ -20,8 +20,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from gsa.colour import linear_to_srgb, srgb_to_linear
 from gsa.geometry import axis_rotation
-from gsa.model import SH_C0, GaussianModel, sh_coeff_count
+from gsa.model import GaussianModel, sh_coeff_count
+from gsa.sh import rgb_to_sh_dc, sh_dc_to_rgb
 from gsa.sim3 import Sim3
 from gsa.synth.objects import CATEGORIES, _quats_from_normals, make_object
 from gsa.synth.perturb import random_sim3
@@ -64,7 +66,7 @@ def _surface_piece(
         quats=_quats_from_normals(normals, rng).astype(np.float32),
         log_scales=np.log(scales).astype(np.float32),
         opacity_logits=np.log(opac / (1 - opac)).astype(np.float32),
-        dc=((np.clip(colors, 0.0, 1.0) - 0.5) / SH_C0).astype(np.float32),
+        dc=rgb_to_sh_dc(np.clip(colors, 0.0, 1.0)).astype(np.float32),
     )
 
 
@@ -511,8 +513,5 @@ def _punch_holes(means: np.ndarray, index: np.ndarray, holes: int, extent: float
 
 def _gained_dc(dc: np.ndarray, gain: np.ndarray) -> np.ndarray:
     """SH DC coefficients of the colours under a linear-RGB gain (exposure, white balance)."""
-    c = np.clip(0.5 + SH_C0 * dc.astype(np.float64), 0.0, 1.0)
-    lin = np.where(c <= 0.04045, c / 12.92, ((c + 0.055) / 1.055) ** 2.4) * gain
-    lin = np.clip(lin, 0.0, 1.0)
-    srgb = np.where(lin <= 0.0031308, 12.92 * lin, 1.055 * lin ** (1 / 2.4) - 0.055)
-    return ((srgb - 0.5) / SH_C0).astype(np.float32)
+    c = np.clip(sh_dc_to_rgb(dc.astype(np.float64)), 0.0, 1.0)
+    return rgb_to_sh_dc(linear_to_srgb(srgb_to_linear(c) * gain)).astype(np.float32)

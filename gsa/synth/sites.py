@@ -20,7 +20,8 @@ from collections.abc import Callable
 import numpy as np
 from scipy.spatial import cKDTree
 
-from gsa.model import SH_C0, GaussianModel, sh_coeff_count
+from gsa.model import GaussianModel, sh_coeff_count
+from gsa.sh import rgb_to_sh_dc
 from gsa.synth.objects import _quats_from_normals
 from gsa.synth.scenes import _furniture, _hash01, _Piece, _surface_piece
 from gsa.synth.shapes import Box
@@ -359,7 +360,7 @@ def _sky(terrain: _Terrain, w: float, d: float, count: int, rng) -> _Piece:
         quats=quats.astype(np.float32),
         log_scales=np.log(scales).astype(np.float32),
         opacity_logits=np.log(opac / (1 - opac)).astype(np.float32),
-        dc=((np.clip(colors, 0, 1) - 0.5) / SH_C0).astype(np.float32),
+        dc=rgb_to_sh_dc(np.clip(colors, 0, 1)).astype(np.float32),
     )
 
 
@@ -447,7 +448,7 @@ class PointSite:
             quats=_quats_from_normals(f[:, :, 0], rng).astype(np.float32),
             log_scales=np.log(scales).astype(np.float32),
             opacity_logits=np.log(opac / (1 - opac)).astype(np.float32),
-            dc=((np.clip(colors, 0, 1) - 0.5) / SH_C0).astype(np.float32),
+            dc=rgb_to_sh_dc(np.clip(colors, 0, 1)).astype(np.float32),
         )
         model = _assemble([piece], n_gaussians, 0)
         model.metadata.update(kind="site-points", source=self.name, points=len(self.points), extent=self.extent)

@@ -20,7 +20,8 @@ import numpy as np
 
 from gsa.colour import linear_to_srgb, srgb_to_linear
 from gsa.geometry import axis_rotation, normalize_quats, rotation_distance_deg
-from gsa.model import SH_C0, GaussianModel, merge_models
+from gsa.model import GaussianModel, merge_models
+from gsa.sh import rgb_to_sh_dc
 from gsa.sim3 import Sim3, solve_sim3
 from gsa.synth.objects import _quats_from_normals
 from gsa.synth.shapes import Cylinder, Primitive, RegularPrism, Torus, _frame
@@ -378,7 +379,7 @@ def shift_exposure(model: GaussianModel, gain) -> GaussianModel:
     old = model.base_colors.astype(np.float64)
     new = linear_to_srgb(srgb_to_linear(old) * gain)
     out = model.subset(np.arange(len(model)))
-    out.sh[:, 0, :] = (new - 0.5) / SH_C0
+    out.sh[:, 0, :] = rgb_to_sh_dc(new)
     if out.sh.shape[1] > 1:
         ratio = np.where(old > 1e-3, new / np.maximum(old, 1e-3), 1.0)
         out.sh[:, 1:, :] *= ratio[:, None, :].astype(out.sh.dtype)
