@@ -14,7 +14,7 @@ from datetime import timedelta
 from pathlib import Path
 
 from service.settings import Settings, get_settings
-from service.storage.blobs import Storage, make_storage
+from service.storage import Storage, make_storage
 from service.stores.base import JobStore
 from service.stores.redis_store import RedisJobStore
 from service.stores.sqlite_store import SQLiteJobStore

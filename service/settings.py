@@ -116,7 +116,7 @@ class Settings(BaseSettings):
 
     # Retention: finished jobs (with their artifacts) and assets no remaining job uses are
     # deleted this many days after they finished / were uploaded; 0 keeps everything.
-    # The API process sweeps every retention_sweep_interval_s (service.storage.retention).
+    # The API process sweeps every retention_sweep_interval_s (service.jobs.retention).
     retention_days: float = 0.0
     retention_sweep_interval_s: float = 3600.0
 

@@ -20,10 +20,10 @@ from service.api.middleware import BodyLimit, RequestMetrics, install_error_hand
 from service.api.openapi import custom_openapi
 from service.api.request_ids import RequestIds
 from service.backend import Backend, make_backend
+from service.jobs.retention import start_retention
 from service.metrics import Metrics
 from service.problems import Problem, infrastructure_problem
 from service.settings import Settings, get_settings
-from service.storage.retention import start_retention
 from service.worker.leases import start_reaper
 from service.worker.runners import start_embedded_workers
 

@@ -9,9 +9,8 @@ from service.api.deps import B, Owner
 from service.api.openapi import UPLOAD_BODY, problem_responses
 from service.api.schemas import AssetOut
 from service.api.upload import parse_multipart
-from service.jobs import core
+from service.jobs import core, retention
 from service.problems import invalid_input
-from service.storage import retention
 
 router = APIRouter()
 

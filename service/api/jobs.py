@@ -18,11 +18,10 @@ from service.api.openapi import JOB_BODY, problem_responses
 from service.api.schemas import JobCreate, JobList, JobOut, RefineIn, WebhookIn
 from service.api.upload import Form, parse_multipart
 from service.backend import Backend
-from service.jobs import core
-from service.jobs.models import JobState
+from service.jobs import core, retention
 from service.jobs.options import parse_options
+from service.models import JobState
 from service.problems import Problem, invalid_input
-from service.storage import retention
 
 router = APIRouter()
 

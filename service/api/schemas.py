@@ -9,8 +9,8 @@ from typing import Any, Literal
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
 from service.api.results import JobResult
-from service.jobs.models import Asset, Job, JobState
 from service.jobs.options import AlignOptionsIn, hint_field
+from service.models import Asset, Job, JobState
 
 log = logging.getLogger("gsa.api")
 

@@ -39,7 +39,7 @@ from service.api.view_links import LinkError, sign, verify
 from service.backend import Backend
 from service.jobs import core
 from service.jobs.many import is_many, many_preview_name
-from service.jobs.models import Job, JobState
+from service.models import Job, JobState
 from service.problems import Problem, invalid_input, not_found
 
 router = APIRouter()

@@ -28,10 +28,10 @@ from service.jobs.inputs import (
     validate_ply,
     validate_zip,
 )
-from service.jobs.models import TERMINAL, Asset, InputRef, Job, JobState, new_id
 from service.jobs.options import validate_options
+from service.models import TERMINAL, Asset, InputRef, Job, JobState, new_id
 from service.problems import Problem, invalid_input, not_found, too_large
-from service.storage.blobs import CHUNK, new_key
+from service.storage import CHUNK, new_key
 from service.webhooks.delivery import check_url
 
 

@@ -21,7 +21,7 @@ import numpy as np
 from gsa.ziparchive import ZipArchiveError, ZipLimits, check_zip
 from gsa.ziparchive import unsafe_member_name as unsafe_member_name  # re-exported: one rule for zip names
 from service.backend import Backend
-from service.jobs.models import InputRef, Job
+from service.models import InputRef, Job
 from service.problems import Problem, invalid_input, too_large
 
 IMAGE_EXTS = {".png", ".jpg", ".jpeg"}

@@ -15,8 +15,8 @@ from typing import Any
 
 from service.backend import Backend
 from service.jobs import core, quotas
-from service.jobs.models import Asset, Job
 from service.jobs.options import GUIDANCE_OPTIONS, SERVICE_OPTIONS, validate_options
+from service.models import Asset, Job
 from service.problems import invalid_input
 from service.webhooks.delivery import check_url
 

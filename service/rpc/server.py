@@ -17,13 +17,12 @@ from grpc_health.v1 import health, health_pb2, health_pb2_grpc
 from grpc_reflection.v1alpha import reflection
 
 from service.backend import Backend
-from service.jobs import core, many
-from service.jobs.models import Job, JobState
+from service.jobs import core, many, retention
 from service.jobs.options import parse_options
+from service.models import Job, JobState
 from service.problems import Problem, invalid_input, too_large
 from service.rpc.generated import alignment_pb2 as pb
 from service.rpc.generated import alignment_pb2_grpc as pbg
-from service.storage import retention
 
 log = logging.getLogger("gsa.grpc")
 SERVICE_NAME = "gsa.v1.AlignmentService"

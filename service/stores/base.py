@@ -10,7 +10,7 @@ from collections.abc import Iterator
 from contextlib import AbstractContextManager
 from typing import Protocol
 
-from service.jobs.models import Asset, Job, JobState
+from service.models import Asset, Job, JobState
 
 # An Idempotency-Key is claimed before its job exists (the request's uploads are stored in
 # between). If the API process dies or the store goes away in that window, the claim must
@@ -66,7 +66,7 @@ class JobStore(Protocol):
 
     def delete(self, job_id: str) -> bool:
         """Remove the job record (its owner index, state set and idempotency key with it);
-        False if it was not there. Artifacts are the caller's (service.storage.retention)."""
+        False if it was not there. Artifacts are the caller's (service.jobs.retention)."""
         ...
 
     def jobs(self) -> Iterator[Job]:

@@ -14,7 +14,7 @@ from typing import Any
 
 from pydantic import BaseModel
 
-from service.jobs.models import Asset, Job, JobState
+from service.models import Asset, Job, JobState
 from service.stores.base import IDEM_PENDING_S, IDEM_TTL_S
 
 

@@ -12,7 +12,7 @@ import threading
 import time
 from pathlib import Path
 
-from service.jobs.models import Asset, Job, JobState
+from service.models import Asset, Job, JobState
 from service.stores.base import IDEM_PENDING_S, IDEM_TTL_S
 
 RESERVE_BYTES = 4 << 20

@@ -34,7 +34,7 @@ from pathlib import Path, PurePosixPath
 from starlette.concurrency import run_in_threadpool
 
 from service.jobs.inputs import model_content_type
-from service.jobs.models import Artifact
+from service.models import Artifact
 from service.problems import Problem, invalid_input
 from service.worker.convert_child import BAD_INPUT_EXIT
 

@@ -20,7 +20,7 @@ from collections.abc import Callable, Sequence
 from typing import Any
 
 from service.backend import Backend, RQQueue
-from service.jobs.models import Job, JobState
+from service.models import Job, JobState
 from service.worker.horse import restore_torch_threads
 from service.worker.leases import JobCancelled, LeaseLost, job_workspace, worker_name
 

@@ -17,10 +17,10 @@ import uuid
 from service.backend import Backend, notify_webhook
 from service.jobs.inputs import load_input
 from service.jobs.many import is_many
-from service.jobs.models import Job, JobState
 from service.jobs.options import DEFAULT_OUTPUTS, align_option_names, server_options
+from service.models import Job, JobState
 from service.problems import Problem, infrastructure_problem, invalid_input
-from service.storage.artifacts import collect_outputs, store_artifacts, synchronized_renders
+from service.worker.artifacts import collect_outputs, store_artifacts, synchronized_renders
 from service.worker.leases import (
     JobCancelled,
     JobProgress,

@@ -26,7 +26,7 @@ from pathlib import Path
 
 from service.backend import Backend, notify_webhook
 from service.jobs import quotas
-from service.jobs.models import Job, JobState
+from service.models import Job, JobState
 from service.problems import Problem, infrastructure_problem, store_errors
 
 log = logging.getLogger("gsa.worker")

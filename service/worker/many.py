@@ -9,8 +9,8 @@ import time
 
 from service.backend import Backend, RQQueue
 from service.jobs.many import many_preview_name
-from service.jobs.models import Job, JobState
 from service.jobs.options import align_options
+from service.models import Job, JobState
 from service.problems import invalid_input
 from service.worker.edges import (
     LocalEdgePool,
@@ -121,7 +121,7 @@ def run_many(backend: Backend, job: Job, token: str, prog: JobProgress, art_pref
     from gsa.align.outputs import write_json
     from gsa.io.ply import write_ply
     from service.jobs.inputs import load_input
-    from service.storage.artifacts import store_artifacts
+    from service.worker.artifacts import store_artifacts
 
     many = job.options["many"]
     opts = align_options(backend.settings, job.options)

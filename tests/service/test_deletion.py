@@ -186,9 +186,9 @@ def test_retention_sweep_deletes_old_jobs_and_unused_assets(tmp_path, pair):
 def test_retention_keeps_what_is_recent_or_still_in_use(tmp_path):
     """The sweep's decisions at a given time, on a real SQLite store and local storage."""
     from service.backend import make_backend
-    from service.jobs.models import Asset, InputRef, Job, JobState
+    from service.jobs.retention import sweep
+    from service.models import Asset, InputRef, Job, JobState
     from service.settings import Settings
-    from service.storage.retention import sweep
 
     b = make_backend(Settings(storage_root=tmp_path, retention_days=1))
     day, now = 86400.0, 10 * 86400.0
@@ -238,8 +238,8 @@ def test_concurrent_identical_uploads_and_deletes_never_lose_live_bytes(kind, tm
 
     from service.backend import make_backend
     from service.jobs import core
+    from service.jobs.retention import delete_asset
     from service.settings import Settings
-    from service.storage.retention import delete_asset
 
     extra = {"redis_url": redis_url + "/5"} if kind == "redis" else {}
     b = make_backend(Settings(storage_root=tmp_path, **extra))

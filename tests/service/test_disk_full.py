@@ -107,7 +107,7 @@ def test_full_disk_create_is_507_with_nothing_behind_and_deletes_free_space(smal
 def test_a_failed_update_surfaces_its_own_error_not_the_rollbacks(tmp_path):
     """A write that fails inside update()'s transaction raises that error ("database or disk
     is full", a 507), never the ROLLBACK's "no transaction is active" (a 500)."""
-    from service.jobs.models import InputRef, Job
+    from service.models import InputRef, Job
     from service.problems import infrastructure_problem
     from service.stores.sqlite_store import SQLiteJobStore
 

@@ -286,7 +286,7 @@ def test_bad_model_errors_name_the_asset_not_server_paths(http, pair, tmp_path):
 
 def test_redact_work_paths_maps_every_workspace_file():
     from service.jobs.inputs import redact_work_paths
-    from service.jobs.models import InputRef, Job
+    from service.models import InputRef, Job
 
     def ref(i, name, kind="ply"):
         return InputRef(asset_id=i, key="k", kind=kind, filename=name)

@@ -9,7 +9,7 @@ import redis as redislib
 
 from service.backend import make_backend
 from service.jobs.core import claim, create_job
-from service.jobs.models import Asset
+from service.models import Asset
 from service.problems import Problem
 from service.settings import Settings
 from service.stores import base as store

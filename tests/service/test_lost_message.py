@@ -11,7 +11,7 @@ import redis as redislib
 
 from service.backend import make_backend
 from service.jobs.core import create_job
-from service.jobs.models import Asset
+from service.models import Asset
 from service.settings import Settings
 from service.worker.leases import resend_lost
 

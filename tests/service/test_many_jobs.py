@@ -241,7 +241,7 @@ def test_many_job_memory_prediction():
     from types import SimpleNamespace
 
     from service.jobs.many import check_many_memory
-    from service.jobs.models import Asset
+    from service.models import Asset
     from service.problems import Problem
 
     def asset(n: int) -> Asset:

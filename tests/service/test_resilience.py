@@ -169,7 +169,7 @@ def test_storage_errors_are_507_or_503_and_jobs_retry_them(tmp_path, pair, monke
 
     from service.api.app import create_app
     from service.backend import make_backend
-    from service.jobs.models import JobState
+    from service.models import JobState
     from service.settings import Settings
     from service.worker.execution import execute
 
@@ -226,7 +226,7 @@ def test_every_exit_path_removes_the_job_temp_folder(tmp_path, pair, monkeypatch
 
     import gsa.align.pipeline as pipeline
     from service.backend import make_backend
-    from service.jobs.models import JobState
+    from service.models import JobState
     from service.settings import Settings
     from service.worker.execution import execute
 
@@ -308,7 +308,7 @@ def test_sweep_removes_only_workspaces_no_live_attempt_owns(tmp_path):
     import time as _time
 
     from service.backend import make_backend
-    from service.jobs.models import InputRef, Job, JobState
+    from service.models import InputRef, Job, JobState
     from service.settings import Settings
     from service.worker.leases import sweep_workspaces
 

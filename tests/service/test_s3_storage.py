@@ -14,7 +14,7 @@ import uuid
 import httpx
 import pytest
 
-from service.storage.blobs import LocalStorage, S3Storage
+from service.storage import LocalStorage, S3Storage
 from tests.service.conftest import (
     ALICE,
     PY,

@@ -96,9 +96,9 @@ def test_a_merged_artifact_over_max_gaussians_still_converts(tmp_path, scene_pai
     from types import SimpleNamespace
 
     from gsa.io.formats import read_model
-    from service.jobs.models import Artifact
+    from service.models import Artifact
     from service.settings import Settings
-    from service.storage.blobs import LocalStorage
+    from service.storage import LocalStorage
     from service.worker.convert import Conversions
 
     storage = LocalStorage(tmp_path / "data")

@@ -9,7 +9,7 @@ import httpx
 import pytest
 
 from service.problems import infrastructure_problem
-from service.storage.blobs import LocalStorage
+from service.storage import LocalStorage
 from tests.service.conftest import ALICE, assert_problem, service_env, start_api
 
 

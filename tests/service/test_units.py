@@ -11,10 +11,10 @@ import zipfile
 import numpy as np
 import pytest
 
-from service.jobs.models import InputRef, Job, JobState
+from service.models import InputRef, Job, JobState
 from service.problems import Problem
 from service.settings import Settings
-from service.storage.blobs import LocalStorage, new_key
+from service.storage import LocalStorage, new_key
 from service.stores.sqlite_store import SQLiteJobStore
 from tests.service.conftest import ROOT
 

@@ -51,7 +51,7 @@ def test_lost_job_is_failed_when_attempts_are_spent(tmp_path):
     import time
 
     from service.backend import make_backend
-    from service.jobs.models import InputRef, Job, JobState
+    from service.models import InputRef, Job, JobState
     from service.settings import Settings
     from service.worker.leases import reap
 
@@ -105,7 +105,7 @@ def test_lost_queue_message_is_resent(redis_url, tmp_path):
 
     from service.backend import make_backend
     from service.jobs.core import create_job
-    from service.jobs.models import Asset
+    from service.models import Asset
     from service.settings import Settings
     from service.worker.leases import resend_lost
 

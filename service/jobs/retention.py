@@ -20,7 +20,7 @@ import time
 
 from service.backend import Backend
 from service.jobs import core, quotas
-from service.jobs.models import Job, JobState
+from service.models import Job, JobState
 from service.problems import Problem, infrastructure_problem
 
 log = logging.getLogger("gsa.retention")

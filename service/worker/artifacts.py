@@ -8,7 +8,7 @@ from collections.abc import Callable
 from pathlib import Path
 
 from service.backend import Backend
-from service.jobs.models import Artifact, Job
+from service.models import Artifact, Job
 
 
 def content_type(name: str) -> str:

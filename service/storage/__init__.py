@@ -1,1 +1,0 @@
-"""Blob storage for uploads and artifacts (blobs), artifact records (artifacts) and retention."""
