@@ -136,10 +136,10 @@ def many_job(c: httpx.Client, paths: list[Path], workers: int) -> int:
     for e in edges:
         by_worker[e["worker"]] = by_worker.get(e["worker"], 0) + 1
     print(
-        f"many job: N={len(paths)} workers={workers} edges={len(edges)} helpers={int(res['timings']['helpers'])} "
+        f"many job: N={len(paths)} workers={workers} edges={len(edges)} edge_tasks={int(res['timings']['edge_tasks'])} "
         f"wall (submit->result) {wall:.1f} s, edges phase {res['timings']['pairwise']:.1f} s, "
         f"{res['timings']['per_edge']:.2f} s per edge (mean of its own time), global step incl.: total "
-        f"{res['timings']['total']:.1f} s; edges per process: {sorted(by_worker.values(), reverse=True)}; "
+        f"{res['timings']['total']:.1f} s; edges per worker: {sorted(by_worker.values(), reverse=True)}; "
         f"pruned {len(res['pruned'])}, corrected {len(res['corrected'])}"
     )
     return 0

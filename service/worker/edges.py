@@ -1,13 +1,14 @@
 """A many job's edges (pairwise alignments) spread over the queue's workers.
 
 The attempt that runs a many job (the parent) puts its E edges in a pool and works through it
-itself; in distributed mode it also enqueues up to (live workers - 1) helper tasks
-(`help_with_edges`, one RQ job each), which load the two models of each edge they claim and
-work through the same pool. So one worker still finishes the job alone, and every added worker
-takes edges off it. A claim carries a deadline its holder renews; the parent takes over an edge
-whose claim lapsed (a helper killed mid-edge) and runs it itself. A helper stops at once when
-the job is cancelled or its attempt is no longer current (the pool is per attempt: a requeued
-job starts a new one). Embedded mode has no queue to spread over: a local pool, parent only.
+itself; in distributed mode, when more than one worker is live, it also enqueues one RQ job per
+other edge (`run_edge_task`), which claims one edge, loads its two models and runs it. So one
+worker still finishes the job alone (no task is sent), every added worker takes edges off it,
+and other jobs in the queue interleave with the edges instead of waiting for the whole job. A
+claim carries a deadline its holder renews; the parent takes over an edge whose claim lapsed (a
+task killed mid-edge) and runs it itself, and a task whose edge raises gives it back. A task
+does nothing when the job is cancelled or its attempt is no longer current (the pool is per
+attempt: a requeued job starts a new one). Embedded mode has no queue: a local pool, parent only.
 """
 
 from __future__ import annotations
@@ -28,7 +29,7 @@ log = logging.getLogger("gsa.worker")
 
 # A claim lapses this long after its holder last renewed it (renewed every quarter of it).
 CLAIM_S = 60.0
-HELPER_TASK = "service.worker.edges.help_with_edges"
+EDGE_TASK = "service.worker.edges.run_edge_task"
 
 
 def edge_payload(edge, worker: str) -> dict[str, Any]:
@@ -222,13 +223,25 @@ def live_workers(backend: Backend) -> int:
     return rq.Worker.count(queue=backend.queue.q)
 
 
-def enqueue_helpers(backend: Backend, job: Job, token: str, n: int) -> int:
-    """Up to n helper tasks for this attempt's pool; returns how many were sent."""
+def worker_label() -> str:
+    """Who runs an edge: the RQ worker's name in distributed mode (the work horse's job knows
+    it), else host:pid."""
+    try:
+        from rq import get_current_job
+    except ImportError:  # embedded mode runs without RQ installed
+        job = None
+    else:
+        job = get_current_job()
+    return (job.worker_name if job is not None else None) or worker_name()
+
+
+def enqueue_edge_tasks(backend: Backend, job: Job, token: str, n: int) -> int:
+    """n edge tasks (one RQ job each) for this attempt's pool; returns how many were sent."""
     if n <= 0 or not isinstance(backend.queue, RQQueue):
         return 0
     for _ in range(n):
         backend.queue.q.enqueue(
-            HELPER_TASK,
+            EDGE_TASK,
             job.id,
             token,
             job_timeout=int(backend.settings.job_timeout_s + 120),
@@ -249,7 +262,7 @@ def work_through(
 ) -> list[dict]:
     """The parent's loop: claim and run edges until every edge has a result, taking over lapsed
     claims; check() raises to stop (cancel, lease lost, timeout). Returns the payloads by edge."""
-    me = worker_name()
+    me = worker_label()
     total = len(pool.pairs)
     mapping = dict(enumerate(models))
     while True:
@@ -279,9 +292,10 @@ def work_through(
             on_progress(len(pool.results()), total, False)
 
 
-def help_with_edges(job_id: str, token: str) -> int:
-    """RQ task: run edges of a many job's pool until none is left to claim, the job is cancelled
-    or its attempt is no longer current. Returns the number of edges run here."""
+def run_edge_task(job_id: str, token: str) -> int | None:
+    """RQ task, one per edge but the parent's first: claim one edge of the attempt's pool and run
+    it; nothing when the pool is empty or gone, the job cancelled or its attempt no longer current.
+    Returns the edge run here, if any."""
     from service.backend import process_backend
     from service.jobs.inputs import load_input
     from service.jobs.options import align_options
@@ -290,12 +304,10 @@ def help_with_edges(job_id: str, token: str) -> int:
     backend = process_backend()
     job = backend.store.get(job_id)
     if job is None or job.state != JobState.running or job.run_token != token:
-        return 0
+        return None
     pool = RedisEdgePool(backend.redis, job_id, token)
-    if pool.pairs is None:
-        return 0
-    options = align_options(backend.settings, job.options)
-    me = worker_name()
+    if pool.pairs is None or (k := pool.claim(worker_label())) is None:
+        return None
     last = [0.0]
 
     def check(*_):
@@ -309,27 +321,16 @@ def help_with_edges(job_id: str, token: str) -> int:
         if current.cancel_requested:
             raise JobCancelled()
 
-    ran = 0
     try:
         with job_workspace(job_id, token) as work:
-            models: dict[int, Any] = {}
-            while (k := pool.claim(me)) is not None:
-                i, j = pool.pairs[k]
-                for idx in list(models):
-                    if idx not in (i, j):
-                        del models[idx]  # a helper holds only its edge's two models
-                for idx in (i, j):
-                    if idx not in models:
-                        models[idx] = load_input(backend, job.sources[idx], work, f"model{idx}", check)
-                try:
-                    run_one_edge(pool, k, me, models, options, check)
-                except (JobCancelled, LeaseLost):
-                    raise
-                except BaseException:
-                    # The parent reruns it and fails the job with the right problem if it fails again.
-                    pool.release(k)
-                    raise
-                ran += 1
+            i, j = pool.pairs[k]
+            models = {idx: load_input(backend, job.sources[idx], work, f"model{idx}", check) for idx in (i, j)}
+            run_one_edge(pool, k, worker_label(), models, align_options(backend.settings, job.options), check)
     except (JobCancelled, LeaseLost):
-        log.info("edge helper for %s stopped: the job was cancelled or its attempt ended", job_id)
-    return ran
+        log.info("edge %d of %s not run: the job was cancelled or its attempt ended", k, job_id)
+        return None
+    except BaseException:
+        # The parent reruns it (and fails the job with the right problem if it fails again).
+        pool.release(k)
+        raise
+    return k

@@ -16,7 +16,7 @@ from service.worker.edges import (
     LocalEdgePool,
     RedisEdgePool,
     edge_from_payload,
-    enqueue_helpers,
+    enqueue_edge_tasks,
     live_workers,
     work_through,
 )
@@ -25,7 +25,7 @@ from service.worker.leases import JobProgress, finish_attempt, job_workspace
 
 class _EdgeReports:
     """The edges' reports as the job's stage and progress: while this attempt runs edge k of E
-    the stage reads "edge k/E: <align stage>"; while it waits on the helpers' edges,
+    the stage reads "edge k/E: <align stage>"; while it waits on the other workers' edges,
     "d/E edges done: waiting". Progress is (edges done + the running stage's span) / E."""
 
     def __init__(self, prog: JobProgress):
@@ -86,11 +86,12 @@ def _run_edges(backend: Backend, job: Job, token: str, prog: JobProgress, models
 
     t0 = time.perf_counter()
     reports = _EdgeReports(prog)
-    helpers = 0
+    sent = 0
     if isinstance(backend.queue, RQQueue) and all(ref.kind == "ply" for ref in job.sources):
         pool = RedisEdgePool(backend.redis, job.id, token)
         pool.create(pairs, ttl_s=backend.settings.job_timeout_s + backend.settings.lease_s)
-        helpers = enqueue_helpers(backend, job, token, min(len(pairs) - 1, live_workers(backend) - 1))
+        if live_workers(backend) > 1:  # one worker runs them all itself: no task to wait behind it
+            sent = enqueue_edge_tasks(backend, job, token, len(pairs) - 1)
     else:
         pool = LocalEdgePool(pairs)
     try:
@@ -108,7 +109,7 @@ def _run_edges(backend: Backend, job: Job, token: str, prog: JobProgress, models
         pairwise=t_pairwise,
         per_edge=sum(e.seconds for e in graph) / max(len(graph), 1),
         edges=len(graph),
-        helpers=helpers,
+        edge_tasks=sent,
         total=time.perf_counter() - t0,
     )
     return result, [p["worker"] for p in payloads]

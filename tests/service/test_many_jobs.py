@@ -177,8 +177,9 @@ def test_cancel_a_running_many_job(http, assets):
 
 
 def test_edges_spread_over_the_workers(stack, http, assets, captures):
-    """One RQ job per edge: with a second worker registered, the job enqueues a helper task and
-    its edges run in two processes; the result is the same job result (truth within 3°)."""
+    """One RQ job per edge: with a second worker registered, the job enqueues a task for each
+    edge but the first, and its edges run on both workers (each edge names its worker); the
+    result is the same job result (truth within 3°)."""
     import redis
     import rq
 
@@ -197,9 +198,12 @@ def test_edges_spread_over_the_workers(stack, http, assets, captures):
     assert final["state"] == "succeeded", final
     result = final["result"]
     check_against_truth(result, assets, captures["truth"])
-    assert result["timings"]["helpers"] == 1  # min(edges - 1, workers - 1)
+    assert result["timings"]["edge_tasks"] == 2  # edges - 1
     workers = [e["worker"] for e in result["edges"]]
-    assert len(set(workers)) == 2, (workers, result["timings"])
+    assert len(set(workers)) == 2 and all(w.startswith(("worker-", "edge-helper-")) for w in workers), (
+        workers,
+        result["timings"],
+    )
 
 
 def test_many_job_over_grpc(stack, assets, captures):
