@@ -227,7 +227,7 @@ def test_bench_n_way_names_the_wrong_edge(monkeypatch, tmp_path, capsys):
         return [Edge(i, j, truth[j] @ truth[i].inverse(), confidence=0.9) for i, j in pairs]
 
     monkeypatch.setattr(nway, "pairwise_edges", exact_edges)
-    rows = nway.protocol_nway(True, 0, tmp_path)
+    rows = nway.protocol_nway(True, 0, tmp_path, cross=False)
     by = {r["method"]: r for r in rows}
     assert by["pairwise to reference · one edge wrong"]["success_rate"] < 1.0
     wrong = by["global step · one edge wrong"]
@@ -252,3 +252,55 @@ def test_global_step_on_a_sparse_graph_with_two_wrong_edges():
     assert {k for k, e in enumerate(result.edges) if e.status == "pruned"} == wrong
     for rot, log_s in _errors(result, truth):
         assert rot < 1.5 and log_s < 0.02
+
+
+def _tetra_meshes(folder, category: str, count: int) -> None:
+    """count irregular tetrahedra (no turn maps one onto itself), one proportion each."""
+    for k in range(count):
+        v = np.array([[0, 0, 0], [1, 0, 0], [0, 2, 0], [0, 0, 3]], np.float32) * (1.0 + 0.1 * k)
+        f = np.array([[0, 2, 1], [0, 1, 3], [0, 3, 2], [1, 2, 3]], np.int32)
+        c = np.array([[1, 0, 0], [0, 1, 0], [0, 0, 1], [1, 1, 0]], np.float16)
+        np.savez(folder / f"{category}_{k}.npz", V=v, F=f, C=c)
+
+
+def test_bench_n_way_cross_instance_sets(monkeypatch, tmp_path):
+    # The cross-instance bookkeeping on exact edges (built from the truth) with one edge to the
+    # reference turned 90° and the right pose among its alternatives: the pairwise-to-reference
+    # row counts that member wrong, the global step corrects it; a category with too few
+    # instances is left out.
+    from gsa.bench import nway
+
+    _tetra_meshes(tmp_path, "tetra", nway.MEMBERS)
+    _tetra_meshes(tmp_path, "few", nway.MEMBERS - 1)
+    sets = nway.cross_instance_sets(tmp_path, True, 0)
+    assert [s[0] for s in sets] == ["tetra"] and len(sets[0][1]) == nway.MEMBERS
+    _, models, truth, symmetries = sets[0]
+    assert symmetries == [[]] * nway.MEMBERS
+    assert all(abs(np.log(t.scale)) <= np.log(5.0) + 1e-9 for t in truth)
+
+    def exact_edges(models, pairs, options=None, progress=None):
+        out = []
+        for i, j in pairs:
+            right = truth[j] @ truth[i].inverse()
+            e = Edge(i, j, right, confidence=0.9)
+            if (i, j) == (0, 4):
+                e.transform, e.alternatives = _turned(right, 0, 90.0), [right]
+            out.append(e)
+        return out
+
+    monkeypatch.setattr(nway, "pairwise_edges", exact_edges)
+    rows, lines = nway._cross_rows(True, 0, tmp_path)
+    by = {r["method"]: r for r in rows}
+    assert by["cross-instance · every pair"]["success_rate"] == pytest.approx(0.9)
+    assert by["cross-instance · pairwise to reference"]["success_rate"] == pytest.approx(0.75)
+    after = by["cross-instance · global step"]
+    assert after["success_rate"] == 1.0 and after["mean_rre_deg"] < 1e-3 and after["mean_scale_error_pct"] < 1e-6
+    assert any(line.startswith("| tetra | 90 % | 75 % | 100 % | 0 / 1 | 1 of 1 |") for line in lines)
+
+
+def test_write_captures_gives_exactly_the_count_asked(tmp_path):
+    from gsa.bench import nway
+
+    paths = nway.write_captures(tmp_path, 3, 1500)
+    assert [p.name for p in paths] == ["capture_0.ply", "capture_1.ply", "capture_2.ply"]
+    assert [len(read_ply(p)) for p in paths] == [1500] * 3

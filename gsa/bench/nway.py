@@ -10,6 +10,18 @@ every model stays right.
 Full: N = 6, 5k Gaussians; --quick: N = 4, 3k. The rows print in the generic pair table
 (one "pair" per non-reference model); the per-model table, the cycles and the named edge
 print above it.
+
+Then cross-instance sets (issue 30's "N = 5 cross-instance members of one category"): per
+category of the real meshes in DEFAULT_DATA (../shared/data/category-dev; skipped, and said
+so, when missing), its first MEMBERS instances sampled as 3DGS models as gsa.bench.category_real
+does, each in its own random Sim(3) (≤ 180° per axis, scale 0.2–5); every pair aligned with
+align()'s defaults, then the global step. Per member against the truth in member 0's frame
+(RRE up to either member's own symmetries, scale error): every pair, pairwise to the
+reference, after the global step; per category, and how many wrong edges hold the truth
+among their alternatives. Full: every category, 5k Gaussians; --quick: every second, 3k.
+
+write_captures writes N such captures of any size as PLY files: the `gsa align-many` timing
+runs' input.
 """
 
 from __future__ import annotations
@@ -22,19 +34,29 @@ import numpy as np
 
 from gsa.align.many import Edge, model_frame, pairwise_edges, select_edges, solve_graph
 from gsa.align.pipeline import AlignOptions
+from gsa.bench.category_real import FLOATERS, _symmetries
 from gsa.bench.records import SUCCESS_RRE_DEG, save_rows
 from gsa.geometry import euler_xyz
 from gsa.metrics import rre_deg
 from gsa.sim3 import Sim3
 from gsa.synth import make_object, random_sim3
+from gsa.synth.meshes import find_meshes, load_mesh, mesh_to_gaussians
 from gsa.synth.variants import add_floaters, cut_by_plane, random_exposure, shift_exposure
 
 CATEGORY = "car"
+# Cross-instance sets: MEMBERS instances of each category of the real meshes (DEFAULT_DATA,
+# the project's development meshes beside the checkout), Gaussians per member (full, quick);
+# --quick takes every second category.
+DEFAULT_DATA = Path(__file__).resolve().parents[3] / "shared" / "data" / "category-dev"
+MEMBERS = 5
+MEMBER_SIZES = (5000, 3000)
 
 
-def captures(quick: bool, seed: int):
-    """(models, truth): truth[k] maps the object's own frame into capture k's."""
-    n, size = (4, 3000) if quick else (6, 5000)
+def captures(quick: bool, seed: int, n: int | None = None, size: int | None = None):
+    """(models, truth): truth[k] maps the object's own frame into capture k's. n and size
+    (Gaussians before the cut) override the run's defaults (the timing runs: N = 50, 100k)."""
+    n_default, size_default = (4, 3000) if quick else (6, 5000)
+    n, size = n or n_default, size or size_default
     rng = np.random.default_rng([seed, 30])
     models, truth = [], []
     for k in range(n):
@@ -47,6 +69,26 @@ def captures(quick: bool, seed: int):
         models.append(m.transformed(t))
         truth.append(t)
     return models, truth
+
+
+def write_captures(folder: str | Path, n: int, gaussians: int, seed: int = 0) -> list[Path]:
+    """N captures as `captures` makes them, each drawn large enough and then subsampled to
+    exactly `gaussians` (a random subset), written as capture_<k>.ply into folder: the input
+    of the `gsa align-many` timing runs (docs/benchmarks.md, n-way)."""
+    from gsa.io.formats import write_model
+
+    folder = Path(folder)
+    folder.mkdir(parents=True, exist_ok=True)
+    # The cut keeps at least 70 %; floaters add 5 %: drawing gaussians / 0.7 leaves enough.
+    models, _ = captures(False, seed, n=n, size=int(np.ceil(gaussians / 0.7)) + 1)
+    rng = np.random.default_rng([seed, 30, 1])
+    paths = []
+    for k, m in enumerate(models):
+        m = m.subset(np.sort(rng.choice(len(m), gaussians, replace=False)))
+        path = folder / f"capture_{k:0{len(str(n - 1))}d}.ply"
+        write_model(m, path, "ply")
+        paths.append(path)
+    return paths
 
 
 def turned(edge: Edge, centre: np.ndarray, degrees: float = 90.0) -> Sim3:
@@ -103,7 +145,137 @@ def _row(method: str, errors: list[dict], seconds_per_model: float, extra: dict)
     }
 
 
-def protocol_nway(quick: bool, seed: int, out: Path, peers: list[str] | None = None) -> list[dict]:
+def cross_instance_sets(data: str | Path, quick: bool, seed: int) -> list[tuple[str, list, list[Sim3], list]]:
+    """Per category of `data` with at least MEMBERS instances (quick: every second one): its
+    first MEMBERS instances, each sampled as a 3DGS model (gsa.bench.category_real's way:
+    surface Gaussians, FLOATERS faint floaters) and moved by its own random Sim(3) (≤ 180° per
+    axis, scale 0.2–5). Returns (category, models, truth, symmetries): truth[k] maps the shared
+    canonical frame into member k's; symmetries[k] the member's own turns (category_real)."""
+    groups = {c: paths for c, paths in sorted(find_meshes(data).items()) if len(paths) >= MEMBERS}
+    if not groups:
+        raise ValueError(f"{data}: no category with {MEMBERS} or more <category>_<i>.npz meshes")
+    size = MEMBER_SIZES[1] if quick else MEMBER_SIZES[0]
+    out = []
+    for c, (category, paths) in enumerate(groups.items()):
+        if quick and c % 2:
+            continue
+        rng = np.random.default_rng([seed, 30, 2, c])
+        models, truth, symmetries = [], [], []
+        for k, path in enumerate(paths[:MEMBERS]):
+            m = mesh_to_gaussians(load_mesh(path), size, np.random.default_rng([seed, 30, 3, c, k]), FLOATERS)
+            symmetries.append(_symmetries(m))
+            t = random_sim3(rng, scale_range=(0.2, 5.0))
+            models.append(m.transformed(t))
+            truth.append(t)
+        out.append((category, models, truth, symmetries))
+    return out
+
+
+def _judged(est: Sim3, truth: list[Sim3], symmetries: list, i: int, j: int) -> dict:
+    """est (member i's frame -> member j's) against the truth, up to either member's symmetries."""
+    want = truth[j] @ truth[i].inverse()
+    ri, rj = truth[i].rotation, truth[j].rotation
+    strict = rre_deg(est.rotation, want.rotation)
+    judged = min([strict] + [rre_deg(est.rotation, rj @ g @ ri.T) for g in symmetries[i] + symmetries[j]])
+    return {
+        "rre_deg": judged,
+        "rre_strict_deg": strict,
+        "scale_error_pct": abs(est.scale / want.scale - 1.0) * 100.0,
+    }
+
+
+def _cross_rows(quick: bool, seed: int, data: str | Path) -> tuple[list[dict], list[str]]:
+    """Every pair of each set aligned (align()'s defaults), then the global step; per member
+    against the truth in member 0's frame, pairwise to the reference vs after the global step."""
+    sets = cross_instance_sets(data, quick, seed)
+    pair_recs, before_recs, after_recs = [], [], []
+    lines = [
+        "",
+        f"Cross-instance sets: {MEMBERS} members of each category ({len(sets)} categories, "
+        f"{MEMBER_SIZES[1] if quick else MEMBER_SIZES[0]} Gaussians each, align()'s defaults per edge); "
+        "RRE judged up to each member's own symmetries",
+        "",
+        "| category | pairs: success | to reference: success | global: success | edges pruned / corrected | "
+        "wrong edges with the truth among alternatives | s / edge |",
+        "|---|---:|---:|---:|---:|---:|---:|",
+    ]
+    seconds = []
+    for category, models, truth, symmetries in sets:
+        n = len(models)
+        frames = [model_frame(m) for m in models]
+        t0 = time.perf_counter()
+        edges = pairwise_edges(models, select_edges(models, "all"), AlignOptions(seed=seed))
+        seconds.append((time.perf_counter() - t0) / len(edges))
+        wrong = fixable = 0
+        for e in edges:
+            rec = _judged(e.transform, truth, symmetries, e.source, e.target)
+            alts = [_judged(a, truth, symmetries, e.source, e.target)["rre_deg"] for a in e.alternatives]
+            ok = rec["rre_deg"] < SUCCESS_RRE_DEG
+            wrong += not ok
+            fixable += (not ok) and any(a < SUCCESS_RRE_DEG for a in alts)
+            pair_recs.append({"category": category, "pair": [e.source, e.target], **rec, "confidence": e.confidence})
+        result = solve_graph(n, edges, 0, [c for c, _ in frames], [s for _, s in frames])
+        before = _pairwise_to_reference(edges, n)
+        set_before, set_after = [], []
+        for k in range(1, n):
+            b = {"category": category, "model": k, **_judged(before[k], truth, symmetries, k, 0)}
+            a = {"category": category, "model": k, **_judged(result.transforms[k], truth, symmetries, k, 0)}
+            a["confidence"] = result.confidences[k]
+            set_before.append(b)
+            set_after.append(a)
+        before_recs += set_before
+        after_recs += set_after
+        d = result.to_dict()
+
+        def rate(recs):
+            return sum(r["rre_deg"] < SUCCESS_RRE_DEG for r in recs) / len(recs)
+
+        lines.append(
+            f"| {category} | {rate(pair_recs[-len(edges) :]) * 100:.0f} % | {rate(set_before) * 100:.0f} % | "
+            f"{rate(set_after) * 100:.0f} % | {len(d['pruned'])} / {len(d['corrected'])} | {fixable} of {wrong} | "
+            f"{seconds[-1]:.1f} |"
+        )
+    per_edge = float(np.mean(seconds))
+    rows = []
+    for method, recs in (
+        ("cross-instance · every pair", pair_recs),
+        ("cross-instance · pairwise to reference", before_recs),
+        ("cross-instance · global step", after_recs),
+    ):
+        rre = np.array([r["rre_deg"] for r in recs])
+        rows.append(
+            {
+                "method": method,
+                "pairs": len(recs),
+                "mean_rre_deg": float(rre.mean()),
+                "median_rre_deg": float(np.median(rre)),
+                "mean_scale_error_pct": float(np.mean([r["scale_error_pct"] for r in recs])),
+                "mean_ate_normalized": None,
+                "success_rate": float(np.mean(rre < SUCCESS_RRE_DEG)),
+                "seconds_per_pair": per_edge,
+                "time_ratio_vs_gsa_coarse": None,
+                "records": recs,
+                "run": "cross-instance",
+            }
+        )
+    lines.append(
+        "| all | "
+        + " | ".join(f"**{r['success_rate'] * 100:.0f} %** ({r['pairs']})" for r in rows)
+        + f" | | | {per_edge:.1f} |"
+    )
+    return rows, lines
+
+
+def protocol_nway(
+    quick: bool,
+    seed: int,
+    out: Path,
+    peers: list[str] | None = None,
+    data: str | Path | None = None,
+    cross: bool = True,
+) -> list[dict]:
+    """The captures' runs, then (cross) the cross-instance sets of the meshes in `data`
+    (default DEFAULT_DATA; skipped, and said so, when that folder is missing)."""
     models, truth = captures(quick, seed)
     n = len(models)
     frames = [model_frame(m) for m in models]
@@ -177,6 +349,14 @@ def protocol_nway(quick: bool, seed: int, out: Path, peers: list[str] | None = N
             f"(rotation max {cyc['after'].get('rotation_deg_max', float('nan')):.2f}°); "
             f"global step {global_s * 1000:.0f} ms"
         )
+    if cross:
+        folder = Path(data) if data is not None else DEFAULT_DATA
+        if folder.is_dir():
+            cross_rows, cross_lines = _cross_rows(quick, seed, folder)
+            rows += cross_rows
+            lines += cross_lines
+        else:
+            lines += ["", f"Cross-instance sets skipped: no folder {folder} (pass --data DIR of category meshes)"]
     print("\n".join(lines))
     save_rows(out, "n-way", rows)
     return rows
