@@ -164,7 +164,7 @@ def _doubtful(**extra):
     ids=["ambiguous", "low-confidence", "no-alternatives", "colour-mismatch", "confident", "old-metrics"],
 )
 def test_doubt_warning(metrics, expected):
-    from gsa.cli import doubt_warning
+    from gsa.align.command import doubt_warning
 
     line = doubt_warning(metrics, "r.json")
     if expected is None:
@@ -179,7 +179,7 @@ def test_doubt_warning(metrics, expected):
 def test_doubtful_result_prints_one_warning_on_stderr(doubtful, capsys):
     from types import SimpleNamespace
 
-    from gsa.cli import _print_transform
+    from gsa.align.command import _print_transform
 
     metrics = {"inlier_fraction": 0.9, "rms_residual": 0.01, "feature_agreement": 0.9, **_doubtful(doubtful=doubtful)}
     result = SimpleNamespace(transform=Sim3.identity(), metrics=metrics, timings={"total": 1.0}, features="canonical")
