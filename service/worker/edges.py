@@ -89,6 +89,9 @@ class LocalEdgePool:
     def lapsed(self, now: float | None = None) -> list[int]:
         return []
 
+    def recreate_if_lost(self) -> bool:
+        return False
+
     def take_over(self, k: int, worker: str) -> None:
         pass
 
@@ -119,6 +122,21 @@ class RedisEdgePool:
                 p.expire(key, int(ttl_s))
             p.execute()
         self._pairs = [tuple(q) for q in pairs]
+        self._ttl_s = ttl_s
+
+    def recreate_if_lost(self) -> bool:
+        """Put the pool back (every edge without a result pending again) when its keys are gone:
+        a Redis restart without persistence, or an eviction. True if it had to."""
+        if self._pairs is None or self.r.exists(self.k_pairs):
+            return False
+        done = self.results()
+        self.create(self._pairs, self._ttl_s)
+        with self.r.pipeline() as p:
+            for k, payload in done.items():
+                p.hset(self.k_results, str(k), json.dumps(payload))
+                p.lrem(self.k_pending, 0, k)
+            p.execute()
+        return True
 
     @property
     def pairs(self) -> list[tuple[int, int]] | None:
@@ -274,6 +292,11 @@ def work_through(
                 on_progress(len(results), total, True)
             if len(results) == total:
                 return [results[e] for e in range(total)]
+            if pool.recreate_if_lost():
+                log.warning(
+                    "the edge pool of %d edges was lost (Redis restarted?): unfinished ones pending again", total
+                )
+                continue
             lapsed = pool.lapsed()
             if not lapsed:
                 time.sleep(poll_s)

@@ -77,3 +77,18 @@ def test_the_parent_stops_when_checked_out(conn, models):
     with pytest.raises(Cancelled):
         work_through(pool, models, OPTIONS, check=check)
     assert pool.claim("other") == 0  # nothing was claimed before the check stopped it
+
+
+def test_a_lost_pool_is_put_back_with_the_results_it_still_has(conn, models):
+    """Redis lost the pool's keys (a restart without persistence): the parent puts it back and
+    finishes; a result that survived is kept, not run again."""
+    pool = RedisEdgePool(conn, "job_edges", "token4")
+    pool.create([(0, 1), (1, 0)], ttl_s=600)
+    kept = {"transform": np.eye(4).tolist(), "confidence": 1.0, "doubtful": False, "ambiguous": False}
+    kept |= {"alternatives": [], "seconds": 0.0, "worker": "earlier"}
+    assert pool.claim("helper") == 0
+    conn.delete(pool.k_pairs, pool.k_pending, pool.k_claims)  # the pool's keys go; edge 0's result ...
+    conn.hset(pool.k_results, "0", json.dumps(kept))  # ... survived in this case
+    payloads = work_through(pool, models, OPTIONS, check=lambda: None, poll_s=0.01)
+    assert payloads[0]["worker"] == "earlier" and payloads[1]["worker"] == worker_name()
+    assert pool.pairs == [(0, 1), (1, 0)] and conn.exists(pool.k_pairs)
