@@ -97,6 +97,28 @@ def test_a_wrong_edge_with_a_consistent_alternative_is_corrected():
         assert rot < 1.5
 
 
+def test_a_corrected_edge_lends_no_confidence_of_its_own():
+    # align() was sure (0.99) of the pose it measured, not of the alternative the cycles chose:
+    # model 4, reached otherwise only by weak edges, is only as sure as those.
+    truth, centres, sizes, edges = _graph(5, seed=5)
+    bad = 6
+    assert (edges[bad].source, edges[bad].target) == (1, 4)
+    right = edges[bad].transform
+    edges[bad].transform = _turned(right, 1, 180.0)
+    edges[bad].confidence = 0.99
+    edges[bad].alternatives = [right]
+    for e in edges:
+        if 4 in (e.source, e.target) and e is not edges[bad]:
+            e.confidence = 0.2
+    result = solve_graph(5, edges, 0, centres, sizes)
+    assert result.edges[bad].status == "corrected"
+    for rot, _ in _errors(result, truth):
+        assert rot < 1.5
+    assert result.confidences[4] == pytest.approx(0.2)
+    assert result.to_dict()["models"][4]["doubtful"]
+    assert min(result.confidences[:4]) == pytest.approx(0.8)
+
+
 def test_reference_other_than_the_first_and_per_model_confidence():
     truth, centres, sizes, edges = _graph(4, seed=6)
     for e in edges:

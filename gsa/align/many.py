@@ -439,16 +439,18 @@ def _set_edge_outcomes(
 def _edge_strengths(edges: list[Edge], triangles_used: list[dict], usable: dict[tuple[int, int], int]) -> list[float]:
     """Per edge, its strength for the per-model confidence (the widest path from the
     reference over usable edges): its own confidence or, when a triangle of usable edges
-    closes through it, the weaker of that triangle's other two edges (two paths agree)."""
-    strength = [float(e.confidence) for e in edges]
+    closes through it, the weaker of that triangle's other two edges (two paths agree).
+    A corrected edge has no confidence of its own: align() vouched for the pose it measured,
+    not for the alternative the cycles chose, so only its triangles lend it strength."""
+    own = [0.0 if e.status == "corrected" else float(e.confidence) for e in edges]
+    strength = list(own)
     for tri in triangles_used:
         a, b, c = tri["models"]
         ks = [usable.get(p) for p in ((a, b), (b, c), (a, c))]
         if None in ks or tri["units"] > PRUNE:
             continue
         for k in ks:
-            others = [edges[o].confidence for o in ks if o != k]
-            strength[k] = max(strength[k], min(others))
+            strength[k] = max(strength[k], min(own[o] for o in ks if o != k))
     return strength
 
 
