@@ -119,6 +119,42 @@ def test_a_corrected_edge_lends_no_confidence_of_its_own():
     assert min(result.confidences[:4]) == pytest.approx(0.8)
 
 
+def test_a_model_whose_most_confident_edge_is_overruled_is_contested():
+    # Three weak edges of model 4 agree on a half turn of it, the one confident edge is right:
+    # the cycles side with the three (they agree with each other everywhere), so the result for
+    # model 4 is wrong. It must not be a confident wrong result: model 4 is contested, doubtful.
+    truth, centres, sizes, edges = _graph(5, seed=6)
+    flip = Sim3(1.0, euler_xyz(np.array([0.0, np.pi, 0.0])), np.zeros(3))
+    for e in edges:
+        if e.target == 4:
+            if e.source == 3:
+                e.confidence = 1.0  # the right one
+                e.alternatives = [flip.inverse() @ e.transform]
+            else:
+                e.transform = flip.inverse() @ e.transform  # model 4 measured half-turned by three edges
+                e.confidence = 0.7
+    result = solve_graph(5, edges, 0, centres, sizes)
+    assert _errors(result, truth)[4][0] > 170  # the cycles' answer: wrong, as set up
+    right = next(k for k, e in enumerate(edges) if (e.source, e.target) == (3, 4))
+    assert result.edges[right].status in ("pruned", "corrected")
+    assert result.contested == {4: [right]}
+    model = result.to_dict()["models"][4]
+    assert model["doubtful"] and model["confidence"] >= 0.5  # flagged by the contest, not the number
+    assert model["contested_by"] == ["model_3 -> model_4"]
+    assert not any(m["doubtful"] for m in result.to_dict()["models"][:4])
+
+
+def test_an_overruled_edge_no_surer_than_the_agreeing_ones_contests_nothing():
+    truth, centres, sizes, edges = _graph(6, seed=3)
+    bad = 4
+    edges[bad].transform = _turned(edges[bad].transform, 0, 90.0)
+    edges[bad].confidence = 0.85  # as sure as the others (0.8), within the margin
+    result = solve_graph(6, edges, 0, centres, sizes)
+    assert result.edges[bad].status == "pruned" and result.contested == {}
+    edges[bad].confidence = 0.99
+    assert solve_graph(6, edges, 0, centres, sizes).contested == {edges[bad].target: [bad]}
+
+
 def test_reference_other_than_the_first_and_per_model_confidence():
     truth, centres, sizes, edges = _graph(4, seed=6)
     for e in edges:

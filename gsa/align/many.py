@@ -54,6 +54,11 @@ IRLS_ITERATIONS = 15
 # A model whose confidence is below this is flagged doubtful in to_dict (align()'s own flag
 # sits at the same level: gsa.align.robust).
 MODEL_DOUBTFUL = 0.5
+# A model is contested (and flagged doubtful whatever its confidence) when the global step
+# overruled one of its edges that align() was surer of, by more than this, than of every
+# edge of it the solution agrees with: the cycles and the most confident measurement disagree,
+# and either may be wrong (three agreeing half turns outvote one right edge).
+CONTEST_MARGIN = 0.1
 EDGE_STATUSES = ("kept", "down-weighted", "pruned", "corrected")
 
 
@@ -111,6 +116,11 @@ class ManyResult:
     edges: list[Edge]
     cycles: dict
     timings: dict = field(default_factory=dict)
+    # Per model, the edges (indices into `edges`) that contest its transform (see CONTEST_MARGIN).
+    contested: dict[int, list[int]] = field(default_factory=dict)
+
+    def doubtful(self, k: int) -> bool:
+        return self.confidences[k] < MODEL_DOUBTFUL or bool(self.contested.get(k))
 
     def to_dict(self) -> dict:
         return {
@@ -121,7 +131,11 @@ class ManyResult:
                     "index": k,
                     **self.transforms[k].to_dict(),
                     "confidence": self.confidences[k],
-                    "doubtful": self.confidences[k] < MODEL_DOUBTFUL,
+                    "doubtful": self.doubtful(k),
+                    "contested_by": [
+                        f"{self.names[self.edges[e].source]} -> {self.names[self.edges[e].target]}"
+                        for e in self.contested.get(k, [])
+                    ],
                 }
                 for k, name in enumerate(self.names)
             ],
@@ -382,7 +396,30 @@ def solve_graph(
         edges=edges,
         cycles=_cycles(edges, triangles_measured, triangles_used, usable),
         timings={"global": time.perf_counter() - t0},
+        contested=_contested(n, reference, edges),
     )
+
+
+def _contested(n: int, reference: int, edges: list[Edge]) -> dict[int, list[int]]:
+    """The models an overruled edge (pruned, or corrected to an alternative) contests: its
+    measured confidence is above every agreeing edge's of that model by more than
+    CONTEST_MARGIN. Of the edge's two models (never the reference) the blame goes to the one
+    whose transform its agreeing edges support least (both on a tie)."""
+    support = [0.0] * n  # per model, its most confident edge the solution agrees with
+    for e in edges:
+        if e.status in ("kept", "down-weighted"):
+            for k in (e.source, e.target):
+                support[k] = max(support[k], float(e.confidence))
+    out: dict[int, list[int]] = {}
+    for i, e in enumerate(edges):
+        if e.status not in ("pruned", "corrected"):
+            continue
+        ends = [k for k in (e.source, e.target) if k != reference and float(e.confidence) > support[k] + CONTEST_MARGIN]
+        weakest = min((support[k] for k in ends), default=None)
+        for k in ends:
+            if support[k] == weakest:
+                out.setdefault(k, []).append(i)
+    return out
 
 
 def _check_graph(n: int, edges: list[Edge], reference: int) -> None:

@@ -221,6 +221,11 @@ class ManyModel(Sim3Out):
     file_transform: Matrix | None = Field(None, description="the same map in the files' own coordinates")
     confidence: float | None = None
     doubtful: bool | None = None
+    contested_by: list[str] | None = Field(
+        None,
+        description="edges (source -> target) the global step overruled though align() was surer of them than "
+        "of every edge that agrees with this model's transform: doubtful whatever its confidence",
+    )
 
 
 class ManyEdge(_Open):
