@@ -403,3 +403,30 @@ def test_criteria_passed_in_take_effect():
     wider = robust.decide([best, second], w_colour=0.0, criteria=robust.PoseCriteria(distinct_deg=100.0))
     wider.offered = [second]
     assert robust.verdict(best, wider)["alternatives"] == []
+
+
+def test_snapped_offers_turn_a_drifted_pose_onto_the_principal_frames():
+    from gsa.align.robust.poses import Candidate, SearchResult
+    from gsa.align.robust.refinement import alternatives
+    from gsa.align.robust.search import SearchOptions, _principal_axes, _snapped
+
+    truth = random_sim3(np.random.default_rng([4, 11]))
+    src = robust.anchors(make_object("car", seed=4, n_gaussians=6000, sample_seed=1), 800)
+    dst = robust.anchors(make_object("car", seed=4, n_gaussians=6000, sample_seed=2).transformed(truth), 800)
+    # A pose on one relabelling of the principal frames, and that pose drifted by 8°.
+    on_frames = _principal_axes(dst).T @ _principal_axes(src)
+    drift = axis_rotation(np.array([1.0, 2.0, 2.0]) / 3.0, np.radians(8.0))
+    aligned = Sim3(truth.scale, on_frames, truth.apply(src.center) - truth.scale * on_frames @ src.center)
+    centre = aligned.apply(src.center)
+    drifted = Sim3(1.0, drift, centre - drift @ centre) @ aligned
+    poses = [Candidate(drifted, "grid"), Candidate(aligned, "grid")]
+    snapped = _snapped(src, dst, poses, 0.0, SearchOptions())
+    assert [i for i, _ in snapped] == [0]  # the aligned pose is on the frames already
+    pose = snapped[0][1]
+    assert pose.origin == "snap:grid"
+    assert rre_deg(pose.transform.rotation, on_frames) < 1e-6
+    assert np.allclose(pose.transform.apply(src.center), drifted.apply(src.center))
+    assert pose.transform.scale == drifted.scale
+    # Offered beside the drifted pose although it is 8° away; another pose 8° away is not.
+    search = SearchResult([poses[0]], 0.0, 10.0, [], offered=[Candidate(aligned, "grid"), pose])
+    assert alternatives(poses[0], search) == [pose]

@@ -80,10 +80,15 @@ class VerdictCriteria:
     coincide_span: float = 0.2
     coincide_min_overlap: float = 0.5
     doubt_cap: float = 0.25  # the confidence at most of a tie or a colour contradiction
-    # Poses offered beside the chosen one (`alternatives`): the first rival, the three half
-    # turns and the next candidates; the results page steps through them.
+    # Poses offered beside the chosen one (`alternatives`): the first rival, the chosen pose
+    # snapped onto the principal frames, the three half turns, the next candidates and their
+    # snapped twins; the results page steps through them.
     max_alternatives: int = 8
 
+
+# A pose snapped onto the principal frames (search._snapped) is offered where it turns the
+# chosen pose by more than this; the other offers must be PoseCriteria.distinct_deg away.
+SNAP_DISTINCT_DEG = 1.0
 
 _REFINE = RefineCriteria()
 _VERDICT = VerdictCriteria()
@@ -153,11 +158,19 @@ def alternatives(
     final: Candidate, search: SearchResult, count: int = VerdictCriteria.max_alternatives
 ) -> list[Candidate]:
     """The poses to offer beside `final` (SearchResult.offered: the first rival, the half turns
-    of the chosen pose, the other candidates), at most `count` and each distinct from `final`
-    (the search's distinct_deg). Cross-instance, the truth is often not the best-scoring pose
+    of the chosen pose, the other candidates, the snapped poses), at most `count` and each
+    distinct from `final` (the search's distinct_deg; a snapped pose SNAP_DISTINCT_DEG). Cross-instance, the truth is often not the best-scoring pose
     but one of these (docs/benchmarks.md, category-real), and a person picks it."""
     distinct = search.criteria.distinct_deg
-    offered = [c for c in search.offered if rotation_offset_deg(c.transform, final.transform) > distinct]
+    # A snapped pose (search._snapped: a pose turned onto the principal frames) differs from the
+    # chosen one by a few degrees where the chosen pose itself drifted; it is offered unless it
+    # is the chosen pose (within SNAP_DISTINCT_DEG).
+    offered = [
+        c
+        for c in search.offered
+        if rotation_offset_deg(c.transform, final.transform)
+        > (SNAP_DISTINCT_DEG if c.origin.startswith("snap:") else distinct)
+    ]
     return offered[:count]
 
 

@@ -24,6 +24,7 @@ from gsa.align.robust.poses import (
     dedupe,
     score_pose,
 )
+from gsa.canonical import SIGNED_PERMUTATIONS
 from gsa.geometry import axis_rotation, rotation_distance_deg, super_fibonacci_rotations
 from gsa.sim3 import Sim3
 
@@ -65,6 +66,11 @@ class SearchOptions:
     # where they coincide, and keeps the near-symmetric twins (a table turned by 90 degrees,
     # 0.25 of the radius apart) that a person must choose between.
     offer_distinct: float = 0.25
+    # Beside each offered pose (and the best), the same pose with its rotation snapped onto the
+    # nearest relabelling of the principal frames (_snapped), where that moves it by more than
+    # this many degrees: across instances the ICP drifts 5-20 degrees off poses whose principal
+    # axes agree (a bathtub, a rifle, a table). None: no snapped poses.
+    offer_snap_deg: float | None = 1.0
     rival_window: float = 0.08  # unfinished starts scoring within this of the best finished one are finished too
     sweep_degrees: float = 16.0  # _sweep_twins: rotations of ± this and half this about each axis
     seed: int = 0
@@ -163,7 +169,9 @@ def _with_offers(
     the source opts.offer_distinct truncations away from the best and from every pose kept before it: turns of a
     symmetric shape that land on one surface are one pose. Cross-instance misses are mostly such
     half turns (a bathtub end for end, a vase upside down) that the search did not refine; they
-    are offered to pick (gsa.align.guided), never ranked, so no verdict changes."""
+    are offered to pick (gsa.align.guided), never ranked, so no verdict changes. With
+    opts.offer_snap_deg, each of these poses also comes snapped onto the principal frames
+    (_snapped): the best's right after the first rival, the others' after all the rest."""
     best = result.best.transform
     k = opts.criteria
     src_rows = _sample(rng, len(src), opts.refine_points)
@@ -194,7 +202,45 @@ def _with_offers(
         if all(_surface_gap(moved, other) > limit for other in kept_points):
             offered.append(c)
             kept_points.append(moved)
+    if opts.offer_snap_deg is not None:
+        snapped = _snapped(src, dst, [result.best, *offered], w_colour, opts)
+        # The best's snapped twin right after the first rival, the others' after every offer.
+        first = [c for i, c in snapped if i == 0]
+        offered = [*offered[:1], *first, *offered[1:], *[c for i, c in snapped if i > 0]]
     return replace(result, offered=offered)
+
+
+def _snapped(
+    src: Anchors, dst: Anchors, poses: list[Candidate], w_colour: float, opts: SearchOptions
+) -> list[tuple[int, Candidate]]:
+    """(index into `poses`, snapped pose): each pose with its rotation replaced by the nearest
+    of the 24 relabellings of the source's principal axes onto the target's, turning about the
+    source's mapped centre (scale kept), where that moves it by more than opts.offer_snap_deg;
+    one per snapped rotation. Another instance's proportions leave the principal axes of a
+    category's shapes in place (an elongated bathtub, rifle or table) where the ICP's pose
+    drifts off them by 5-20 degrees."""
+    src_axes, dst_axes = _principal_axes(src), _principal_axes(dst)
+    frames = [dst_axes.T @ g @ src_axes for g in SIGNED_PERMUTATIONS]
+    out: list[tuple[int, Candidate]] = []
+    for n, c in enumerate(poses):
+        gaps = [rotation_distance_deg(r, c.transform.rotation) for r in frames]
+        r = frames[int(np.argmin(gaps))]
+        if min(gaps) <= opts.offer_snap_deg or any(
+            rotation_distance_deg(r, o.transform.rotation) <= opts.offer_snap_deg for _, o in out
+        ):
+            continue
+        centre = c.transform.apply(src.center)
+        pose = Sim3(c.transform.scale, r, centre - c.transform.scale * r @ src.center)
+        out.append((n, score_pose(src, dst, pose, "snap:" + c.origin, w_colour, opts.criteria)))
+    return out
+
+
+def _principal_axes(a: Anchors) -> np.ndarray:
+    """The anchors' weighted principal axes, the rows of a rotation (right-handed)."""
+    _, _, axes = np.linalg.svd((a.points - a.center) * np.sqrt(a.weights)[:, None], full_matrices=False)
+    if np.linalg.det(axes) < 0:
+        axes[2] = -axes[2]
+    return axes
 
 
 def _surface_gap(a: np.ndarray, b: np.ndarray) -> float:
