@@ -40,19 +40,18 @@ class RQQueue:
         RQ's scheduler, which every `gsa worker` runs (the message is "scheduled" meanwhile,
         which the reaper does not count as lost)."""
         ref = f"{job_id}-{uuid.uuid4().hex[:8]}"
-        kw = dict(
-            job_id=ref,
-            # Our own lease/reaper does retries; RQ's timeout is only the backstop.
-            job_timeout=int(self.settings.job_timeout_s + 120),
-            result_ttl=600,
-            failure_ttl=24 * 3600,
-        )
+        kw = dict(job_id=ref, **self.task_options())
         task = "service.worker.run_job"  # by name: workers of any version resolve it
         if delay_s > 0:
             self.q.enqueue_in(timedelta(seconds=delay_s), task, job_id, **kw)
         else:
             self.q.enqueue(task, job_id, **kw)
         return ref
+
+    def task_options(self) -> dict:
+        """RQ options of a job's tasks (the job itself, a many job's edges)."""
+        # Our own lease/reaper does retries; RQ's timeout is only the backstop.
+        return dict(job_timeout=int(self.settings.job_timeout_s + 120), result_ttl=600, failure_ttl=24 * 3600)
 
     def lost(self, ref: str | None) -> bool:
         """True if RQ no longer holds a live message for this ref (dropped, failed,

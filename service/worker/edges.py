@@ -258,14 +258,7 @@ def enqueue_edge_tasks(backend: Backend, job: Job, token: str, n: int) -> int:
     if n <= 0 or not isinstance(backend.queue, RQQueue):
         return 0
     for _ in range(n):
-        backend.queue.q.enqueue(
-            EDGE_TASK,
-            job.id,
-            token,
-            job_timeout=int(backend.settings.job_timeout_s + 120),
-            result_ttl=600,
-            failure_ttl=24 * 3600,
-        )
+        backend.queue.q.enqueue(EDGE_TASK, job.id, token, **backend.queue.task_options())
     return n
 
 
