@@ -609,6 +609,13 @@ def pairwise_edges(
     return out
 
 
+def check_models(models: Sequence[GaussianModel], names: Sequence[str]) -> None:
+    """ManyError for a model the pairwise alignments cannot use (fewer than 3 Gaussians)."""
+    for name, m in zip(names, models):
+        if len(m) < 3:
+            raise ManyError(f"{name}: {len(m)} Gaussians; at least 3 are needed")
+
+
 def align_many(
     models: Sequence[GaussianModel],
     names: Sequence[str] | None = None,
@@ -628,9 +635,7 @@ def align_many(
         raise ManyError("names must be one distinct name per model")
     if not 0 <= reference < n:
         raise ManyError(f"reference index {reference} is not one of the {n} models")
-    for name, m in zip(names, models):
-        if len(m) < 3:
-            raise ManyError(f"{name}: {len(m)} Gaussians; at least 3 are needed")
+    check_models(models, names)
     t0 = time.perf_counter()
     pairs = select_edges(models, edges)
     t_edges = time.perf_counter()

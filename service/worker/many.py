@@ -118,7 +118,7 @@ def _run_edges(backend: Backend, job: Job, token: str, prog: JobProgress, models
 def run_many(backend: Backend, job: Job, token: str, prog: JobProgress, art_prefix: str) -> JobState | None:
     """One attempt of a many job: load the N models, align_many (reports per edge; a cancel
     stops it at the next report), write many.json (and merged.ply), store them."""
-    from gsa.align.many import merged_model, select_edges  # lazy: the aligner's modules
+    from gsa.align.many import ManyError, check_models, merged_model, select_edges  # lazy: the aligner's modules
     from gsa.align.outputs import write_json
     from gsa.io.ply import write_ply
     from service.jobs.inputs import load_input
@@ -134,9 +134,10 @@ def run_many(backend: Backend, job: Job, token: str, prog: JobProgress, art_pref
         for i, ref in enumerate(job.sources):
             prog("loading", i / len(job.sources))
             models.append(load_input(backend, ref, work, f"model{i}", prog))
-        for name, m in zip(names, models):
-            if len(m) < 3:  # as align_many refuses it, before any edge runs
-                raise invalid_input(f"{name}: {len(m)} Gaussians; at least 3 are needed")
+        try:
+            check_models(models, names)  # as align_many does, before any edge runs
+        except ManyError as exc:  # the client's input
+            raise invalid_input(str(exc)) from None
         pairs = select_edges(models, many["edges"])
         result, workers = _run_edges(backend, job, token, prog, models, names, reference, pairs, opts)
         prog.label = None
