@@ -55,6 +55,7 @@ from gsa.align.robust.anchoring import (
     voxel_anchors,
     voxelise,
 )
+from gsa.align.robust.placement import box_lattice, placed_starts
 from gsa.align.robust.poses import (
     Candidate,
     Convergence,
@@ -104,6 +105,8 @@ __all__ = [
     "frame_relabellings",
     "global_search",
     "match_exposure",
+    "box_lattice",
+    "placed_starts",
     "overlap_fraction",
     "overlap_trim",
     "refine",

@@ -29,7 +29,7 @@ def placed_starts(
     dst: Anchors,
     rng: np.random.Generator,
     *,
-    rotations: int,
+    rotations: int | np.ndarray,
     points: int,
     step: float,
     truncation: float,
@@ -38,20 +38,25 @@ def placed_starts(
     min_deg: float,
     capture: Capture,
     capture_steps: tuple[float, ...],
+    w_colour: float = 0.0,
+    colour_sigma: float = 1.0,
+    centres: np.ndarray | None = None,
 ) -> list[tuple[np.ndarray, float, np.ndarray]]:
     """(rotation, scale, mapped source centre) of the `count` best placements whose
-    rotations are min_deg apart. rotations: coarse grid size; points: anchors per side
+    rotations are min_deg apart. rotations: coarse grid size or the rotations; points: anchors per side
     scored per placement; step: lattice step and truncation: loose score distance, both
     fractions of the target radius; scales: factors of the radius ratio; capture: the
-    search's capture steps (fine truncation), run with `capture_steps` on the winners."""
-    coarse = super_fibonacci_rotations(rotations)
-    lattice_step = step * dst.radius
-    lo, hi = dst.points.min(0) - lattice_step, dst.points.max(0) + lattice_step
-    axes = [np.arange(lo[a], hi[a] + 0.5 * lattice_step, lattice_step) for a in range(3)]
-    centres = np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3)
+    search's capture steps (fine truncation), run with `capture_steps` on the winners.
+    w_colour > 0: a close pair counts as robust's scores count it, less as its colours
+    differ (CIELAB, colour_sigma) and against the pose beyond half of that trust - where
+    geometry alone cannot rank placements (a site's ground lies on itself under any yaw).
+    centres: the positions tried for the source centre (None: a lattice over the target's box)."""
+    coarse = super_fibonacci_rotations(rotations) if np.isscalar(rotations) else np.asarray(rotations)
+    if centres is None:
+        centres = box_lattice(dst.points, np.eye(3), step * dst.radius)
     scale_trials = (dst.radius / src.radius) * np.asarray(scales)
-    p = src.points[_sample(rng, len(src), points)] - src.center
-    q = dst.points[_sample(rng, len(dst), points)]
+    p_rows, q_rows = _sample(rng, len(src), points), _sample(rng, len(dst), points)
+    p, q = src.points[p_rows] - src.center, dst.points[q_rows]
     # Grids of their own at the loose truncation: 8× fewer cells than the scorer's
     # stay in cache through this many lookups, and the loose score needs no more.
     cell = 0.5 * truncation * dst.radius
@@ -76,11 +81,26 @@ def placed_starts(
         r.shape,
         src.points,
         truncation * dst.radius,
+        src.lab[p_rows],
+        dst.lab[q_rows],
+        src.lab,
+        dst.lab,
+        w_colour,
+        colour_sigma,
         best,
     )
     top = _distinct_rows(np.argsort(-best[:, 0]), coarse, count, min_deg)
     scale, t = capture(coarse[top], best[top, 1], best[top, 2:], capture_steps)
     return [(coarse[i], float(scale[k]), t[k]) for k, i in enumerate(top)]
+
+
+def box_lattice(points: np.ndarray, axes: np.ndarray, step: float) -> np.ndarray:
+    """Positions every `step` along the rows of `axes` (orthonormal) over the points' box
+    in that frame, grown by a step."""
+    local = points @ axes.T
+    lo, hi = local.min(0) - step, local.max(0) + step
+    ticks = [np.arange(lo[a], hi[a] + 0.5 * step, step) for a in range(3)]
+    return np.stack(np.meshgrid(*ticks, indexing="ij"), -1).reshape(-1, 3) @ axes
 
 
 def _distinct_rows(order: np.ndarray, rotations: np.ndarray, count: int, min_deg: float) -> list[int]:
@@ -93,6 +113,16 @@ def _distinct_rows(order: np.ndarray, rotations: np.ndarray, count: int, min_deg
         if all(np.sum(rotations[i] * rotations[j]) < limit for j in chosen):
             chosen.append(int(i))
     return chosen
+
+
+@numba.njit(cache=True)
+def _colour_factor(a, b, w_colour, sigma):  # pragma: no cover - compiled
+    """1 where colour is not trusted; else 1 for the same colour down to 1 - 2·w_colour for
+    unrelated ones (the translation sweep's and robust's colour term)."""
+    if w_colour <= 0.0:
+        return 1.0
+    de2 = (a[0] - b[0]) ** 2 + (a[1] - b[1]) ** 2 + (a[2] - b[2]) ** 2
+    return 1.0 - 2.0 * w_colour * (1.0 - np.exp(-0.5 * de2 / sigma**2))
 
 
 @numba.njit(parallel=True, cache=True)
@@ -114,6 +144,12 @@ def _place_poses(
     src_shape,
     src_pts,
     tau,
+    p_lab,
+    q_lab,
+    src_lab,
+    dst_lab,
+    w_colour,
+    sigma,
     best,
 ):  # pragma: no cover - compiled
     """For each rotation k, the (score, scale, centre) maximising the truncated
@@ -138,7 +174,7 @@ def _place_poses(
                     j = dst_nearest[cell]
                     d = np.sqrt((dst_pts[j, 0] - x0) ** 2 + (dst_pts[j, 1] - x1) ** 2 + (dst_pts[j, 2] - x2) ** 2)
                     if d < tau:
-                        total += 1.0 - d / tau
+                        total += (1.0 - d / tau) * _colour_factor(p_lab[i], dst_lab[j], w_colour, sigma)
                 for i in range(n_q):
                     # x_s = Rᵀ (q − centre) / s + c_s, distances back in target units (× s)
                     u0 = (q[i, 0] - centres[o, 0]) / s
@@ -153,7 +189,7 @@ def _place_poses(
                     j = src_nearest[cell]
                     d = s * np.sqrt((src_pts[j, 0] - x0) ** 2 + (src_pts[j, 1] - x1) ** 2 + (src_pts[j, 2] - x2) ** 2)
                     if d < tau:
-                        total += 1.0 - d / tau
+                        total += (1.0 - d / tau) * _colour_factor(q_lab[i], src_lab[j], w_colour, sigma)
                 if total > top:
                     top = total
                     best[k, 0] = total / (n_p + n_q)
