@@ -43,21 +43,24 @@ def _measure(name, syn, names, cameras, report: dict) -> tuple[dict, object]:
     return row, t
 
 
-def _reconstructed(syn, out: Path, args):
-    """(model, cameras, names, report) of the set's reconstruction, made unless --reuse finds it."""
+def reconstructed(images, out: Path, args):
+    """(model, cameras, names, report) of the reconstruction of the images in `images` (a folder),
+    made unless args.reuse finds it in `out`; args: preset, iterations, reuse."""
     from gsa.io.ply import read_ply
     from gsa.recon.pipeline import reconstruct
     from gsa.render.cameras import read_cameras_json
 
     if not (args.reuse and (out / "report.json").exists()):
-        reconstruct(syn.directory, out, preset=args.preset, iterations=args.iterations)
+        reconstruct(images, out, preset=args.preset, iterations=args.iterations)
     model = read_ply(out / "model.ply")
     cameras, names = read_cameras_json(out / "cameras.json")
     model.metadata["training_cameras"] = cameras  # as reconstruct() leaves it: the fine stage's views
     return model, cameras, names, json.loads((out / "report.json").read_text())
 
 
-def _alignment_rows(model_a, model_b, gt, peers: list[str]) -> list[dict]:
+def alignment_rows(model_a, model_b, gt, peers: list[str]) -> list[dict]:
+    """gsa.align.pipeline.align(A, B) and each available peer against the true Sim(3) `gt`:
+    one row each (RRE, scale error, confidence, doubtful, wall time)."""
     from gsa.align.pipeline import AlignOptions, align
     from gsa.bench.peers import available_peers
     from gsa.metrics import rre_deg, scale_error_pct
@@ -97,18 +100,18 @@ def run_size(args, size: int, root: Path) -> dict:
 
     model = textured_object(args.category, args.seed)
     syn_a = render_image_set(root / "a", model=model, n_views=args.views, size=size, orbit_seed=args.seed)
-    model_a, cams_a, names_a, rep_a = _reconstructed(syn_a, root / "a_out", args)
+    model_a, cams_a, names_a, rep_a = reconstructed(syn_a.directory, root / "a_out", args)
     row_a, t_a = _measure("A", syn_a, names_a, cams_a, rep_a)
     out = {"size": size, "A": row_a}
     if args.skip_align:
         return out
     rig = random_sim3(np.random.default_rng(args.seed + 100), scale_range=(0.5, 2.0), translation=2.0)
     syn_b = render_image_set(root / "b", model=model, n_views=args.views, size=size, orbit_seed=args.seed + 1, rig=rig)
-    model_b, cams_b, names_b, rep_b = _reconstructed(syn_b, root / "b_out", args)
+    model_b, cams_b, names_b, rep_b = reconstructed(syn_b.directory, root / "b_out", args)
     out["B"], t_b = _measure("B", syn_b, names_b, cams_b, rep_b)
     gt = t_b.inverse().compose(rig.compose(t_a))
     (root / "truth.json").write_text(json.dumps({"A_to_B": gt.matrix().tolist()}))
-    out["align"] = _alignment_rows(model_a, model_b, gt, args.peers)
+    out["align"] = alignment_rows(model_a, model_b, gt, args.peers)
     for row in out["align"]:
         print(json.dumps({"size": size, "category": args.category, "seed": args.seed} | row), flush=True)
     return out
