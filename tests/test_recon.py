@@ -334,6 +334,9 @@ def test_training_lowers_loss_and_writes_features(recon):
     assert recon.train.psnr_heldout is not None and recon.train.psnr_heldout > 15
     rep = json.loads((recon.out_dir / "report.json").read_text())
     assert rep["registered"] == recon.sfm.n_registered
+    # an orbit around one object: its region is found and nothing of the object lies beyond it
+    far = rep["far_background"]
+    assert far["radius"] > 0 and far["sfm_points_dropped"] == 0 and far["gaussians_pruned"] == 0
 
 
 def test_cli_bad_input(tmp_path, capsys):

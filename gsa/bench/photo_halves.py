@@ -153,6 +153,9 @@ def run_size(args, size: int, root: Path) -> dict:
             "gaussians": rep["gaussians"],
             # distant background (sky, far trees) the masks kept: it skews extent-based normalisation
             "gaussians_beyond_3x_camera_distance": int((~within(model, cams, 3.0)).sum()),
+            # what reconstruct() itself left out beyond the capture's region (gsa.recon.region)
+            "far_sfm_points_dropped": rep.get("far_background", {}).get("sfm_points_dropped"),
+            "far_gaussians_pruned": rep.get("far_background", {}).get("gaussians_pruned"),
             "wall_s": rep["timings_s"]["total"],
             "sfm_s": rep["timings_s"]["sfm"],
             "train_s": rep["timings_s"]["train"],

@@ -61,6 +61,14 @@ def run_reconstruct(args) -> int:
         print(("\n" if line_open else "") + f"gsa: error: {exc}", file=sys.stderr)
         return 1
     print(file=sys.stderr)
+    far = res.train.region
+    if far.get("sfm_points_dropped") or far.get("gaussians_pruned"):
+        print(
+            f"gsa: distant background left out: {far['sfm_points_dropped']} SfM point(s) and "
+            f"{far['gaussians_pruned']} Gaussian(s) beyond {far['radius']:.3g} (twice the farthest camera's "
+            "distance) from the point the cameras look at",
+            file=sys.stderr,
+        )
     print(json.dumps(res.summary(), indent=1))
     return 0
 

@@ -62,7 +62,18 @@ class Adam:
 
 
 @torch.no_grad()
-def densify_and_prune(opt: Adam, avg_grad, cfg: DensityConfig, extent: float, rng, densify: bool) -> None:
+def densify_and_prune(
+    opt: Adam,
+    avg_grad,
+    cfg: DensityConfig,
+    extent: float,
+    rng,
+    densify: bool,
+    region: tuple[torch.Tensor, float] | None = None,
+) -> int:
+    """One round of density control; region (centre, radius): Gaussians whose means left that
+    ball (an object capture's region, gsa.recon.region) are pruned too. Returns how many were
+    pruned for lying outside it (0 when the round keeps everything: never below 4 Gaussians)."""
     p = opt.params
     n = len(p["means"])
     scales = p["log_scales"].exp()
@@ -101,9 +112,14 @@ def densify_and_prune(opt: Adam, avg_grad, cfg: DensityConfig, extent: float, rn
     remove |= smax > 0.2 * extent
     if "features" in p:
         remove |= p["features"].norm(dim=1) < cfg.feature_prune
+    outside = torch.zeros(n, dtype=torch.bool)
+    if region is not None:
+        outside = (p["means"] - region[0]).norm(dim=1) > region[1]
+        outside &= ~remove
+        remove |= outside
     keep = ~remove
     if keep.sum() < 4:  # never prune the model away
-        return
+        return 0
     new_params = {}
     n_new = 0
     for k in p:
@@ -111,3 +127,4 @@ def densify_and_prune(opt: Adam, avg_grad, cfg: DensityConfig, extent: float, rn
         n_new = len(add)
         new_params[k] = torch.cat([p[k].detach()[keep], add.detach()]).requires_grad_(True)
     opt.remap(new_params, keep, n_new)
+    return int(outside.sum())

@@ -61,6 +61,8 @@ class ReconstructionResult:
             "psnr_heldout_masked_db": self.train.psnr_heldout_masked,
             "heldout_views": self.train.heldout,
             "masks": sorted(set(self.mask_methods)),
+            # an object capture's region and the distant background dropped beyond it ({}: none)
+            "far_background": self.train.region,
             "model": str(self.model_path),
             "cameras": str(self.cameras_path),
             "timings_s": self.timings,

@@ -40,6 +40,7 @@ from gsa.canonical import canonical_features
 from gsa.model import GaussianModel, sh_coeff_count
 from gsa.recon.density import Adam, densify_and_prune
 from gsa.recon.losses import psnr, rgb_loss, ssim  # noqa: F401  (ssim: public here before the split)
+from gsa.recon.region import object_region
 from gsa.render import rasterize, render_model
 from gsa.render.cameras import Cameras
 from gsa.sh import rgb_to_sh_dc
@@ -123,6 +124,10 @@ class TrainResult:
     psnr_heldout_masked: float | None  # PSNR inside the object masks only
     seconds: float
     config: dict = field(default_factory=dict)
+    # the object capture's region (gsa.recon.region) and what lay beyond it: {} when the cameras
+    # do not converge or nothing is masked; else centre, camera_distance, radius,
+    # sfm_points_dropped, gaussians_pruned
+    region: dict = field(default_factory=dict)
 
 
 # ----------------------------------------------------------------------------- init
@@ -175,6 +180,25 @@ def filter_points_by_masks(
         seen += ok
         inside[ok] += masks[i][v[ok], u[ok]]
     return (seen > 0) & (inside >= min_ratio * np.maximum(seen, 1))
+
+
+def init_selection(points: np.ndarray, cameras: Cameras, masks: np.ndarray):
+    """(keep, region, info): the SfM points that initialise Gaussians. Points mostly outside the
+    object masks are left out (filter_points_by_masks) and, in an object capture (masks cut
+    something and the cameras converge, gsa.recon.region), so is what lies beyond its region:
+    far background the masks let through. region: the Region Gaussians are kept within during
+    training (None: no limit); info: its TrainResult.region row (sfm_points_dropped counted)."""
+    keep = filter_points_by_masks(points, cameras, masks)
+    if keep.sum() < 4:
+        keep[:] = True  # masks disagree with the SfM points: do not throw the scene away
+    region = object_region(cameras) if not masks.all() else None
+    if region is None:
+        return keep, None, {}
+    inside = region.contains(points)
+    if (keep & inside).sum() < 4:
+        return keep, None, {}
+    info = region.as_dict() | {"sfm_points_dropped": int((keep & ~inside).sum())}
+    return keep & inside, region, info
 
 
 def resize_images(images: np.ndarray, width: int, height: int, interp=None) -> np.ndarray:
@@ -230,9 +254,7 @@ def train_gaussians(
     train_ids = [i for i in range(c_all) if i not in held]
     target = torch.from_numpy(imgs)
 
-    keep = filter_points_by_masks(points, cameras, masks)
-    if keep.sum() < 4:
-        keep[:] = True  # masks disagree with the SfM points: do not throw the scene away
+    keep, region, region_info = init_selection(points, cameras, masks)
     init = init_from_points(points[keep], point_colors[keep], cfg.init_points, cfg.seed)
     centres = cams.centers()
     extent = 1.1 * float(np.linalg.norm(centres - centres.mean(0), axis=1).max())
@@ -276,6 +298,8 @@ def train_gaussians(
     grad_acc = torch.zeros(len(P["means"]))
     grad_cnt = torch.zeros(len(P["means"]))
     curve = []
+    ball = None if region is None else (torch.tensor(region.centre, dtype=torch.float32), region.radius)
+    pruned_outside = 0
     bg_t = tuple(float(x) for x in bg)
 
     def sh_tensor():
@@ -352,14 +376,16 @@ def train_gaussians(
         # density control
         if cfg.densify_from <= it < cfg.densify_until and it > 0 and it % cfg.densify_every == 0:
             avg = grad_acc / grad_cnt.clamp_min(1)
-            densify_and_prune(opt, avg, cfg, extent, rng, densify=True)
+            pruned_outside += densify_and_prune(opt, avg, cfg, extent, rng, densify=True, region=ball)
             grad_acc = torch.zeros(len(opt.params["means"]))
             grad_cnt = torch.zeros(len(opt.params["means"]))
         if cfg.opacity_reset_every and it > 0 and it % cfg.opacity_reset_every == 0 and it < cfg.densify_until:
             with torch.no_grad():
                 opt.params["opacity"].clamp_(max=math.log(0.01 / 0.99))
     # final clean-up: transparent and near-zero-feature Gaussians
-    densify_and_prune(opt, None, cfg, extent, rng, densify=False)
+    pruned_outside += densify_and_prune(opt, None, cfg, extent, rng, densify=False, region=ball)
+    if region_info:
+        region_info["gaussians_pruned"] = pruned_outside
     model = _to_model(opt.params, sh_tensor())
     if model.features is not None:
         # Provenance travels in the PLY: `gsa align --features auto` recomputes canonical ones.
@@ -379,6 +405,7 @@ def train_gaussians(
         float(np.mean(psm)) if psm else None,
         time.perf_counter() - t_start,
         asdict(cfg),
+        region_info,
     )
 
 
