@@ -246,6 +246,9 @@ def test_refinement_fits_every_pair_only_where_the_models_coincide_nowhere():
     assert sum(_all_pairs_phase(_refine(s, deformed)[1]) for s, _, deformed, _ in pairs) >= 4
     assert not any(_all_pairs_phase(_refine(s, resampled)[1]) for s, resampled, _, _ in pairs)
     assert not any(_all_pairs_phase(_refine(s, cut)[1]) for s, _, _, cut in pairs)
+    # Two captures of one place (the scene path) are never deformed copies: the trimmed fit stands.
+    one_place = robust.RefineCriteria(deformable=False)
+    assert not any(_all_pairs_phase(_refine(s, deformed, criteria=one_place)[1]) for s, _, deformed, _ in pairs)
 
 
 def _turned(model, seed: int, degrees: float) -> Sim3:

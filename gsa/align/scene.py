@@ -111,11 +111,12 @@ class SceneOptions:
     site_tilt_deg: float = 6.0  # tilts tried about them: two captures' mean ground normals differ by a few degrees
     site_ground_keep: float = 0.35  # the ground's share of the site search's anchors: what stands on it decides
     # The doubtful site answer's placed starts (_placed).
-    site_place_points: int = 64  # anchors per side scored per placed position (robust.placed_starts)
+    site_place_points: int = 48  # anchors per side scored per placed position (robust.placed_starts)
     site_place_step: float = 0.25  # its lattice step in the target site's frame, fraction of the target radius
     site_place_yaw_deg: float = 5.0  # its yaw step
     site_place_truncation: float = 0.2  # its score distance, coloured as the sweep: within a step of any offset
-    site_place_scales: tuple[float, ...] = (0.65, 0.8, 1.0, 1.25, 1.55)  # times the radius ratio
+    # Its scales, times the radius ratio: the radii of partial captures are ~30 % off.
+    site_place_scales: tuple[float, ...] = (0.65, 0.85, 1.1, 1.45)
     site_place_top: int = 6  # distinct placements refined by the anchor ICP
     climb_top: int = 2  # best placed starts of a doubtful site answer that climb the score (_climb), beside its best
     climb_rounds: int = 6  # step halvings of each climb
@@ -130,6 +131,10 @@ class SceneOptions:
     sweep_points: int = 128  # source anchors scored per offset
     sweep_keep: int = 2  # best distinct offsets per rotation refined by the anchor ICP
     sweep_icp: int = 60  # iterations of that ICP
+
+
+# Two captures of one place are never deformed copies of each other (robust.RefineCriteria).
+_SCENE_REFINE = replace(robust.RefineCriteria(), deformable=False)
 
 
 @dataclass
@@ -650,6 +655,7 @@ def align_scene(
         start.transform,
         opts.refine_iterations,
         target_normals=(normals, flatness, normals[q_rows], flatness[q_rows]),
+        criteria=_SCENE_REFINE,
     )
     refine_kept = True
     if sites is not None:

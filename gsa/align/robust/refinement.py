@@ -50,6 +50,11 @@ class RefineCriteria:
     # coincide, and their fit is exact there (docs/benchmarks.md, "real captures").
     core_fraction: float = 0.3
     plane_iterations: int = 8  # point-to-plane polish steps after the point-to-point fit converged
+    # Whether the models may be other instances or deformed copies (the object path). Two
+    # captures of one place (the scene path) are not: where their samplings coincide nowhere
+    # (Gaussians spread around a real site's SfM points), the all-pairs fit slid a real
+    # garden's true pose 12 degrees away, so the core fit stands.
+    deformable: bool = True
     # Steps below these sit in the sampling noise of the correspondences (point-to-point fit),
     # and end the point-to-plane polish.
     convergence: Convergence = Convergence(rotation_deg=2e-3, log_scale=2e-5)
@@ -216,7 +221,7 @@ def refine(
     core, history = fit.run(init, iterations, lambda d: k.core_fraction)
     for step in history:
         step["stage"] = "refine-core"
-    if not fit.differ_everywhere(core):
+    if not k.deformable or not fit.differ_everywhere(core):
         if target_normals is None:
             return core, history
         transform, more = fit.polish(core, target_normals, k.plane_iterations, k.core_fraction, start=len(history))
