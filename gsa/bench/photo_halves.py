@@ -27,6 +27,14 @@ different parts of the trunk), and align()'s coarse refinement, even started at 
 moves the scale toward the models' extent ratio (512: truth 0.879 -> 0.610, extent ratio 0.478;
 256: 1.247 -> 1.420, ratio 1.446); trimmed point-to-point ICP from the truth stays within
 0.4-0.6° / 0.7-2.3 %. On the halves' SfM points align() reaches 0.19° / 0.67 % (512 px).
+
+After reconstruct() keeps an object capture to its cameras' region (gsa.recon.region: the 8 far
+SfM points are left out of half A's init; 0 Gaussians beyond 3x the camera distance, the halves'
+RMS radii 0.41 and 0.42 of it), 512 px: gsa RRE 4.9°, scale 11.8 %, confidence 0.09, doubtful;
+--crop 1.0 2.6° / 3.2 % (A 176 s, B 321 s, 541 s in all). What is left: align() estimates the
+scale 0.981 against the truth 0.878, pulled toward the models' RMS radius ratio 0.953 (the
+halves cover different lengths of the trunk). 256 px: nothing lay beyond either region (0 points
+dropped), gsa 3.7° / 13.2 % (3.4° / 13.9 % before: run-to-run spread), --crop 1.0 3.3° / 13.7 %.
 """
 
 from __future__ import annotations
