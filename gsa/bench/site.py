@@ -28,7 +28,7 @@ from gsa.synth.sites import PointSite, make_site, resample_site
 # (generated pairs, capture size range) for quick and full; real pairs per point file.
 SITE_QUICK = (2, (80_000, 120_000))
 SITE_FULL = (12, (1_000_000, 2_000_000))
-SITE_REAL_PAIRS = (1, 4)  # quick, full
+SITE_REAL_PAIRS = (1, 8)  # quick, full: a real site is the hard case, 8 pairs tell more than 4
 SITE_HARD = {k: v for k, v in SCENE_HARD.items() if k != "no_ceiling"}
 # Where the project's development data lives (../shared/data/real-dev beside the checkout).
 DEFAULT_DATA = Path(__file__).resolve().parents[3] / "shared" / "data" / "real-dev"
