@@ -98,13 +98,13 @@ def test_scene_path_aligns_a_site_pair(site_pair):
 
 def test_site_search_only_turns_about_the_ground():
     up = np.array([0.0, 0.6, 0.8])
-    for options in (S.SceneOptions(), S.SceneOptions(site_yaw_deg=10.0, site_tilt_deg=3.0)):
+    for options in (S.SceneOptions(), S.SceneOptions(site_yaw_deg=10.0)):
         rots = S._site_rotations(np.array([0.0, 0.0, 1.0]), up, options)
-        assert len(rots) == 2 * 5 * round(360 / options.site_yaw_deg)
+        assert len(rots) == 2 * round(360 / options.site_yaw_deg)
         mapped = rots @ np.array([0.0, 0.0, 1.0])
-        tilt = np.degrees(np.arccos(np.clip(np.abs(mapped @ up), -1, 1)))
-        assert options.site_tilt_deg - 1e-6 < tilt.max() < options.site_tilt_deg + 1e-6
+        assert np.allclose(np.abs(mapped @ up), 1.0, atol=1e-9)  # the up onto ±up, turned about it
         assert np.allclose(np.einsum("nij,nkj->nik", rots, rots), np.eye(3), atol=1e-9)
+        assert abs(rre_deg(rots[1], rots[0]) - options.site_yaw_deg) < 1e-6  # steps of site_yaw_deg
 
 
 def test_site_bench_pairs(tmp_path):
@@ -164,7 +164,7 @@ def test_placed_starts_rank_by_colour_where_geometry_cannot():
     target = GaussianModel.from_colors(truth.apply(field.astype(np.float64)).astype(np.float32), colours)
     src, dst = robust.anchors(source, 2000), robust.anchors(target, 2000)
     up = np.array([0.0, 0.0, 1.0])
-    rotations = S._site_rotations(up, up, S.SceneOptions(), tilted=False)
+    rotations = S._site_rotations(up, up, S.SceneOptions())
 
     def best_placement(w_colour):
         (r, scale, centre), *_ = robust.placed_starts(

@@ -108,7 +108,6 @@ class SceneOptions:
     # The scene path (align_scene).
     scene_anchors: int = 6000  # anchors per model at least: the furniture that breaks a shell's symmetries must show
     site_yaw_deg: float = 5.0  # yaw step of the site search's up-aligned rotations
-    site_tilt_deg: float = 6.0  # tilts tried about them: two captures' mean ground normals differ by a few degrees
     site_ground_keep: float = 0.35  # the ground's share of the site search's anchors: what stands on it decides
     # The doubtful site answer's placed starts (_placed).
     site_place_points: int = 48  # anchors per side scored per placed position (robust.placed_starts)
@@ -770,17 +769,18 @@ def site_search(
     """The scene path's search for sites. Two things differ from a room's:
     - the ground fixes two of the three rotation angles: only rotations taking the
       source's up axis onto the target's (either sign: the test's sign can be fooled by
-      tree crowns seen from above), tilted by up to site_tilt_deg, turned about it in
-      site_yaw_deg steps, are searched (robust.global_search with these as its only
-      rotations; no widening: these rotations are all a site can be in);
+      tree crowns seen from above), turned about it in site_yaw_deg steps, are searched
+      (robust.global_search with these as its only rotations; no widening: these rotations
+      are all a site can be in; the ups are refitted to the grounds' planes, _site_of);
     - the ground, which holds most of the weight and which any turn of the site lays on
       itself within the search's truncation, is thinned to site_ground_keep of the
       anchors the search scores on, so the things standing on it decide.
-    The translation sweep follows, as for rooms; the verdict scores on all anchors."""
+    The translation sweep follows, as for rooms; the verdict scores on all anchors. Where
+    that answer is doubtful, placed starts and climbs join (below)."""
     o = options or SceneOptions()
     rng = np.random.default_rng(seed)
     s_thin, d_thin = (_ground_thinned(a, site.ground, rng, o) for a, site in ((src, src_site), (dst, dst_site)))
-    rotations = _site_rotations(src_site.up, dst_site.up, o, tilted=False)
+    rotations = _site_rotations(src_site.up, dst_site.up, o)
     search = robust.global_search(
         s_thin, d_thin, [("site", r) for r in rotations], robust.SearchOptions(rotations=0, seed=seed)
     )
@@ -793,12 +793,11 @@ def site_search(
     )
     if not robust.verdict(result.best, result)["doubtful"]:
         return result
-    # A doubtful answer: starts that trust no centroid join, and the best pose climbs the score.
     # A doubtful answer: starts that trust no centroid join (_placed), and the best placed
     # starts - before the anchors' ICP moves them and the dedup merges them into a pose
-    # that scores higher there - climb the score, as does the best pose.
-    # Both compare chromaticity alone (_chroma): where the palettes did not tell the
-    # exposure apart, the full colours disagree at the truth itself.
+    # that scores higher there - climb the score, as does the best pose. Both compare
+    # chromaticity alone (_chroma): where the palettes did not tell the exposure apart,
+    # the full colours disagree at the truth itself.
     starts, refined = _placed(_chroma(s_thin), _chroma(d_thin), src_site, dst_site, search, rng, o)
     scored = [_pose_gain_score(src, dst, c, w, k) for c in starts + refined]
     result = robust.decide(robust.dedupe(result.candidates + scored, k), w, None, k)
@@ -820,17 +819,17 @@ def _placed(
     """Starts that trust neither centroid nor radius: each up-aligned yaw (no tilt) tries a
     lattice of positions at site_place_scales of the radius ratio (robust's placement
     search); the site_place_top best distinct ones (unscored), and each after the anchor
-    ICP (scored). The ICP can slide off a placement where two partial captures overlap in
-    half (on a real garden it left the truth itself by 3-16 degrees). Two captures
-    of a site overlapping in half have centroids far apart and radii ~30 % off; the
-    search places by them, so the right yaw can end outside the translation sweep's
-    few rotations, or at a scale its lattice cannot reach."""
+    ICP (scored), which can slide off a placement where two partial captures overlap in
+    half (on a real garden it left the truth itself by 3-16 degrees). Such captures have
+    centroids far apart and radii ~30 % off; the search places by them, so the right yaw
+    can end outside the translation sweep's few rotations, or at a scale its lattice
+    cannot reach."""
     k = search.criteria
     placements = robust.placed_starts(
         src,
         dst,
         rng,
-        rotations=_site_rotations(src_site.up, dst_site.up, o, tilted=False, yaw_deg=o.site_place_yaw_deg),
+        rotations=_site_rotations(src_site.up, dst_site.up, o, yaw_deg=o.site_place_yaw_deg),
         points=o.site_place_points,
         step=o.site_place_step,
         truncation=o.site_place_truncation,
@@ -971,24 +970,17 @@ def _ground_thinned(a: robust.Anchors, ground: np.ndarray, rng: np.random.Genera
 
 
 def _site_rotations(
-    up_src: np.ndarray,
-    up_dst: np.ndarray,
-    options: SceneOptions | None = None,
-    tilted: bool = True,
-    yaw_deg: float | None = None,
+    up_src: np.ndarray, up_dst: np.ndarray, options: SceneOptions | None = None, yaw_deg: float | None = None
 ) -> np.ndarray:
-    """Rotations taking up_src onto ±up_dst, tilted by 0 and (if tilted) ±site_tilt_deg
-    about two axes across up_dst, each turned about up_dst in yaw_deg (None: site_yaw_deg) steps."""
+    """Rotations taking up_src onto ±up_dst, each turned about up_dst in yaw_deg (None:
+    site_yaw_deg) steps. No tilts: the ups refitted to the grounds' planes agree within a
+    few degrees (0.6-2.7 on a real garden), which the ICP and the climb take up."""
     o = options or SceneOptions()
-    a, b, _ = _site_frame(up_dst)
-    tilts = [np.eye(3)]
-    if tilted:
-        tilts += [axis_rotation(x, sgn * np.radians(o.site_tilt_deg)) for x in (a, b) for sgn in (1, -1)]
     yaws = [axis_rotation(up_dst, y) for y in np.radians(np.arange(0.0, 360.0, yaw_deg or o.site_yaw_deg))]
     out = []
     for sign in (1.0, -1.0):
         base = _rotation_between(up_src, sign * up_dst)
-        out += [tilt @ yaw @ base for tilt in tilts for yaw in yaws]
+        out += [yaw @ base for yaw in yaws]
     return np.asarray(out)
 
 
