@@ -179,6 +179,17 @@ def test_placed_starts_rank_by_colour_where_geometry_cannot():
     assert turn < 5.0 and shift < 0.3
     # Geometry alone: a wrong turn ties with (or beats) the true one here.
     assert best_placement(0.0)[0] > 5.0
+    # Colours that disagree everywhere, tried only where the models overlap, score every
+    # placement below zero: each rotation's best is still a placement (a scale among the
+    # trials), never an unset row.
+    repainted = robust.anchors(GaussianModel.from_colors(field[keep], 1.0 - colours[keep]), 2000)
+    placements = robust.placed_starts(
+        repainted, dst, np.random.default_rng(1), rotations=rotations[:8], points=64, step=0.5, truncation=0.2,
+        scales=(1.0,), count=8, min_deg=1.0, capture=lambda r, s, t, steps: (s, t), capture_steps=(),
+        w_colour=1.0, colour_sigma=1.0, centres=truth.apply(repainted.center)[None],
+    )  # fmt: skip
+    assert len(placements) == 8
+    assert all(np.isclose(scale, dst.radius / repainted.radius) for _, scale, _ in placements)
 
 
 def test_climb_moves_a_near_pose_onto_the_site(site_pair):

@@ -157,7 +157,7 @@ def _place_poses(
     samples less the source centre c_s; q: target samples."""
     n_p, n_q = p.shape[0], q.shape[0]
     for k in numba.prange(rot.shape[0]):
-        top = -1.0
+        top = -np.inf  # a coloured score can be negative everywhere: the best is still recorded
         x = np.zeros((n_p, 3))
         for m in range(scales.shape[0]):
             s = scales[m]
