@@ -1,3 +1,4 @@
+import argparse
 import json
 import subprocess
 import sys
@@ -117,6 +118,15 @@ def test_bad_input_is_one_line_and_nonzero(pair, tmp_path, make_bad, message):
 def test_bad_option_is_rejected(pair, tmp_path):
     r = gsa("align", pair[0], pair[1], "--stages", "fine", "--out", tmp_path / "r.json")
     assert r.returncode != 0 and "stages" in r.stderr and "Traceback" not in r.stderr
+
+
+def test_rigid_flag_reaches_the_options():
+    from gsa.align.command import _align_options, add_align_arguments
+
+    parser = argparse.ArgumentParser()
+    add_align_arguments(parser)
+    assert _align_options(parser.parse_args(["--rigid"])).rigid is True
+    assert _align_options(parser.parse_args([])).rigid is False
 
 
 def test_unreadable_target_cameras_are_one_line(pair, tmp_path):

@@ -433,3 +433,21 @@ def test_snapped_offers_turn_a_drifted_pose_onto_the_principal_frames():
     # Offered beside the drifted pose although it is 8° away; another pose 8° away is not.
     search = SearchResult([poses[0]], 0.0, 10.0, [], offered=[Candidate(aligned, "grid"), pose])
     assert alternatives(poses[0], search) == [pose]
+
+
+def test_rigid_hint_keeps_the_trimmed_fit():
+    """AlignOptions(rigid=True) (`gsa align --rigid`): two models the user knows to be one
+    rigid object are never averaged as deformed copies - on a deformed copy, where align()'s
+    refinement takes the all-pairs fit by default, it keeps its trimmed fit."""
+    from gsa.align.pipeline import AlignOptions
+
+    for s, _, deformed, _ in _deformed_pairs():
+        default = align(s, deformed, AlignOptions(stages=("coarse",)))
+        if _all_pairs_phase(default.coarse.history):
+            break
+    else:
+        pytest.fail("no deformed pair took the all-pairs fit by default")
+    rigid = align(s, deformed, AlignOptions(stages=("coarse",), rigid=True))
+    assert rigid.coarse.history and not _all_pairs_phase(rigid.coarse.history)
+    with pytest.raises(ValueError, match="rigid"):
+        AlignOptions(rigid="yes")

@@ -45,6 +45,7 @@ def _align_options(args: argparse.Namespace):
         "refine": args.refine,
         "search": args.search,
         "scene": args.scene,
+        "rigid": args.rigid,
     }
     for name in ("fine_iterations", "fine_views", "fine_lr", "fine_image_size", "fine_on"):
         value = getattr(args, name, None)
@@ -213,6 +214,12 @@ def add_align_arguments(p: argparse.ArgumentParser) -> None:
     )
     g.add_argument("--up", metavar="X,Y,Z:X,Y,Z", help="the up vector in the source's and in the target's coordinates")
     g.add_argument("--scale", type=float, metavar="S", help="fix the scale of the answer")
+    g.add_argument(
+        "--rigid",
+        action="store_true",
+        help="the two models are captures of one rigid object (two reconstructions, two scans), "
+        "never another instance or a deformed copy",
+    )
 
 
 def cmd_align(args: argparse.Namespace) -> int:

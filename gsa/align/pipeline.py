@@ -415,6 +415,7 @@ class _Pair:
             init,
             self.opts.refine_iterations,
             target_normals=(normals, flatness, normals[q_rows], flatness[q_rows]),
+            criteria=robust.RIGID_REFINE if self.opts.rigid else None,
         )
         _report(progress, "coarse", 1.0)
         return CoarseResult(

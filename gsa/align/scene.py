@@ -132,10 +132,6 @@ class SceneOptions:
     sweep_icp: int = 60  # iterations of that ICP
 
 
-# Two captures of one place are never deformed copies of each other (robust.RefineCriteria).
-_SCENE_REFINE = replace(robust.RefineCriteria(), deformable=False)
-
-
 @dataclass
 class Structure:
     """What the scene test saw on one model."""
@@ -654,7 +650,7 @@ def align_scene(
         start.transform,
         opts.refine_iterations,
         target_normals=(normals, flatness, normals[q_rows], flatness[q_rows]),
-        criteria=_SCENE_REFINE,
+        criteria=robust.RIGID_REFINE,  # two captures of one place are never deformed copies
     )
     refine_kept = True
     if sites is not None:

@@ -109,6 +109,11 @@ class AlignOptions:
         up_axes: (source up, target up), one vector each in its model's coordinates: every pose
             keeps them aligned (the search turns about the up axis only).
         fixed_scale: the scale s of the answer, when the user knows it.
+        rigid: the two models are captures of one rigid object (two reconstructions, two
+            scans), never another instance or a deformed copy: where they coincide nowhere at
+            their own sampling, the refinement keeps its trimmed fit instead of averaging every
+            pair (which suits deformed copies and pulls noisy reconstructions towards their
+            extent ratio). The scene path always takes its pairs so.
     """
 
     stages: tuple[StageName, ...] = ("auto",)
@@ -142,6 +147,7 @@ class AlignOptions:
     point_pairs: tuple | None = None
     up_axes: tuple | None = None
     fixed_scale: float | None = None
+    rigid: bool = False
 
     def __post_init__(self) -> None:
         from gsa.align.guided import check_guidance  # one place checks every hint's shape
@@ -167,6 +173,8 @@ class AlignOptions:
             raise ValueError("coarse_iterations and max_candidates must be at least 1")
         if not self.hypothesis_truncation > 0 or not self.inlier_threshold > 0:
             raise ValueError("hypothesis_truncation and inlier_threshold must be positive")
+        if not isinstance(self.rigid, bool):
+            raise ValueError(f"rigid must be true or false, got {self.rigid!r}")
 
     def coarse_options(self, iterations: int | None = None) -> CoarseOptions:
         return CoarseOptions(

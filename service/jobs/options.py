@@ -126,7 +126,7 @@ OPTION_CHOICES: dict[str, tuple[str, ...]] = {
     "fine_on": ("features", "colors"),
 }
 STAGE_NAMES = ("auto", "coarse", "fine")
-BOOL_OPTIONS = {"renders", "weight_by_opacity"}
+BOOL_OPTIONS = {"renders", "weight_by_opacity", "rigid"}
 # Guidance (gsa.align.guided, docs/service.md "Guided alignment"): what a person knows about the
 # pose, each in the input FILES' own coordinates (as the result states its transform). Their
 # shapes are checked by the library's own check_guidance, one hint at a time so a 422 names it.

@@ -372,3 +372,11 @@ def test_grpc_front_end_does_not_import_the_http_one():
 
     graph = import_graph(ROOT, ("service",))
     assert not sorted(m for m in graph["service.rpc.server"] if m.startswith("service.api"))
+
+
+def test_rigid_option_is_checked_as_a_bool():
+    from service.jobs.options import check_option_values
+
+    check_option_values({"rigid": True})
+    with pytest.raises(Exception, match="rigid"):
+        check_option_values({"rigid": "yes"})

@@ -71,6 +71,7 @@ from gsa.align.robust.poses import (
     with_given_pose,
 )
 from gsa.align.robust.refinement import (
+    RIGID_REFINE,
     RefineCriteria,
     VerdictCriteria,
     coincidence,
@@ -83,6 +84,7 @@ from gsa.align.robust.refinement import (
 from gsa.align.robust.search import SearchOptions, global_search
 
 __all__ = [
+    "RIGID_REFINE",
     "Anchors",
     "Candidate",
     "Convergence",

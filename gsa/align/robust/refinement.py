@@ -96,6 +96,8 @@ class VerdictCriteria:
 SNAP_DISTINCT_DEG = 1.0
 
 _REFINE = RefineCriteria()
+# Two captures of one rigid object or place: never another instance or a deformed copy.
+RIGID_REFINE = RefineCriteria(deformable=False)
 _VERDICT = VerdictCriteria()
 
 
