@@ -166,7 +166,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument(
         "--data",
         help="category-real: a folder of <category>_<i>.npz meshes (V, F, optional C); real: a folder of 3DGS captures; "
-        "site: SfM point files (.npz with means3d, colors; default ../shared/data/real-dev)",
+        "site: SfM point files (.npz with means3d, colors; default ../shared/data/real-dev); "
+        "guided: optional, category-real's meshes added to its generated pairs",
     )
     p.add_argument(
         "--peers", default="default", help="comma list of icp,open3d,splatreg, or default (icp,open3d), all, none"

@@ -168,10 +168,14 @@ def _doubtful(**extra):
             {"doubtful": True, "confidence": 0.25, "colour_mismatch": 2.49},
             ["low confidence (0.25)", "colours disagree", "2.5x their own colour noise"],
         ),
+        (
+            _doubtful(guidance={"doubt": "the models fit better at another pose 87° from this one"}),
+            ["doubtful guided alignment", "confidence 0.25", "87° from this one", '"alternatives" in r.json'],
+        ),
         (_doubtful(doubtful=False), None),
         ({"inlier_fraction": 0.9}, None),  # a result from before these keys existed
     ],
-    ids=["ambiguous", "low-confidence", "no-alternatives", "colour-mismatch", "confident", "old-metrics"],
+    ids=["ambiguous", "low-confidence", "no-alternatives", "colour-mismatch", "guided", "confident", "old-metrics"],
 )
 def test_doubt_warning(metrics, expected):
     from gsa.align.command import doubt_warning

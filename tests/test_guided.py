@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from gsa.align.contract import hints_from_files
-from gsa.align.guided import GuidanceCriteria, honours_pairs, pairs_transform, up_rotations
+from gsa.align.guided import GuidanceCriteria, near_start, pairs_transform, up_rotations
 from gsa.align.pipeline import AlignOptions, align
 from gsa.geometry import axis_rotation
 from gsa.io import frames
@@ -52,8 +52,26 @@ def test_guidance_criteria_take_effect():
     assert len(up_rotations(up, up)) == 360 / GuidanceCriteria().up_step_deg
     assert len(up_rotations(up, up, GuidanceCriteria(up_step_deg=10.0))) == 36
     turned = Sim3(1.0, axis_rotation(np.array([0.0, 0.0, 1.0]), np.radians(40.0)), np.zeros(3))
-    assert not honours_pairs(turned, Sim3.identity())
-    assert honours_pairs(turned, Sim3.identity(), GuidanceCriteria(pairs_max_turn_deg=45.0))
+    given = {"from": "init_transform"}
+    assert not near_start(turned, Sim3.identity(), None, given)
+    assert near_start(turned, Sim3.identity(), None, given, GuidanceCriteria(start_leash_deg=45.0))
+
+
+def test_a_pose_that_misses_the_picked_pairs_is_not_the_users():
+    """With picked pairs, the leash is the clicks: a pose that maps them a little off is still
+    the user's, one turned to another side of the object (half a turn) is not."""
+    from types import SimpleNamespace
+
+    rng = np.random.default_rng(5)
+    src = rng.normal(size=(4, 3))
+    opts = SimpleNamespace(point_pairs=(src, src + rng.normal(0, 0.05, src.shape)))
+    report = {"from": "point_pairs", "left_out": None}
+    fit = Sim3.identity()
+    nudged = Sim3(1.0, axis_rotation(np.array([1.0, 0.0, 0.0]), np.radians(10.0)), np.zeros(3))
+    flipped = Sim3(1.0, axis_rotation(np.array([1.0, 0.0, 0.0]), np.pi), np.zeros(3))
+    assert near_start(nudged, fit, opts, report)
+    assert not near_start(flipped, fit, opts, report)
+    assert near_start(flipped, fit, opts, report, GuidanceCriteria(pairs_leash_share=10.0))
 
 
 def test_picked_pairs_align_a_model_and_say_so(pair):
@@ -79,6 +97,17 @@ def test_init_refines_locally_and_never_jumps(pair):
     stay = align(source, target, AlignOptions(init_transform=far.matrix()))
     assert rre_deg(stay.transform.rotation, far.rotation) < 30.0
     assert stay.metrics["doubtful"]
+    assert "fit better at another pose" in stay.metrics["guidance"]["doubt"]
+    assert result.metrics["guidance"]["doubt"] is None or result.metrics["doubtful"]
+
+
+def test_a_wrong_up_axis_gives_a_flagged_result_with_its_reason(pair):
+    source, target, truth = pair
+    up = np.array([0.0, 0.0, 1.0])
+    wrong = axis_rotation([1, 0, 0], np.radians(90.0)) @ truth.rotation @ up
+    result = align(source, target, AlignOptions(up_axes=(up, wrong)))
+    assert result.metrics["doubtful"]
+    assert result.metrics["guidance"]["doubt"]
 
 
 def test_up_axes_hold_and_fixed_scale_is_kept(pair):

@@ -321,6 +321,9 @@ def doubt_warning(metrics: dict | None, out: str | None = None) -> str | None:
     conf = "unknown" if confidence is None else f"{confidence:.2f}"
     alternatives = [a for a in metrics.get("alternatives") or [] if isinstance(a, dict)]
     where = f'; see "alternatives" in {out or "result.json"}' if alternatives else ""
+    guidance = metrics.get("guidance")
+    if isinstance(guidance, dict) and isinstance(guidance.get("doubt"), str):
+        return f"gsa: warning: doubtful guided alignment (confidence {conf}): {guidance['doubt']}{where}"
     if metrics.get("ambiguous") and alternatives:
         best = _number(metrics.get("score"))
         scores = [_number(a.get("score")) for a in alternatives]

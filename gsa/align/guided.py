@@ -41,9 +41,16 @@ class GuidanceCriteria:
     misclick_share: float = 0.25
     misfit_share: float = 0.05  # ... looked for only where the fit of all pairs misses them by this share (RMS)
     well_spread: float = 0.25  # pairs left after a misclick spread this far off a line (2nd/1st singular value)
-    pairs_max_turn_deg: float = (
-        30.0  # the refinement after picked pairs is kept while it turns their fit by this at most
-    )
+    # The local refinement from a user's pose stays the user's: within start_leash_deg of a given
+    # pose; with picked pairs, missing no kept click by more than the pairs' fit misses its worst
+    # one plus pairs_leash_share of the clicks' spread (between two instances the clicks fit no
+    # similarity exactly, and the fit of three is often 5-30 deg off; a turn to another side of
+    # the object misses them by about their spread).
+    start_leash_deg: float = 30.0
+    pairs_leash_share: float = 0.5
+    # The local search also starts from the given pose turned by this about each axis, both ways
+    # (the anchors' ICP from one start can stop in a nearer, worse minimum).
+    local_turn_deg: float = 15.0
 
 
 _DEFAULT = GuidanceCriteria()
@@ -221,13 +228,63 @@ def start_transform(opts, criteria: GuidanceCriteria | None = None) -> tuple[Sim
     return None
 
 
-def honours_pairs(refined: Sim3, start: Sim3, criteria: GuidanceCriteria | None = None) -> bool:
-    """Whether the refinement from the pairs' fit stayed near it (within pairs_max_turn_deg).
-    The local refinement corrects clicks that are a few % off, and between two instances of
-    different proportions it finds the pose better than the clicks do (the pairs themselves
-    then disagree with any one similarity); but it must not carry the answer to another side
-    of the object, away from the parts the user matched."""
-    return rotation_distance_deg(refined.rotation, start.rotation) <= (criteria or _DEFAULT).pairs_max_turn_deg
+def near_start(pose: Sim3, start: Sim3, opts, report: dict, criteria: GuidanceCriteria | None = None) -> bool:
+    """Whether `pose` is still the answer the user pointed at (start_transform's `start` and
+    `report`): within start_leash_deg of a given pose; with picked pairs, a rotation that maps
+    every kept source click near its target click (pairs_leash_share), at the scale and shift
+    that fit the clicks best. The local refinement corrects a
+    pose 20 deg off or clicks a few % off, and between two instances of different proportions
+    it finds the pose better than the clicks do; it must not carry the answer to another side
+    of the object, away from what the user gave."""
+    k = criteria or _DEFAULT
+    if report.get("from") != "point_pairs":
+        return rotation_distance_deg(pose.rotation, start.rotation) <= k.start_leash_deg
+    src, dst = (np.asarray(p, np.float64) for p in opts.point_pairs)
+    if report.get("left_out") is not None:
+        keep = np.arange(len(src)) != report["left_out"]
+        src, dst = src[keep], dst[keep]
+    spread = float(np.sqrt(np.mean(np.sum((dst - dst.mean(0)) ** 2, axis=1))))
+
+    def worst_miss(t: Sim3) -> float:
+        # The clicks pin which way the object faces; where it sits and how large it is the
+        # refinement judges better between two instances (the clicks' own fit is off in both):
+        # the pose's rotation with the scale and shift that fit the clicks best.
+        turned, centred = (src - src.mean(0)) @ t.rotation.T, dst - dst.mean(0)
+        scale = max(float(np.sum(turned * centred) / max(np.sum(turned**2), 1e-300)), 0.0)
+        return float(np.max(np.linalg.norm(scale * turned - centred, axis=1)))
+
+    return worst_miss(pose) <= worst_miss(start) + k.pairs_leash_share * spread
+
+
+def local_turns(criteria: GuidanceCriteria | None = None) -> list[np.ndarray]:
+    """The turns the local search starts from (besides none): local_turn_deg about each axis, both ways."""
+    angle = np.radians((criteria or _DEFAULT).local_turn_deg)
+    return [axis_rotation(sign * axis, angle) for axis in np.eye(3) for sign in (1.0, -1.0)]
+
+
+def doubt_reason(metrics: dict, start_report: dict | None) -> str | None:
+    """Why a guided result is doubtful, in words (metrics['guidance']['doubt']; None where it is
+    not): guidance that contradicts the models (pairs no pose satisfies, a wrong up axis) ends
+    here, flagged with the reason rather than passed off as an answer."""
+    if not metrics.get("doubtful"):
+        return None
+    reasons = []
+    if start_report and start_report.get("refinement"):
+        reasons.append("the refinement moved away from what was given, so the nearest pose to it is kept")
+    margin, alternatives = metrics.get("margin"), metrics.get("alternatives") or []
+    if margin is not None and margin < 0 and alternatives:
+        offset = alternatives[0].get("rotation_offset_deg")
+        where = f" {offset:.0f}° from this one" if offset is not None else ""
+        reasons.append(f"the models fit better at another pose{where} (alternatives[0]): the guidance may be wrong")
+    elif metrics.get("ambiguous"):
+        reasons.append("another pose fits the models as well as this one (see alternatives)")
+    share = metrics.get("coincident_share")
+    if share is not None and not reasons:
+        reasons.append(
+            f"the models coincide on little of their surface at this pose (coincident share {share:.2f}, "
+            f"confidence {metrics.get('confidence', float('nan')):.2f})"
+        )
+    return "; ".join(reasons) or f"low confidence ({metrics.get('confidence', float('nan')):.2f})"
 
 
 def describe(opts) -> dict:
@@ -245,8 +302,11 @@ __all__ = [
     "check_guidance",
     "constrain",
     "describe",
+    "doubt_reason",
     "init_sim3",
     "is_guided",
+    "local_turns",
+    "near_start",
     "pair_arrays",
     "pairs_transform",
     "start_transform",

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import functools
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, replace
 from typing import TYPE_CHECKING
 
@@ -158,20 +159,28 @@ def _align(
         best = _Hypothesis(f"guided:{start[1]['from']}", pair.src_frame, pair.constrain(start[0]))
         scored = []
         t = time.perf_counter()
-        coarse = (
-            pair.refine_global(pair.approach(best.init), progress)
-            if pair.global_search
-            else pair.coarse(best, progress)
-        )
-        if start[1]["from"] == "point_pairs" and not guided.honours_pairs(coarse.transform, best.init):
-            start[1]["refinement"] = "undone: it moved away from the pairs"
-            coarse = replace(coarse, transform=best.init)
-        timings["coarse"] = time.perf_counter() - t
         if pair.global_search:
-            # The verdict weighs the user's pose against what the search finds on its own.
-            t = time.perf_counter()
-            search = pair.check_given(pair.constrain(coarse.transform), progress)
+            # The search's own poses are weighed too: they are local answers where they lie near
+            # the user's pose, and the verdict weighs the user's pose against them.
+            found = pair.search(progress)
             timings["hypotheses"] = time.perf_counter() - t
+            t = time.perf_counter()
+
+            def near(pose: Sim3) -> bool:
+                return guided.near_start(pose, best.init, opts, start[1])
+
+            local = pair.local_start(best.init, found, near)
+            coarse = pair.refine_global(local, progress)
+            if not near(coarse.transform):
+                start[1]["refinement"] = "undone: it moved away from the given pose or pairs"
+                coarse = replace(coarse, transform=local)
+            search = pair.check_given(pair.constrain(coarse.transform), found)
+        else:
+            coarse = pair.coarse(best, progress)
+            if not guided.near_start(coarse.transform, best.init, opts, start[1]):
+                start[1]["refinement"] = "undone: it moved away from the given pose or pairs"
+                coarse = replace(coarse, transform=best.init)
+        timings["coarse"] = time.perf_counter() - t
     elif pair.global_search:
         t = time.perf_counter()
         search = pair.search(progress)
@@ -210,7 +219,7 @@ def _align(
         metrics["coarse_verdict"] = {k: coarse_verdict[k] for k in ("confidence", "ambiguous", "doubtful")}
     metrics["scene"] = choice.to_dict()
     if guidance is not None:
-        metrics["guidance"] = guidance
+        metrics["guidance"] = guidance | {"doubt": guided.doubt_reason(metrics, start[1] if start else None)}
     timings["metrics"] = time.perf_counter() - t
     timings["total"] = time.perf_counter() - t_start
     _report(progress, "done", 1.0)
@@ -376,9 +385,24 @@ class _Pair:
             src, dst, start, *rows, iterations, robust.colour_weight(src, dst, k.palette), k
         )
 
-    def check_given(self, transform: Sim3, progress: Progress | None) -> robust.SearchResult:
+    def local_start(self, start: Sim3, found: robust.SearchResult, near: Callable[[Sim3], bool]) -> Sim3:
+        """Where the refinement from a user's pose starts: the best-scoring (as the search ranks)
+        of the anchors' ICP from it and from it turned a little each way (guided.local_turns,
+        about the source's centre), and of the search's own poses, among those still `near` it.
+        One ICP from a pose 20 deg off can stop in a nearer, worse minimum; no pose far from
+        the user's is ever taken."""
+        src, dst = self.anchors()
+        centre = self.src_frame.center
+        starts = [start] + [start.compose(Sim3(1.0, turn, centre - turn @ centre)) for turn in guided.local_turns()]
+        poses = [self.constrain(self.approach(s)) for s in starts]
+        poses += [self.constrain(c.transform) for c in [*found.candidates, *found.offered]]
+        kept = [p for p in poses if near(p)] or [start]
+        scores = [robust.score_pose(src, dst, p, "guided", found.colour_weight) for p in kept]
+        rank = (lambda c: c.geometry) if found.ranked_by == "geometry" else (lambda c: c.score)
+        return max(scores, key=rank).transform
+
+    def check_given(self, transform: Sim3, found: robust.SearchResult) -> robust.SearchResult:
         """The automatic search's poses, with the given one first (robust.with_given_pose)."""
-        found = self.search(progress)
         src, dst = self.anchors()
         given = robust.score_pose(src, dst, transform, "guided", found.colour_weight)
         return robust.with_given_pose(given, found)

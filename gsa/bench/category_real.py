@@ -105,24 +105,31 @@ def category_real_pairs(data: str | Path, quick: bool, seed: int) -> list[Pair]:
 def _hints(source, target, truth: Sim3, rng: np.random.Generator) -> dict:
     """What a person would tell the guided path (gsa.align.guided): the up axis in each model's
     coordinates (the meshes' shared canonical +Y), and PICKED_PAIRS point pairs clicked on
-    corresponding parts: each instance's outermost surface point towards one of the bounding
-    box's corner directions (front-left-top, …; the same PICKED_PAIRS corners on both), each
-    click off by up to PICK_NOISE of the model's size."""
+    corresponding parts (corner_clicks)."""
     up = np.array([0.0, 1.0, 0.0])
+    src_clicks, dst_clicks = corner_clicks(source, target, rng, PICKED_PAIRS)
+    return {
+        "up_axes": (up.tolist(), (truth.rotation @ up).tolist()),
+        "point_pairs": (src_clicks.tolist(), truth.apply(dst_clicks).tolist()),
+    }
+
+
+def corner_clicks(source, target, rng: np.random.Generator, count: int, noise: float = PICK_NOISE):
+    """Clicks a person would make on two instances in one canonical frame: each instance's
+    outermost surface point towards `count` of the bounding box's corner directions
+    (front-left-top, …; the same corners on both), each click off by up to `noise` of the
+    model's size. Returns (source clicks, target clicks), each (count, 3), in the models' frames."""
     corners = np.array([[x, y, z] for x in (-1, 1) for y in (-1, 1) for z in (-1, 1)], np.float64)
-    chosen = corners[rng.choice(len(corners), PICKED_PAIRS, replace=False)]
+    chosen = corners[rng.choice(len(corners), count, replace=False)]
 
     def clicks(model) -> np.ndarray:
         pts = model.means[model.opacities > 0.5].astype(np.float64)
         centred = (pts - 0.5 * (pts.min(0) + pts.max(0))) / np.maximum(np.ptp(pts, axis=0), 1e-12)
         picked = pts[np.argmax(centred @ chosen.T, axis=0)]
         size = float(np.linalg.norm(np.ptp(pts, axis=0)))
-        return picked + rng.normal(0, PICK_NOISE * size / np.sqrt(3), picked.shape)
+        return picked + rng.normal(0, noise * size / np.sqrt(3), picked.shape)
 
-    return {
-        "up_axes": (up.tolist(), (truth.rotation @ up).tolist()),
-        "point_pairs": (clicks(source).tolist(), truth.apply(clicks(target)).tolist()),
-    }
+    return clicks(source), clicks(target)
 
 
 def _symmetries(model) -> list[np.ndarray]:

@@ -32,6 +32,9 @@ scene     issue 18: two partial captures of a generated furnished room (gsa.synt
           Full: 20 pairs of 1–2M Gaussians per capture; --quick: 3 pairs of ~100k.
           Success: RRE < 2° and translation error < 2 % of the room's extent; peak
           memory per method (gsa.bench.scene). GSA rows are align()'s coarse stage.
+guided    issue 27: each hint of the guided path (a start 20° off, 3 picked pairs, the up
+          axes, a wrong up axis) on partial, deform and category pairs, and with --data on
+          category-real's (gsa.bench.guided)
 site      issue 26: the same on outdoor sites without walls (gsa.bench.site): generated
           terrain with things on it, and SfM point files (--data, default
           ../shared/data/real-dev) made into Gaussians. Full: 12 + 4 per file pairs of
@@ -62,6 +65,7 @@ from gsa.bench import speed as _speed
 from gsa.bench.ablation import ABLATION_COARSE, ABLATION_REFERENCE, FINE_BASE, ablation_runner, similar_cameras
 from gsa.bench.category_real import category_of as real_category_of
 from gsa.bench.category_real import category_real_judge, category_real_pairs, default_align_runner, per_class
+from gsa.bench.guided import protocol_guided
 from gsa.bench.nway import protocol_nway
 from gsa.bench.pairs import (
     ROBUST_COUNT,
@@ -397,9 +401,10 @@ PROTOCOLS = {
     "category-real": protocol_category_real,
     "real": protocol_real,
     "n-way": protocol_nway,
+    "guided": protocol_guided,
 }
 # Protocols over the user's own data (--data DIR).
-DATA_PROTOCOLS = {"category-real", "real", "site"}
+DATA_PROTOCOLS = {"category-real", "real", "site", "guided"}
 
 
 def run_protocols(

@@ -25,6 +25,10 @@ def format_table(name: str, rows: list[dict]) -> str:
         from gsa.bench.category_real import format_category_real
 
         return format_category_real(rows)
+    if name == "guided":
+        from gsa.bench.guided import format_guided
+
+        return format_guided(rows)
     if name == "io":
         lines = [
             "| Gaussians (SH degree 3) | file (MB) | write (s) | read (s) | RSS growth after read (MB) |",

@@ -96,6 +96,9 @@ class Guidance(_Open):
         description="where the local refinement started: from init_transform or point_pairs (their "
         "residuals and the index of a pair left out as wrong)",
     )
+    doubt: str | None = Field(
+        None, description="why the guided result is doubtful (guidance the models contradict), else null"
+    )
 
 
 class Metrics(_Open):
