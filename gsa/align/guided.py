@@ -232,10 +232,10 @@ def near_start(pose: Sim3, start: Sim3, opts, report: dict, criteria: GuidanceCr
     """Whether `pose` is still the answer the user pointed at (start_transform's `start` and
     `report`): within start_leash_deg of a given pose; with picked pairs, a rotation that maps
     every kept source click near its target click (pairs_leash_share), at the scale and shift
-    that fit the clicks best. The local refinement corrects a
-    pose 20 deg off or clicks a few % off, and between two instances of different proportions
-    it finds the pose better than the clicks do; it must not carry the answer to another side
-    of the object, away from what the user gave."""
+    that fit the clicks best. The local refinement corrects a pose 20 deg off or clicks a few %
+    off, and between two instances of different proportions it finds the pose better than the
+    clicks do; it must not carry the answer to another side of the object, away from what the
+    user gave."""
     k = criteria or _DEFAULT
     if report.get("from") != "point_pairs":
         return rotation_distance_deg(pose.rotation, start.rotation) <= k.start_leash_deg

@@ -123,7 +123,7 @@ def corner_clicks(source, target, rng: np.random.Generator, count: int, noise: f
     chosen = corners[rng.choice(len(corners), count, replace=False)]
 
     def clicks(model) -> np.ndarray:
-        pts = model.means[model.opacities > 0.5].astype(np.float64)
+        pts = surface_points(model)
         centred = (pts - 0.5 * (pts.min(0) + pts.max(0))) / np.maximum(np.ptp(pts, axis=0), 1e-12)
         picked = pts[np.argmax(centred @ chosen.T, axis=0)]
         size = float(np.linalg.norm(np.ptp(pts, axis=0)))
@@ -132,8 +132,13 @@ def corner_clicks(source, target, rng: np.random.Generator, count: int, noise: f
     return clicks(source), clicks(target)
 
 
+def surface_points(model) -> np.ndarray:
+    """The model's surface Gaussians' centres (the sampled meshes' floaters are faint), float64."""
+    return model.means[model.opacities > 0.5].astype(np.float64)
+
+
 def _symmetries(model) -> list[np.ndarray]:
-    surface = model.means[model.opacities > 0.5].astype(np.float64)
+    surface = surface_points(model)
     sample = surface[np.random.default_rng(0).choice(len(surface), min(len(surface), 4000), replace=False)]
     return instance_symmetries(sample)
 

@@ -30,7 +30,7 @@ from pathlib import Path
 import numpy as np
 from scipy.spatial import cKDTree
 
-from gsa.bench.category_real import _symmetries, category_real_judge, category_real_pairs
+from gsa.bench.category_real import _symmetries, category_real_judge, category_real_pairs, surface_points
 from gsa.bench.pairs import category_pairs, deform_pairs, partial_pairs
 from gsa.bench.records import Pair, evaluate, save_rows
 from gsa.geometry import axis_rotation
@@ -63,10 +63,6 @@ GENERATED_UP = np.array([0.0, 0.0, 1.0])
 MESH_UP = np.array([0.0, 1.0, 0.0])
 
 
-def _surface(model) -> np.ndarray:
-    return model.means[model.opacities > 0.5].astype(np.float64)
-
-
 def _size(points: np.ndarray) -> float:
     return float(np.linalg.norm(np.ptp(points, axis=0)))
 
@@ -89,7 +85,7 @@ def corresponding_clicks(source, target_canonical, truth: Sim3, rng: np.random.G
     the size), paired with that nearest point. Two instances: the point of the target at the
     same place relative to its bounding box (the nose of one airliner and the other's nose),
     snapped to its surface."""
-    src, dst = _surface(source), _surface(target_canonical)
+    src, dst = surface_points(source), surface_points(target_canonical)
     if proportional:
         lo_s, span_s = src.min(0), np.maximum(np.ptp(src, axis=0), 1e-12)
         lo_d, span_d = dst.min(0), np.maximum(np.ptp(dst, axis=0), 1e-12)
@@ -133,7 +129,9 @@ def with_guidance(pairs: list[Pair], kind: str, up: np.ndarray, cross_instance: 
             clicks = corresponding_clicks(source, canonical_target, truth, rng, proportional=cross_instance)
             true_up = truth.rotation @ up
             target.metadata["guidance"] = {
-                "init": {"init_transform": start_off(truth, _surface(source).mean(axis=0), rng).matrix().tolist()},
+                "init": {
+                    "init_transform": start_off(truth, surface_points(source).mean(axis=0), rng).matrix().tolist()
+                },
                 "pairs": {"point_pairs": clicks},
                 "up": {"up_axes": (up.tolist(), true_up.tolist())},
                 "wrong_up": {"up_axes": (up.tolist(), _wrong_up(true_up, rng).tolist())},
