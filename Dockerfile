@@ -1,7 +1,10 @@
 # GSA alignment service image.
 #   CPU (default):  docker build -t gsa:cpu .
 #   CUDA + gsplat:  docker build -t gsa:cuda --build-arg VARIANT=cuda \
-#                     --build-arg BASE=nvidia/cuda:12.8.1-cudnn-runtime-ubuntu24.04 .
+#                     --build-arg BASE=nvidia/cuda:13.0.0-cudnn-devel-ubuntu24.04 .
+# gsplat's PyPI wheel compiles its CUDA kernels with nvcc (a -devel base, not -runtime) and
+# nvcc's CUDA major version must match torch's (CUDA_TORCH_INDEX): the pair checked on an H100
+# is CUDA 13.0 + torch cu130 (docs/benchmarks.md, "CUDA backend").
 # One image runs every role: `serve` (API, +gRPC), `worker` (RQ), or the CLI.
 ARG BASE=python:3.11-slim
 
@@ -17,6 +20,10 @@ FROM ${BASE}
 
 ARG VARIANT=cpu
 ARG TORCH_VERSION=2.13.0
+ARG CUDA_TORCH_INDEX=https://download.pytorch.org/whl/cu130
+# GPU generations the kernels are compiled for at build time (no GPU is needed to build):
+# A100, A10/30x0, L4/40x0, H100/H200
+ARG CUDA_ARCHS="8.0;8.6;8.9;9.0"
 ENV PYTHONDONTWRITEBYTECODE=1 PYTHONUNBUFFERED=1 PIP_NO_CACHE_DIR=1 PIP_DISABLE_PIP_VERSION_CHECK=1
 
 RUN set -eux; \
@@ -28,10 +35,16 @@ RUN set -eux; \
 ENV PATH=/opt/venv/bin:$PATH
 
 # torch first, from the matching index: an unpinned/PyPI torch would pull the
-# multi-GB CUDA build into the CPU image. The CUDA variant adds gsplat.
+# multi-GB CUDA build into the CPU image. The CUDA variant adds gsplat and compiles its
+# kernels now, into a folder the `gsa` user reads: else every container's first render
+# would spend minutes compiling, and a worker without nvcc would fall back to the CPU.
+ENV TORCH_EXTENSIONS_DIR=/opt/torch-extensions
 RUN set -eux; \
     if [ "$VARIANT" = "cuda" ]; then \
-      pip install "torch==${TORCH_VERSION}" gsplat; \
+      pip install --index-url "${CUDA_TORCH_INDEX}" --extra-index-url https://pypi.org/simple \
+        "torch==${TORCH_VERSION}" gsplat; \
+      TORCH_CUDA_ARCH_LIST="${CUDA_ARCHS}" MAX_JOBS=8 \
+        python3 -c "from gsplat.cuda._backend import _C; assert _C is not None, 'gsplat did not compile'"; \
     else \
       pip install --index-url https://download.pytorch.org/whl/cpu "torch==${TORCH_VERSION}"; \
     fi
@@ -49,7 +62,8 @@ ENV NUMBA_CACHE_DIR=/opt/numba-cache
 RUN pip install ".[service]" && python -c "import service.rpc.generated.alignment_pb2_grpc, gsa.align.pipeline" \
     && python -c "from gsa.synth import make_object, random_sim3; from gsa.align.pipeline import align; import numpy as np; m = make_object('car', n_gaussians=3000); align(m, m.transformed(random_sim3(np.random.default_rng(0))))"
 
-RUN useradd --create-home --uid 10001 gsa && mkdir -p /data && chown gsa /data && chown -R gsa /opt/numba-cache
+RUN useradd --create-home --uid 10001 gsa && mkdir -p /data && chown gsa /data && chown -R gsa /opt/numba-cache \
+    && mkdir -p /opt/torch-extensions && chown -R gsa /opt/torch-extensions
 USER gsa
 # gRPC binds loopback unless told otherwise; in a container it must listen on all interfaces.
 ENV GSA_STORAGE_ROOT=/data GSA_WORKER_DEVICE=${VARIANT} GSA_GRPC_HOST=0.0.0.0

@@ -1,7 +1,7 @@
 """gsplat backend (CUDA), written against the documented `gsplat.rasterization(...)` API
-(gsplat >= 1.0, `covars=` argument). The test suite needs neither a GPU nor gsplat, so it
-does not exercise this path. Used by `backend="auto"` only when torch.cuda.is_available()
-and gsplat imports.
+(gsplat >= 1.0, `covars=` argument). Used by `backend="auto"` when torch.cuda.is_available()
+and gsplat's compiled extension loads. tests/test_render_cuda.py checks it against the CPU
+backend on a GPU machine (skipped without one); the results are in docs/benchmarks.md.
 
 Colour (SH evaluated in torch, same convention as the CPU path), features and camera depth
 are rendered together as one post-activation channel stack (sh_degree=None), so every
@@ -35,9 +35,12 @@ def render_gsplat(
     feature_background=None,
     depth: bool = False,
 ):
-    """Same contract as gsa.render.render_gaussians; tensors are moved to CUDA (differentiably)."""
+    """Same contract as gsa.render.render_gaussians: inputs are moved to CUDA and the images
+    back to the device `means` is on (differentiably both ways), so callers that keep their
+    tensors on the CPU (training, the fine stage) need not know which backend rendered."""
     import gsplat  # optional dependency: only this backend needs it
 
+    home = means.device
     dev = torch.device("cuda")
     dtype = torch.float32  # gsplat kernels are float32
     means, cov3d, opacities = (t.to(dev, dtype) for t in (means, cov3d, opacities))
@@ -87,4 +90,6 @@ def render_gsplat(
         render_mode="RGB",
         covars=cov3d,
     )
-    return split_channels(out, alpha, colors is not None, None if features is None else features.shape[1], depth)
+    return split_channels(
+        out.to(home), alpha.to(home), colors is not None, None if features is None else features.shape[1], depth
+    )

@@ -10,6 +10,8 @@ One entry point, `rasterize(...)`, with backends:
 
 from __future__ import annotations
 
+import functools
+
 import numpy as np
 import torch
 
@@ -34,16 +36,20 @@ __all__ = [
 BACKENDS = ("auto", "cpu", "cuda", "reference")
 
 
+@functools.cache
 def cuda_available() -> bool:
+    """A CUDA device and a working gsplat extension. gsplat's PyPI wheel compiles its kernels on
+    first use (minutes, needs nvcc): importing `gsplat` alone proves nothing, so this loads the
+    compiled module, once per process."""
     if not torch.cuda.is_available():
         return False
     try:
-        import gsplat  # noqa: F401
+        from gsplat.cuda._backend import _C
     # a native extension built against another torch/CUDA can fail in any way on import:
     # the CUDA backend is then unavailable and "auto" uses the CPU
     except Exception:  # noqa: BLE001
         return False
-    return True
+    return _C is not None
 
 
 def available_backends() -> list[str]:
