@@ -1,4 +1,4 @@
-"""Render and fine-stage timings, CPU backend beside the CUDA backend (gsplat), on one machine.
+"""Render, fine-stage and training timings, CPU backend beside the CUDA backend (gsplat), on one machine.
 
     python -m gsa.bench.cuda_speed [--out FILE.json] [--sizes 50000,200000,1000000]
 
@@ -99,12 +99,80 @@ def fine_rows(n, backends, image_sizes):
     return rows
 
 
+def _image_set(n_views: int, size: int):
+    """A textured generated object photographed from an orbit, in memory: images, masks,
+    cameras and 3,000 of its points as the SfM cloud."""
+    from gsa.recon.synthetic import textured_object
+    from gsa.render import orbit_cameras, render_model
+
+    model = textured_object("car", seed=0, n_gaussians=60_000)
+    centre = model.means.mean(0)
+    radius = 2.2 * float(np.percentile(np.linalg.norm(model.means - centre, axis=1), 99))
+    cams = orbit_cameras(centre, radius, n_views, width=size, height=size, fov=45, seed=0)
+    images, alphas = [], []
+    for k in range(0, n_views, 8):
+        out = render_model(model, cams[k : k + 8], features=False, background=(1.0, 1.0, 1.0), depth=False)
+        images.append(out.colors.cpu().numpy())
+        alphas.append(out.alpha[..., 0].cpu().numpy())
+    rng = np.random.default_rng(0)
+    rows = rng.choice(len(model), 3000, replace=False)
+    colours = np.clip(model.sh[rows, 0] * 0.28209479177387814 + 0.5, 0, 1)
+    return np.concatenate(images), np.concatenate(alphas) > 0.5, cams, model.means[rows], colours
+
+
+def train_rows(backends, n_views: int, size: int, iterations: int, gpu_iterations: int):
+    """Feature-augmented training (canonical features lifted halfway) on each backend with the
+    `cpu` preset's settings at `size` px, then the `gpu` preset (SH 3, full resolution, up to
+    1M Gaussians) on CUDA, capped at `gpu_iterations`."""
+    from dataclasses import replace
+
+    from gsa.recon.train import PRESETS, train_gaussians
+
+    images, masks, cams, points, colours = _image_set(n_views, size)
+    runs = [(b, "cpu", replace(PRESETS["cpu"], iterations=iterations, resolution=size, backend=b)) for b in backends]
+    if "cuda" in backends and gpu_iterations:
+        gpu = PRESETS["gpu"]
+        scale = gpu_iterations / gpu.iterations
+        runs.append(
+            (
+                "cuda",
+                "gpu",
+                replace(
+                    gpu,
+                    iterations=gpu_iterations,
+                    densify_from=int(gpu.densify_from * scale),
+                    densify_until=int(gpu.densify_until * scale),
+                    opacity_reset_every=0,
+                    backend="cuda",
+                ),
+            )
+        )
+    rows = []
+    for backend, preset, cfg in runs:
+        res = train_gaussians(images, masks, cams, points, colours, cfg)
+        rows.append(
+            {
+                "what": f"training, {n_views} views {size}x{size}, preset {preset}, {cfg.iterations} iterations",
+                "backend": backend,
+                "total_s": res.seconds,
+                "gaussians_out": len(res.model),
+                "psnr_heldout_db": res.psnr_heldout,
+            }
+        )
+        print(json.dumps(rows[-1]), flush=True)
+    return rows
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--sizes", default="50000,200000,1000000")
     ap.add_argument("--fine-gaussians", type=int, default=100_000)
     ap.add_argument("--fine-sizes", default="128,512")
     ap.add_argument("--repeat", type=int, default=3)
+    ap.add_argument("--train-views", type=int, default=24)
+    ap.add_argument("--train-size", type=int, default=256)
+    ap.add_argument("--train-iterations", type=int, default=1000)
+    ap.add_argument("--gpu-preset-iterations", type=int, default=3000, help="0: skip the gpu preset row")
     ap.add_argument("--out", default=None)
     args = ap.parse_args()
     from gsa.render import cuda_available
@@ -117,11 +185,22 @@ def main() -> None:
         "torch": torch.__version__,
     }
     print(json.dumps(info), flush=True)
-    rows = render_rows([int(s) for s in args.sizes.split(",")], backends, args.repeat)
+    rows: list[dict] = []
+
+    def save() -> None:  # after each part: a run cut short keeps what it measured
+        if args.out:
+            with open(args.out, "w") as f:
+                json.dump({"machine": info, "rows": rows}, f, indent=1)
+
+    rows += render_rows([int(s) for s in args.sizes.split(",")], backends, args.repeat)
+    save()
     rows += fine_rows(args.fine_gaussians, backends, [int(s) for s in args.fine_sizes.split(",")])
-    if args.out:
-        with open(args.out, "w") as f:
-            json.dump({"machine": info, "rows": rows}, f, indent=1)
+    save()
+    if args.train_iterations:
+        rows += train_rows(
+            backends, args.train_views, args.train_size, args.train_iterations, args.gpu_preset_iterations
+        )
+        save()
 
 
 if __name__ == "__main__":

@@ -57,7 +57,7 @@ class Adam:
         for k in new_params:
             for st in (self.m, self.v):
                 old = st[k][keep]
-                st[k] = torch.cat([old, torch.zeros((n_new,) + old.shape[1:], dtype=old.dtype)])
+                st[k] = torch.cat([old, torch.zeros((n_new,) + old.shape[1:], dtype=old.dtype, device=old.device)])
         self.params = new_params
 
 
@@ -79,7 +79,8 @@ def densify_and_prune(
     scales = p["log_scales"].exp()
     smax = scales.max(1).values
     new_rows: dict[str, list[torch.Tensor]] = {k: [] for k in p}
-    remove = torch.zeros(n, dtype=torch.bool)
+    device = p["means"].device
+    remove = torch.zeros(n, dtype=torch.bool, device=device)
     if densify and avg_grad is not None and n < cfg.max_gaussians:
         big = avg_grad >= cfg.grad_threshold
         # Keep the growth within the cap: the largest gradients first.
@@ -87,7 +88,7 @@ def densify_and_prune(
         idx = torch.nonzero(big).flatten()
         if len(idx) > budget:
             idx = idx[torch.argsort(avg_grad[idx], descending=True)[:budget]]
-        sel = torch.zeros(n, dtype=torch.bool)
+        sel = torch.zeros(n, dtype=torch.bool, device=device)
         sel[idx] = True
         clone = sel & (smax <= cfg.percent_dense * extent)
         split = sel & ~clone
@@ -112,7 +113,7 @@ def densify_and_prune(
     remove |= smax > 0.2 * extent
     if "features" in p:
         remove |= p["features"].norm(dim=1) < cfg.feature_prune
-    outside = torch.zeros(n, dtype=torch.bool)
+    outside = torch.zeros(n, dtype=torch.bool, device=device)
     if region is not None:
         outside = (p["means"] - region[0]).norm(dim=1) > region[1]
         outside &= ~remove

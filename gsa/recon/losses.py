@@ -23,7 +23,7 @@ def ssim(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
     c = a.shape[-1]
     x = a.permute(2, 0, 1)[None]
     y = b.permute(2, 0, 1)[None]
-    w = _WINDOW.to(a.dtype)[None, None].expand(c, 1, -1, -1)
+    w = _WINDOW.to(a.device, a.dtype)[None, None].expand(c, 1, -1, -1)
     pad = _WINDOW.shape[0] // 2
     conv = lambda t: F.conv2d(t, w, padding=pad, groups=c)  # noqa: E731
     mx, my = conv(x), conv(y)

@@ -41,7 +41,7 @@ from gsa.model import GaussianModel, sh_coeff_count
 from gsa.recon.density import Adam, densify_and_prune
 from gsa.recon.losses import psnr, rgb_loss, ssim  # noqa: F401  (ssim: public here before the split)
 from gsa.recon.region import object_region
-from gsa.render import rasterize, render_model
+from gsa.render import rasterize, render_model, resolve_backend
 from gsa.render.cameras import Cameras
 from gsa.sh import rgb_to_sh_dc
 
@@ -252,7 +252,10 @@ def train_gaussians(
         i for i in range(c_all) if cfg.holdout_every and c_all >= 2 * cfg.holdout_every and i % cfg.holdout_every == 0
     ]
     train_ids = [i for i in range(c_all) if i not in held]
-    target = torch.from_numpy(imgs)
+    # On the CUDA backend every tensor of the loop lives on the GPU: moving ~60 floats per
+    # Gaussian across the bus twice an iteration would cost more than the render.
+    device = torch.device("cuda" if resolve_backend(cfg.backend) == "cuda" else "cpu")
+    target = torch.from_numpy(imgs).to(device)
 
     keep, region, region_info = init_selection(points, cameras, masks)
     init = init_from_points(points[keep], point_colors[keep], cfg.init_points, cfg.seed)
@@ -261,7 +264,7 @@ def train_gaussians(
     k_sh = sh_coeff_count(cfg.sh_degree)
     sh0 = np.zeros((len(init["means"]), k_sh, 3))
     sh0[:, 0] = _rgb_to_sh0(init["colors"])
-    tt = lambda a: torch.tensor(np.asarray(a), dtype=torch.float32, requires_grad=True)  # noqa: E731
+    tt = lambda a: torch.tensor(np.asarray(a), dtype=torch.float32, device=device, requires_grad=True)  # noqa: E731
     P = {
         "means": tt(init["means"]),
         "quats": tt(init["quats"]),
@@ -274,7 +277,7 @@ def train_gaussians(
     feat_dim = 0
     feat_maps = None
     if isinstance(features, np.ndarray):
-        feat_maps = _prepare_feature_maps(features, msk, w, h)
+        feat_maps = _prepare_feature_maps(features, msk, w, h).to(device)
         feat_dim = feat_maps.shape[-1]
     elif features not in ("canonical", "none"):
         raise ValueError(f"features must be 'canonical', 'none' or an array of maps, got {features!r}")
@@ -295,10 +298,10 @@ def train_gaussians(
     params = {k: v for k, v in P.items() if v is not None}
     opt = Adam(params, {k: lrs[k] for k in params})
     geo_names = ["means", "quats", "log_scales", "opacity", "sh_dc", "sh_rest"]
-    grad_acc = torch.zeros(len(P["means"]))
-    grad_cnt = torch.zeros(len(P["means"]))
+    grad_acc = torch.zeros(len(P["means"]), device=device)
+    grad_cnt = torch.zeros(len(P["means"]), device=device)
     curve = []
-    ball = None if region is None else (torch.tensor(region.centre, dtype=torch.float32), region.radius)
+    ball = None if region is None else (torch.tensor(region.centre, dtype=torch.float32, device=device), region.radius)
     pruned_outside = 0
     bg_t = tuple(float(x) for x in bg)
 
@@ -309,7 +312,7 @@ def train_gaussians(
         frac = it / max(cfg.iterations - 1, 1)
         opt.lrs["means"] = lrs["means"] * (cfg.lr_means_final / cfg.lr_means) ** frac
         if feature_from is not None and it == feature_from and feat_maps is None:
-            feat_maps = _canonical_feature_maps(opt.params, sh_tensor, cams, msk, cfg.backend)
+            feat_maps = _canonical_feature_maps(opt.params, sh_tensor, cams, msk, cfg.backend).to(device)
             feat_dim = feat_maps.shape[-1]
             opt.params["features"] = tt(np.full((len(opt.params["means"]), feat_dim), 0.5))
             opt.m["features"] = torch.zeros_like(opt.params["features"])
@@ -338,7 +341,7 @@ def train_gaussians(
             # per pixel; × W/2 converts it to the NDC units the 3DGS threshold is stated in.
             g = p["means"].grad
             if g is not None:
-                vm = torch.as_tensor(cams.viewmats[i], dtype=torch.float32)
+                vm = torch.as_tensor(cams.viewmats[i], dtype=torch.float32, device=device)
                 z = (p["means"] @ vm[:3, :3].T + vm[:3, 3])[:, 2].clamp_min(1e-6)
                 gn = g.norm(dim=1) * z / float(cams.fx[i]) * (cams.width / 2)
                 vis = gn > 0
@@ -377,8 +380,8 @@ def train_gaussians(
         if cfg.densify_from <= it < cfg.densify_until and it > 0 and it % cfg.densify_every == 0:
             avg = grad_acc / grad_cnt.clamp_min(1)
             pruned_outside += densify_and_prune(opt, avg, cfg, extent, rng, densify=True, region=ball)
-            grad_acc = torch.zeros(len(opt.params["means"]))
-            grad_cnt = torch.zeros(len(opt.params["means"]))
+            grad_acc = torch.zeros(len(opt.params["means"]), device=device)
+            grad_cnt = torch.zeros(len(opt.params["means"]), device=device)
         if cfg.opacity_reset_every and it > 0 and it % cfg.opacity_reset_every == 0 and it < cfg.densify_until:
             with torch.no_grad():
                 opt.params["opacity"].clamp_(max=math.log(0.01 / 0.99))
@@ -438,20 +441,20 @@ def _canonical_feature_maps(params, sh_tensor, cams: Cameras, masks: np.ndarray,
             depth=False,
             backend=backend,
         )
-        maps.append(out.features[0].numpy())
+        maps.append(out.features[0].cpu().numpy())
     maps = np.stack(maps)
     return torch.from_numpy(np.where(masks[..., None], maps, 0.0).astype(np.float32))
 
 
 def _to_model(p, sh) -> GaussianModel:
-    q = p["quats"].detach().numpy()
+    q = p["quats"].detach().cpu().numpy()
     q = q / np.maximum(np.linalg.norm(q, axis=1, keepdims=True), 1e-12)
     feats = p.get("features")
     return GaussianModel(
-        p["means"].detach().numpy(),
+        p["means"].detach().cpu().numpy(),
         q,
-        p["log_scales"].detach().numpy(),
-        p["opacity"].detach().numpy(),
-        sh.detach().numpy(),
-        None if feats is None else feats.detach().numpy(),
+        p["log_scales"].detach().cpu().numpy(),
+        p["opacity"].detach().cpu().numpy(),
+        sh.detach().cpu().numpy(),
+        None if feats is None else feats.detach().cpu().numpy(),
     )
