@@ -6,9 +6,10 @@ import sys
 
 import numpy as np
 import pytest
+from scipy.spatial.transform import Rotation
 
 from gsa.align.contract import hints_from_files
-from gsa.align.guided import GuidanceCriteria, near_start, pairs_transform, up_rotations
+from gsa.align.guided import GuidanceCriteria, near_start, pairs_transform, source_symmetries, up_rotations
 from gsa.align.pipeline import AlignOptions, align
 from gsa.geometry import axis_rotation
 from gsa.io import frames
@@ -71,7 +72,72 @@ def test_a_pose_that_misses_the_picked_pairs_is_not_the_users():
     flipped = Sim3(1.0, axis_rotation(np.array([1.0, 0.0, 0.0]), np.pi), np.zeros(3))
     assert near_start(nudged, fit, opts, report)
     assert not near_start(flipped, fit, opts, report)
-    assert near_start(flipped, fit, opts, report, GuidanceCriteria(pairs_leash_share=10.0))
+    assert near_start(flipped, fit, opts, report, GuidanceCriteria(pairs_leash_share=10.0, pairs_max_turn_deg=180.0))
+
+
+def test_clicks_along_a_line_do_not_let_the_object_roll_over():
+    """Three clicks nearly on one line (along a rifle) are met as well by the object rolled half
+    a turn about that line: the clicks' fit, not only the clicks, bounds the turn."""
+    from types import SimpleNamespace
+
+    src = np.array([[-1.0, 0.0, 0.0], [0.0, 0.01, 0.0], [1.0, 0.0, 0.01]])
+    opts = SimpleNamespace(point_pairs=(src, src.copy()))
+    report = {"from": "point_pairs", "left_out": None}
+    rolled = Sim3(1.0, axis_rotation(np.array([1.0, 0.0, 0.0]), np.pi), np.zeros(3))
+    lenient_clicks = GuidanceCriteria(pairs_leash_share=0.5)
+    assert not near_start(rolled, Sim3.identity(), opts, report, lenient_clicks)
+    assert near_start(rolled, Sim3.identity(), opts, report, GuidanceCriteria(pairs_max_turn_deg=180.0))
+
+
+def _surface_of_revolution(n: int, seed: int) -> np.ndarray:
+    """A vase-like surface about the z axis (radius varying with height), n points."""
+    rng = np.random.default_rng(seed)
+    z = rng.uniform(-1.0, 1.0, n)
+    phi = rng.uniform(0.0, 2 * np.pi, n)
+    r = 0.4 + 0.15 * np.sin(2.5 * z)
+    return np.stack([r * np.cos(phi), r * np.sin(phi), z], 1)
+
+
+def _box_surface(lo: np.ndarray, hi: np.ndarray, n: int, rng: np.random.Generator) -> np.ndarray:
+    """n points uniform on the surface of the box [lo, hi]."""
+    size = hi - lo
+    areas = np.array([size[1] * size[2], size[0] * size[2], size[0] * size[1]]).repeat(2)
+    face = rng.choice(6, n, p=areas / areas.sum())
+    points = lo + rng.uniform(size=(n, 3)) * size
+    axis = face // 2
+    points[np.arange(n), axis] = np.where(face % 2 == 0, lo[axis], hi[axis])
+    return points
+
+
+def test_source_symmetries_find_a_free_axis_and_nothing_on_a_thin_object():
+    vase = _surface_of_revolution(20000, 0)
+    turns = source_symmetries(vase)
+    z = np.array([0.0, 0.0, 1.0])
+    # every turn is about the vase's axis (as the sample's principal axis finds it: within 3 deg)
+    axes = Rotation.from_matrix(np.array(turns)).as_rotvec()
+    assert len(turns) >= 170 and np.all(np.abs(axes @ z) / np.linalg.norm(axes, axis=1) > np.cos(np.radians(3)))
+    # a rifle-like thin barrel with a grip on one side: turned half a turn about any axis the
+    # grip moves by a small share of the size but many sample spacings (not a symmetry)
+    rng = np.random.default_rng(1)
+    rifle = np.concatenate(
+        [
+            _box_surface(np.array([-1.0, -0.04, -0.02]), np.array([1.0, 0.04, 0.02]), 16000, rng),
+            _box_surface(np.array([0.3, -0.25, -0.02]), np.array([0.45, -0.04, 0.02]), 4000, rng),
+        ]
+    )
+    assert source_symmetries(rifle) == []
+
+
+def test_a_start_turned_about_the_objects_own_axis_is_still_the_users():
+    """A given pose and one turned 90 deg about a vase's axis place it identically: near."""
+    vase = _surface_of_revolution(20000, 2)
+    given = {"from": "init_transform"}
+    spun = Sim3(1.0, axis_rotation(np.array([0.0, 0.0, 1.0]), np.radians(90.0)), np.zeros(3))
+    tilted = Sim3(1.0, axis_rotation(np.array([1.0, 0.0, 0.0]), np.radians(90.0)), np.zeros(3))
+    turns = source_symmetries(vase)
+    assert not near_start(spun, Sim3.identity(), None, given)
+    assert near_start(spun, Sim3.identity(), None, given, symmetries=turns)
+    assert not near_start(tilted, Sim3.identity(), None, given, symmetries=turns)
 
 
 def test_picked_pairs_align_a_model_and_say_so(pair):

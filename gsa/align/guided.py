@@ -21,12 +21,18 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from scipy.spatial import cKDTree
 
 from gsa.geometry import axis_rotation, rotation_distance_deg
 from gsa.sim3 import Sim3, solve_sim3
 
 # Picked pairs accepted at most: a bound on the input (the CLI, both APIs), not a tunable.
 MAX_PAIRS = 1000
+# A turn is a symmetry of the source when the turned surface lies within this many sample
+# spacings of the unturned one (mean distance to the nearest point). Measured on real meshes:
+# bottles and vases turned about their axis 1.0-1.6 spacings, a rifle rolled half a turn 4-12,
+# tables and bathtubs 4+; a share of the size would call every thin object symmetric.
+SYMMETRY_SPACINGS = 2.0
 
 
 @dataclass(frozen=True)
@@ -48,6 +54,9 @@ class GuidanceCriteria:
     # the object misses them by about their spread).
     start_leash_deg: float = 30.0
     pairs_leash_share: float = 0.5
+    # ... and never more than pairs_max_turn_deg from the pairs' fit: clicks nearly on a line
+    # do not pin the turn about it (a rifle rolled half a turn still meets clicks along its length).
+    pairs_max_turn_deg: float = 90.0
     # The local search also starts from the given pose turned by this about each axis, both ways
     # (the anchors' ICP from one start can stop in a nearer, worse minimum).
     local_turn_deg: float = 15.0
@@ -228,17 +237,30 @@ def start_transform(opts, criteria: GuidanceCriteria | None = None) -> tuple[Sim
     return None
 
 
-def near_start(pose: Sim3, start: Sim3, opts, report: dict, criteria: GuidanceCriteria | None = None) -> bool:
+def near_start(
+    pose: Sim3,
+    start: Sim3,
+    opts,
+    report: dict,
+    criteria: GuidanceCriteria | None = None,
+    symmetries: list[np.ndarray] = (),
+) -> bool:
     """Whether `pose` is still the answer the user pointed at (start_transform's `start` and
-    `report`): within start_leash_deg of a given pose; with picked pairs, a rotation that maps
-    every kept source click near its target click (pairs_leash_share), at the scale and shift
-    that fit the clicks best. The local refinement corrects a pose 20 deg off or clicks a few %
-    off, and between two instances of different proportions it finds the pose better than the
-    clicks do; it must not carry the answer to another side of the object, away from what the
-    user gave."""
+    `report`): within start_leash_deg of a given pose, up to the source's own `symmetries`
+    (source_symmetries: a bottle turned about its own axis is the same answer); with picked pairs, a rotation that maps every
+    kept source click near its target click (pairs_leash_share), at the scale and shift that
+    fit the clicks best, and within pairs_max_turn_deg of their fit. The local refinement
+    corrects a pose 20 deg off or clicks a few % off, and between two instances of different
+    proportions it finds the pose better than the clicks do; it must not carry the answer to
+    another side of the object, away from what the user gave."""
     k = criteria or _DEFAULT
     if report.get("from") != "point_pairs":
-        return rotation_distance_deg(pose.rotation, start.rotation) <= k.start_leash_deg
+        return any(
+            rotation_distance_deg(pose.rotation @ g, start.rotation) <= k.start_leash_deg
+            for g in [np.eye(3), *symmetries]
+        )
+    if rotation_distance_deg(pose.rotation, start.rotation) > k.pairs_max_turn_deg:
+        return False
     src, dst = (np.asarray(p, np.float64) for p in opts.point_pairs)
     if report.get("left_out") is not None:
         keep = np.arange(len(src)) != report["left_out"]
@@ -254,6 +276,33 @@ def near_start(pose: Sim3, start: Sim3, opts, report: dict, criteria: GuidanceCr
         return float(np.max(np.linalg.norm(scale * turned - centred, axis=1)))
 
     return worst_miss(pose) <= worst_miss(start) + k.pairs_leash_share * spread
+
+
+def source_symmetries(points: np.ndarray, sample_size: int = 3000) -> list[np.ndarray]:
+    """Turns about the principal axes of `points` (the source's surface, source coordinates)
+    that map it onto itself, as rotation matrices: every 2 deg about an axis it turns freely
+    about (a bottle), else the quarter and half turns that pass. Two poses that differ by one
+    place the surface identically, so the leash of a given pose is measured up to them."""
+    if len(points) < 10:
+        return []
+    rng = np.random.default_rng(0)
+    sample = points[rng.choice(len(points), min(len(points), sample_size), replace=False)]
+    centre = points.mean(0)
+    tree = cKDTree(points - centre)  # the dense set: a turned sample lands on its surface
+    spacing = float(np.mean(tree.query(sample - centre, k=2)[0][:, 1]))
+    axes = np.linalg.eigh(np.cov((sample - centre).T))[1].T
+
+    def moves_off(axis: np.ndarray, deg: float) -> bool:
+        turned = (sample - centre) @ axis_rotation(axis, np.radians(deg)).T
+        return float(np.mean(tree.query(turned)[0])) >= SYMMETRY_SPACINGS * spacing
+
+    out = []
+    for axis in axes:
+        if not any(moves_off(axis, deg) for deg in (30.0, 60.0, 90.0, 135.0)):
+            out += [axis_rotation(axis, np.radians(deg)) for deg in np.arange(2.0, 360.0, 2.0)]
+        else:
+            out += [axis_rotation(axis, np.radians(deg)) for deg in (90.0, 180.0, 270.0) if not moves_off(axis, deg)]
+    return out
 
 
 def local_turns(criteria: GuidanceCriteria | None = None) -> list[np.ndarray]:

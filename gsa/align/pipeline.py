@@ -167,7 +167,7 @@ def _align(
             t = time.perf_counter()
 
             def near(pose: Sim3) -> bool:
-                return guided.near_start(pose, best.init, opts, start[1])
+                return guided.near_start(pose, best.init, opts, start[1], symmetries=pair.source_symmetries)
 
             local = pair.local_start(best.init, found, near)
             coarse = pair.refine_global(local, progress)
@@ -177,7 +177,7 @@ def _align(
             search = pair.check_given(pair.constrain(coarse.transform), found)
         else:
             coarse = pair.coarse(best, progress)
-            if not guided.near_start(coarse.transform, best.init, opts, start[1]):
+            if not guided.near_start(coarse.transform, best.init, opts, start[1], symmetries=pair.source_symmetries):
                 start[1]["refinement"] = "undone: it moved away from the given pose or pairs"
                 coarse = replace(coarse, transform=best.init)
         timings["coarse"] = time.perf_counter() - t
@@ -406,6 +406,12 @@ class _Pair:
         src, dst = self.anchors()
         given = robust.score_pose(src, dst, transform, "guided", found.colour_weight)
         return robust.with_given_pose(given, found)
+
+    @functools.cached_property
+    def source_symmetries(self) -> list[np.ndarray]:
+        """The source's own turn symmetries (gsa.align.guided.source_symmetries), floaters left out."""
+        src, _ = self.anchors()
+        return guided.source_symmetries(self.src_pts[src.kept])
 
     def constrain(self, transform: Sim3) -> Sim3:
         """The pose brought back onto the user's up axes and scale (gsa.align.guided), pivoting
