@@ -140,3 +140,20 @@ def test_a_flipped_cross_instance_result_offers_the_truth_among_its_alternatives
     assert errors[0] < 5.0 or m["doubtful"]  # a wrong choice is flagged
     assert any(a["origin"].startswith("flip:") for a in m["alternatives"])
     assert len(m["alternatives"]) <= 8
+
+
+def test_a_large_symmetric_surface_is_judged_symmetric_against_its_dense_sampling():
+    """A wide vase sampled densely, judged on a sparse sample: against the sample alone a
+    perfect turn symmetry moves it by the sample's own spacing (> 1 % of the diagonal here);
+    against the dense surface it does not."""
+    rng = np.random.default_rng(3)
+    n = 30000
+    t, y = rng.uniform(0, 2 * np.pi, n), rng.uniform(-1, 1, n)
+    radius = 0.8 + 0.3 * np.sin(2.0 * y)  # wide, and not the same upside down
+    surface = np.stack([radius * np.cos(t), y, radius * np.sin(t)], 1)
+    sample = surface[rng.choice(n, 1500, replace=False)]
+    assert len(instance_symmetries(sample)) < 300
+    turns = instance_symmetries(sample, surface)
+    assert len(turns) >= 359
+    y_axis = np.array([0.0, 1.0, 0.0])
+    assert all(np.allclose(g @ y_axis, y_axis) for g in turns[:359])

@@ -44,17 +44,23 @@ SPIN_TEST_DEG = (30.0, 60.0, 90.0, 135.0)
 DISCRETE_TURNS_DEG = (90.0, 180.0, 270.0)
 
 
-def instance_symmetries(points: np.ndarray) -> list[np.ndarray]:
+def instance_symmetries(points: np.ndarray, surface: np.ndarray | None = None) -> list[np.ndarray]:
     """Rotations about the canonical axes (through the bounding-box centre) that map the
     surface sample `points` onto itself: every 1° for a turn-symmetric axis, else the
-    quarter and half turns that pass. The identity is not listed."""
+    quarter and half turns that pass. The identity is not listed. `surface`: the dense
+    surface the sample was drawn from; the turned sample is measured against it (against a
+    sparse sample alone a perfect symmetry moves it by that sample's own spacing, which for a
+    large vase exceeded the tolerance: see docs/benchmarks.md, the judge's fix of 2026-11-27)."""
     lo, hi = points.min(0), points.max(0)
-    centred = points - 0.5 * (lo + hi)
+    centre = 0.5 * (lo + hi)
+    centred = points - centre
     diagonal = float(np.linalg.norm(hi - lo))
-    tree = cKDTree(centred)
+    tree = cKDTree(centred if surface is None else surface - centre)
 
     def moved(axis_unit: np.ndarray, deg: float) -> float:
         turned = centred @ axis_rotation(axis_unit, np.radians(deg)).T
+        if surface is not None:
+            return float(tree.query(turned)[0].mean()) / diagonal
         return 0.5 * (tree.query(turned)[0].mean() + cKDTree(turned).query(centred)[0].mean()) / diagonal
 
     out = []
@@ -140,7 +146,7 @@ def surface_points(model) -> np.ndarray:
 def _symmetries(model) -> list[np.ndarray]:
     surface = surface_points(model)
     sample = surface[np.random.default_rng(0).choice(len(surface), min(len(surface), 4000), replace=False)]
-    return instance_symmetries(sample)
+    return instance_symmetries(sample, surface)
 
 
 def category_real_judge(est: Sim3, truth: Sim3, source, target) -> dict:
