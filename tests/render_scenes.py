@@ -45,3 +45,18 @@ def blob_object(n: int, seed: int = 0, sh_degree: int = 0, feature_dim: int = 3)
     if sh_degree > 0:
         model.sh[:, 1:, :] = rng.normal(scale=0.05, size=model.sh[:, 1:, :].shape)
     return model
+
+
+def random_scene(n: int, sh_degree: int, seed: int, dim: int = 3) -> dict[str, np.ndarray]:
+    """n random Gaussians as rasterize() takes them (means, quats, log_scales, opacity_logits,
+    SH of `sh_degree`, `dim` features): the renderer tests' inputs."""
+    rng = np.random.default_rng(seed)
+    k = (sh_degree + 1) ** 2
+    return dict(
+        means=rng.normal(size=(n, 3)) * 0.5,
+        quats=rng.normal(size=(n, 4)),
+        log_scales=np.log(rng.uniform(0.05, 0.3, size=(n, 3))),
+        opacity_logits=rng.normal(size=n) * 1.5,
+        sh=rng.normal(size=(n, k, 3)) * 0.4,
+        features=rng.normal(size=(n, dim)),
+    )

@@ -13,7 +13,7 @@ from scipy.spatial.transform import Rotation
 
 from gsa.render import cuda_available, orbit_cameras, rasterize
 from gsa.sim3 import Sim3
-from tests.render_scenes import blob_object
+from tests.render_scenes import blob_object, random_scene
 
 pytestmark = pytest.mark.skipif(
     not cuda_available(), reason="needs a CUDA device and gsplat's compiled extension (a GPU machine)"
@@ -22,29 +22,11 @@ pytestmark = pytest.mark.skipif(
 KEYS = ("means", "quats", "log_scales", "opacity_logits", "sh", "features")
 
 
-def _scene(n, sh_degree, seed, dim=5):
-    rng = np.random.default_rng(seed)
-    k = (sh_degree + 1) ** 2
-    return dict(
-        means=rng.normal(size=(n, 3)) * 0.5,
-        quats=rng.normal(size=(n, 4)),
-        log_scales=np.log(rng.uniform(0.05, 0.3, size=(n, 3))),
-        opacity_logits=rng.normal(size=n) * 1.5,
-        sh=rng.normal(size=(n, k, 3)) * 0.4,
-        features=rng.normal(size=(n, dim)),
-    )
-
-
 def _render_and_grads(scene, cams, backend, viewmats):
     ts = {k: torch.tensor(scene[k], dtype=torch.float32, requires_grad=True) for k in KEYS}
     vm = torch.tensor(viewmats, dtype=torch.float32, requires_grad=True)
     out = rasterize(
-        ts["means"],
-        ts["quats"],
-        ts["log_scales"],
-        ts["opacity_logits"],
-        ts["sh"],
-        ts["features"],
+        *(ts[k] for k in KEYS),  # rasterize's own argument order
         cams,
         background=(0.2, 0.3, 0.4),
         feature_background=tuple(np.linspace(-0.2, 0.2, scene["features"].shape[1])),
@@ -70,7 +52,7 @@ def _cosine(a: torch.Tensor, b: torch.Tensor) -> float:
 @pytest.mark.parametrize(("sh_degree", "view_scale"), [(0, 1.0), (3, 1.0), (1, 2.5)])
 def test_images_and_gradients_match_cpu(sh_degree, view_scale):
     """view_scale != 1: the fine stage renders through similarity view matrices (W·T, T a Sim(3))."""
-    scene = _scene(400, sh_degree, seed=sh_degree)
+    scene = random_scene(400, sh_degree, seed=sh_degree, dim=5)
     cams = orbit_cameras(np.zeros(3), 3.0, 3, width=96, height=72, fov=60, seed=1)
     vm = cams.viewmats.copy()
     vm[:, :3, :3] *= view_scale

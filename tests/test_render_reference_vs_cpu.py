@@ -8,19 +8,7 @@ from scipy.spatial.transform import Rotation
 from gsa.model import GaussianModel
 from gsa.render import Cameras, orbit_cameras, rasterize, render_gaussians, render_model
 from gsa.render.projection import covariance_3d
-
-
-def _scene(n, sh_degree, seed, dim=3):
-    rng = np.random.default_rng(seed)
-    k = (sh_degree + 1) ** 2
-    return dict(
-        means=rng.normal(size=(n, 3)) * 0.5,
-        quats=rng.normal(size=(n, 4)),
-        log_scales=np.log(rng.uniform(0.05, 0.3, size=(n, 3))),
-        opacity_logits=rng.normal(size=n) * 1.5,
-        sh=rng.normal(size=(n, k, 3)) * 0.4,
-        features=rng.normal(size=(n, dim)),
-    )
+from tests.render_scenes import random_scene
 
 
 def _cams(n=3, w=40, h=32, seed=1):
@@ -60,7 +48,7 @@ def _render_and_grads(scene, cams, backend, dtype=torch.float64, **kw):
 
 @pytest.mark.parametrize("sh_degree", [0, 3])
 def test_values_and_gradients_match_reference(sh_degree):
-    scene = _scene(70, sh_degree, seed=sh_degree)
+    scene = random_scene(70, sh_degree, seed=sh_degree)
     cams = _cams()
     ref_imgs, ref_grads = _render_and_grads(scene, cams, "reference")
     cpu_imgs, cpu_grads = _render_and_grads(scene, cams, "cpu")
@@ -75,7 +63,7 @@ def test_values_and_gradients_match_reference(sh_degree):
 
 
 def test_float32_close_to_float64_reference():
-    scene = _scene(50, 1, seed=3)
+    scene = random_scene(50, 1, seed=3)
     cams = _cams(2)
     ref_imgs, ref_grads = _render_and_grads(scene, cams, "reference")
     cpu_imgs, cpu_grads = _render_and_grads(scene, cams, "cpu", dtype=torch.float32)
@@ -88,7 +76,7 @@ def test_float32_close_to_float64_reference():
 
 def test_cpu_gradients_match_finite_differences():
     """gradcheck of the native backward (float64): no autograd inside the kernels."""
-    scene = _scene(8, 0, seed=11, dim=2)
+    scene = random_scene(8, 0, seed=11, dim=2)
     scene["opacity_logits"] = np.clip(scene["opacity_logits"], -1.0, 1.5)  # stay below the 0.99 clamp
     scene["log_scales"] = np.log(np.random.default_rng(2).uniform(0.2, 0.4, size=(8, 3)))
     cams = orbit_cameras(np.zeros(3), 3.0, 2, width=14, height=12, fov=60, seed=4)
@@ -117,7 +105,7 @@ def test_cpu_gradients_match_finite_differences():
 
 def test_sim3_gradient_through_cameras_equals_through_model():
     """Rend(T·G, C) = Rend(G, C·T): same images and same gradient w.r.t. (ω, log s, t)."""
-    scene = _scene(40, 0, seed=5)
+    scene = random_scene(40, 0, seed=5)
     cams = _cams(2)
     r0 = torch.tensor(Rotation.from_euler("xyz", [20, -35, 50], degrees=True).as_matrix())
 
@@ -195,7 +183,7 @@ def test_sim3_gradient_through_cameras_equals_through_model():
 
 
 def test_result_does_not_depend_on_tile_size():
-    scene = _scene(60, 2, seed=8)
+    scene = random_scene(60, 2, seed=8)
     cams = _cams(2, 37, 29)
     ts = [torch.tensor(scene[k], dtype=torch.float64) for k in KEYS]
     cov = covariance_3d(ts[1], ts[2])
@@ -239,7 +227,7 @@ def test_orbit_cameras_look_at_center_opencv_convention():
 
 
 def test_bad_input_raises_value_error():
-    scene = _scene(5, 0, seed=1)
+    scene = random_scene(5, 0, seed=1)
     cams = _cams(1, 16, 16)
     with pytest.raises(ValueError):
         rasterize(
@@ -282,7 +270,7 @@ def test_concurrent_renders_from_threads_agree():
     """Service workers may render from several threads; kernels are serialised, results identical."""
     from concurrent.futures import ThreadPoolExecutor
 
-    scene = _scene(200, 0, seed=4)
+    scene = random_scene(200, 0, seed=4)
     cams = _cams(2, 48, 48)
 
     def job(_):
