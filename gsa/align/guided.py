@@ -247,9 +247,10 @@ def near_start(
 ) -> bool:
     """Whether `pose` is still the answer the user pointed at (start_transform's `start` and
     `report`): within start_leash_deg of a given pose, up to the source's own `symmetries`
-    (source_symmetries: a bottle turned about its own axis is the same answer); with picked pairs, a rotation that maps every
-    kept source click near its target click (pairs_leash_share), at the scale and shift that
-    fit the clicks best, and within pairs_max_turn_deg of their fit. The local refinement
+    (source_symmetries: a bottle turned about its own axis is the same answer); with picked
+    pairs, a rotation that maps every kept source click near its target click
+    (pairs_leash_share), at the scale and shift that fit the clicks best, and within
+    pairs_max_turn_deg of their fit. The local refinement
     corrects a pose 20 deg off or clicks a few % off, and between two instances of different
     proportions it finds the pose better than the clicks do; it must not carry the answer to
     another side of the object, away from what the user gave."""
@@ -278,16 +279,19 @@ def near_start(
     return worst_miss(pose) <= worst_miss(start) + k.pairs_leash_share * spread
 
 
-def source_symmetries(points: np.ndarray, sample_size: int = 3000) -> list[np.ndarray]:
+def source_symmetries(points: np.ndarray, sample_size: int = 3000, dense_size: int = 50_000) -> list[np.ndarray]:
     """Turns about the principal axes of `points` (the source's surface, source coordinates)
-    that map it onto itself, as rotation matrices: every 2 deg about an axis it turns freely
-    about (a bottle, a vase), when exactly one axis is free. Two poses that differ by one place the surface identically, so
-    the leash of a given pose is measured up to them. Quarter and half turns are not listed:
-    a table or a plain vase passes them on the mean distance while a drawer or a foot does
-    not, and a leash that let them through took real pairs 50-150 deg off (docs/benchmarks.md)."""
+    that map it onto itself, as rotation matrices: every 2 deg about the axis it turns freely
+    about (a bottle, a vase), when exactly one axis is free. Two poses that differ by one place
+    the surface identically, so the leash of a given pose is measured up to them. Quarter and
+    half turns are not listed: a table passes them on the mean distance while a drawer or a
+    foot does not, and a leash that let them through took real pairs 50-80 deg off
+    (docs/benchmarks.md)."""
     if len(points) < 10:
         return []
     rng = np.random.default_rng(0)
+    if len(points) > dense_size:  # spacings are measured within whatever density is kept
+        points = points[rng.choice(len(points), dense_size, replace=False)]
     sample = points[rng.choice(len(points), min(len(points), sample_size), replace=False)]
     centre = points.mean(0)
     tree = cKDTree(points - centre)  # the dense set: a turned sample lands on its surface

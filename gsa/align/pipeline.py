@@ -159,6 +159,8 @@ def _align(
         best = _Hypothesis(f"guided:{start[1]['from']}", pair.src_frame, pair.constrain(start[0]))
         scored = []
         t = time.perf_counter()
+        # a given pose's leash is measured up to the source's turn symmetry (picked pairs: on the clicks)
+        symmetries = pair.source_symmetries if start[1]["from"] == "init_transform" else ()
         if pair.global_search:
             # The search's own poses are weighed too: they are local answers where they lie near
             # the user's pose, and the verdict weighs the user's pose against them.
@@ -167,7 +169,7 @@ def _align(
             t = time.perf_counter()
 
             def near(pose: Sim3) -> bool:
-                return guided.near_start(pose, best.init, opts, start[1], symmetries=pair.source_symmetries)
+                return guided.near_start(pose, best.init, opts, start[1], symmetries=symmetries)
 
             local = pair.local_start(best.init, found, near)
             coarse = pair.refine_global(local, progress)
@@ -177,7 +179,7 @@ def _align(
             search = pair.check_given(pair.constrain(coarse.transform), found)
         else:
             coarse = pair.coarse(best, progress)
-            if not guided.near_start(coarse.transform, best.init, opts, start[1], symmetries=pair.source_symmetries):
+            if not guided.near_start(coarse.transform, best.init, opts, start[1], symmetries=symmetries):
                 start[1]["refinement"] = "undone: it moved away from the given pose or pairs"
                 coarse = replace(coarse, transform=best.init)
         timings["coarse"] = time.perf_counter() - t
