@@ -53,7 +53,7 @@ def worker_name() -> str:
 # published progress never goes backwards.
 STAGE_SPAN = {
     "loading": (0.0, 0.05), "features": (0.05, 0.2), "hypotheses": (0.2, 0.4), "coarse": (0.4, 0.7),
-    "refine": (0.7, 0.8), "fine": (0.8, 0.97), "writing": (0.97, 0.99), "renders": (0.97, 0.99), "done": (0.97, 0.99),
+    "refine": (0.7, 0.8), "semantic": (0.8, 0.97), "fine": (0.8, 0.97), "writing": (0.97, 0.99), "renders": (0.97, 0.99), "done": (0.97, 0.99),
     "storing": (0.99, 0.999),
 }  # fmt: skip
 
