@@ -100,6 +100,37 @@ def test_bundled_backbone_reads_exactly_what_onnxruntime_runs():
     np.testing.assert_allclose(post.numpy().reshape(2, -1, 384), expected[:, 1:], atol=2e-3)
 
 
+def _labelled_ellipsoid(n: int, seed: int):
+    """Points on an ellipsoid (its half turns about each axis map it onto itself, so geometry
+    cannot choose among them) with features naming the octant each point lies in: parts."""
+    rng = np.random.default_rng(seed)
+    x = rng.normal(size=(n, 3))
+    x = x / np.linalg.norm(x, axis=1, keepdims=True) * [3.0, 1.5, 0.7]
+    octant = (x[:, 0] > 0) * 4 + (x[:, 1] > 0) * 2 + (x[:, 2] > 0)
+    return x, np.eye(8)[octant] + rng.normal(0, 0.1, (n, 8))
+
+
+def test_the_sweep_finds_the_pose_that_puts_like_parts_together_and_the_scores_prefer_it():
+    src_pts, src_f = _labelled_ellipsoid(3000, 1)
+    dst_pts, dst_f = _labelled_ellipsoid(3000, 2)
+    truth = Sim3(
+        2.5,
+        axis_rotation(np.array([1.0, 2.0, -0.5]) / np.linalg.norm([1.0, 2.0, -0.5]), 2.2),
+        np.array([4.0, -1.0, 7.0]),
+    )
+    lifted = semantic.LiftedPair(src_pts, src_f, truth.apply(dst_pts), dst_f, semantic.SemanticCriteria())
+    starts = lifted.sweep()
+    assert len(starts) == semantic.SemanticCriteria().sweep_top
+    from gsa.geometry import rotation_distance_deg
+
+    assert rotation_distance_deg(starts[0].rotation, truth.rotation) < 20.0  # the grid's spacing
+    assert abs(starts[0].scale / truth.scale - 1) < 0.05
+    assert np.linalg.norm(starts[0].translation - truth.translation) < 0.1 * truth.scale
+    flips = [truth @ Sim3(1.0, axis_rotation(np.eye(3)[a], np.pi), np.zeros(3)) for a in range(3)]
+    scores = lifted.scores([truth, *flips])
+    assert scores[0] > 0.8 and max(scores[1:]) < 0.3, scores
+
+
 def test_pick_keeps_the_geometric_choice_unless_another_pose_clearly_wins():
     assert semantic.pick([0.2, 0.25, 0.1]) == 0  # 1.25x: a tie, the geometry stays
     assert semantic.pick([0.2, 0.31, 0.1]) == 1
@@ -135,6 +166,12 @@ def test_a_doubtful_answer_reports_the_tie_break_and_stays_doubtful():
     if report["picked"]:
         previous = np.asarray(report["switched_from"])
         assert np.allclose(m["alternatives"][0]["transform"], previous)
+    swept = [a for a in m["alternatives"] if a["origin"] == "semantic sweep"]
+    assert len(swept) <= report["swept"] <= semantic.SemanticCriteria().sweep_top
+    if not report["picked"]:  # every pose scored is offered: the geometric ones, then the swept ones
+        assert len(report["scores"]) == len(m["alternatives"]) + 1
+    for a in swept:  # each a pose of its own, not one the search had already offered
+        assert a["rotation_offset_deg"] > semantic.SemanticCriteria().swept_distinct_deg
     off = align(source, target, AlignOptions(semantic="off"))
     assert "semantic" not in off.metrics and "semantic" not in off.timings
 

