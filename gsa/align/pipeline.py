@@ -115,7 +115,7 @@ def _semantic_tiebreak(pair, best, search, transform: Sim3, metrics: dict) -> tu
     report = {"used": True, "scores": scores, "picked": pick, "swept": len(swept)}
     if pick == 0:
         offers = [c.to_dict(transform) | {"tied": False} for c in swept]
-        return transform, metrics | {"semantic": report, "alternatives": metrics.get("alternatives", []) + offers}
+        return transform, metrics | {"semantic": report, "alternatives": (metrics.get("alternatives") or []) + offers}
     chosen = poses[pick]
     previous = {
         "origin": "geometric choice (before the semantic tie-break)",
