@@ -4,6 +4,7 @@ installs it), a tiny transformers model exported to ONNX elsewhere."""
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import os
 import subprocess
@@ -150,6 +151,22 @@ def test_a_copy_scores_its_true_pose_above_its_half_turns():
     scores = semantic.pose_scores(source, target, [truth, *turns], semantic.available_backbone(), fast)
     assert scores[0] > 0.3, scores  # two samplings of one chair agree, unlike parts do not
     assert scores[0] > semantic.SemanticCriteria().switch_ratio * max(scores[1:]), scores
+
+
+@needs_bundled
+@pytest.mark.semantic
+def test_the_backbone_in_bf16_gives_the_fp32_tokens(monkeypatch):
+    """bf16 is used only where the CPU has it natively; forced here (emulated where it is not)
+    so that the comparison runs on every machine."""
+    monkeypatch.setattr(semantic, "native_bf16", lambda: True)
+    criteria = semantic.SemanticCriteria(views=4, rolls=1)
+    _, images, _ = semantic._render(make_object("chair", seed=2, n_gaussians=3000), criteria, 0)
+    backbone = semantic.available_backbone()
+    half = semantic._tokens(backbone, images, criteria)
+    full = semantic._tokens(backbone, images, dataclasses.replace(criteria, bf16=False))
+    assert half.dtype == full.dtype == torch.float32
+    cosine = torch.nn.functional.cosine_similarity(half, full, dim=-1)
+    assert float(cosine.min()) > 0.999 and float((half - full).abs().max()) > 0, float(cosine.min())
 
 
 @needs_bundled

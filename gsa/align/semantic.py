@@ -39,6 +39,7 @@ class SemanticCriteria:
     rolls: int = 4  # in-plane quarter turns averaged per view
     components: int = 32  # principal components of the tokens kept for lifting
     batch: int = 8  # images per backbone forward
+    bf16: bool = True  # the backbone in bfloat16 where the CPU computes it natively (tokens' cosine to fp32 ~0.99997)
     neighbour_radius: float = 0.05  # of the target's diagonal: a source Gaussian with no target one nearer scores 0
     sample: int = 4000  # source Gaussians scored per pose
     switch_ratio: float = 1.5  # another pose must score this many times the chosen one to replace it
@@ -101,17 +102,28 @@ def _tokens(backbone, images: np.ndarray, criteria: SemanticCriteria):
     from gsa.features.vit import to_input
 
     total = 0
-    with torch.no_grad():
+    half = criteria.bf16 and native_bf16()
+    with torch.no_grad(), torch.autocast("cpu", dtype=torch.bfloat16, enabled=half):
         for r in range(criteria.rolls):
             turned = np.ascontiguousarray(np.rot90(images, r, axes=(1, 2)))
             tok = torch.cat(
                 [
-                    backbone(to_input(turned[i : i + criteria.batch], criteria.image_size))[1]
+                    backbone(to_input(turned[i : i + criteria.batch], criteria.image_size))[1].float()
                     for i in range(0, len(turned), criteria.batch)
                 ]
             )
             total = total + torch.rot90(tok, -r, dims=(1, 2))
     return total / criteria.rolls
+
+
+@functools.cache
+def native_bf16() -> bool:
+    """Whether this CPU has bfloat16 instructions (AVX512-BF16 or AMX): there the backbone runs
+    1.8x faster in bf16; elsewhere bf16 is emulated and slower than fp32."""
+    import torch
+
+    probes = ("_is_avx512_bf16_supported", "_is_amx_tile_supported")
+    return any(getattr(torch.cpu, name, lambda: False)() for name in probes)
 
 
 def _render(model: GaussianModel, criteria: SemanticCriteria, seed: int):
