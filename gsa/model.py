@@ -236,6 +236,9 @@ class GaussianModel:
             quats[lo:hi] = normalize_quats(q)
             log_scales[lo:hi] = self.log_scales[lo:hi].astype(np.float64) + log_s
             sh[lo:hi] = rotate_sh(self.sh[lo:hi], rot)
+        meta = dict(self.metadata)
+        if hasattr(meta.get("photo_anchors"), "transformed"):  # they lie in the model's frame
+            meta["photo_anchors"] = meta["photo_anchors"].transformed(sim3)
         return GaussianModel(
             means=means,
             quats=quats,
@@ -243,7 +246,7 @@ class GaussianModel:
             opacity_logits=self.opacity_logits,
             sh=sh,
             features=self.features,
-            metadata=dict(self.metadata),
+            metadata=meta,
         )
 
 

@@ -11,11 +11,13 @@ import cv2
 import numpy as np
 import pytest
 
+from gsa.geometry import axis_rotation
 from gsa.io.ply import read_ply  # noqa: E402
 from gsa.recon.images import ImageSetError, load_image_set  # noqa: E402
 from gsa.recon.masks import compute_masks, grabcut_mask, key_mask  # noqa: E402
 from gsa.recon.sfm import SfMError, centre_error  # noqa: E402
 from gsa.render import render_model  # noqa: E402
+from gsa.sim3 import Sim3
 
 
 def _write(path, img):
@@ -183,8 +185,7 @@ def rendered(tmp_path_factory):
     return render_image_set(root, n_views=24, size=256, orbit_seed=1)
 
 
-@pytest.fixture(scope="module")
-def recon(rendered, tmp_path_factory):
+def _quick_reconstruction(images, out):
     from dataclasses import replace
 
     from gsa.recon.pipeline import reconstruct
@@ -201,8 +202,24 @@ def recon(rendered, tmp_path_factory):
         feature_start=0.5,
         holdout_every=8,
     )
-    out = tmp_path_factory.mktemp("out")
-    return reconstruct(rendered.directory, out, preset=cfg)
+    return reconstruct(images, out, preset=cfg)
+
+
+@pytest.fixture(scope="module")
+def recon(rendered, tmp_path_factory):
+    return _quick_reconstruction(rendered.directory, tmp_path_factory.mktemp("out"))
+
+
+# The same object photographed again by a second rig, in a frame of its own.
+SECOND_RIG = Sim3(1.7, axis_rotation(np.array([0.6, 0.0, 0.8]), 2.5), np.array([0.4, -1.0, 2.0]))
+
+
+@pytest.fixture(scope="module")
+def second(tmp_path_factory):
+    from gsa.recon.synthetic import render_image_set
+
+    rendered = render_image_set(tmp_path_factory.mktemp("synth2"), n_views=24, size=256, orbit_seed=2, rig=SECOND_RIG)
+    return rendered, _quick_reconstruction(rendered.directory, tmp_path_factory.mktemp("out2"))
 
 
 @pytest.mark.slow
@@ -219,6 +236,39 @@ def test_sfm_registers_and_matches_true_cameras(rendered, recon):
     cams = json.loads(recon.cameras_path.read_text())
     assert cams["camera_model"] == "PINHOLE" and len(cams["images"]) == sfm.n_registered
     assert (recon.out_dir / "sfm" / "sparse" / "model" / "cameras.txt").exists()
+
+
+@pytest.mark.slow
+def test_two_reconstructions_register_by_their_photos(rendered, recon, second):
+    """Photo anchors kept beside each model (anchors.npz and metadata) register two
+    reconstructions of one object at the precision of their SfM points (gsa.align.photo)."""
+    from gsa.align.pipeline import AlignOptions, align
+    from gsa.metrics import rre_deg, scale_error_pct
+    from gsa.recon.folder import is_reconstruction, read_reconstruction
+
+    rendered_b, recon_b = second
+    anchors = recon.model.metadata["photo_anchors"]
+    assert anchors.descriptors.dtype == np.uint8 and anchors.descriptors.shape[1] == 128
+    assert np.allclose(anchors.points, recon.sfm.points)  # one row per SfM point, in the model's frame
+    assert len(anchors) >= len(anchors.points)  # each point seen in 2+ photos, up to 4 kept
+    # the truth: each SfM frame onto its rig's true frame by its cameras, then the rig between
+    _, t_a = centre_error(recon.sfm.cameras, rendered.cameras[[rendered.names.index(n) for n in recon.sfm.names]])
+    _, t_b = centre_error(
+        recon_b.sfm.cameras, rendered_b.cameras[[rendered_b.names.index(n) for n in recon_b.sfm.names]]
+    )
+    truth = t_b.inverse().compose(SECOND_RIG.compose(t_a))
+    r = align(recon.model, recon_b.model)
+    assert r.stages == ("photo",), r.metrics.get("photo_match")
+    assert rre_deg(r.transform.rotation, truth.rotation) < 0.5
+    assert scale_error_pct(r.transform.scale, truth.scale) < 1.0
+    assert not r.metrics["doubtful"] and r.metrics["photo_match"]["inliers"] >= 100
+    # what `gsa align DIR_A DIR_B` reads: the folders, anchors included
+    assert is_reconstruction(recon.out_dir) and not is_reconstruction(rendered.directory)
+    again = align(read_reconstruction(recon.out_dir), read_reconstruction(recon_b.out_dir))
+    assert again.stages == ("photo",)
+    assert rre_deg(again.transform.rotation, r.transform.rotation) < 1e-6
+    # without the photos, the Gaussians alone decide
+    assert align(recon.model, recon_b.model, AlignOptions(photo_matches="off")).stages != ("photo",)
 
 
 def test_too_few_register(tmp_path):
@@ -345,3 +395,22 @@ def test_cli_bad_input(tmp_path, capsys):
     rc = main(["reconstruct", str(_noise_images(tmp_path / "x", 2)), "--out", str(tmp_path / "o")])
     err = capsys.readouterr().err.strip().splitlines()
     assert rc == 1 and err[-1].startswith("gsa: error: ") and "at least 3" in err[-1]
+
+
+@pytest.mark.slow
+def test_cli_aligns_two_reconstruction_folders_by_their_photos(recon, second, tmp_path):
+    import subprocess
+    import sys
+
+    _, recon_b = second
+    out = tmp_path / "r.json"
+    cmd = [sys.executable, "-m", "gsa.cli", "align", str(recon.out_dir), str(recon_b.out_dir), "--out", str(out)]
+    run = subprocess.run(cmd + ["--quiet"], capture_output=True, text=True, timeout=600)
+    assert run.returncode == 0, run.stderr[-2000:]
+    assert "photos       the pose:" in run.stdout
+    data = json.loads(out.read_text())
+    assert data["stages_run"] == ["photo"] and data["metrics"]["photo_match"]["accepted"]
+    # asked not to, the CLI aligns the same folders by their Gaussians
+    off = subprocess.run(cmd + ["--quiet", "--photo-matches", "off"], capture_output=True, text=True, timeout=600)
+    assert off.returncode == 0, off.stderr[-2000:]
+    assert "photos" not in off.stdout and json.loads(out.read_text())["stages_run"] != ["photo"]

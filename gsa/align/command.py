@@ -14,10 +14,15 @@ from gsa.cli_base import FORMAT_CHOICES, CliError, ProgressPrinter
 
 
 def _load_model(path: str, role: str = "model", args: argparse.Namespace | None = None):
-    """A 3DGS file in any supported format, or an image set (folder or .zip) reconstructed first."""
+    """A 3DGS file in any supported format, a folder `gsa reconstruct` wrote (its model, with the
+    photo anchors that let align() register two reconstructions by their photos), or an image
+    set (folder or .zip) reconstructed first."""
     from gsa.io.formats import read_model
+    from gsa.recon.folder import is_reconstruction, read_reconstruction
 
     p = Path(path)
+    if is_reconstruction(p):
+        return read_reconstruction(p)
     if p.is_dir() or p.suffix.lower() == ".zip":
         try:
             from gsa.recon.pipeline import reconstruct
@@ -47,6 +52,7 @@ def _align_options(args: argparse.Namespace):
         "scene": args.scene,
         "rigid": args.rigid,
         "semantic": getattr(args, "semantic", None) or _semantic_default(),
+        "photo_matches": getattr(args, "photo_matches", None) or "auto",
     }
     for name in ("fine_iterations", "fine_views", "fine_lr", "fine_image_size", "fine_on"):
         value = getattr(args, name, None)
@@ -238,6 +244,14 @@ def add_align_arguments(p: argparse.ArgumentParser) -> None:
         "alternatives (auto: when a backbone is installed or --backbone given; off: never; "
         "default: env GSA_SEMANTIC, else auto)",
     )
+    g.add_argument(
+        "--photo-matches",
+        choices=("auto", "off"),
+        default="auto",
+        help="two reconstructions (image sets, or folders `gsa reconstruct` wrote): register them "
+        "by their photos' shared texture where enough matched SfM points agree (auto), or by "
+        "their Gaussians alone (off)",
+    )
 
 
 def cmd_align(args: argparse.Namespace) -> int:
@@ -304,6 +318,9 @@ def _print_transform(result, out: str | None = None) -> None:
     print(f"quality      inliers {m['inlier_fraction']:.3f}, rms residual {m['rms_residual']:.4g}{features}")
     if (m.get("scene") or {}).get("ran"):
         print(f"scene path   {m['scene']['reason']}")
+    if "photo_match" in m:  # two reconstructions: whether their photos decided the pose
+        pm = m["photo_match"]
+        print(f"photos       {'the pose' if pm['accepted'] else 'not used'}: {pm['reason']}")
     if "confidence" in m:
         verdict = "ambiguous" if m.get("ambiguous") else ("doubtful" if m.get("doubtful") else "confident")
         print(

@@ -18,7 +18,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 from threadpoolctl import threadpool_limits
 
-from gsa.align import guided, robust, scene
+from gsa.align import guided, photo, robust, scene
 from gsa.align.choices import (
     EXTRACTOR_MODES,
     FEATURE_MODES,
@@ -181,10 +181,28 @@ def _align(
     progress: Progress | None,
     target_cameras: Cameras | None,
 ) -> AlignmentResult:
-    if target_cameras is None:
-        target_cameras = target.metadata.get("training_cameras")  # set by gsa.recon.reconstruct
     timings: dict[str, float] = {}
     t_start = time.perf_counter()
+    photo_match = _photo_match(source, target, opts, timings)
+    if photo_match is not None and photo_match.accepted:
+        return _photo_answer(source, target, opts, photo_match, timings, t_start, progress)
+    result = _align_models(source, target, opts, progress, target_cameras, timings, t_start)
+    if photo_match is not None:  # why the photos did not decide it
+        result.metrics["photo_match"] = photo_match.to_dict()
+    return result
+
+
+def _align_models(
+    source: GaussianModel,
+    target: GaussianModel,
+    opts: AlignOptions,
+    progress: Progress | None,
+    target_cameras: Cameras | None,
+    timings: dict[str, float],
+    t_start: float,
+) -> AlignmentResult:
+    if target_cameras is None:
+        target_cameras = target.metadata.get("training_cameras")  # set by gsa.recon.reconstruct
 
     lifting: list[dict] = []
     if _needs_extractor(opts, source, target):
@@ -312,6 +330,61 @@ def _align(
         source_frame=best.frame,
         target_frame=pair.dst_frame,
         lifting=lifting,
+    )
+
+
+def _photo_match(source: GaussianModel, target: GaussianModel, opts: AlignOptions, timings: dict):
+    """The two reconstructions registered by their photos (gsa.align.photo), or None where
+    either model carries no photo anchors, the option is off, or the user gave hints."""
+    if opts.photo_matches == "off" or guided.is_guided(opts):
+        return None
+    src, dst = photo.photo_anchors(source), photo.photo_anchors(target)
+    if src is None or dst is None:
+        return None
+    t = time.perf_counter()
+    found = photo.register(src, dst, seed=opts.seed)
+    timings["photo_matches"] = time.perf_counter() - t
+    return found
+
+
+def _photo_answer(
+    source: GaussianModel,
+    target: GaussianModel,
+    opts: AlignOptions,
+    found: photo.PhotoMatch,
+    timings: dict,
+    t_start: float,
+    progress: Progress | None,
+) -> AlignmentResult:
+    """The photos' pose as the answer: no search, no refinement (the Gaussians of two
+    reconstructions agree less closely than their SfM points do); the geometric verdict at that
+    pose is reported beside the photos' own."""
+    _report(progress, "features", 0.0)
+    t = time.perf_counter()
+    pair = _Pair.build(source, target, opts)
+    timings["features"] = time.perf_counter() - t
+    t = time.perf_counter()
+    transform = found.transform
+    best = _Hypothesis("photo matches", pair.src_frame, transform)
+    metrics = pair.quality(transform, best)
+    metrics["hypothesis"] = best.label
+    geometric = pair.judge(transform, None)
+    metrics.update(geometric)
+    metrics["geometric_verdict"] = {k: geometric[k] for k in ("confidence", "ambiguous", "doubtful")}
+    metrics.update(confidence=found.confidence, ambiguous=False, doubtful=False, photo_match=found.to_dict())
+    timings["metrics"] = time.perf_counter() - t
+    timings["total"] = time.perf_counter() - t_start
+    _report(progress, "done", 1.0)
+    return AlignmentResult(
+        transform=transform,
+        coarse=CoarseResult(transform, iterations=0, converged=True),
+        features=pair.mode,
+        stages=("photo",),
+        metrics=metrics,
+        timings=timings,
+        hypotheses=[],
+        source_frame=best.frame,
+        target_frame=pair.dst_frame,
     )
 
 

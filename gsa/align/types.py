@@ -114,6 +114,11 @@ class AlignOptions:
             their own sampling, the refinement keeps its trimmed fit instead of averaging every
             pair (which suits deformed copies and pulls noisy reconstructions towards their
             extent ratio). The scene path always takes its pairs so.
+
+    photo_matches: "auto" registers two reconstructions (gsa.recon.reconstruct keeps each
+        one's SfM points and their SIFT descriptors, model.metadata["photo_anchors"]) by their
+        photos' shared texture (gsa.align.photo) where enough matched points agree, and skips
+        the geometric search then; "off" never does. Hints take precedence over it.
     """
 
     stages: tuple[StageName, ...] = ("auto",)
@@ -149,6 +154,7 @@ class AlignOptions:
     fixed_scale: float | None = None
     rigid: bool = False
     semantic: Literal["auto", "off"] = "auto"
+    photo_matches: Literal["auto", "off"] = "auto"
 
     def __post_init__(self) -> None:
         from gsa.align.guided import check_guidance  # one place checks every hint's shape
@@ -176,6 +182,8 @@ class AlignOptions:
             raise ValueError("hypothesis_truncation and inlier_threshold must be positive")
         if self.semantic not in ("auto", "off"):
             raise ValueError(f"semantic must be auto or off, got {self.semantic!r}")
+        if self.photo_matches not in ("auto", "off"):
+            raise ValueError(f"photo_matches must be auto or off, got {self.photo_matches!r}")
         if not isinstance(self.rigid, bool):
             raise ValueError(f"rigid must be true or false, got {self.rigid!r}")
 
@@ -196,7 +204,8 @@ class AlignmentResult:
         transform: maps source coordinates into the target frame.
         coarse: the coarse stage's result (its transform is `transform` when no fine stage ran).
         features: which features guided the alignment.
-        stages: the stages that ran (AlignOptions.stages resolved).
+        stages: the stages that ran (AlignOptions.stages resolved; ("photo",) when the
+            photos' matched texture gave the pose, gsa.align.photo).
         metrics: GT-free quality numbers and the verdict (confidence, doubtful, ...).
         timings: seconds per step ("features", "hypotheses", "coarse", "fine", "metrics", "total", ...).
         hypotheses: the scored initialisations.

@@ -207,7 +207,7 @@ def main(argv=None) -> int:
         out["rows"].append(run_size(args, size, root / f"{size}px"))
         print(f"{size} px: {time.perf_counter() - t:.0f} s", flush=True)
     print(
-        f"{'size':>5} {'crop':>5} {'method':>7} {'registered':>13} {'RRE (°)':>8} {'scale err (%)':>13} {'confidence':>10} flagged"
+        f"{'size':>5} {'crop':>5} {'method':>12} {'registered':>13} {'RRE (°)':>8} {'scale err (%)':>13} {'confidence':>10} flagged"
     )
     for row in out["rows"]:
         reg = f"{row['A']['registered']}+{row['B']['registered']}/{row['photos']}"
@@ -215,7 +215,7 @@ def main(argv=None) -> int:
             conf = "-" if a["confidence"] is None else f"{a['confidence']:.2f}"
             flag = "-" if a["doubtful"] is None else ("yes" if a["doubtful"] else "no")
             print(
-                f"{row['size']:>5} {a['crop'] or '-':>5} {a['method']:>7} {reg:>13} {a['rre_deg']:>8.3f} "
+                f"{row['size']:>5} {a['crop'] or '-':>5} {a['method']:>12} {reg:>13} {a['rre_deg']:>8.3f} "
                 f"{a['scale_error_pct']:>13.3f} {conf:>10} {flag}"
             )
     (root / "bench.json").write_text(json.dumps(out, indent=1))

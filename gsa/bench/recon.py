@@ -46,15 +46,14 @@ def _measure(name, syn, names, cameras, report: dict) -> tuple[dict, object]:
 def reconstructed(images, out: Path, args):
     """(model, cameras, names, report) of the reconstruction of the images in `images` (a folder),
     made unless args.reuse finds it in `out`; args: preset, iterations, reuse."""
-    from gsa.io.ply import read_ply
+    from gsa.recon.folder import read_reconstruction
     from gsa.recon.pipeline import reconstruct
     from gsa.render.cameras import read_cameras_json
 
     if not (args.reuse and (out / "report.json").exists()):
         reconstruct(images, out, preset=args.preset, iterations=args.iterations)
-    model = read_ply(out / "model.ply")
+    model = read_reconstruction(out)  # with its training cameras and photo anchors, as reconstruct() leaves it
     cameras, names = read_cameras_json(out / "cameras.json")
-    model.metadata["training_cameras"] = cameras  # as reconstruct() leaves it: the fine stage's views
     return model, cameras, names, json.loads((out / "report.json").read_text())
 
 
@@ -66,18 +65,25 @@ def alignment_rows(model_a, model_b, gt, peers: list[str]) -> list[dict]:
     from gsa.metrics import rre_deg, scale_error_pct
 
     rows = []
-    t = time.perf_counter()
-    r = align(model_a, model_b, AlignOptions())
-    rows.append(
-        {
-            "method": "gsa",
-            "rre_deg": rre_deg(r.transform.rotation, gt.rotation),
-            "scale_error_pct": scale_error_pct(r.transform.scale, gt.scale),
-            "confidence": r.metrics.get("confidence"),
-            "doubtful": r.metrics.get("doubtful"),
-            "align_s": time.perf_counter() - t,
-        }
-    )
+    variants = [("gsa", AlignOptions())]
+    if all("photo_anchors" in m.metadata for m in (model_a, model_b)):
+        # the same without the photos' matched texture: what the Gaussians alone give
+        variants.append(("gsa-geometry", AlignOptions(photo_matches="off")))
+    for method, options in variants:
+        t = time.perf_counter()
+        r = align(model_a, model_b, options)
+        rows.append(
+            {
+                "method": method,
+                "rre_deg": rre_deg(r.transform.rotation, gt.rotation),
+                "scale_error_pct": scale_error_pct(r.transform.scale, gt.scale),
+                "confidence": r.metrics.get("confidence"),
+                "doubtful": r.metrics.get("doubtful"),
+                "stages": list(r.stages),
+                "photo_match": r.metrics.get("photo_match"),
+                "align_s": time.perf_counter() - t,
+            }
+        )
     for peer in available_peers(peers):
         t = time.perf_counter()
         est = peer.register(model_a, model_b)
@@ -138,7 +144,7 @@ def main(argv=None) -> int:
         out["rows"].append(run_size(args, size, root / f"{size}px"))
         print(f"{size} px: {time.perf_counter() - t:.0f} s", flush=True)
     print(
-        f"{'size':>5} {'method':>7} {'registered':>11} {'RRE (°)':>8} {'scale err (%)':>13} {'confidence':>10} flagged"
+        f"{'size':>5} {'method':>12} {'registered':>11} {'RRE (°)':>8} {'scale err (%)':>13} {'confidence':>10} flagged"
     )
     for row in out["rows"]:
         reg = f"{row['A']['registered']}+{row.get('B', {}).get('registered', '-')}/{row['A']['views']}"
@@ -146,7 +152,7 @@ def main(argv=None) -> int:
             conf = "-" if a["confidence"] is None else f"{a['confidence']:.2f}"
             flag = "-" if a["doubtful"] is None else ("yes" if a["doubtful"] else "no")
             print(
-                f"{row['size']:>5} {a['method']:>7} {reg:>11} {a['rre_deg']:>8.2f} "
+                f"{row['size']:>5} {a['method']:>12} {reg:>11} {a['rre_deg']:>8.2f} "
                 f"{a['scale_error_pct']:>13.2f} {conf:>10} {flag}"
             )
     (root / "bench.json").write_text(json.dumps(out, indent=1))

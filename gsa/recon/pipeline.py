@@ -1,8 +1,8 @@
 """`reconstruct()`: image set -> SfM -> masks -> feature-augmented 3DGS, one call.
 
 Outputs in out_dir: model.ply (INRIA layout + semantic_* features), cameras.json
-(COLMAP-compatible PINHOLE + qvec/tvec), sparse/model (COLMAP text model),
-masks/*.png, training_curve.json, report.json.
+(COLMAP-compatible PINHOLE + qvec/tvec), sparse/model (COLMAP text model), anchors.npz (the SfM
+points' descriptors, gsa.recon.anchors), masks/*.png, training_curve.json, report.json.
 """
 
 from __future__ import annotations
@@ -18,6 +18,7 @@ import numpy as np
 
 from gsa.io.ply import write_ply
 from gsa.model import GaussianModel
+from gsa.recon.anchors import ANCHORS_FILE
 from gsa.recon.images import load_image_set
 from gsa.recon.masks import SamOnnxMasker, compute_masks
 from gsa.recon.sfm import SfMResult, run_sfm
@@ -143,6 +144,9 @@ def reconstruct(
 
     model_path = write_ply(tr.model, out / "model.ply")
     tr.model.metadata["training_cameras"] = sfm.cameras  # align()'s fine stage renders from these
+    if sfm.anchors is not None:  # align() registers two reconstructions by their photos (gsa.align.photo)
+        sfm.anchors.save(out / ANCHORS_FILE)
+        tr.model.metadata["photo_anchors"] = sfm.anchors
     cameras_path = write_cameras_json(out / "cameras.json", sfm.cameras, sfm.names)
     (out / "training_curve.json").write_text(json.dumps(tr.curve))
     timings["total"] = time.perf_counter() - t0

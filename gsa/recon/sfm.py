@@ -18,6 +18,7 @@ from pathlib import Path
 import numpy as np
 
 from gsa.errors import GSAError
+from gsa.recon.anchors import MAX_PER_POINT, PhotoAnchors
 from gsa.recon.images import ImageSet
 from gsa.render.cameras import Cameras
 from gsa.sim3 import solve_sim3
@@ -44,6 +45,7 @@ class SfMResult:
     timings: dict = field(default_factory=dict)
     sparse_dir: Path | None = None
     mapping_attempts: int = 1
+    anchors: PhotoAnchors | None = None  # descriptors under the points (gsa.recon.anchors)
 
     @property
     def n_registered(self) -> int:
@@ -51,6 +53,11 @@ class SfMResult:
 
 
 def _pycolmap():
+    # pycolmap's extension carries its own zlib and exports its symbols: Python's zlib module
+    # loaded AFTER it mixes the two and aborts the process in free() on the first compress
+    # (pycolmap 4.2). Loaded first, it keeps its own (tests/test_recon_anchors.py).
+    import zlib  # noqa: F401
+
     try:
         import pycolmap
     except ImportError as exc:  # the recon extra is optional
@@ -186,6 +193,7 @@ def run_sfm(
     out.mkdir(exist_ok=True)
     rec.write_text(str(out))  # COLMAP text model: cameras.txt, images.txt, points3D.txt
     result.sparse_dir = out
+    result.anchors = photo_anchors(rec, db)
     report("sfm:done", 1.0)
     return result
 
@@ -215,6 +223,38 @@ def _from_reconstruction(rec, images: ImageSet, timings: dict) -> SfMResult:
     pts = np.asarray(pts, np.float64).reshape(-1, 3)
     cols = np.asarray(cols, np.float64).reshape(-1, 3) / 255.0
     return SfMResult(cams, names, pts, cols, np.asarray(errs, np.float64), len(images), unregistered, timings)
+
+
+def photo_anchors(rec, database_path: str | Path, max_per_point: int = MAX_PER_POINT) -> PhotoAnchors:
+    """The photo anchors (gsa.recon.anchors) of a pycolmap Reconstruction whose features are in the COLMAP database at
+    `database_path` (a point2D's index is its keypoint's, and so its descriptor's, row)."""
+    pycolmap = _pycolmap()
+    ids = list(rec.points3D.keys())
+    row_of = {pid: i for i, pid in enumerate(ids)}
+    points = np.array([rec.points3D[pid].xyz for pid in ids], np.float64).reshape(-1, 3)
+    taken = np.zeros(len(ids), np.int64)
+    descriptors, point_index = [], []
+    db = pycolmap.Database.open(str(database_path))
+    try:
+        for image_id in sorted(rec.images):
+            image = rec.images[image_id]
+            if not image.has_pose:
+                continue
+            table = db.read_descriptors(image_id)
+            table = np.asarray(getattr(table, "data", table))
+            for k, p2 in enumerate(image.points2D):
+                if not p2.has_point3D():
+                    continue
+                row = row_of[p2.point3D_id]
+                if taken[row] >= max_per_point or k >= len(table):
+                    continue
+                taken[row] += 1
+                descriptors.append(table[k])
+                point_index.append(row)
+    finally:
+        db.close()
+    desc = np.asarray(descriptors, np.uint8).reshape(-1, 128)
+    return PhotoAnchors(points, desc, np.asarray(point_index, np.int64))
 
 
 def centre_error(est: Cameras, true: Cameras) -> tuple[float, object]:

@@ -127,6 +127,7 @@ OPTION_CHOICES: dict[str, tuple[str, ...]] = {
     "fine_loss": ("smooth_l1", "l1", "l2"),
     "fine_on": ("features", "colors"),
     "semantic": ("auto", "off"),
+    "photo_matches": ("auto", "off"),
 }
 STAGE_NAMES = ("auto", "coarse", "fine")
 BOOL_OPTIONS = {"renders", "weight_by_opacity", "rigid"}

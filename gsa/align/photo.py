@@ -1,0 +1,169 @@
+"""The Sim(3) between two reconstructions from their photos' shared texture (gsa.recon.anchors).
+
+Each source descriptor is matched to the most alike target descriptor, kept when it is clearly
+more alike than the best one of any other target point (Lowe's ratio test, taken across points:
+a point's own views would otherwise fail it). The matched 3D points vote for point pairs; a
+RANSAC over 3-pair similarity fits finds the pose most of them agree with, and the inliers' least
+squares fit (gsa.sim3.solve_sim3) is the answer. Where the two models show different objects or
+share no texture, few pairs agree and the match is refused: align() then runs as it does for
+any two models.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from gsa.recon.anchors import PhotoAnchors
+from gsa.sim3 import DegenerateCorrespondencesError, Sim3, solve_sim3
+
+RATIO = 0.8  # Lowe's test
+RANSAC_SAMPLES = 2000
+# An inlier lies within this share of the target points' median distance from their median.
+INLIER_RADIUS = 0.02
+# Accepted only with this many distinct point pairs agreeing, and this share of all matched
+# pairs: pairs of unrelated texture agree by chance with a handful at most (the minimal 3 and a
+# few more), a shared object with hundreds (docs/benchmarks.md, "Photo matches").
+MIN_INLIERS = 20
+MIN_INLIER_SHARE = 0.2
+# The inliers must span a plane at least: collinear points leave a rotation free.
+MIN_SPREAD = 0.05
+# Anchor points farther from their model than this share of its median radius (median over the
+# points) do not belong to it (reconstructions: 1.5 %; a model moved by a few per cent of its
+# size fails it).
+ON_MODEL = 0.05
+
+
+@dataclass
+class PhotoMatch:
+    transform: Sim3 | None
+    accepted: bool
+    reason: str
+    matches: int = 0  # point pairs the descriptors proposed
+    inliers: int = 0
+    residual_pct: float | None = None  # the inliers' median residual, % of the target's radius
+
+    @property
+    def confidence(self) -> float:
+        """0 when refused; from 0.5 at the acceptance limits to 1 with half the matches and 100
+        point pairs agreeing."""
+        if not self.accepted or not self.matches:
+            return 0.0
+        share = min(1.0, (self.inliers / self.matches - MIN_INLIER_SHARE) / (0.5 - MIN_INLIER_SHARE))
+        count = min(1.0, (self.inliers - MIN_INLIERS) / (100 - MIN_INLIERS))
+        return 0.5 + 0.25 * max(share, 0.0) + 0.25 * max(count, 0.0)
+
+    def to_dict(self) -> dict:
+        return {
+            "accepted": self.accepted,
+            "confidence": self.confidence,
+            "reason": self.reason,
+            "matches": self.matches,
+            "inliers": self.inliers,
+            "inlier_share": self.inliers / self.matches if self.matches else 0.0,
+            "residual_pct": self.residual_pct,
+        }
+
+
+def matched_pairs(src: PhotoAnchors, dst: PhotoAnchors, ratio: float = RATIO) -> tuple[np.ndarray, np.ndarray]:
+    """(pairs (M, 2) of source and target point rows, votes (M,)): one vote per descriptor match."""
+    import cv2  # lazy: align() imports this module for every pair
+
+    if len(src) == 0 or len(dst) == 0:
+        return np.zeros((0, 2), np.int64), np.zeros(0)
+    # A target point has up to MAX_PER_POINT descriptors: the best one of another point is
+    # among the k nearest.
+    k = min(len(dst), int(np.bincount(dst.point_index).max()) + 1)
+    knn = cv2.BFMatcher(cv2.NORM_L2).knnMatch(
+        src.descriptors.astype(np.float32), dst.descriptors.astype(np.float32), k=k
+    )
+    pairs = []
+    for query in knn:
+        if not query:
+            continue
+        best = query[0]
+        best_point = dst.point_index[best.trainIdx]
+        other = next((m for m in query[1:] if dst.point_index[m.trainIdx] != best_point), None)
+        if other is None or best.distance < ratio * other.distance:
+            pairs.append((src.point_index[best.queryIdx], best_point))
+    if not pairs:
+        return np.zeros((0, 2), np.int64), np.zeros(0)
+    unique, votes = np.unique(np.asarray(pairs, np.int64), axis=0, return_counts=True)
+    return unique, votes.astype(np.float64)
+
+
+def register(src: PhotoAnchors, dst: PhotoAnchors, seed: int = 0) -> PhotoMatch:
+    """The Sim(3) source -> target that the photos' matched texture supports, or a refusal."""
+    pairs, votes = matched_pairs(src, dst)
+    if len(pairs) < MIN_INLIERS:
+        return PhotoMatch(None, False, f"{len(pairs)} point pairs matched (need {MIN_INLIERS})", len(pairs))
+    a = src.points[pairs[:, 0]]
+    b = dst.points[pairs[:, 1]]
+    centre = np.median(b, axis=0)
+    radius = float(np.median(np.linalg.norm(b - centre, axis=1)))
+    if not radius > 0:
+        return PhotoMatch(None, False, "the target's matched points coincide", len(pairs))
+    tol = INLIER_RADIUS * radius
+    rng = np.random.default_rng(seed)
+    best_support, best = 0.0, None
+    for _ in range(RANSAC_SAMPLES):
+        pick = rng.choice(len(pairs), 3, replace=False)
+        try:
+            pose = solve_sim3(a[pick], b[pick])
+        except DegenerateCorrespondencesError:
+            continue
+        support = votes[np.linalg.norm(pose.apply(a) - b, axis=1) < tol].sum()
+        if support > best_support:
+            best_support, best = support, pose
+    if best is None:
+        return PhotoMatch(None, False, "every sample of matched points was degenerate", len(pairs))
+    inside = np.zeros(len(pairs), bool)
+    for _ in range(5):  # refit on the inliers until they settle
+        inside_now = np.linalg.norm(best.apply(a) - b, axis=1) < tol
+        if inside_now.sum() < 3 or (inside_now == inside).all():
+            break
+        inside = inside_now
+        try:
+            best = solve_sim3(a[inside], b[inside], votes[inside])
+        except DegenerateCorrespondencesError:
+            break
+    residual = np.linalg.norm(best.apply(a) - b, axis=1)
+    inside = residual < tol
+    n = int(inside.sum())
+    row = PhotoMatch(best, False, "", len(pairs), n, float(100 * np.median(residual[inside]) / radius) if n else None)
+    spread = np.linalg.svd(b[inside] - b[inside].mean(axis=0), compute_uv=False) if n >= 3 else np.zeros(3)
+    if n < MIN_INLIERS or n < MIN_INLIER_SHARE * len(pairs):
+        row.reason = (
+            f"{n} of {len(pairs)} matched point pairs agree on one pose (need {MIN_INLIERS} and {MIN_INLIER_SHARE:.0%})"
+        )
+    elif spread[1] < MIN_SPREAD * spread[0]:
+        row.reason = "the agreeing points lie on a line: the rotation about it is not fixed"
+    else:
+        row.accepted = True
+        row.reason = f"{n} of {len(pairs)} matched point pairs agree"
+    return row
+
+
+def photo_anchors(model) -> PhotoAnchors | None:
+    """The model's photo anchors where it carries them and they lie on it: anchors that moved
+    apart from their model (a model edited, transformed or swapped after its reconstruction)
+    would give a confident wrong pose, so they are ignored."""
+    anchors = model.metadata.get("photo_anchors")
+    if not isinstance(anchors, PhotoAnchors) or len(anchors) == 0 or len(model) == 0:
+        return None
+    return anchors if anchors_on_model(anchors, model.means) else None
+
+
+def anchors_on_model(anchors: PhotoAnchors, means: np.ndarray, sample: int = 2000) -> bool:
+    """Whether most anchor points lie on the model: their median distance to the nearest
+    Gaussian within ON_MODEL of the model's median radius (reconstructions: ~1.5 %)."""
+    from scipy.spatial import cKDTree
+
+    rng = np.random.default_rng(0)
+    pts = anchors.points[rng.choice(len(anchors.points), min(sample, len(anchors.points)), replace=False)]
+    means = np.asarray(means, np.float64)
+    means = means[rng.choice(len(means), min(50_000, len(means)), replace=False)]
+    radius = float(np.median(np.linalg.norm(means - np.median(means, axis=0), axis=1)))
+    dist, _ = cKDTree(means).query(pts)
+    return bool(radius > 0 and np.median(dist) <= ON_MODEL * radius)

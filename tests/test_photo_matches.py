@@ -1,0 +1,174 @@
+"""Two reconstructions registered by their photos' shared texture (gsa.align.photo).
+
+Anchors here are made by hand: points on a model's surface, each with a random 128-byte
+"texture" descriptor seen from two views (a little noise each). tests/test_recon.py registers
+two real pycolmap reconstructions the same way.
+"""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from gsa.align import photo
+from gsa.align.pipeline import AlignOptions, align
+from gsa.geometry import axis_rotation
+from gsa.metrics import rre_deg, scale_error_pct
+from gsa.recon.anchors import PhotoAnchors
+from gsa.sim3 import Sim3
+from gsa.synth import make_object
+
+TRUTH = Sim3(
+    2.5, axis_rotation(np.array([0.3, 1.0, -0.2]) / np.linalg.norm([0.3, 1.0, -0.2]), 2.4), np.array([1.0, -2.0, 0.5])
+)
+
+
+def _anchors(points, texture, rows, pose, rng, views=2, noise=0.0005):
+    """Anchors of points[rows] moved by `pose`, each seen `views` times (descriptor noise ±4)."""
+    pts = pose.apply(points[rows]) + noise * pose.scale * rng.normal(size=(len(rows), 3))
+    desc = np.repeat(texture[rows], views, axis=0).astype(np.int64)
+    desc = np.clip(desc + rng.integers(-4, 5, size=desc.shape), 0, 255).astype(np.uint8)
+    return PhotoAnchors(pts, desc, np.repeat(np.arange(len(rows)), views))
+
+
+@pytest.fixture(scope="module")
+def surface():
+    model = make_object("car", seed=1, n_gaussians=6000)
+    rng = np.random.default_rng(0)
+    rows = rng.choice(len(model), 500, replace=False)
+    return model, model.means[rows].astype(np.float64), rng.integers(0, 256, size=(500, 128))
+
+
+def test_the_shared_texture_gives_the_pose(surface):
+    _, points, texture = surface
+    rng = np.random.default_rng(1)
+    src = _anchors(points, texture, np.arange(0, 350), Sim3.identity(), rng)
+    dst = _anchors(points, texture, np.arange(150, 500), TRUTH, rng)
+    found = photo.register(src, dst)
+    assert found.accepted, found.reason
+    assert found.inliers >= 190 and found.matches >= 190  # the 200 shared points
+    assert rre_deg(found.transform.rotation, TRUTH.rotation) < 0.1
+    assert scale_error_pct(found.transform.scale, TRUTH.scale) < 0.1
+    assert found.confidence == pytest.approx(1.0)
+
+
+def test_wrong_matches_are_outvoted(surface):
+    """A third of the target's points carry a source point's texture at a wrong place."""
+    _, points, texture = surface
+    rng = np.random.default_rng(2)
+    src = _anchors(points, texture, np.arange(0, 350), Sim3.identity(), rng)
+    right = _anchors(points, texture, np.arange(150, 350), TRUTH, rng)
+    wrong_rows = np.arange(0, 100)
+    wrong = _anchors(points, texture, wrong_rows, TRUTH, rng)
+    shuffled = rng.permutation(len(wrong.points))
+    dst = PhotoAnchors(
+        np.concatenate([right.points, wrong.points[shuffled]]),
+        np.concatenate([right.descriptors, wrong.descriptors]),
+        np.concatenate([right.point_index, wrong.point_index + len(right.points)]),
+    )
+    found = photo.register(src, dst)
+    assert found.accepted, found.reason
+    assert found.matches >= 290 and 190 <= found.inliers <= 210
+    assert rre_deg(found.transform.rotation, TRUTH.rotation) < 0.1
+
+
+def test_unrelated_texture_is_refused(surface):
+    _, points, texture = surface
+    rng = np.random.default_rng(3)
+    src = _anchors(points, texture, np.arange(0, 350), Sim3.identity(), rng)
+    other = rng.integers(0, 256, size=texture.shape)
+    found = photo.register(src, _anchors(points, other, np.arange(0, 350), TRUTH, rng))
+    assert not found.accepted
+    assert found.confidence == 0.0
+    assert "matched" in found.reason
+
+
+def test_matches_on_a_line_are_refused(surface):
+    _, _, texture = surface
+    rng = np.random.default_rng(4)
+    line = np.outer(np.linspace(-1, 1, 500), [1.0, 0.2, 0.1])
+    src = _anchors(line, texture, np.arange(0, 300), Sim3.identity(), rng, noise=1e-5)
+    dst = _anchors(line, texture, np.arange(0, 300), TRUTH, rng, noise=1e-5)
+    found = photo.register(src, dst)
+    assert not found.accepted
+    assert "line" in found.reason
+
+
+def test_anchors_follow_their_model_and_read_back(surface, tmp_path):
+    model, points, texture = surface
+    rng = np.random.default_rng(5)
+    anchors = _anchors(points, texture, np.arange(500), Sim3.identity(), rng)
+    moved = model.transformed(TRUTH)
+    assert "photo_anchors" not in moved.metadata
+    model.metadata["photo_anchors"] = anchors
+    try:
+        moved = model.transformed(TRUTH)
+        assert np.allclose(moved.metadata["photo_anchors"].points, TRUTH.apply(anchors.points))
+        assert photo.photo_anchors(moved) is not None
+        # anchors that no longer lie on their model are not used
+        radius = np.median(np.linalg.norm(model.means - np.median(model.means, axis=0), axis=1))
+        model.metadata["photo_anchors"] = anchors.transformed(Sim3(1.0, np.eye(3), np.array([0.0, radius, 0.0])))
+        assert photo.photo_anchors(model) is None
+    finally:
+        model.metadata.pop("photo_anchors")
+    back = PhotoAnchors.load(anchors.save(tmp_path / "anchors.npz"))
+    assert np.array_equal(back.points, anchors.points)
+    assert np.array_equal(back.descriptors, anchors.descriptors)
+    assert np.array_equal(back.point_index, anchors.point_index)
+
+
+def _pair(surface, target_texture=None):
+    model, points, texture = surface
+    rng = np.random.default_rng(6)
+    source = make_object("car", seed=1, n_gaussians=6000, sample_seed=11)
+    target = make_object("car", seed=1, n_gaussians=6000, sample_seed=12).transformed(TRUTH)
+    source.metadata["photo_anchors"] = _anchors(points, texture, np.arange(0, 350), Sim3.identity(), rng)
+    target.metadata["photo_anchors"] = _anchors(
+        points, texture if target_texture is None else target_texture, np.arange(150, 500), TRUTH, rng
+    )
+    return source, target
+
+
+def test_align_takes_the_photos_pose_and_reports_both_verdicts(surface):
+    source, target = _pair(surface)
+    r = align(source, target)
+    assert r.stages == ("photo",)
+    assert rre_deg(r.transform.rotation, TRUTH.rotation) < 0.1
+    assert scale_error_pct(r.transform.scale, TRUTH.scale) < 0.1
+    m = r.metrics
+    assert m["photo_match"]["accepted"] and not m["doubtful"] and m["confidence"] > 0.9
+    assert set(m["geometric_verdict"]) == {"confidence", "ambiguous", "doubtful"}
+    assert r.to_dict()["stages_run"] == ["photo"]
+    off = align(source, target, AlignOptions(photo_matches="off"))
+    assert off.stages != ("photo",) and "photo_match" not in off.metrics
+
+
+def test_a_refused_match_says_why_and_the_geometry_answers(surface):
+    rng = np.random.default_rng(7)
+    source, target = _pair(surface, target_texture=rng.integers(0, 256, size=(500, 128)))
+    r = align(source, target)
+    assert r.stages != ("photo",)
+    assert r.metrics["photo_match"]["accepted"] is False
+    assert r.metrics["photo_match"]["reason"]
+
+
+def test_hints_take_precedence_over_the_photos(surface):
+    source, target = _pair(surface)
+    r = align(source, target, AlignOptions(init_transform=TRUTH.matrix().tolist()))
+    assert r.stages != ("photo",) and "photo_match" not in r.metrics
+
+
+def test_zlib_works_after_pycolmap_is_loaded():
+    """pycolmap's extension exports its own zlib symbols: Python's zlib loaded after it aborted
+    the process on the first compress. gsa.recon.sfm loads zlib first."""
+    code = (
+        "from gsa.recon.sfm import _pycolmap; _pycolmap()\n"
+        "import zlib, io, numpy as np\n"
+        "assert len(zlib.compress(b'x' * 100000)) < 1000\n"
+        "np.savez_compressed(io.BytesIO(), a=np.zeros(1000))\n"
+    )
+    run = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert run.returncode == 0, run.stderr[-2000:]
