@@ -56,3 +56,6 @@ def test_image_set_pair_job(tmp_path):
         rec = job["result"]["reconstructions"]
         assert rec["source0"]["registered"] >= 12 and rec["target"]["registered"] >= 12
         assert job["result"]["scale"] > 0
+        # two photo sets of one object: their photos' shared texture gave the pose (gsa.align.photo)
+        assert job["result"]["stages_run"] == ["photo"], job["result"]["metrics"].get("photo_match")
+        assert job["result"]["metrics"]["photo_match"]["accepted"] and not job["result"]["metrics"]["doubtful"]
