@@ -414,3 +414,25 @@ def test_cli_aligns_two_reconstruction_folders_by_their_photos(recon, second, tm
     off = subprocess.run(cmd + ["--quiet", "--photo-matches", "off"], capture_output=True, text=True, timeout=600)
     assert off.returncode == 0, off.stderr[-2000:]
     assert "photos" not in off.stdout and json.loads(out.read_text())["stages_run"] != ["photo"]
+
+
+@pytest.mark.slow
+def test_align_many_takes_reconstruction_folders(rendered, recon, second, tmp_path):
+    from gsa.align.many_command import expand_models
+    from gsa.cli import main
+    from gsa.metrics import rre_deg
+
+    rendered_b, recon_b = second
+    # a reconstruction folder is one model; a folder of model files is its files
+    assert expand_models([str(recon.out_dir), str(recon_b.out_dir)]) == [recon.out_dir, recon_b.out_dir]
+    out = tmp_path / "many"
+    assert main(["align-many", str(recon.out_dir), str(recon_b.out_dir), "--out", str(out), "--quiet"]) == 0
+    data = json.loads((out / "many.json").read_text())
+    _, t_a = centre_error(recon.sfm.cameras, rendered.cameras[[rendered.names.index(n) for n in recon.sfm.names]])
+    _, t_b = centre_error(
+        recon_b.sfm.cameras, rendered_b.cameras[[rendered_b.names.index(n) for n in recon_b.sfm.names]]
+    )
+    b_to_a = t_b.inverse().compose(SECOND_RIG.compose(t_a)).inverse()  # into the reference's (A's) frame
+    second_model = data["models"][1]
+    assert rre_deg(np.asarray(second_model["rotation"]), b_to_a.rotation) < 0.5
+    assert second_model["scale"] == pytest.approx(b_to_a.scale, rel=0.01)

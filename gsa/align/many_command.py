@@ -23,7 +23,12 @@ def add_align_many_parser(subparsers) -> None:
     p = subparsers.add_parser(
         "align-many", help="align several 3DGS models into one frame (pairwise edges + cycle-consistent global step)"
     )
-    p.add_argument("models", nargs="+", metavar="MODEL", help="3DGS files, folders of them, or glob patterns")
+    p.add_argument(
+        "models",
+        nargs="+",
+        metavar="MODEL",
+        help="3DGS files, folders of them, folders `gsa reconstruct` wrote (one model each), or glob patterns",
+    )
     p.add_argument("--out", required=True, help="output folder (many.json)")
     p.add_argument("--reference", help="the model whose frame all go into (file name or stem; default: the first)")
     p.add_argument("--merged-out", help="write all models in the reference frame as one model (format by extension)")
@@ -36,15 +41,21 @@ def add_align_many_parser(subparsers) -> None:
 
 
 def expand_models(items: list[str]) -> list[Path]:
-    """Files as given; a folder: its model files (sorted); a pattern: its matches (sorted)."""
+    """Files as given; a folder `gsa reconstruct` wrote: that one model (with its photo anchors);
+    another folder: its model files (sorted); a pattern: its matching files and reconstruction
+    folders (sorted)."""
+    from gsa.recon.folder import is_reconstruction
+
     out: list[Path] = []
     for item in items:
         path = Path(item)
         if any(ch in item for ch in "*?["):
-            matches = sorted(Path(m) for m in glob.glob(item) if Path(m).is_file())
+            matches = sorted(Path(m) for m in glob.glob(item) if Path(m).is_file() or is_reconstruction(m))
             if not matches:
                 raise AlignManyError(f"{item}: no file matches")
             out += matches
+        elif is_reconstruction(path):
+            out.append(path)
         elif path.is_dir():
             found = sorted(p for p in path.iterdir() if p.is_file() and p.name.lower().endswith(MODEL_SUFFIXES))
             if not found:
@@ -86,6 +97,7 @@ def cmd_align_many(args) -> int:
     from gsa.align.outputs import write_json
     from gsa.align.pipeline import AlignOptions
     from gsa.io.formats import format_for_path, read_model, write_model
+    from gsa.recon.folder import is_reconstruction, read_reconstruction
 
     stages = tuple(s.strip() for s in args.stages.split(",") if s.strip())
     if args.merged_out and format_for_path(args.merged_out) is None:
@@ -93,7 +105,8 @@ def cmd_align_many(args) -> int:
     paths = expand_models(args.models)
     names = _names(paths)
     reference = _reference_index(args.reference, paths, names)
-    models = [read_model(p) for p in paths]
+    # a reconstruction folder with its photo anchors: two reconstructions' edges take their photos
+    models = [read_reconstruction(p) if is_reconstruction(p) else read_model(p) for p in paths]
     for p, m in zip(paths, models):
         m.validate(str(p))
     options = replace(AlignOptions(), stages=stages, seed=args.seed)
