@@ -105,6 +105,19 @@ def test_page_escapes_every_user_string():
     assert "</" not in script_json({"x": "</script>"})
 
 
+def test_page_says_whether_the_photos_gave_the_pose():
+    def page_of(photo_match):
+        result = {"metrics": {"confidence": 1.0, "doubtful": False, "photo_match": photo_match}, "scale": 1.0}
+        return render_page("t", [ResultView(label="r", result=result)], "static/")
+
+    used = page_of({"accepted": True, "reason": "511 of 548 matched point pairs agree"})
+    assert "Registered by the photos: 511 of 548 matched point pairs agree" in used
+    refused = page_of({"accepted": False, "reason": f"13 point pairs matched {EVIL}"})
+    assert "Photos not used: 13 point pairs matched" in refused and "<script>alert" not in refused
+    plain = page_of(None)
+    assert "Registered by the photos" not in plain and "Photos not used" not in plain
+
+
 def test_loss_curve_only_with_values():
     assert loss_curve_svg(None) == "" and loss_curve_svg([1.0]) == "" and loss_curve_svg([1.0, float("nan")]) == ""
     svg = loss_curve_svg([3.0, 2.0, 1.0], width=100, height=50)

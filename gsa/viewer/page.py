@@ -163,6 +163,10 @@ def result_section(index: int, view: ResultView) -> str:
         if doubtful
         else f'<p class="verdict ok">Confident: {fmt(m.get("confidence"), 3)}</p>'
     )
+    photo = m.get("photo_match") if isinstance(m.get("photo_match"), dict) else None
+    if photo is not None:  # two reconstructions: did their photos give the pose (gsa.align.photo)?
+        said = "Registered by the photos" if photo.get("accepted") is True else "Photos not used"
+        verdict += f'<p class="verdict photos">{said}: {esc(str(photo.get("reason", "")))}</p>'
     sim3 = _rows(
         [
             ("scale", fmt(r.get("scale"), 6)),
