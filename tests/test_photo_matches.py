@@ -172,3 +172,17 @@ def test_zlib_works_after_pycolmap_is_loaded():
     )
     run = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
     assert run.returncode == 0, run.stderr[-2000:]
+
+
+def test_large_anchor_sets_are_capped_and_still_register(surface):
+    """Past MAX_DESCRIPTORS a side each point keeps one view, then a random share of points."""
+    _, points, texture = surface
+    rng = np.random.default_rng(8)
+    src = _anchors(points, texture, np.arange(0, 350), Sim3.identity(), rng, views=4)
+    dst = _anchors(points, texture, np.arange(150, 500), TRUTH, rng, views=4)
+    capped = photo._capped(src, 500, seed=0)
+    assert len(capped) == 350 and len(np.unique(capped.point_index)) == 350  # one view per point
+    assert len(photo._capped(src, 200, seed=0)) == 200
+    pairs, _ = photo.matched_pairs(src, dst, limit=250)
+    assert 70 <= len(pairs) <= 200  # about (250/350)² of the 200 shared points
+    assert (pairs[:, 1] == pairs[:, 0] - 150).mean() > 0.95  # and they are the right ones

@@ -19,6 +19,10 @@ from gsa.recon.anchors import PhotoAnchors
 from gsa.sim3 import DegenerateCorrespondencesError, Sim3, solve_sim3
 
 RATIO = 0.8  # Lowe's test
+# Brute-force matching costs |source| × |target| distances (20k a side: ~8 s on 2 cores): past
+# this many descriptors a side (a large scene's SfM) each point keeps one, then a seeded random
+# share of the points is matched; a registration needs hundreds of pairs, not all.
+MAX_DESCRIPTORS = 20_000
 RANSAC_SAMPLES = 2000
 # An inlier lies within this share of the target points' median distance from their median.
 INLIER_RADIUS = 0.02
@@ -66,10 +70,23 @@ class PhotoMatch:
         }
 
 
-def matched_pairs(src: PhotoAnchors, dst: PhotoAnchors, ratio: float = RATIO) -> tuple[np.ndarray, np.ndarray]:
+def _capped(anchors: PhotoAnchors, limit: int, seed: int) -> PhotoAnchors:
+    if len(anchors) <= limit:
+        return anchors
+    _, rows = np.unique(anchors.point_index, return_index=True)  # one view per point: all points stay
+    if len(rows) > limit:
+        rows = np.random.default_rng(seed).choice(rows, limit, replace=False)
+    rows = np.sort(rows)
+    return PhotoAnchors(anchors.points, anchors.descriptors[rows], anchors.point_index[rows])
+
+
+def matched_pairs(
+    src: PhotoAnchors, dst: PhotoAnchors, ratio: float = RATIO, limit: int = MAX_DESCRIPTORS, seed: int = 0
+) -> tuple[np.ndarray, np.ndarray]:
     """(pairs (M, 2) of source and target point rows, votes (M,)): one vote per descriptor match."""
     import cv2  # lazy: align() imports this module for every pair
 
+    src, dst = _capped(src, limit, seed), _capped(dst, limit, seed + 1)
     if len(src) == 0 or len(dst) == 0:
         return np.zeros((0, 2), np.int64), np.zeros(0)
     # A target point has up to MAX_PER_POINT descriptors: the best one of another point is
@@ -95,7 +112,7 @@ def matched_pairs(src: PhotoAnchors, dst: PhotoAnchors, ratio: float = RATIO) ->
 
 def register(src: PhotoAnchors, dst: PhotoAnchors, seed: int = 0) -> PhotoMatch:
     """The Sim(3) source -> target that the photos' matched texture supports, or a refusal."""
-    pairs, votes = matched_pairs(src, dst)
+    pairs, votes = matched_pairs(src, dst, seed=seed)
     if len(pairs) < MIN_INLIERS:
         return PhotoMatch(None, False, f"{len(pairs)} point pairs matched (need {MIN_INLIERS})", len(pairs))
     a = src.points[pairs[:, 0]]
