@@ -186,3 +186,30 @@ def test_large_anchor_sets_are_capped_and_still_register(surface):
     pairs, _ = photo.matched_pairs(src, dst, limit=250)
     assert 70 <= len(pairs) <= 200  # about (250/350)² of the 200 shared points
     assert (pairs[:, 1] == pairs[:, 0] - 150).mean() > 0.95  # and they are the right ones
+
+
+def test_two_poses_agreed_by_repeated_texture_are_left_to_the_geometry(surface):
+    """200 shared points say TRUTH, 150 others say TRUTH turned half a turn: the photos do not decide."""
+    _, points, texture = surface
+    rng = np.random.default_rng(9)
+    src = _anchors(points, texture, np.arange(0, 350), Sim3.identity(), rng)
+    turned = TRUTH.compose(Sim3(1.0, axis_rotation(np.array([0.0, 1.0, 0.0]), np.pi), np.zeros(3)))
+    one = _anchors(points, texture, np.arange(0, 200), TRUTH, rng)
+    two = _anchors(points, texture, np.arange(200, 350), turned, rng)
+    dst = PhotoAnchors(
+        np.concatenate([one.points, two.points]),
+        np.concatenate([one.descriptors, two.descriptors]),
+        np.concatenate([one.point_index, two.point_index + len(one.points)]),
+    )
+    found = photo.register(src, dst)
+    assert not found.accepted
+    assert "two poses" in found.reason and "180° apart" in found.reason
+    # with the second pose's pairs fewer than half the first's, the first is taken
+    few = _anchors(points, texture, np.arange(200, 260), turned, rng)
+    dst = PhotoAnchors(
+        np.concatenate([one.points, few.points]),
+        np.concatenate([one.descriptors, few.descriptors]),
+        np.concatenate([one.point_index, few.point_index + len(one.points)]),
+    )
+    found = photo.register(src, dst)
+    assert found.accepted and rre_deg(found.transform.rotation, TRUTH.rotation) < 0.1

@@ -15,6 +15,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from gsa.geometry import rotation_angle
 from gsa.recon.anchors import PhotoAnchors
 from gsa.sim3 import DegenerateCorrespondencesError, Sim3, solve_sim3
 
@@ -33,6 +34,9 @@ MIN_INLIERS = 20
 MIN_INLIER_SHARE = 0.2
 # The inliers must span a plane at least: collinear points leave a rotation free.
 MIN_SPREAD = 0.05
+# A second pose that this share of the best one's pairs agree with (among the rest) makes the
+# photos ambiguous: the pose is left to the geometry.
+RIVAL_SHARE = 0.5
 # Anchor points farther from their model than this share of its median radius (median over the
 # points) do not belong to it (reconstructions: 1.5 %; a model moved by a few per cent of its
 # size fails it).
@@ -110,6 +114,33 @@ def matched_pairs(
     return unique, votes.astype(np.float64)
 
 
+def _ransac(a: np.ndarray, b: np.ndarray, votes: np.ndarray, tol: float, rng) -> Sim3 | None:
+    """The 3-pair similarity most votes agree with (within tol), refitted on its inliers."""
+    best_support, best = 0.0, None
+    for _ in range(RANSAC_SAMPLES):
+        pick = rng.choice(len(a), 3, replace=False)
+        try:
+            pose = solve_sim3(a[pick], b[pick])
+        except DegenerateCorrespondencesError:
+            continue
+        support = votes[np.linalg.norm(pose.apply(a) - b, axis=1) < tol].sum()
+        if support > best_support:
+            best_support, best = support, pose
+    if best is None:
+        return None
+    inside = np.zeros(len(a), bool)
+    for _ in range(5):  # refit on the inliers until they settle
+        inside_now = np.linalg.norm(best.apply(a) - b, axis=1) < tol
+        if inside_now.sum() < 3 or (inside_now == inside).all():
+            break
+        inside = inside_now
+        try:
+            best = solve_sim3(a[inside], b[inside], votes[inside])
+        except DegenerateCorrespondencesError:
+            break
+    return best
+
+
 def register(src: PhotoAnchors, dst: PhotoAnchors, seed: int = 0) -> PhotoMatch:
     """The Sim(3) source -> target that the photos' matched texture supports, or a refusal."""
     pairs, votes = matched_pairs(src, dst, seed=seed)
@@ -123,28 +154,9 @@ def register(src: PhotoAnchors, dst: PhotoAnchors, seed: int = 0) -> PhotoMatch:
         return PhotoMatch(None, False, "the target's matched points coincide", len(pairs))
     tol = INLIER_RADIUS * radius
     rng = np.random.default_rng(seed)
-    best_support, best = 0.0, None
-    for _ in range(RANSAC_SAMPLES):
-        pick = rng.choice(len(pairs), 3, replace=False)
-        try:
-            pose = solve_sim3(a[pick], b[pick])
-        except DegenerateCorrespondencesError:
-            continue
-        support = votes[np.linalg.norm(pose.apply(a) - b, axis=1) < tol].sum()
-        if support > best_support:
-            best_support, best = support, pose
+    best = _ransac(a, b, votes, tol, rng)
     if best is None:
         return PhotoMatch(None, False, "every sample of matched points was degenerate", len(pairs))
-    inside = np.zeros(len(pairs), bool)
-    for _ in range(5):  # refit on the inliers until they settle
-        inside_now = np.linalg.norm(best.apply(a) - b, axis=1) < tol
-        if inside_now.sum() < 3 or (inside_now == inside).all():
-            break
-        inside = inside_now
-        try:
-            best = solve_sim3(a[inside], b[inside], votes[inside])
-        except DegenerateCorrespondencesError:
-            break
     residual = np.linalg.norm(best.apply(a) - b, axis=1)
     inside = residual < tol
     n = int(inside.sum())
@@ -154,11 +166,23 @@ def register(src: PhotoAnchors, dst: PhotoAnchors, seed: int = 0) -> PhotoMatch:
         row.reason = (
             f"{n} of {len(pairs)} matched point pairs agree on one pose (need {MIN_INLIERS} and {MIN_INLIER_SHARE:.0%})"
         )
-    elif spread[1] < MIN_SPREAD * spread[0]:
+        return row
+    if spread[1] < MIN_SPREAD * spread[0]:
         row.reason = "the agreeing points lie on a line: the rotation about it is not fixed"
-    else:
-        row.accepted = True
-        row.reason = f"{n} of {len(pairs)} matched point pairs agree"
+        return row
+    # Repeated texture (a pattern printed twice, windows along a facade) can make a second pose
+    # that many pairs agree with: the photos then do not decide, and the geometry answers.
+    rest = ~inside
+    rival = _ransac(a[rest], b[rest], votes[rest], tol, rng) if rest.sum() >= MIN_INLIERS else None
+    m = int((np.linalg.norm(rival.apply(a[rest]) - b[rest], axis=1) < tol).sum()) if rival is not None else 0
+    if m >= MIN_INLIERS and m >= RIVAL_SHARE * n:
+        row.reason = (
+            f"two poses agree with the photos' matched points ({n} and {m} of {len(pairs)} pairs; "
+            f"{np.degrees(rotation_angle(best.rotation.T @ rival.rotation)):.0f}° apart): repeated texture"
+        )
+        return row
+    row.accepted = True
+    row.reason = f"{n} of {len(pairs)} matched point pairs agree"
     return row
 
 
