@@ -7,9 +7,6 @@ two real pycolmap reconstructions the same way.
 
 from __future__ import annotations
 
-import subprocess
-import sys
-
 import numpy as np
 import pytest
 
@@ -32,6 +29,16 @@ def _anchors(points, texture, rows, pose, rng, views=2, noise=0.0005):
     desc = np.repeat(texture[rows], views, axis=0).astype(np.int64)
     desc = np.clip(desc + rng.integers(-4, 5, size=desc.shape), 0, 255).astype(np.uint8)
     return PhotoAnchors(pts, desc, np.repeat(np.arange(len(rows)), views))
+
+
+def _joined(*parts: PhotoAnchors) -> PhotoAnchors:
+    """One target's anchors made of several groups of points."""
+    offsets = np.cumsum([0] + [len(p.points) for p in parts[:-1]])
+    return PhotoAnchors(
+        np.concatenate([p.points for p in parts]),
+        np.concatenate([p.descriptors for p in parts]),
+        np.concatenate([p.point_index + o for p, o in zip(parts, offsets)]),
+    )
 
 
 @pytest.fixture(scope="module")
@@ -63,12 +70,8 @@ def test_wrong_matches_are_outvoted(surface):
     right = _anchors(points, texture, np.arange(150, 350), TRUTH, rng)
     wrong_rows = np.arange(0, 100)
     wrong = _anchors(points, texture, wrong_rows, TRUTH, rng)
-    shuffled = rng.permutation(len(wrong.points))
-    dst = PhotoAnchors(
-        np.concatenate([right.points, wrong.points[shuffled]]),
-        np.concatenate([right.descriptors, wrong.descriptors]),
-        np.concatenate([right.point_index, wrong.point_index + len(right.points)]),
-    )
+    shuffled = PhotoAnchors(wrong.points[rng.permutation(len(wrong.points))], wrong.descriptors, wrong.point_index)
+    dst = _joined(right, shuffled)
     found = photo.register(src, dst)
     assert found.accepted, found.reason
     assert found.matches >= 290 and 190 <= found.inliers <= 210
@@ -161,19 +164,6 @@ def test_hints_take_precedence_over_the_photos(surface):
     assert r.stages != ("photo",) and "photo_match" not in r.metrics
 
 
-def test_zlib_works_after_pycolmap_is_loaded():
-    """pycolmap's extension exports its own zlib symbols: Python's zlib loaded after it aborted
-    the process on the first compress. gsa.recon.sfm loads zlib first."""
-    code = (
-        "from gsa.recon.sfm import _pycolmap; _pycolmap()\n"
-        "import zlib, io, numpy as np\n"
-        "assert len(zlib.compress(b'x' * 100000)) < 1000\n"
-        "np.savez_compressed(io.BytesIO(), a=np.zeros(1000))\n"
-    )
-    run = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
-    assert run.returncode == 0, run.stderr[-2000:]
-
-
 def test_large_anchor_sets_are_capped_and_still_register(surface):
     """Past MAX_DESCRIPTORS a side each point keeps one view, then a random share of points."""
     _, points, texture = surface
@@ -196,20 +186,12 @@ def test_two_poses_agreed_by_repeated_texture_are_left_to_the_geometry(surface):
     turned = TRUTH.compose(Sim3(1.0, axis_rotation(np.array([0.0, 1.0, 0.0]), np.pi), np.zeros(3)))
     one = _anchors(points, texture, np.arange(0, 200), TRUTH, rng)
     two = _anchors(points, texture, np.arange(200, 350), turned, rng)
-    dst = PhotoAnchors(
-        np.concatenate([one.points, two.points]),
-        np.concatenate([one.descriptors, two.descriptors]),
-        np.concatenate([one.point_index, two.point_index + len(one.points)]),
-    )
+    dst = _joined(one, two)
     found = photo.register(src, dst)
     assert not found.accepted
     assert "two poses" in found.reason and "180° apart" in found.reason
     # with the second pose's pairs fewer than half the first's, the first is taken
     few = _anchors(points, texture, np.arange(200, 260), turned, rng)
-    dst = PhotoAnchors(
-        np.concatenate([one.points, few.points]),
-        np.concatenate([one.descriptors, few.descriptors]),
-        np.concatenate([one.point_index, few.point_index + len(one.points)]),
-    )
+    dst = _joined(one, few)
     found = photo.register(src, dst)
     assert found.accepted and rre_deg(found.transform.rotation, TRUTH.rotation) < 0.1

@@ -55,7 +55,8 @@ class SfMResult:
 def _pycolmap():
     # pycolmap's extension carries its own zlib and exports its symbols: Python's zlib module
     # loaded AFTER it mixes the two and aborts the process in free() on the first compress
-    # (pycolmap 4.2). Loaded first, it keeps its own (tests/test_recon_anchors.py).
+    # (pycolmap 4.2, seen in a script that imported pycolmap first). This module's own imports
+    # load zlib already (zipfile); the import here keeps that true whatever they become.
     import zlib  # noqa: F401
 
     try:
