@@ -195,3 +195,51 @@ def test_two_poses_agreed_by_repeated_texture_are_left_to_the_geometry(surface):
     dst = _joined(one, few)
     found = photo.register(src, dst)
     assert found.accepted and rre_deg(found.transform.rotation, TRUTH.rotation) < 0.1
+
+
+def test_a_shared_background_does_not_register_two_different_objects(surface):
+    """Two different objects photographed in one place: their SfM points share the background
+    (a ring of textured points around them), not their surfaces. Only points on each model
+    take part, so the photos are not used and the geometry answers."""
+    _, points, texture = surface
+    rng = np.random.default_rng(10)
+    source = make_object("car", seed=1, n_gaussians=6000)
+    target = make_object("airplane", seed=2, n_gaussians=6000).transformed(TRUTH)
+    angle = rng.uniform(0, 2 * np.pi, 300)
+    ring = np.stack([6 * np.cos(angle), rng.uniform(-1, 1, 300), 6 * np.sin(angle)], axis=1)
+    ring_texture = rng.integers(0, 256, size=(300, 128))
+    everywhere = np.arange(300)
+    source.metadata["photo_anchors"] = _joined(
+        _anchors(points, texture, np.arange(0, 300), Sim3.identity(), rng),
+        _anchors(ring, ring_texture, everywhere, Sim3.identity(), rng),
+    )
+    target.metadata["photo_anchors"] = _joined(
+        _anchors(
+            target.means.astype(np.float64),
+            rng.integers(0, 256, size=(6000, 128)),
+            np.arange(300),
+            Sim3.identity(),
+            rng,
+        ),
+        _anchors(ring, ring_texture, everywhere, TRUTH, rng),
+    )
+    # all anchors together would register the background, confidently
+    whole = photo.register(source.metadata["photo_anchors"], target.metadata["photo_anchors"])
+    assert whole.accepted and rre_deg(whole.transform.rotation, TRUTH.rotation) < 0.1
+    on_source = photo.photo_anchors(source)
+    assert len(on_source.points) == 300  # the car's own points; the ring is left out
+    r = align(source, target)
+    assert r.stages != ("photo",)
+    assert r.metrics["photo_match"]["accepted"] is False
+
+
+def test_subset_keeps_the_chosen_points_and_their_views():
+    anchors = PhotoAnchors(
+        np.arange(12, dtype=float).reshape(4, 3),
+        np.arange(6 * 128, dtype=np.int64).reshape(6, 128).astype(np.uint8),
+        np.array([0, 1, 1, 2, 3, 3]),
+    )
+    kept = anchors.subset(np.array([False, True, False, True]))
+    assert np.array_equal(kept.points, anchors.points[[1, 3]])
+    assert np.array_equal(kept.point_index, [0, 0, 1, 1])
+    assert np.array_equal(kept.descriptors, anchors.descriptors[[1, 2, 4, 5]])

@@ -42,6 +42,13 @@ class PhotoAnchors:
     def __len__(self) -> int:
         return len(self.descriptors)
 
+    def subset(self, keep: np.ndarray) -> PhotoAnchors:
+        """The anchors of the points where `keep` (P,) is true, renumbered."""
+        keep = np.asarray(keep, bool)
+        new_index = np.cumsum(keep) - 1
+        rows = keep[self.point_index]
+        return PhotoAnchors(self.points[keep], self.descriptors[rows], new_index[self.point_index[rows]])
+
     def transformed(self, sim3) -> PhotoAnchors:
         """The same anchors with their points mapped by a Sim(3) (the model moved with them)."""
         return PhotoAnchors(sim3.apply(self.points), self.descriptors, self.point_index)
