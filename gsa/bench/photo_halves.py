@@ -100,17 +100,18 @@ def joint_cameras(directory: Path, work: Path, reuse: bool, seed: int = 0):
 def to_joint(cams, names, joint_cams, joint_names) -> tuple[object, dict]:
     """The Sim(3) from a half's SfM frame onto the joint frame, fitted on the camera centres of
     the views both registered, and a row describing the fit."""
-    from gsa.recon.sfm import centre_error
+    from gsa.recon.sfm import centre_error, trimmed_centre_fit
 
     common = [n for n in names if n in joint_names]
     if len(common) < 3:
         raise RuntimeError(f"only {len(common)} views registered both in the half and the joint SfM")
     mine = cams[[names.index(n) for n in common]]
     joint = joint_cams[[joint_names.index(n) for n in common]]
-    rms, t = centre_error(mine, joint)
+    rms, _ = centre_error(mine, joint)
+    t, kept = trimmed_centre_fit(mine, joint)  # views placed off by either SfM do not tilt the truth
     centres = joint_cams.centers()
     spread = float(np.sqrt(np.mean(np.sum((centres - centres.mean(axis=0)) ** 2, axis=1))))
-    return t, {"views_fitted": len(common), "centre_fit_rms_pct_of_spread": 100 * rms / spread}
+    return t, {"views_fitted": len(common), "views_kept": kept, "centre_fit_rms_pct_of_spread": 100 * rms / spread}
 
 
 def looked_at(cams) -> tuple[np.ndarray, float]:

@@ -265,3 +265,20 @@ def centre_error(est: Cameras, true: Cameras) -> tuple[float, object]:
     t = solve_sim3(a, b)
     res = np.linalg.norm(t.apply(a) - b, axis=1)
     return float(np.sqrt(np.mean(res**2))), t
+
+
+def trimmed_centre_fit(est: Cameras, true: Cameras, factor: float = 3.0, rounds: int = 5) -> tuple[object, int]:
+    """The Sim(3) of centre_error refitted on the cameras within `factor` × the median residual
+    (at least half of them), until they settle: a few views SfM placed off (a registration that
+    failed quietly) otherwise tilt a truth fitted on all of them. Returns (Sim3, cameras kept)."""
+    a, b = est.centers(), true.centers()
+    keep = np.ones(len(a), bool)
+    t = solve_sim3(a, b)
+    for _ in range(rounds):
+        res = np.linalg.norm(t.apply(a) - b, axis=1)
+        now = res <= max(factor * np.median(res), np.sort(res)[(len(res) - 1) // 2])
+        if (now == keep).all():
+            break
+        keep = now
+        t = solve_sim3(a[keep], b[keep])
+    return t, int(keep.sum())
