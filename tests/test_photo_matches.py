@@ -243,3 +243,16 @@ def test_subset_keeps_the_chosen_points_and_their_views():
     assert np.array_equal(kept.points, anchors.points[[1, 3]])
     assert np.array_equal(kept.point_index, [0, 0, 1, 1])
     assert np.array_equal(kept.descriptors, anchors.descriptors[[1, 2, 4, 5]])
+
+
+def test_a_broken_anchors_file_is_a_warning_not_a_failure(tmp_path):
+    from gsa.io.ply import ReaderWarning, write_ply
+    from gsa.recon.folder import is_reconstruction, read_reconstruction
+
+    write_ply(make_object("car", seed=1, n_gaussians=500), tmp_path / "model.ply")
+    (tmp_path / "report.json").write_text("{}")
+    (tmp_path / "anchors.npz").write_bytes(b"not an npz")
+    assert is_reconstruction(tmp_path)
+    with pytest.warns(ReaderWarning, match="aligning without its photos"):
+        model = read_reconstruction(tmp_path)
+    assert "photo_anchors" not in model.metadata and len(model) == 500

@@ -6,8 +6,10 @@ a reconstruction or an image set to reconstruct.
 
 from __future__ import annotations
 
+import warnings
 from pathlib import Path
 
+from gsa.io.ply import ReaderWarning
 from gsa.model import GaussianModel
 from gsa.recon.anchors import ANCHORS_FILE
 
@@ -30,5 +32,10 @@ def read_reconstruction(path: str | Path) -> GaussianModel:
     if (out / "cameras.json").is_file():
         model.metadata["training_cameras"] = read_cameras_json(out / "cameras.json")[0]
     if (out / ANCHORS_FILE).is_file():
-        model.metadata["photo_anchors"] = PhotoAnchors.load(out / ANCHORS_FILE)
+        try:
+            model.metadata["photo_anchors"] = PhotoAnchors.load(out / ANCHORS_FILE)
+        except (OSError, ValueError, KeyError, EOFError) as exc:  # the model still aligns by its Gaussians
+            warnings.warn(
+                f"{out / ANCHORS_FILE}: not read ({exc}); aligning without its photos", ReaderWarning, stacklevel=2
+            )
     return model
