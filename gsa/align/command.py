@@ -13,10 +13,11 @@ import numpy as np
 from gsa.cli_base import FORMAT_CHOICES, CliError, ProgressPrinter
 
 
-def _load_model(path: str, role: str = "model", args: argparse.Namespace | None = None):
+def _load_model(path: str, role: str = "model", args: argparse.Namespace | None = None, calibration=None):
     """A 3DGS file in any supported format, a folder `gsa reconstruct` wrote (its model, with the
     photo anchors that let align() register two reconstructions by their photos), or an image
-    set (folder or .zip) reconstructed first."""
+    set (folder or .zip) reconstructed first — with `calibration` (gsa.recon.calibration) held
+    fixed when its photos are of that camera."""
     from gsa.io.formats import read_model
     from gsa.recon.folder import is_reconstruction, read_reconstruction
 
@@ -31,7 +32,12 @@ def _load_model(path: str, role: str = "model", args: argparse.Namespace | None 
         out = Path(args.out).parent / f"recon_{role}" if args is not None else Path(f"recon_{role}")
         preset = getattr(args, "preset", "cpu")
         print(f"[gsa] reconstructing {role} from {path} into {out} (preset {preset})", file=sys.stderr)
-        return reconstruct(p, out, preset=preset, progress=ProgressPrinter(not getattr(args, "quiet", False))).model
+        res = reconstruct(
+            p, out, preset=preset, progress=ProgressPrinter(not getattr(args, "quiet", False)), calibration=calibration
+        )
+        if res.intrinsics.get("fixed"):
+            print(f"[gsa] {role}: the source's camera (EXIF): its intrinsics held fixed", file=sys.stderr)
+        return res.model
     return read_model(p)
 
 
@@ -252,6 +258,13 @@ def add_align_arguments(p: argparse.ArgumentParser) -> None:
         "by their photos' shared texture where enough matched SfM points agree (auto), or by "
         "their Gaussians alone (off)",
     )
+    g.add_argument(
+        "--own-intrinsics",
+        action="store_true",
+        help="two image sets of one camera (by their EXIF): reconstruct each with its own estimated "
+        "focal length instead of the target with the source's (shared by default: two estimates "
+        "of one lens differ by ~1 %%, and so would the models' scale)",
+    )
 
 
 def cmd_align(args: argparse.Namespace) -> int:
@@ -262,7 +275,12 @@ def cmd_align(args: argparse.Namespace) -> int:
 
     options = _align_options(args)
     source = _load_model(args.source, "source", args)
-    target = _load_model(args.target, "target", args)
+    shared = None
+    if not getattr(args, "own_intrinsics", False):
+        from gsa.recon.calibration import Calibration
+
+        shared = Calibration.of_model(source)  # one lens, one focal length: the models' scales agree
+    target = _load_model(args.target, "target", args, calibration=shared)
     options = _options_for_files(options, args, source, target)
     cameras = None
     if args.target_cameras:

@@ -131,8 +131,20 @@ def within(model, cams, factor: float):
     return np.linalg.norm(model.means - point, axis=1) <= factor * distance
 
 
+def same_camera_by_exif(images: Path, parts: tuple[list[str], list[str]]) -> bool:
+    """Whether every original photo of both halves names one camera in its EXIF (`parts` are the
+    scaled copies' names: the originals' stems + .png)."""
+    from gsa.recon.calibration import same_camera
+    from gsa.recon.photos import exif_camera
+
+    by_stem = {p.stem: p for p in images.iterdir() if p.is_file()}
+    found = {exif_camera(by_stem[Path(n).stem]) for part in parts for n in part if Path(n).stem in by_stem}
+    return len(found) == 1 and same_camera(*found, *found)
+
+
 def run_size(args, size: int, root: Path) -> dict:
     from gsa.bench.recon import alignment_rows, reconstructed
+    from gsa.recon.calibration import Calibration
 
     t = time.perf_counter()
     names = scaled_photos(Path(args.images), root / "all", size)
@@ -149,14 +161,22 @@ def run_size(args, size: int, root: Path) -> dict:
     }
     print(json.dumps({"size": size, "set": "joint"} | out["joint"]), flush=True)
     models, cameras, to_j = {}, {}, {}
+    # One camera by the originals' EXIF (the scaled copies carry none): B is reconstructed with
+    # A's intrinsics, as `gsa align` reconstructs two photo sets of one camera (gsa.recon.calibration).
+    share = not args.own_intrinsics and same_camera_by_exif(Path(args.images), halves(names))
+    out["intrinsics"] = "shared (B with A's)" if share else "each half its own"
     for label, part in zip("AB", halves(names)):
         images = _link(root / "all", part, root / label.lower())
-        model, cams, cam_names, rep = reconstructed(images, root / f"{label.lower()}_out", args)
+        calibration = Calibration.of_model(models["A"]) if share and label == "B" else None
+        folder = root / ("b_shared_out" if calibration is not None else f"{label.lower()}_out")
+        model, cams, cam_names, rep = reconstructed(images, folder, args, calibration)
         to_j[label], fit = to_joint(cams, cam_names, joint_cams, joint_names)
         out[label] = {
             "set": label,
             "views": len(part),
             "registered": rep["registered"],
+            "focal_px": float(cams.fx[0]),
+            "intrinsics_fixed": bool(rep.get("intrinsics", {}).get("fixed")),
             **fit,
             "psnr_heldout_db": rep["psnr_heldout_db"],
             "gaussians": rep["gaussians"],
@@ -199,6 +219,11 @@ def main(argv=None) -> int:
     )
     ap.add_argument("--workdir", default=None)
     ap.add_argument("--reuse", action="store_true", help="reuse the SfM and reconstructions already in --workdir")
+    ap.add_argument(
+        "--own-intrinsics",
+        action="store_true",
+        help="each half estimates its own focal length even when EXIF names one camera (the earlier protocol)",
+    )
     args = ap.parse_args(argv)
 
     root = Path(args.workdir or tempfile.mkdtemp(prefix="gsa-photo-halves-"))
@@ -206,7 +231,7 @@ def main(argv=None) -> int:
     for size in args.size:
         t = time.perf_counter()
         out["rows"].append(run_size(args, size, root / f"{size}px"))
-        print(f"{size} px: {time.perf_counter() - t:.0f} s", flush=True)
+        print(f"{size} px ({out['rows'][-1]['intrinsics']}): {time.perf_counter() - t:.0f} s", flush=True)
     print(
         f"{'size':>5} {'crop':>5} {'method':>12} {'registered':>13} {'RRE (°)':>8} {'scale err (%)':>13} {'confidence':>10} flagged"
     )

@@ -46,15 +46,23 @@ def _measure(name, syn, names, cameras, report: dict) -> tuple[dict, object]:
     return row, t
 
 
-def reconstructed(images, out: Path, args):
+def reconstructed(images, out: Path, args, calibration=None):
     """(model, cameras, names, report) of the reconstruction of the images in `images` (a folder),
-    made unless args.reuse finds it in `out`; args: preset, iterations, reuse."""
+    made unless args.reuse finds it in `out`; args: preset, iterations, reuse. calibration: another
+    reconstruction's intrinsics, held fixed (the caller knows the photos share the camera)."""
     from gsa.recon.folder import read_reconstruction
     from gsa.recon.pipeline import reconstruct
     from gsa.render.cameras import read_cameras_json
 
     if not (args.reuse and (out / "report.json").exists()):
-        reconstruct(images, out, preset=args.preset, iterations=args.iterations)
+        reconstruct(
+            images,
+            out,
+            preset=args.preset,
+            iterations=args.iterations,
+            calibration=calibration,
+            calibration_check="none",
+        )
     model = read_reconstruction(out)  # with its training cameras and photo anchors, as reconstruct() leaves it
     cameras, names = read_cameras_json(out / "cameras.json")
     return model, cameras, names, json.loads((out / "report.json").read_text())

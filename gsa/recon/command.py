@@ -27,6 +27,13 @@ def add_reconstruct_parser(subparsers) -> argparse.ArgumentParser:
     p.add_argument("--features", choices=("canonical", "none"), default="canonical")
     p.add_argument("--sam-encoder", default=None, help="local SAM encoder .onnx (masks=sam)")
     p.add_argument("--sam-decoder", default=None, help="local SAM decoder .onnx (masks=sam)")
+    p.add_argument(
+        "--intrinsics-from",
+        default=None,
+        metavar="DIR",
+        help="a folder `gsa reconstruct` wrote from photos of the same camera: its intrinsics are held "
+        "fixed (scaled to this set's size) so that the two models share one lens and one scale",
+    )
     p.set_defaults(func=run_reconstruct)
     return p
 
@@ -44,6 +51,11 @@ def run_reconstruct(args) -> int:
         print(f"\r{stage:14s} {100 * frac:5.1f}%", end="", file=sys.stderr, flush=True)
 
     sam_encoder, sam_decoder = sam_paths_env(args.sam_encoder, args.sam_decoder)
+    calibration = None
+    if args.intrinsics_from:
+        calibration = _calibration_from(args.intrinsics_from)
+        if calibration is None:
+            return 1
     try:
         res = reconstruct(
             args.images,
@@ -56,6 +68,8 @@ def run_reconstruct(args) -> int:
             iterations=args.iterations,
             sam_encoder=sam_encoder,
             sam_decoder=sam_decoder,
+            calibration=calibration,
+            calibration_check="none",  # the user says it is the same camera
         )
     except (ImageSetError, SfMError, MaskError) as exc:
         print(("\n" if line_open else "") + f"gsa: error: {exc}", file=sys.stderr)
@@ -69,8 +83,27 @@ def run_reconstruct(args) -> int:
             "distance) from the point the cameras look at",
             file=sys.stderr,
         )
+    if calibration is not None and not res.intrinsics.get("fixed"):
+        print(f"gsa: --intrinsics-from not used: {res.intrinsics['reason']}", file=sys.stderr)
     print(json.dumps(res.summary(), indent=1))
     return 0
+
+
+def _calibration_from(folder: str):
+    """The intrinsics of a folder `gsa reconstruct` wrote; None (one error line printed) when
+    it holds none a set could share."""
+    from gsa.recon.calibration import Calibration
+    from gsa.render.cameras import read_cameras_json
+
+    try:
+        cameras, _ = read_cameras_json(f"{folder}/cameras.json")
+    except (OSError, ValueError, KeyError) as exc:
+        print(f"gsa: error: --intrinsics-from {folder}: {exc}", file=sys.stderr)
+        return None
+    calibration = Calibration.of_cameras(cameras)
+    if calibration is None:
+        print(f"gsa: error: --intrinsics-from {folder}: its views have several cameras", file=sys.stderr)
+    return calibration
 
 
 def main(argv=None) -> int:  # `python -m gsa.recon.command ...` without the main CLI

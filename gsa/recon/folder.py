@@ -6,6 +6,7 @@ a reconstruction or an image set to reconstruct.
 
 from __future__ import annotations
 
+import json
 import warnings
 from pathlib import Path
 
@@ -22,7 +23,8 @@ def is_reconstruction(path: str | Path) -> bool:
 
 def read_reconstruction(path: str | Path) -> GaussianModel:
     """The model of a folder `reconstruct()` wrote, as reconstruct() returned it: its training
-    cameras and photo anchors in `metadata` (align() uses both)."""
+    cameras, photo anchors and EXIF camera in `metadata` (align() uses the first two; another
+    set of the same camera is reconstructed with its intrinsics, gsa.recon.calibration)."""
     from gsa.io.ply import read_ply
     from gsa.recon.anchors import PhotoAnchors
     from gsa.render.cameras import read_cameras_json
@@ -31,6 +33,11 @@ def read_reconstruction(path: str | Path) -> GaussianModel:
     model = read_ply(out / "model.ply")
     if (out / "cameras.json").is_file():
         model.metadata["training_cameras"] = read_cameras_json(out / "cameras.json")[0]
+    try:
+        camera = json.loads((out / "report.json").read_text()).get("exif_camera")
+    except (OSError, ValueError, AttributeError):
+        camera = None  # an older or hand-edited report: the intrinsics are simply not shared
+    model.metadata["exif_camera"] = camera if isinstance(camera, list) else None
     if (out / ANCHORS_FILE).is_file():
         try:
             model.metadata["photo_anchors"] = PhotoAnchors.load(out / ANCHORS_FILE)

@@ -37,7 +37,8 @@ class ImageSet:
     """Images sharing one size. directory: where the files are (a temp dir for zips, or for a
     set prepared by gsa.recon.photos: EXIF-rotated, mixed orientations or sizes); names: file
     names relative to it (sorted); width, height: pixels; camera_groups: each image's SfM
-    camera (None: one camera); notes: what preparing the set changed (report.json)."""
+    camera (None: one camera); notes: what preparing the set changed (report.json); camera:
+    what EXIF says took every image (gsa.recon.photos.exif_camera), None unless one camera."""
 
     directory: Path
     names: list[str]
@@ -47,6 +48,7 @@ class ImageSet:
     camera_groups: list[int] | None = None
     notes: dict = field(default_factory=dict)
     _prepared: object | None = field(default=None, repr=False)  # keeps a prepared copy alive
+    camera: tuple | None = None
 
     def __len__(self) -> int:
         return len(self.names)
@@ -142,5 +144,13 @@ def load_image_set(
 
     ready = prepare_photos(directory, names, min_images=min_images, max_pixels=max_pixels, error=ImageSetError)
     return ImageSet(
-        ready.directory, ready.names, ready.width, ready.height, tmp, ready.camera_groups, ready.notes, ready.tmp
+        ready.directory,
+        ready.names,
+        ready.width,
+        ready.height,
+        tmp,
+        ready.camera_groups,
+        ready.notes,
+        ready.tmp,
+        ready.camera,
     )

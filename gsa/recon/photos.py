@@ -70,7 +70,8 @@ class PreparedSet:
     """directory: where the images to use are (the original folder, or a temporary copy);
     names: the images used (sorted; unreadable files left out); width, height: one size for
     all; camera_groups: each image's SfM camera (None: one camera for all); notes: what was
-    changed, by file name (for report.json)."""
+    changed, by file name (for report.json); camera: what EXIF says took every photo used
+    (exif_camera), None unless all name one camera."""
 
     directory: Path
     names: list[str]
@@ -79,46 +80,96 @@ class PreparedSet:
     camera_groups: list[int] | None = None
     notes: dict = field(default_factory=dict)
     tmp: object | None = None
+    camera: tuple | None = None
 
 
-def exif_orientation(path: str | os.PathLike) -> int:
-    """The EXIF orientation (1-8) of a JPEG, 1 when it has none or is not a JPEG."""
+def _exif_tiff(path: str | os.PathLike) -> bytes | None:
+    """The TIFF block of a JPEG's EXIF (APP1) segment, None when it has none or is not a JPEG."""
     if Path(path).suffix.lower() not in JPEG_SUFFIXES:
-        return 1
+        return None
     try:
         with open(path, "rb") as fh:
             data = fh.read(1 << 16)  # APP1 comes first and is at most 64 KiB
     except OSError:
-        return 1
+        return None
     if data[:2] != b"\xff\xd8":
-        return 1
+        return None
     at = 2
     while at + 4 <= len(data) and data[at] == 0xFF:
         marker, size = data[at + 1], struct.unpack_from(">H", data, at + 2)[0]
         if marker == 0xE1 and data[at + 4 : at + 10] == b"Exif\x00\x00":
-            return _tiff_orientation(data[at + 10 : at + 2 + size])
+            tiff = data[at + 10 : at + 2 + size]
+            return tiff if len(tiff) >= 8 and tiff[:2] in (b"II", b"MM") else None
         if marker in (0xDA, 0xD9):  # start of scan, end of image: no EXIF before the pixels
-            return 1
+            return None
         at += 2 + size
-    return 1
+    return None
 
 
-def _tiff_orientation(tiff: bytes) -> int:
-    if len(tiff) < 8 or tiff[:2] not in (b"II", b"MM"):
-        return 1
+# TIFF field types read here: their byte sizes.
+_TIFF_SIZES = {1: 1, 2: 1, 3: 2, 4: 4, 5: 8, 7: 1}
+
+
+def _ifd(tiff: bytes, offset: int) -> dict:
+    """{tag: value} of one TIFF directory: ASCII as str, SHORT/LONG as int, RATIONAL as float
+    (the first value of each; other types and entries beyond the block are skipped)."""
     order = "<" if tiff[:2] == b"II" else ">"
-    ifd = struct.unpack_from(order + "I", tiff, 4)[0]
-    if ifd + 2 > len(tiff):
-        return 1
-    for i in range(struct.unpack_from(order + "H", tiff, ifd)[0]):
-        entry = ifd + 2 + 12 * i
+    values: dict = {}
+    if offset + 2 > len(tiff):
+        return values
+    for i in range(struct.unpack_from(order + "H", tiff, offset)[0]):
+        entry = offset + 2 + 12 * i
         if entry + 12 > len(tiff):
             break
-        tag, kind = struct.unpack_from(order + "HH", tiff, entry)
-        if tag == 0x0112 and kind == 3:
-            value = struct.unpack_from(order + "H", tiff, entry + 8)[0]
-            return value if 1 <= value <= 8 else 1
-    return 1
+        tag, kind, count = struct.unpack_from(order + "HHI", tiff, entry)
+        if kind not in _TIFF_SIZES:
+            continue
+        size = _TIFF_SIZES[kind] * count
+        at = entry + 8 if size <= 4 else struct.unpack_from(order + "I", tiff, entry + 8)[0]
+        if at + max(size, _TIFF_SIZES[kind]) > len(tiff):
+            continue
+        if kind == 2:
+            values[tag] = tiff[at : at + size].split(b"\x00")[0].decode("latin-1").strip()
+        elif kind == 3:
+            values[tag] = struct.unpack_from(order + "H", tiff, at)[0]
+        elif kind == 4:
+            values[tag] = struct.unpack_from(order + "I", tiff, at)[0]
+        elif kind == 5:
+            num, den = struct.unpack_from(order + "II", tiff, at)
+            values[tag] = num / den if den else None
+    return values
+
+
+def exif_orientation(path: str | os.PathLike) -> int:
+    """The EXIF orientation (1-8) of a JPEG, 1 when it has none or is not a JPEG."""
+    tiff = _exif_tiff(path)
+    if tiff is None:
+        return 1
+    order = "<" if tiff[:2] == b"II" else ">"
+    value = _ifd(tiff, struct.unpack_from(order + "I", tiff, 4)[0]).get(0x0112)
+    return value if isinstance(value, int) and 1 <= value <= 8 else 1
+
+
+def exif_camera(path: str | os.PathLike) -> tuple | None:
+    """What EXIF says took the photo: (make, model, lens, focal length in mm, 35 mm equivalent,
+    digital zoom), None when it names neither the camera nor a focal length. Two photos with
+    the same tuple share their intrinsics up to the size they were stored at (gsa.recon.calibration)."""
+    tiff = _exif_tiff(path)
+    if tiff is None:
+        return None
+    order = "<" if tiff[:2] == b"II" else ">"
+    main = _ifd(tiff, struct.unpack_from(order + "I", tiff, 4)[0])
+    sub = _ifd(tiff, main[0x8769]) if isinstance(main.get(0x8769), int) else {}
+    focal = sub.get(0x920A)
+    camera = (
+        main.get(0x010F) or None,  # Make
+        main.get(0x0110) or None,  # Model
+        sub.get(0xA434) or None,  # LensModel: a phone's wide, tele and ultra-wide cameras
+        round(focal, 3) if isinstance(focal, float) else None,  # FocalLength, a zoom lens's setting
+        sub.get(0xA405) or None,  # FocalLengthIn35mmFilm: changes with a crop or digital zoom
+        round(sub[0xA404], 3) if isinstance(sub.get(0xA404), float) else None,  # DigitalZoomRatio
+    )
+    return camera if (camera[1] or camera[3]) else None
 
 
 def read_oriented(path: str | os.PathLike) -> np.ndarray | None:
@@ -173,9 +224,11 @@ def prepare_photos(
         used = [n for n in used if n not in blurred]
         sizes = {n: sizes[n] for n in used}
         rotated_by_exif = [n for n in rotated_by_exif if n in sizes]
+    cameras = {exif_camera(directory / n) for n in used}  # read on the originals: copies lose EXIF
+    camera = next(iter(cameras)) if len(cameras) == 1 else None
     if len(set(sizes.values())) == 1 and not rotated_by_exif:
         ((w, h),) = set(sizes.values())
-        return PreparedSet(directory, used, w, h, None, notes)
+        return PreparedSet(directory, used, w, h, None, notes, camera=camera)
 
     # One canvas: the majority orientation, its most common size.
     landscape = sum(w > h for w, h in sizes.values()) >= sum(h > w for w, h in sizes.values())
@@ -212,7 +265,7 @@ def prepare_photos(
             "rescaled": rescaled,
         }
     )
-    return PreparedSet(out, used, width, height, groups if len(kinds) > 1 else None, notes, tmp)
+    return PreparedSet(out, used, width, height, groups if len(kinds) > 1 else None, notes, tmp, camera)
 
 
 def sharpness(img: np.ndarray) -> float:

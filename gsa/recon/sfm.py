@@ -66,8 +66,11 @@ def _pycolmap():
     return pycolmap
 
 
-def _mapping_options(pycolmap, seed: int):
+def _mapping_options(pycolmap, seed: int, fixed_intrinsics: bool = False):
     opts = pycolmap.IncrementalPipelineOptions()
+    if fixed_intrinsics:
+        opts.ba_refine_focal_length = False
+        opts.ba_refine_principal_point = False
     opts.random_seed = seed
     opts.mapper.random_seed = seed
     opts.triangulation.random_seed = seed
@@ -97,6 +100,7 @@ def run_sfm(
     seed: int = 0,
     verbose: bool = False,
     mapping_attempts: int = 3,
+    fixed_intrinsics: tuple[float, float, float, float] | None = None,
 ) -> SfMResult:
     """Run SIFT + matching + incremental mapping; keep the largest model.
 
@@ -122,6 +126,8 @@ def run_sfm(
     report("sfm:features", 0.0)
     reader = pycolmap.ImageReaderOptions()
     reader.camera_model = "PINHOLE"
+    if fixed_intrinsics is not None:
+        reader.camera_params = ",".join(f"{v:.6f}" for v in fixed_intrinsics)
     ext = pycolmap.FeatureExtractionOptions()
     ext.sift.max_num_features = max_features
     ext.use_gpu = False
@@ -167,7 +173,10 @@ def run_sfm(
         attempt_dir = sparse / f"attempt{attempt}"
         attempt_dir.mkdir()
         recs = pycolmap.incremental_mapping(
-            db, images.directory, attempt_dir, options=_mapping_options(pycolmap, seed + attempt)
+            db,
+            images.directory,
+            attempt_dir,
+            options=_mapping_options(pycolmap, seed + attempt, fixed_intrinsics is not None),
         )
         if recs:
             best = max(recs.values(), key=lambda r: r.num_reg_images())

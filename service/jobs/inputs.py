@@ -289,9 +289,11 @@ def load_input(
     progress: Callable[[str, float], None],
     reconstructions: dict | None = None,
     recon_iterations: int | None = None,
+    calibration=None,
 ):
     """A job input as a GaussianModel: a PLY as is, an image set through gsa.recon
-    (its summary and model file are recorded in `reconstructions`)."""
+    (its summary and model file are recorded in `reconstructions`; `calibration`, another
+    input's intrinsics, is held fixed where its EXIF names the same camera)."""
     reconstructions = {} if reconstructions is None else reconstructions
     from gsa.io.formats import read_model  # lazy: keeps the library off API start-up
 
@@ -313,6 +315,7 @@ def load_input(
                 preset=preset,
                 progress=lambda st, f: progress(f"recon:{st}", f),
                 iterations=recon_iterations,
+                calibration=calibration,
             )
         except (ImageSetError, SfMError, MaskError) as exc:
             raise Problem(

@@ -14,6 +14,7 @@ import threading
 import time
 import uuid
 
+from gsa.recon.calibration import Calibration
 from service.backend import Backend, notify_webhook
 from service.jobs.inputs import load_input
 from service.jobs.many import is_many
@@ -236,6 +237,8 @@ def _run(backend: Backend, job: Job, token: str, prog: JobProgress, art_prefix: 
         prog("loading", 0.0)
         target = load_input(backend, job.target, work, "target", prog, reconstructions, recon_iterations)
         prog("loading", 0.5)  # a scene model takes seconds to read: report between the inputs
+        # photo sets of the target's camera (EXIF) are reconstructed with its intrinsics: one lens, one scale
+        shared = Calibration.of_model(target)
         results, files, transforms = [], [], []
         multi = len(job.sources) > 1
         for i, ref in enumerate(job.sources):
@@ -248,6 +251,7 @@ def _run(backend: Backend, job: Job, token: str, prog: JobProgress, art_prefix: 
                 prog,
                 reconstructions,
                 recon_iterations,
+                calibration=shared,
             )
             prog.check(force=True)
             # Guidance comes in the files' own coordinates (as results state transforms).

@@ -9,10 +9,15 @@ import zipfile
 
 import pytest
 
+from tests.exif import IPHONE, camera_jpeg
+
 pytestmark = pytest.mark.slow  # starts servers and worker processes
 
 
 def test_image_set_pair_job(tmp_path):
+    """Two photo sets of one object from one camera (EXIF): each reconstructed (the source with
+    the target's intrinsics held fixed), registered by their photos."""
+    import cv2
     from fastapi.testclient import TestClient
 
     from gsa.recon.synthetic import render_image_set
@@ -25,7 +30,8 @@ def test_image_set_pair_job(tmp_path):
         z = tmp_path / f"{name}.zip"
         with zipfile.ZipFile(z, "w") as zf:
             for p in sorted((tmp_path / name / "images").iterdir()):
-                zf.write(p, f"images/{p.name}")
+                jpeg = camera_jpeg(tmp_path / f"{name}-{p.stem}.jpg", image=cv2.imread(str(p)))
+                zf.write(jpeg, f"images/{p.stem}.jpg")
         zips.append(z)
     app = create_app(Settings(storage_root=tmp_path / "data", api_keys={"k": "me"}))
     headers = {"Authorization": "Bearer k"}
@@ -55,6 +61,9 @@ def test_image_set_pair_job(tmp_path):
         } <= names
         rec = job["result"]["reconstructions"]
         assert rec["source0"]["registered"] >= 12 and rec["target"]["registered"] >= 12
+        # one camera by EXIF: the source's SfM kept the target's lens (gsa.recon.calibration)
+        assert rec["target"]["exif_camera"] == list(IPHONE) and not rec["target"]["intrinsics"]["fixed"]
+        assert rec["source0"]["intrinsics"]["fixed"], rec["source0"]["intrinsics"]
         assert job["result"]["scale"] > 0
         # two photo sets of one object: their photos' shared texture gave the pose (gsa.align.photo)
         assert job["result"]["stages_run"] == ["photo"], job["result"]["metrics"].get("photo_match")
