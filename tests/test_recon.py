@@ -185,7 +185,7 @@ def rendered(tmp_path_factory):
     return render_image_set(root, n_views=24, size=256, orbit_seed=1)
 
 
-def _quick_reconstruction(images, out):
+def _quick_reconstruction(images, out, **kwargs):
     from dataclasses import replace
 
     from gsa.recon.pipeline import reconstruct
@@ -202,7 +202,7 @@ def _quick_reconstruction(images, out):
         feature_start=0.5,
         holdout_every=8,
     )
-    return reconstruct(images, out, preset=cfg)
+    return reconstruct(images, out, preset=cfg, **kwargs)
 
 
 @pytest.fixture(scope="module")
@@ -269,6 +269,20 @@ def test_two_reconstructions_register_by_their_photos(rendered, recon, second):
     assert rre_deg(again.transform.rotation, r.transform.rotation) < 1e-6
     # without the photos, the Gaussians alone decide
     assert align(recon.model, recon_b.model, AlignOptions(photo_matches="off")).stages != ("photo",)
+
+
+@pytest.mark.slow
+def test_intrinsics_that_do_not_fit_the_photos_cost_nothing(rendered, recon, tmp_path):
+    """A calibration held fixed where SfM cannot start with it (a lens 100x off) is dropped, the
+    set's own intrinsics are estimated, and report.json says why."""
+    from dataclasses import replace
+
+    wrong = replace(recon.calibration, fx=recon.calibration.fx * 100, fy=recon.calibration.fy * 100)
+    res = _quick_reconstruction(rendered.directory, tmp_path / "out", calibration=wrong, calibration_check="none")
+    assert not res.intrinsics["fixed"] and "with the other set's camera" in res.intrinsics["reason"]
+    assert res.n_registered >= 20 and abs(res.sfm.cameras.fx[0] / recon.sfm.cameras.fx[0] - 1) < 0.05
+    report = json.loads((tmp_path / "out" / "report.json").read_text())
+    assert report["intrinsics"] == res.intrinsics and report["exif_camera"] is None  # rendered PNGs: no EXIF
 
 
 def test_too_few_register(tmp_path):

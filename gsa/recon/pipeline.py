@@ -22,7 +22,7 @@ from gsa.recon.anchors import ANCHORS_FILE
 from gsa.recon.calibration import Calibration, same_camera
 from gsa.recon.images import load_image_set
 from gsa.recon.masks import SamOnnxMasker, compute_masks
-from gsa.recon.sfm import SfMResult, run_sfm
+from gsa.recon.sfm import SfMError, SfMResult, run_sfm
 from gsa.recon.train import PRESETS, TrainConfig, TrainResult, train_gaussians
 from gsa.render.cameras import write_cameras_json
 
@@ -128,14 +128,26 @@ def reconstruct(
 
     fixed, intrinsics = _fixed_intrinsics(imset, calibration, calibration_check)
     t = time.perf_counter()
-    sfm = run_sfm(
-        imset,
-        out / "sfm",
-        matching=matching,
-        progress=lambda s, f: report(s, f),
-        seed=cfg.seed,
-        fixed_intrinsics=fixed,
-    )
+
+    def sfm_with(params):
+        return run_sfm(
+            imset,
+            out / "sfm",
+            matching=matching,
+            progress=lambda s, f: report(s, f),
+            seed=cfg.seed,
+            fixed_intrinsics=params,
+        )
+
+    try:
+        sfm = sfm_with(fixed)
+    except SfMError as exc:
+        if fixed is None:
+            raise
+        # EXIF can name one camera for two crops (an unrecorded digital zoom): intrinsics that
+        # do not fit this set's photos must not cost the reconstruction, so it estimates its own.
+        sfm = sfm_with(None)
+        intrinsics = {"fixed": False, "reason": f"estimated from this set: with the other set's camera, {exc}"}
     timings["sfm"] = time.perf_counter() - t
     order = [imset.names.index(n) for n in sfm.names]
     imgs = np.stack([imset.read(i) for i in order])
