@@ -67,17 +67,6 @@ class Calibration:
                 return fx * sx, fy * sy, cx * sx, cy * sy
         return None
 
-    def to_json(self) -> dict:
-        return {
-            "fx": self.fx,
-            "fy": self.fy,
-            "cx": self.cx,
-            "cy": self.cy,
-            "width": self.width,
-            "height": self.height,
-            "camera": list(self.camera) if self.camera else None,
-        }
-
 
 def _as_camera(camera) -> tuple | None:
     # report.json stores the identity as a JSON list: compare it as the tuple exif_camera gives
