@@ -97,6 +97,55 @@ def test_a_wrong_edge_with_a_consistent_alternative_is_corrected():
         assert rot < 1.5
 
 
+def _flip_member(edges, member, centre, turned_edges):
+    """Model `member` turned half a turn about its centroid, as seen by turned_edges (indices):
+    those measure the turned frame, with the right pose as their alternative; the others measure
+    the right frame, with the turned one as theirs."""
+    half = Sim3(1.0, euler_xyz(np.array([0.0, np.pi, 0.0])), np.zeros(3))
+    flip = Sim3(1.0, np.eye(3), centre) @ half @ Sim3(1.0, np.eye(3), -centre)
+    for k, e in enumerate(edges):
+        if member not in (e.source, e.target):
+            continue
+        right = e.transform
+        turned = right @ flip if e.source == member else flip.inverse() @ right
+        e.transform, e.alternatives = (turned, [right]) if k in turned_edges else (right, [turned])
+
+
+def test_the_most_plausible_frame_wins_where_the_cycles_tie():
+    # Model 2 measured turned half a turn on two of its four edges, right on the other two: the
+    # turned edges agree with each other around their triangle (0, 1, 2) as the right ones do
+    # around (2, 3, 4), so the cycles tie. Every edge doubtful, its poses scored by the semantic
+    # tie-break, which kept each measured pose (no alternative scored 1.5x it) but scored the
+    # right pose nearly as high on the turned edges and the turned one low on the right edges:
+    # summed over model 2's edges, the right frame is the more plausible one.
+    truth, centres, sizes, edges = _graph(5, seed=6)
+    turned_edges = {k for k, e in enumerate(edges) if (e.source, e.target) in ((0, 2), (1, 2))}
+    _flip_member(edges, 2, centres[2], turned_edges)
+    for k, e in enumerate(edges):
+        e.confidence, e.doubtful = 0.05, True
+        e.scores = [0.3, 0.28] if k in turned_edges else [0.3] + [0.15] * len(e.alternatives)
+    result = solve_graph(5, edges, 0, centres, sizes)
+    for rot, _ in _errors(result, truth):
+        assert rot < 1.5
+    assert {k for k, e in enumerate(result.edges) if e.status == "corrected"} == turned_edges
+    # The scores the other way round: the turned frame is the more plausible one, and taken.
+    for k, e in enumerate(edges):
+        e.used, e.status = None, "kept"
+        e.scores = [0.3, 0.15] if k in turned_edges else [0.3] + [0.28] * len(e.alternatives)
+    flipped = solve_graph(5, edges, 0, centres, sizes)
+    assert _errors(flipped, truth)[2][0] > 170
+
+
+def test_one_edge_keeps_the_pose_it_measured_whatever_its_alternatives_score():
+    # A lone edge has no cycle to outvote it: its alternatives, scored below the tie-break's
+    # switch ratio times the measured pose, do not replace it.
+    truth, centres, sizes, edges = _graph(2, seed=7)
+    _flip_member(edges, 1, centres[1], set())
+    edges[0].scores = [0.2, 0.29]
+    result = solve_graph(2, edges, 0, centres, sizes)
+    assert result.edges[0].status == "kept" and _errors(result, truth)[1][0] < 1.5
+
+
 def test_a_corrected_edge_lends_no_confidence_of_its_own():
     # align() was sure (0.99) of the pose it measured, not of the alternative the cycles chose:
     # model 4, reached otherwise only by weak edges, is only as sure as those.

@@ -189,6 +189,12 @@ def test_a_doubtful_answer_reports_the_tie_break_and_stays_doubtful():
         assert len(report["scores"]) == len(m["alternatives"]) + 1
     for a in swept:  # each a pose of its own, not one the search had already offered
         assert a["rotation_offset_deg"] > semantic.SemanticCriteria().swept_distinct_deg
+    # Each scored pose carries its score (what a many-model job weighs its edges' poses by).
+    assert m["semantic_score"] == report["scores"][report["picked"]]
+    assert all(a["semantic_score"] is not None for a in swept)
+    assert all(a["semantic_score"] in report["scores"] for a in m["alternatives"] if a["semantic_score"] is not None)
+    if report["picked"]:
+        assert m["alternatives"][0]["semantic_score"] == report["scores"][0]
     off = align(source, target, AlignOptions(semantic="off"))
     assert "semantic" not in off.metrics and "semantic" not in off.timings
 

@@ -77,6 +77,8 @@ class Edge:
     doubtful: bool = False
     ambiguous: bool = False
     alternatives: list[Sim3] = field(default_factory=list)
+    # The semantic tie-break's score of the transform and of each alternative (None: not scored).
+    scores: list[float | None] = field(default_factory=list)
     seconds: float = 0.0
     # Set by the global step:
     used: Sim3 | None = None  # the transform the solution used (an alternative when corrected)
@@ -172,6 +174,124 @@ def residual_of(error: Sim3) -> dict:
 def _edge_error(x: list[Sim3], i: int, j: int, t_ij: Sim3) -> Sim3:
     """T_ij⁻¹ ∘ X_j⁻¹ ∘ X_i: identity when the edge agrees with the solution."""
     return t_ij.inverse() @ x[j].inverse() @ x[i]
+
+
+# ---------------------------------------------------------------- the consensus over poses
+
+# Cross-instance, a wrong edge is mostly a half turn of the right one, and half turns agree with
+# one another around cycles: a flipped member shows its flip on all its edges, so the cycles
+# alone cannot tell the right frame from a wrong one (docs/benchmarks.md, n-way). What can is
+# how plausible each edge found each of its poses: the semantic tie-break scores the pose it
+# chose and the alternatives it offered. The consensus picks one rotation per model so that
+# the plausibility of the poses the edges agree with, summed over all edges, is highest.
+CONSENSUS_DEG = 15.0  # an edge agrees with two models' rotations through a pose this near
+CONSENSUS_BEAM = 64  # partial assignments kept while models are added one at a time
+CONSENSUS_SAME_DEG = 5.0  # candidate rotations of one model this near are one candidate
+
+
+def pose_weights(edge: Edge) -> np.ndarray:
+    """How plausible each of an edge's poses ([transform] + alternatives) is, from the edge:
+    its confidence (as the global step's prior) spread over its poses by their semantic scores
+    relative to the best one; without scores all of it on the measured pose. The measured pose
+    keeps the lead the tie-break gave it (its score times the switch ratio: no other pose beat
+    that), so one edge alone never turns; it takes other edges agreeing with an alternative."""
+    from gsa.align.semantic import SemanticCriteria
+
+    base = max(float(edge.confidence), 0.05)
+    n = 1 + len(edge.alternatives)
+    scores = np.array([v if v is not None else 0.0 for v in (list(edge.scores) + [None] * n)[:n]], np.float64)
+    scores = np.maximum(scores, 0.0)
+    scores[0] *= SemanticCriteria().switch_ratio
+    if scores.max() <= 0:
+        return base * np.eye(1, n)[0]
+    return base * scores / scores.max()
+
+
+def _agreement(rotations: np.ndarray, relative: np.ndarray, weights: np.ndarray) -> np.ndarray:
+    """(K,3,3) relative rotations R_jᵀR_i against an edge's (H,3,3) poses -> (K,) the weight of
+    the most plausible pose within CONSENSUS_DEG of each (0 where none is)."""
+    cos = (np.einsum("kab,hab->kh", relative, rotations) - 1.0) / 2.0
+    near = cos > np.cos(np.radians(CONSENSUS_DEG))
+    return np.where(near, weights[None], 0.0).max(axis=1)
+
+
+def consensus_rotations(n: int, reference: int, edges: list[Edge]) -> tuple[list[np.ndarray | None], float]:
+    """One rotation per model (R_ref = I; None for a model no edge reaches) maximising the
+    summed plausibility (pose_weights) of the edge poses that agree with them, and that sum.
+    A beam search adding models in order of their edges' weight to the models placed before."""
+    rot = [np.stack([e.transform.rotation] + [a.rotation for a in e.alternatives]) for e in edges]
+    weights = [pose_weights(e) for e in edges]
+    incident: dict[int, list[int]] = {k: [] for k in range(n)}
+    for idx, e in enumerate(edges):
+        incident[e.source].append(idx)
+        incident[e.target].append(idx)
+    placed, order = {reference}, []
+    while True:
+        pull = {
+            k: sum(weights[idx].max() for idx in incident[k] if (edges[idx].source + edges[idx].target - k) in placed)
+            for k in range(n)
+            if k not in placed
+        }
+        reachable = {k: v for k, v in pull.items() if v > 0}
+        if not reachable:
+            break
+        k = max(reachable, key=lambda m: (reachable[m], -m))
+        order.append(k)
+        placed.add(k)
+    states: list[tuple[float, dict[int, np.ndarray]]] = [(0.0, {reference: np.eye(3)})]
+    for k in order:
+        grown = []
+        for total, assigned in states:
+            links = [idx for idx in incident[k] if (edges[idx].source + edges[idx].target - k) in assigned]
+            candidates = []  # R_k through each pose of each edge to a placed model
+            for idx in links:
+                e = edges[idx]
+                if e.source == k:  # R_ij ≈ R_jᵀ R_i  ->  R_i = R_j R_ij
+                    candidates.append(np.einsum("ab,hbc->hac", assigned[e.target], rot[idx]))
+                else:  # R_j = R_i R_ijᵀ
+                    candidates.append(np.einsum("ab,hcb->hac", assigned[e.source], rot[idx]))
+            cands = _distinct(np.concatenate(candidates))
+            gain = np.zeros(len(cands))
+            for idx in links:
+                e = edges[idx]
+                if e.source == k:
+                    relative = np.einsum("ba,kbc->kac", assigned[e.target], cands)
+                else:
+                    relative = np.einsum("kba,bc->kac", cands, assigned[e.source])
+                gain += _agreement(rot[idx], relative, weights[idx])
+            grown += [(total + float(g), {**assigned, k: c}) for g, c in zip(gain, cands)]
+        grown.sort(key=lambda s: -s[0])
+        states = grown[:CONSENSUS_BEAM]
+    best_total, best = states[0]
+    return [best.get(k) for k in range(n)], best_total
+
+
+def _distinct(rotations: np.ndarray) -> np.ndarray:
+    """The rotations with any within CONSENSUS_SAME_DEG of an earlier one left out."""
+    kept: list[np.ndarray] = []
+    limit = 1.0 + 2.0 * np.cos(np.radians(CONSENSUS_SAME_DEG))
+    for r in rotations:
+        if all(np.sum(r * k) < limit for k in kept):
+            kept.append(r)
+    return np.stack(kept)
+
+
+def consensus_poses(n: int, reference: int, edges: list[Edge]) -> list[int | None]:
+    """Per edge, the index of the pose (0: measured, k: alternative k−1) the consensus rotations
+    agree with (the most plausible such pose; the measured one on a tie), None where none does."""
+    rotations, _ = consensus_rotations(n, reference, edges)
+    out: list[int | None] = []
+    for e in edges:
+        ri, rj = rotations[e.source], rotations[e.target]
+        if ri is None or rj is None:
+            out.append(None)
+            continue
+        poses = np.stack([e.transform.rotation] + [a.rotation for a in e.alternatives])
+        w = pose_weights(e)
+        cos = (np.einsum("ab,hab->h", rj.T @ ri, poses) - 1.0) / 2.0
+        near = np.flatnonzero(cos > np.cos(np.radians(CONSENSUS_DEG)))
+        out.append(None if len(near) == 0 else int(near[np.argmax(w[near])]))
+    return out
 
 
 # ---------------------------------------------------------------- the global step
@@ -367,6 +487,14 @@ def solve_graph(
         return norm[e.target] @ t @ norm[e.source].inverse()
 
     chosen = [normalised(e, e.transform) for e in edges]
+    # The consensus over each edge's poses first: an edge whose alternative the consensus agrees
+    # with (and not its measured pose) enters the least squares with that alternative.
+    by_consensus = set()
+    for e_idx, (edge, pose) in enumerate(zip(edges, consensus_poses(n, reference, edges))):
+        if pose:
+            chosen[e_idx] = normalised(edge, edge.alternatives[pose - 1])
+            edge.used = edge.alternatives[pose - 1]
+            by_consensus.add(e_idx)
     pairs = [(e.source, e.target, t) for e, t in zip(edges, chosen)]
     prior = np.array([max(float(e.confidence), 0.05) for e in edges])
     support, triangles_measured = _triangle_support(n, pairs)
@@ -374,12 +502,13 @@ def solve_graph(
     # is not trusted for the initial solution.
     tree = _spanning_tree(n, pairs, support + 0.1 * prior)
     x, w, res = _irls(n, reference, pairs, prior, _tree_solution(n, reference, pairs, tree))
-    measured = list(res)
+    measured = [residual_of(_edge_error(x, e.source, e.target, normalised(e, e.transform))) for e in edges]
 
     corrected = _correct_pruned(edges, res, x, chosen, normalised)
     if corrected:
         pairs = [(e.source, e.target, t) for e, t in zip(edges, chosen)]
         x, w, res = _irls(n, reference, pairs, prior, x)
+    corrected |= by_consensus
     _set_edge_outcomes(edges, res, measured, w, support, corrected)
 
     _, triangles_used = _triangle_support(n, [(e.source, e.target, t) for e, t in zip(edges, chosen)])
@@ -561,12 +690,13 @@ def select_edges(models: Sequence[GaussianModel], edges: str = "auto", k: int = 
 
 def edge_from_result(i: int, j: int, result, seconds: float) -> Edge:
     metrics = result.metrics or {}
-    alternatives = []
+    alternatives, scores = [], [_score(metrics.get("semantic_score"))]
     for alt in metrics.get("alternatives") or []:
         try:
             alternatives.append(Sim3.from_matrix(np.asarray(alt["transform"], np.float64)))
         except (KeyError, TypeError, ValueError):  # an alternative we cannot read is left out
             continue
+        scores.append(_score(alt.get("semantic_score")))
     confidence = metrics.get("confidence")
     return Edge(
         source=i,
@@ -576,8 +706,13 @@ def edge_from_result(i: int, j: int, result, seconds: float) -> Edge:
         doubtful=bool(metrics.get("doubtful", False)),
         ambiguous=bool(metrics.get("ambiguous", False)),
         alternatives=alternatives,
+        scores=scores,
         seconds=seconds,
     )
+
+
+def _score(value) -> float | None:
+    return float(value) if isinstance(value, (int, float)) and np.isfinite(value) else None
 
 
 def pairwise_edges(

@@ -113,9 +113,11 @@ def _semantic_tiebreak(pair, best, search, transform: Sim3, metrics: dict) -> tu
     scores = lifted.scores(poses)
     pick = semantic.pick(scores)
     report = {"used": True, "scores": scores, "picked": pick, "swept": len(swept)}
+    scored = list(zip(poses, scores))
     if pick == 0:
         offers = [c.to_dict(transform) | {"tied": False} for c in swept]
-        return transform, metrics | {"semantic": report, "alternatives": (metrics.get("alternatives") or []) + offers}
+        alternatives = _with_semantic_scores((metrics.get("alternatives") or []) + offers, scored)
+        return transform, metrics | {"semantic": report, "semantic_score": scores[0], "alternatives": alternatives}
     chosen = poses[pick]
     previous = {
         "origin": "geometric choice (before the semantic tie-break)",
@@ -128,11 +130,25 @@ def _semantic_tiebreak(pair, best, search, transform: Sim3, metrics: dict) -> tu
     updated = pair.quality(chosen, best) | {"hypothesis": metrics.get("hypothesis")}
     updated.update(pair.judge(chosen, search))
     offers = [c.to_dict(chosen) | {"tied": False} for c in swept if c.transform is not chosen]
-    updated["alternatives"] = (
-        [previous] + updated.get("alternatives", [])[: robust.VerdictCriteria.max_alternatives - 1] + offers
+    updated["alternatives"] = _with_semantic_scores(
+        [previous] + updated.get("alternatives", [])[: robust.VerdictCriteria.max_alternatives - 1] + offers, scored
     )
     updated["doubtful"] = True  # the features broke a tie the geometry could not: still a guess
+    updated["semantic_score"] = scores[pick]
     return chosen, updated | {"semantic": report | {"switched_from": previous["transform"]}}
+
+
+def _with_semantic_scores(alternatives: list[dict], scored: list[tuple[Sim3, float]]) -> list[dict]:
+    """Each offered pose with its semantic score where it is one of the scored poses (None
+    where the verdict offers a pose the tie-break did not score): a many-model job weighs an
+    edge's poses by them (gsa.align.many)."""
+    matrices = [(pose.matrix(), score) for pose, score in scored]
+
+    def score_of(alt: dict) -> float | None:
+        m = np.asarray(alt["transform"], np.float64)
+        return next((score for known, score in matrices if np.allclose(known, m, rtol=1e-7, atol=1e-7)), None)
+
+    return [a | {"semantic_score": score_of(a)} for a in alternatives]
 
 
 def _swept_poses(pair, lifted, known: list[Sim3], search) -> list[robust.Candidate]:

@@ -40,6 +40,7 @@ def edge_payload(edge, worker: str) -> dict[str, Any]:
         "doubtful": edge.doubtful,
         "ambiguous": edge.ambiguous,
         "alternatives": [a.matrix().tolist() for a in edge.alternatives],
+        "scores": list(edge.scores),
         "seconds": edge.seconds,
         "worker": worker,
     }
@@ -62,6 +63,7 @@ def edge_from_payload(i: int, j: int, data: dict[str, Any]):
         doubtful=bool(data["doubtful"]),
         ambiguous=bool(data["ambiguous"]),
         alternatives=[sim3(a) for a in data["alternatives"]],
+        scores=[None if v is None else float(v) for v in data.get("scores") or []],
         seconds=float(data["seconds"]),
     )
 

@@ -92,3 +92,15 @@ def test_a_lost_pool_is_put_back_with_the_results_it_still_has(conn, models):
     payloads = work_through(pool, models, OPTIONS, check=lambda: None, poll_s=0.01)
     assert payloads[0]["worker"] == "earlier" and payloads[1]["worker"] == worker_name()
     assert pool.pairs == [(0, 1), (1, 0)] and conn.exists(pool.k_pairs)
+
+
+def test_an_edge_payload_keeps_the_scores_of_its_poses():
+    # Through a worker's pool (JSON in Redis) the global step still sees how plausible the
+    # tie-break found each pose (gsa.align.many.pose_weights).
+    from gsa.align.many import Edge
+    from service.worker.edges import edge_payload
+
+    turned = Sim3(1.0, np.diag([1.0, -1.0, -1.0]), np.zeros(3))
+    edge = Edge(0, 1, Sim3.identity(), confidence=0.1, doubtful=True, alternatives=[turned], scores=[0.2, None])
+    back = edge_from_payload(0, 1, json.loads(json.dumps(edge_payload(edge, "w"))))
+    assert back.scores == [0.2, None] and np.allclose(back.alternatives[0].rotation, turned.rotation)
