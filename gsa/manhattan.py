@@ -1,0 +1,124 @@
+"""A model's dominant surface-normal frame ("Manhattan" frame) and the 24 relabellings between
+two such frames.
+
+Man-made objects are built along three orthogonal directions: flat tops, sides, fronts and
+bases. The directions most of the surface faces along are a frame that moves with the object,
+whatever its proportions, where principal axes (moments) swap or tilt once proportions differ.
+Between two instances of one category the true rotation is then one of the 24 ways of mapping
+one frame's axes onto the other's (docs/benchmarks.md, "Dominant-normal frames"): which of the
+24 is the cross-instance question that remains, but each candidate is exact, where the ICP
+between two different shapes drifts by 5-20 degrees.
+
+Normals come from the Gaussians themselves: a surface Gaussian is flat, its shortest axis is
+its normal, and its two longer axes give its area.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from gsa.canonical import SIGNED_PERMUTATIONS
+from gsa.geometry import quat_to_rotation
+from gsa.model import GaussianModel
+
+# Coarse search: directions on a half sphere (a normal and its opposite count alike), each
+# counting the surface within COARSE_DEG of it; then the frame is refitted to the normals
+# within each of REFINE_DEG of an axis (a least-squares rotation, tightening).
+COARSE_DIRECTIONS = 1000
+COARSE_DEG = 8.0
+REFINE_DEG = (10.0, 6.0, 4.0, 4.0)
+SUPPORT_DEG = 6.0
+MAX_NORMALS = 10_000  # normals sampled (by area) for the search: the frame is a few numbers
+
+
+@dataclass(frozen=True)
+class NormalFrame:
+    axes: np.ndarray  # (3, 3) rows: the dominant normal directions, right-handed
+    support: float  # share of the surface area whose normal is within SUPPORT_DEG of an axis
+
+
+def surface_normals(model: GaussianModel) -> tuple[np.ndarray, np.ndarray]:
+    """(N, 3) unit normals (each Gaussian's shortest axis) and (N,) area weights summing to 1,
+    of the opaque Gaussians (floaters left out)."""
+    keep = model.opacities > 0.5
+    if keep.sum() < 3:
+        keep = np.ones(len(model), bool)
+    rot = quat_to_rotation(np.asarray(model.quats[keep], np.float64))
+    scales = np.exp(np.clip(np.asarray(model.log_scales[keep], np.float64), -30, 30))
+    shortest = np.argmin(scales, axis=1)
+    normals = rot[np.arange(len(shortest)), :, shortest]
+    ordered = np.sort(scales, axis=1)
+    area = ordered[:, 1] * ordered[:, 2]
+    total = area.sum()
+    weights = area / total if np.isfinite(total) and total > 0 else np.full(len(area), 1.0 / len(area))
+    return normals, weights
+
+
+def manhattan_frame(model: GaussianModel, seed: int = 0) -> NormalFrame:
+    """The frame of the model's dominant normal directions (module docstring)."""
+    normals, weights = surface_normals(model)
+    if len(normals) > MAX_NORMALS:
+        rows = np.random.default_rng(seed).choice(len(normals), MAX_NORMALS, replace=False, p=weights)
+        normals, weights = normals[rows], np.full(MAX_NORMALS, 1.0 / MAX_NORMALS)
+    return frame_of_normals(normals, weights)
+
+
+def frame_of_normals(normals: np.ndarray, weights: np.ndarray) -> NormalFrame:
+    """NormalFrame of (N, 3) unit normals with (N,) weights."""
+    normals = np.asarray(normals, np.float64)
+    weights = np.asarray(weights, np.float64)
+    first = _densest(normals, weights, _half_sphere(COARSE_DIRECTIONS))
+    # The second axis: the densest direction on the great circle orthogonal to the first.
+    a = np.cross(first, [1.0, 0.0, 0.0] if abs(first[0]) < 0.9 else [0.0, 1.0, 0.0])
+    a /= np.linalg.norm(a)
+    b = np.cross(first, a)
+    t = np.linspace(0.0, np.pi, 360, endpoint=False)
+    second = _densest(normals, weights, np.cos(t)[:, None] * a + np.sin(t)[:, None] * b)
+    axes = np.stack([first, second, np.cross(first, second)])
+    for degrees in REFINE_DEG:
+        axes = _refit(normals, weights, axes, degrees)
+    near = np.abs(normals @ axes.T).max(axis=1) > np.cos(np.radians(SUPPORT_DEG))
+    return NormalFrame(axes, float(weights[near].sum() / max(weights.sum(), 1e-300)))
+
+
+def relabellings(source: NormalFrame, target: NormalFrame) -> np.ndarray:
+    """(24, 3, 3) rotations mapping the source's frame onto the target's, one per way of
+    matching its signed axes."""
+    return np.stack([target.axes.T @ g @ source.axes for g in SIGNED_PERMUTATIONS])
+
+
+def _half_sphere(n: int) -> np.ndarray:
+    """About n Fibonacci directions with z >= 0."""
+    i = np.arange(2 * n) + 0.5
+    polar = np.arccos(1.0 - 2.0 * i / (2 * n))
+    azimuth = np.pi * (1.0 + 5**0.5) * i
+    d = np.stack([np.cos(azimuth) * np.sin(polar), np.sin(azimuth) * np.sin(polar), np.cos(polar)], axis=1)
+    return d[d[:, 2] >= 0]
+
+
+def _densest(normals: np.ndarray, weights: np.ndarray, directions: np.ndarray) -> np.ndarray:
+    """The direction (either sign) the most normal weight lies within COARSE_DEG of."""
+    limit = np.cos(np.radians(COARSE_DEG))
+    mass = np.zeros(len(directions))
+    for start in range(0, len(directions), 256):  # bounded memory: 256 x N
+        block = directions[start : start + 256]
+        mass[start : start + 256] = (np.abs(normals @ block.T) > limit).T.astype(np.float64) @ weights
+    return directions[int(np.argmax(mass))]
+
+
+def _refit(normals: np.ndarray, weights: np.ndarray, axes: np.ndarray, degrees: float) -> np.ndarray:
+    """The rotation that best maps the axes onto the normals within `degrees` of them (each
+    normal's sign turned towards its axis): orthogonal Procrustes."""
+    proj = normals @ axes.T
+    nearest = np.argmax(np.abs(proj), axis=1)
+    cos = np.abs(proj[np.arange(len(nearest)), nearest])
+    near = cos > np.cos(np.radians(degrees))
+    if near.sum() < 3:
+        return axes
+    signs = np.sign(proj[near, nearest[near]])
+    targets = np.eye(3)[nearest[near]] * signs[:, None]
+    u, _, vt = np.linalg.svd((normals[near] * weights[near, None]).T @ targets)
+    fit = u @ np.diag([1.0, 1.0, np.sign(np.linalg.det(u @ vt))]) @ vt  # normal ≈ fit @ axis
+    return fit.T
