@@ -20,8 +20,9 @@ from dataclasses import dataclass
 import numpy as np
 
 from gsa.canonical import SIGNED_PERMUTATIONS
-from gsa.geometry import quat_to_rotation
+from gsa.geometry import quat_to_rotation, rotation_distance_deg
 from gsa.model import GaussianModel
+from gsa.sim3 import Sim3
 
 # Coarse search: directions on a half sphere (a normal and its opposite count alike), each
 # counting the surface within COARSE_DEG of it; then the frame is refitted to the normals
@@ -122,3 +123,32 @@ def _refit(normals: np.ndarray, weights: np.ndarray, axes: np.ndarray, degrees: 
     u, _, vt = np.linalg.svd((normals[near] * weights[near, None]).T @ targets)
     fit = u @ np.diag([1.0, 1.0, np.sign(np.linalg.det(u @ vt))]) @ vt  # normal ≈ fit @ axis
     return fit.T
+
+
+def snapped(pose: Sim3, source: NormalFrame, target: NormalFrame, centre: np.ndarray) -> tuple[Sim3, float]:
+    """`pose` with its rotation replaced by the nearest relabelling, turning about the source
+    point `centre` (it stays where the pose put it; scale kept), and the turn in degrees."""
+    candidates = relabellings(source, target)
+    gaps = [rotation_distance_deg(r, pose.rotation) for r in candidates]
+    k = int(np.argmin(gaps))
+    rotation = candidates[k]
+    centre = np.asarray(centre, np.float64)
+    return Sim3(pose.scale, rotation, pose.apply(centre) - pose.scale * rotation @ centre), float(gaps[k])
+
+
+def fit_shift(pose: Sim3, source_points: np.ndarray, target_points: np.ndarray, reach: float, iterations: int = 8) -> Sim3:
+    """The pose's rotation and scale kept, its translation refitted to the target's nearest
+    points within `reach` (an ICP that only shifts: the turn about the centre leaves a snapped
+    pose's placement a little off; a one-way nearest-point scale would shrink it)."""
+    from scipy.spatial import cKDTree
+
+    tree = cKDTree(np.asarray(target_points, np.float64))
+    moved = pose.scale * np.asarray(source_points, np.float64) @ pose.rotation.T
+    shift = pose.translation.copy()
+    for _ in range(iterations):
+        dist, nearest = tree.query(moved + shift, distance_upper_bound=reach)
+        near = np.isfinite(dist)
+        if near.sum() < 3:
+            break
+        shift = shift + (tree.data[nearest[near]] - (moved[near] + shift)).mean(axis=0)
+    return Sim3(pose.scale, pose.rotation, shift)

@@ -2,6 +2,7 @@
 proportions the true rotation is one of their 24 relabellings."""
 
 import numpy as np
+import pytest
 
 from gsa.bench.frames import frame_coverage, summary
 from gsa.geometry import rotation_distance_deg
@@ -54,3 +55,42 @@ def test_frame_coverage_on_category_meshes(tmp_path):
     assert [r["pair"] for r in records] == ["crate-0-1", "crate-0-2", "crate-1-2"]
     assert all(r["rre_deg"] < 1.0 for r in records), records
     assert "| crate | 3 | 100 % | 100 % |" in "\n".join(summary(records))
+
+
+def test_a_doubtful_answer_between_two_instances_is_turned_onto_their_frames(tmp_path):
+    # Two boxes of other proportions (the refinement ends 9 degrees off): every sign flip of a box is one of its symmetries, so the
+    # answer is doubtful, and the two shapes coincide nowhere (other instances): the refined
+    # pose is turned onto the nearest relabelling of the faces' frames, the pose as refined
+    # kept as the first alternative.
+    from gsa.align.pipeline import align
+    from gsa.align.types import AlignOptions
+
+    truth = Sim3(1.7, np.eye(3), np.array([0.3, -0.2, 0.5])) @ random_sim3(np.random.default_rng(8))
+    source = _box((1.0, 0.55, 0.3), 3, tmp_path)
+    target = _box((0.7, 0.6, 0.5), 4, tmp_path).transformed(truth)
+    result = align(source, target, AlignOptions(semantic="off"))
+    m = result.metrics
+    assert m["doubtful"] and m["frame_snap"]["used"], m.get("frame_snap")
+    flips = [np.diag(d) for d in ([1, 1, 1], [1, -1, -1], [-1, 1, -1], [-1, -1, 1])]
+    error = min(rotation_distance_deg(result.transform.rotation, truth.rotation @ f) for f in flips)
+    assert error < 0.5, error
+    assert m["alternatives"][0]["origin"] == "before the frame snap"
+    unsnapped = Sim3.from_matrix(np.asarray(m["alternatives"][0]["transform"]))
+    assert rotation_distance_deg(unsnapped.rotation, result.transform.rotation) == pytest.approx(m["frame_snap"]["deg"], abs=1e-6)
+    off = align(source, target, AlignOptions(semantic="off", frame_snap="off"))
+    assert "frame_snap" not in off.metrics
+
+
+def test_two_samplings_of_one_object_are_not_snapped():
+    # They coincide where they overlap: the refined fit is exact and stands, doubtful or not.
+    from gsa.align.pipeline import align
+    from gsa.align.types import AlignOptions
+    from gsa.synth import make_symmetric_object
+
+    truth = random_sim3(np.random.default_rng([1, 9]))
+    source = make_symmetric_object(seed=1, n_gaussians=6000, sample_seed=11)
+    source.sh[:, 0, :] = 0.3  # grey: geometry alone cannot pick among its symmetric poses
+    target = make_symmetric_object(seed=1, n_gaussians=6000, sample_seed=12)
+    target.sh[:, 0, :] = 0.3
+    result = align(source, target.transformed(truth), AlignOptions(semantic="off"))
+    assert result.metrics["doubtful"] and "frame_snap" not in result.metrics

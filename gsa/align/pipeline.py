@@ -151,6 +151,71 @@ def _with_semantic_scores(alternatives: list[dict], scored: list[tuple[Sim3, flo
     return [a | {"semantic_score": score_of(a)} for a in alternatives]
 
 
+# A doubtful pose this near a relabelling of the dominant-normal frames is turned onto it:
+# across instances the refinement drifts 5-20 degrees off the frame both are built along
+# (docs/benchmarks.md, "Dominant-normal frames"), while a pose farther off meant another one.
+FRAME_SNAP_DEG = 20.0
+# Alternatives that land this near the chosen pose or an earlier alternative once snapped are that pose.
+FRAME_SNAP_SAME_DEG = 2.0
+
+
+def _other_instances(metrics: dict) -> bool:
+    """Whether the answer's models differ everywhere (robust.refinement's test: the overlap
+    estimate keeps nearly every pair yet fewer than half coincide at the sampling): another
+    instance or a deformed copy, where the refinement's fit is not exact. Two captures of one
+    object coincide where they overlap: their fit stands."""
+    fraction, share = metrics.get("overlap_estimate"), metrics.get("coincident_share")
+    k = robust.RefineCriteria()
+    return fraction is not None and share is not None and fraction >= k.whole_overlap and share < k.coincident_share
+
+
+def _snap_to_frames(pair, best, transform: Sim3, metrics: dict) -> tuple[Sim3, dict]:
+    """A doubtful answer and its alternatives turned onto the nearest relabelling of the two
+    models' dominant-normal frames (gsa.manhattan) where that turn is at most FRAME_SNAP_DEG;
+    the pose as refined becomes the first alternative. The answer stays doubtful: which of
+    the relabellings is right is the question the snap does not answer."""
+    from gsa import manhattan
+
+    frames = manhattan.manhattan_frame(pair.source), manhattan.manhattan_frame(pair.target)
+    src, dst = pair.anchors()
+    report = {"support": [frames[0].support, frames[1].support], "max_deg": FRAME_SNAP_DEG}
+
+    def snap(pose: Sim3) -> tuple[Sim3, float]:
+        return manhattan.snapped(pose, *frames, src.center)
+
+    kept: list[Sim3] = []
+    alternatives = []
+    chosen, gap = snap(transform)
+    snapping = 1e-6 < gap <= FRAME_SNAP_DEG
+    if snapping:
+        chosen = manhattan.fit_shift(chosen, src.points, dst.points, robust.PoseCriteria().truncation * dst.radius)
+        kept.append(chosen)
+        alternatives.append(
+            {
+                "origin": "before the frame snap",
+                "score": metrics.get("score"),
+                "geometry": metrics.get("overlap_score"),
+                "semantic_score": metrics.get("semantic_score"),
+                "transform": transform.matrix().tolist(),
+            }
+        )
+    else:
+        kept.append(transform)
+    for alt in metrics.get("alternatives") or []:
+        pose = Sim3.from_matrix(np.asarray(alt["transform"], np.float64))
+        turned, alt_gap = snap(pose)
+        if 1e-6 < alt_gap <= FRAME_SNAP_DEG:
+            pose = manhattan.fit_shift(turned, src.points, dst.points, robust.PoseCriteria().truncation * dst.radius)
+            alt = alt | {"transform": pose.matrix().tolist(), "snapped_deg": alt_gap}
+        if all(robust.rotation_offset_deg(pose, k) > FRAME_SNAP_SAME_DEG for k in kept):
+            kept.append(pose)
+            alternatives.append(alt | {"rotation_offset_deg": robust.rotation_offset_deg(pose, kept[0])})
+    if not snapping:
+        return transform, metrics | {"frame_snap": report | {"used": False, "deg": gap}, "alternatives": alternatives}
+    updated = metrics | pair.quality(chosen, best) | {"alternatives": alternatives}
+    return chosen, updated | {"frame_snap": report | {"used": True, "deg": gap}}
+
+
 def _swept_poses(pair, lifted, known: list[Sim3], search) -> list[robust.Candidate]:
     """The semantic sweep's starts (LiftedPair.sweep) taken on by the anchors' ICP, each kept
     where it is a pose none of `known` (nor an earlier one) already is. Within a few degrees of
@@ -328,6 +393,9 @@ def _align_models(
         _report(progress, "semantic", 0.0)
         transform, metrics = _semantic_tiebreak(pair, best, search, transform, metrics)
         timings["semantic"] = time.perf_counter() - t_semantic
+    if opts.frame_snap != "off" and search is not None and guidance is None and fine_result is None:
+        if metrics.get("doubtful") and _other_instances(metrics):
+            transform, metrics = _snap_to_frames(pair, best, transform, metrics)
     metrics["scene"] = choice.to_dict()
     if guidance is not None:
         metrics["guidance"] = guidance | {"doubt": guided.doubt_reason(metrics, start[1] if start else None)}
