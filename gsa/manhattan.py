@@ -136,7 +136,9 @@ def snapped(pose: Sim3, source: NormalFrame, target: NormalFrame, centre: np.nda
     return Sim3(pose.scale, rotation, pose.apply(centre) - pose.scale * rotation @ centre), float(gaps[k])
 
 
-def fit_shift(pose: Sim3, source_points: np.ndarray, target_points: np.ndarray, reach: float, iterations: int = 8) -> Sim3:
+def fit_shift(
+    pose: Sim3, source_points: np.ndarray, target_points: np.ndarray, reach: float, iterations: int = 8
+) -> Sim3:
     """The pose's rotation and scale kept, its translation refitted to the target's nearest
     points within `reach` (an ICP that only shifts: the turn about the centre leaves a snapped
     pose's placement a little off; a one-way nearest-point scale would shrink it)."""

@@ -76,7 +76,9 @@ def test_a_doubtful_answer_between_two_instances_is_turned_onto_their_frames(tmp
     assert error < 0.5, error
     assert m["alternatives"][0]["origin"] == "before the frame snap"
     unsnapped = Sim3.from_matrix(np.asarray(m["alternatives"][0]["transform"]))
-    assert rotation_distance_deg(unsnapped.rotation, result.transform.rotation) == pytest.approx(m["frame_snap"]["deg"], abs=1e-6)
+    assert rotation_distance_deg(unsnapped.rotation, result.transform.rotation) == pytest.approx(
+        m["frame_snap"]["deg"], abs=1e-6
+    )
     off = align(source, target, AlignOptions(semantic="off", frame_snap="off"))
     assert "frame_snap" not in off.metrics
 

@@ -159,6 +159,21 @@ FRAME_SNAP_DEG = 20.0
 FRAME_SNAP_SAME_DEG = 2.0
 
 
+def _doubtful_search_answer(pair, best, search, transform: Sim3, metrics: dict, timings: dict, progress):
+    """What a doubtful global-search answer goes through: the semantic tie-break, then the turn
+    onto the dominant-normal frames where the models are other instances (each as its option
+    allows)."""
+    opts = pair.opts
+    if opts.semantic != "off":
+        t_semantic = time.perf_counter()
+        _report(progress, "semantic", 0.0)
+        transform, metrics = _semantic_tiebreak(pair, best, search, transform, metrics)
+        timings["semantic"] = time.perf_counter() - t_semantic
+    if opts.frame_snap != "off" and _other_instances(metrics):
+        transform, metrics = _snap_to_frames(pair, best, transform, metrics)
+    return transform, metrics
+
+
 def _other_instances(metrics: dict) -> bool:
     """Whether the answer's models differ everywhere (robust.refinement's test: the overlap
     estimate keeps nearly every pair yet fewer than half coincide at the sampling): another
@@ -382,20 +397,8 @@ def _align_models(
         # The fine stage can move a right coarse pose off (docs/benchmarks.md): both verdicts, to compare.
         coarse_verdict = pair.judge(coarse.transform, search)
         metrics["coarse_verdict"] = {k: coarse_verdict[k] for k in ("confidence", "ambiguous", "doubtful")}
-    if (
-        opts.semantic != "off"
-        and search is not None
-        and guidance is None
-        and fine_result is None
-        and metrics.get("doubtful")
-    ):
-        t_semantic = time.perf_counter()
-        _report(progress, "semantic", 0.0)
-        transform, metrics = _semantic_tiebreak(pair, best, search, transform, metrics)
-        timings["semantic"] = time.perf_counter() - t_semantic
-    if opts.frame_snap != "off" and search is not None and guidance is None and fine_result is None:
-        if metrics.get("doubtful") and _other_instances(metrics):
-            transform, metrics = _snap_to_frames(pair, best, transform, metrics)
+    if search is not None and guidance is None and fine_result is None and metrics.get("doubtful"):
+        transform, metrics = _doubtful_search_answer(pair, best, search, transform, metrics, timings, progress)
     metrics["scene"] = choice.to_dict()
     if guidance is not None:
         metrics["guidance"] = guidance | {"doubt": guided.doubt_reason(metrics, start[1] if start else None)}
