@@ -46,7 +46,7 @@ def test_normals_with_no_dominant_direction_have_little_support():
     normals /= np.linalg.norm(normals, axis=1, keepdims=True)
     frame = frame_of_normals(normals, np.full(5000, 1 / 5000))
     assert np.allclose(frame.axes @ frame.axes.T, np.eye(3), atol=1e-9) and np.linalg.det(frame.axes) > 0
-    assert frame.support < 0.3, frame.support
+    assert frame.support < 0.1, frame.support  # 0.02: three 6-degree caps of a sphere
 
 
 def test_frame_coverage_on_category_meshes(tmp_path):
