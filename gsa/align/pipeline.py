@@ -174,6 +174,30 @@ def _doubtful_search_answer(pair, best, search, transform: Sim3, metrics: dict, 
     return transform, metrics
 
 
+def _doubtful_answer(pair, best, search, transform: Sim3, metrics: dict, guidance, leash, timings: dict, progress):
+    """A doubtful answer of the search: the automatic one goes through the semantic tie-break
+    and the frame snap; one refined from a user's pose or pairs (leash: the start's report and
+    the source's symmetries) through the frame snap alone, on the user's leash."""
+    if guidance is None:
+        return _doubtful_search_answer(pair, best, search, transform, metrics, timings, progress)
+    if leash is not None:
+        return _guided_snap(pair, best, transform, metrics, *leash)
+    return transform, metrics
+
+
+def _guided_snap(pair, best, transform: Sim3, metrics: dict, start: dict, symmetries) -> tuple[Sim3, dict]:
+    """A doubtful answer refined from a user's pose or picked pairs, between other instances:
+    turned onto the frames as a search answer is, where the turned pose is still the answer the
+    user pointed at (guided.near_start). A user's up axes are kept as given: no turn then."""
+    opts = pair.opts
+    if opts.frame_snap == "off" or opts.up_axes is not None or not _other_instances(metrics):
+        return transform, metrics
+    turned, updated = _snap_to_frames(pair, best, transform, metrics)
+    if turned is transform or not guided.near_start(turned, best.init, opts, dict(start), symmetries=symmetries):
+        return transform, metrics
+    return turned, updated
+
+
 def _other_instances(metrics: dict) -> bool:
     """Whether the answer's models differ everywhere (robust.refinement's test: the overlap
     estimate keeps nearly every pair yet fewer than half coincide at the sampling): another
@@ -397,8 +421,11 @@ def _align_models(
         # The fine stage can move a right coarse pose off (docs/benchmarks.md): both verdicts, to compare.
         coarse_verdict = pair.judge(coarse.transform, search)
         metrics["coarse_verdict"] = {k: coarse_verdict[k] for k in ("confidence", "ambiguous", "doubtful")}
-    if search is not None and guidance is None and fine_result is None and metrics.get("doubtful"):
-        transform, metrics = _doubtful_search_answer(pair, best, search, transform, metrics, timings, progress)
+    if search is not None and fine_result is None and metrics.get("doubtful"):
+        leash = (start[1], symmetries) if start is not None else None
+        transform, metrics = _doubtful_answer(
+            pair, best, search, transform, metrics, guidance, leash, timings, progress
+        )
     metrics["scene"] = choice.to_dict()
     if guidance is not None:
         metrics["guidance"] = guidance | {"doubt": guided.doubt_reason(metrics, start[1] if start else None)}
