@@ -20,7 +20,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from gsa.canonical import SIGNED_PERMUTATIONS
-from gsa.geometry import quat_to_rotation, rotation_distance_deg
+from gsa.geometry import rotation_distance_deg
 from gsa.model import GaussianModel
 from gsa.sim3 import Sim3
 
@@ -46,10 +46,8 @@ def surface_normals(model: GaussianModel) -> tuple[np.ndarray, np.ndarray]:
     keep = model.opacities > 0.5
     if keep.sum() < 3:
         keep = np.ones(len(model), bool)
-    rot = quat_to_rotation(np.asarray(model.quats[keep], np.float64))
+    normals, _ = model.surface_normals(keep)
     scales = np.exp(np.clip(np.asarray(model.log_scales[keep], np.float64), -30, 30))
-    shortest = np.argmin(scales, axis=1)
-    normals = rot[np.arange(len(shortest)), :, shortest]
     ordered = np.sort(scales, axis=1)
     area = ordered[:, 1] * ordered[:, 2]
     total = area.sum()

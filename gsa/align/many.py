@@ -222,7 +222,7 @@ def consensus_rotations(n: int, reference: int, edges: list[Edge]) -> tuple[list
     """One rotation per model (R_ref = I; None for a model no edge reaches) maximising the
     summed plausibility (pose_weights) of the edge poses that agree with them, and that sum.
     A beam search adding models in order of their edges' weight to the models placed before."""
-    rot = [np.stack([e.transform.rotation] + [a.rotation for a in e.alternatives]) for e in edges]
+    rot = [_pose_rotations(e) for e in edges]
     weights = [pose_weights(e) for e in edges]
     incident: dict[int, list[int]] = {k: [] for k in range(n)}
     for idx, e in enumerate(edges):
@@ -269,6 +269,11 @@ def consensus_rotations(n: int, reference: int, edges: list[Edge]) -> tuple[list
     return [best.get(k) for k in range(n)], best_total
 
 
+def _pose_rotations(edge: Edge) -> np.ndarray:
+    """(H, 3, 3): the measured pose's rotation, then each alternative's."""
+    return np.stack([edge.transform.rotation] + [a.rotation for a in edge.alternatives])
+
+
 def _distinct(rotations: np.ndarray) -> np.ndarray:
     """The rotations with any within CONSENSUS_SAME_DEG of an earlier one left out."""
     kept: list[np.ndarray] = []
@@ -289,9 +294,8 @@ def consensus_poses(n: int, reference: int, edges: list[Edge]) -> list[int | Non
         if ri is None or rj is None:
             out.append(None)
             continue
-        poses = np.stack([e.transform.rotation] + [a.rotation for a in e.alternatives])
         w = pose_weights(e)
-        cos = (np.einsum("ab,hab->h", rj.T @ ri, poses) - 1.0) / 2.0
+        cos = (np.einsum("ab,hab->h", rj.T @ ri, _pose_rotations(e)) - 1.0) / 2.0
         near = np.flatnonzero(cos > np.cos(np.radians(CONSENSUS_DEG)))
         out.append(None if len(near) == 0 else int(near[np.argmax(w[near])]))
     return out
