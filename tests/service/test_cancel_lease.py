@@ -39,7 +39,9 @@ def test_a_job_longer_than_its_lease_runs_once(tmp_path, redis_url, pair):
     workers = [start_worker(tmp_path, env, name=f"lease-worker{i}") for i in range(2)]
     try:
         with httpx.Client(base_url=url, headers=ALICE, timeout=60) as http:
-            options = {"stages": ["coarse", "fine"], "fine_iterations": 80, "outputs": ["result"]}
+            # 240 iterations: several seconds even on a fast, idle machine (80 once ran 3.9 s, under
+            # the 4-lease bound below), so the job surely outlives its lease many times over.
+            options = {"stages": ["coarse", "fine"], "fine_iterations": 240, "outputs": ["result"]}
             job = submit_pair(http, pair, options).json()
             done = wait_job(http, job["id"], timeout=240)
         assert done["state"] == "succeeded", done
