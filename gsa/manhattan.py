@@ -32,6 +32,13 @@ COARSE_DEG = 8.0
 REFINE_DEG = (10.0, 6.0, 4.0, 4.0)
 SUPPORT_DEG = 6.0
 MAX_NORMALS = 10_000  # normals sampled (by area) for the search: the frame is a few numbers
+# How alike two models look under a relabelling (relabelling_agreement): each model's surface
+# area on a MASS_CELLS^3 grid in its own frame, centred on its centroid and spanning MASS_REACH
+# standard deviations per axis each way (so instances of other proportions compare part to
+# part), blurred by MASS_BLUR cells.
+MASS_CELLS = 16
+MASS_REACH = 2.5
+MASS_BLUR = 1.0
 
 
 @dataclass(frozen=True)
@@ -86,6 +93,43 @@ def relabellings(source: NormalFrame, target: NormalFrame) -> np.ndarray:
     """(24, 3, 3) rotations mapping the source's frame onto the target's, one per way of
     matching its signed axes."""
     return np.stack([target.axes.T @ g @ source.axes for g in SIGNED_PERMUTATIONS])
+
+
+def relabelling_agreement(
+    source: GaussianModel, target: GaussianModel, source_frame: NormalFrame, target_frame: NormalFrame
+) -> np.ndarray:
+    """(24,) cosine in [0, 1] between the target's surface-mass grid and the source's moved by
+    each relabelling (in relabellings' order): 1 where the two models spread their surface alike.
+    Where the frames leave the question of which relabelling open, this is the shape's answer:
+    which end is heavy, where the parts sit, in proportion to each model's own spread."""
+    source_coords = _spread_coords(source, source_frame)
+    target_grid = _mass_grid(*_spread_coords(target, target_frame))
+    points, weights = source_coords
+    return np.array([float(np.sum(_mass_grid(points @ g.T, weights) * target_grid)) for g in SIGNED_PERMUTATIONS])
+
+
+def _spread_coords(model: GaussianModel, frame: NormalFrame) -> tuple[np.ndarray, np.ndarray]:
+    """The opaque Gaussians' centres in the frame, centred on the area-weighted centroid and
+    divided per axis by MASS_REACH standard deviations, and their area weights."""
+    _, weights = surface_normals(model)
+    keep = model.opacities > 0.5
+    if keep.sum() < 3:
+        keep = np.ones(len(model), bool)
+    points = np.asarray(model.means[keep], np.float64)
+    centred = (points - weights @ points) @ frame.axes.T
+    spread = np.sqrt(weights @ centred**2)
+    return centred / np.maximum(MASS_REACH * spread, 1e-12), weights
+
+
+def _mass_grid(coords: np.ndarray, weights: np.ndarray) -> np.ndarray:
+    """Unit-norm blurred grid of the weights at coords in [-1, 1]^3 (outliers on the border)."""
+    from scipy.ndimage import gaussian_filter
+
+    n = MASS_CELLS
+    cells = np.clip(((coords + 1.0) * 0.5 * n).astype(np.int64), 0, n - 1)
+    flat = (cells[:, 0] * n + cells[:, 1]) * n + cells[:, 2]
+    grid = gaussian_filter(np.bincount(flat, weights, n**3).reshape(n, n, n), MASS_BLUR)
+    return grid / max(float(np.linalg.norm(grid)), 1e-300)
 
 
 def _half_sphere(n: int) -> np.ndarray:

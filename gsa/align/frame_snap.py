@@ -20,6 +20,14 @@ from gsa.sim3 import Sim3
 FRAME_SNAP_DEG = 20.0
 # Alternatives that land this near the chosen pose or an earlier alternative once snapped are that pose.
 FRAME_SNAP_SAME_DEG = 2.0
+# The best-scored relabellings offered as alternatives by choose_relabelling (the truth is among
+# the best four on nearly every category-real pair where the best is wrong).
+CHOICE_OFFERS = 4
+# Scores over the relabellings count in standard deviations, but never of less than
+# CHOICE_SPREAD_FLOOR (between two boxes every relabelling scores alike, to sampling noise), and
+# another relabelling replaces the answer's only when its summed score leads by CHOICE_MARGIN.
+CHOICE_SPREAD_FLOOR = 0.02
+CHOICE_MARGIN = 0.5
 
 
 def guided_snap(pair, best, transform: Sim3, metrics: dict, start: dict, symmetries) -> tuple[Sim3, dict]:
@@ -45,12 +53,20 @@ def other_instances(metrics: dict) -> bool:
     return fraction is not None and share is not None and fraction >= k.whole_overlap and share < k.coincident_share
 
 
+def whole_models(metrics: dict) -> bool:
+    """Whether the answer's models overlap wholly (robust.refinement's overlap estimate keeps
+    nearly every pair): two instances, or two full captures, not a part of one in the other
+    (whose mass and spread differ by what is missing)."""
+    fraction = metrics.get("overlap_estimate")
+    return fraction is not None and fraction >= robust.RefineCriteria().whole_overlap
+
+
 def snap_to_frames(pair, best, transform: Sim3, metrics: dict) -> tuple[Sim3, dict]:
     """A doubtful answer and its alternatives turned onto the nearest relabelling of the two
     models' dominant-normal frames (gsa.manhattan) where that turn is at most FRAME_SNAP_DEG;
     the pose as refined becomes the first alternative. The answer stays doubtful: which of
     the relabellings is right is the question the snap does not answer."""
-    frames = manhattan.manhattan_frame(pair.source), manhattan.manhattan_frame(pair.target)
+    frames = pair.normal_frames
     src, dst = pair.anchors()
     report = {"support": [frames[0].support, frames[1].support], "max_deg": FRAME_SNAP_DEG}
 
@@ -88,3 +104,88 @@ def snap_to_frames(pair, best, transform: Sim3, metrics: dict) -> tuple[Sim3, di
         return transform, metrics | {"frame_snap": report | {"used": False, "deg": gap}, "alternatives": alternatives}
     updated = metrics | pair.quality(chosen, best) | {"alternatives": alternatives}
     return chosen, updated | {"frame_snap": report | {"used": True, "deg": gap}}
+
+
+def choose_relabelling(pair, best, transform: Sim3, metrics: dict) -> tuple[Sim3, dict]:
+    """A doubtful answer between whole models that lies within FRAME_SNAP_DEG of a relabelling
+    of their frames (snapped onto it where they are other instances): the relabelling the
+    models' shapes and, once lifted, their semantic features agree on most. Each of the 24 is scored by the surface-mass grids (manhattan.relabelling_agreement) and by
+    the lifted features' agreement (pair.lifted, where the semantic tie-break ran); each score
+    is standardised over the 24 and the sums compared. Across instances the geometric fit
+    piles surface together (a bathtub end for end, a bottle upside down), where part-to-part
+    mass and what a pretrained network sees tell the ends apart (docs/benchmarks.md, "Choosing
+    among the relabellings"). The answer stays doubtful; the pose replaced becomes the first
+    alternative, and the best-scored other relabellings join after the existing ones."""
+    frames = pair.normal_frames
+    src, dst = pair.anchors()
+    reach = robust.PoseCriteria().truncation * dst.radius
+    poses = [
+        manhattan.fit_shift(
+            Sim3(transform.scale, rotation, transform.apply(src.center) - transform.scale * rotation @ src.center),
+            src.points,
+            dst.points,
+            reach,
+        )
+        for rotation in manhattan.relabellings(*frames)
+    ]
+    offsets = [robust.rotation_offset_deg(transform, p) for p in poses]
+    current = int(np.argmin(offsets))
+    if offsets[current] > FRAME_SNAP_DEG:  # the answer is not on the frames: they do not explain it
+        return transform, metrics | {"frame_choice": {"used": False, "deg": offsets[current]}}
+    shape = manhattan.relabelling_agreement(pair.source, pair.target, *frames)
+    total = _standardised(shape)
+    semantic = None
+    if pair.lifted is not None:
+        semantic = np.asarray(pair.lifted.scores(poses))
+        total = total + _standardised(semantic)
+    order = [int(k) for k in np.argsort(-total, kind="stable")]
+    pick = order[0] if total[order[0]] > total[current] + CHOICE_MARGIN else current
+    report = {
+        "used": True,
+        "shape": shape.round(4).tolist(),
+        "semantic": None if semantic is None else semantic.round(4).tolist(),
+        "on": current,  # the relabelling the answer lies on (within FRAME_SNAP_DEG)
+        "picked": pick,
+        "switched": pick != current,
+    }
+    chosen = poses[pick] if pick != current else transform
+    offered = [chosen]
+    alternatives = []
+    if pick != current:
+        alternatives.append(
+            {
+                "origin": "before the relabelling choice",
+                "score": metrics.get("score"),
+                "geometry": metrics.get("overlap_score"),
+                "semantic_score": metrics.get("semantic_score"),
+                "transform": transform.matrix().tolist(),
+            }
+        )
+        offered.append(transform)
+    for alt in metrics.get("alternatives") or []:
+        pose = Sim3.from_matrix(np.asarray(alt["transform"], np.float64))
+        if all(robust.rotation_offset_deg(pose, p) > FRAME_SNAP_SAME_DEG for p in offered):
+            offered.append(pose)
+            alternatives.append(alt)
+    for k in order[:CHOICE_OFFERS]:
+        if all(robust.rotation_offset_deg(poses[k], p) > FRAME_SNAP_SAME_DEG for p in offered):
+            offered.append(poses[k])
+            alternatives.append(
+                {
+                    "origin": "frame relabelling",
+                    "shape_agreement": float(shape[k]),
+                    "semantic_score": None if semantic is None else float(semantic[k]),
+                    "rotation_offset_deg": robust.rotation_offset_deg(poses[k], chosen),
+                    "transform": poses[k].matrix().tolist(),
+                }
+            )
+    updated = metrics | (pair.quality(chosen, best) if pick != current else {}) | {"alternatives": alternatives}
+    if semantic is not None and pick != current:
+        updated["semantic_score"] = float(semantic[pick])
+    return chosen, updated | {"frame_choice": report}
+
+
+def _standardised(scores: np.ndarray) -> np.ndarray:
+    """Scores over the relabellings as standard deviations from their mean (two scores of
+    different spread weigh alike), the deviation floored at CHOICE_SPREAD_FLOOR."""
+    return (scores - scores.mean()) / max(float(np.std(scores)), CHOICE_SPREAD_FLOOR)

@@ -18,6 +18,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 from threadpoolctl import threadpool_limits
 
+from gsa import manhattan
 from gsa.align import frame_snap, guided, photo, robust, scene
 from gsa.align.choices import (
     EXTRACTOR_MODES,
@@ -108,6 +109,7 @@ def _semantic_tiebreak(pair, best, search, transform: Sim3, metrics: dict) -> tu
         lifted = semantic.LiftedPair.lift(pair.source, pair.target, backbone, semantic.SemanticCriteria(), opts.seed)
     except ValueError as exc:  # nothing visible to compare (a degenerate model)
         return transform, metrics | {"semantic": {"used": False, "reason": str(exc)}}
+    pair.lifted = lifted  # the frame choice scores the relabellings with them too
     swept = _swept_poses(pair, lifted, geometric, search)
     poses = geometric + [c.transform for c in swept]
     scores = lifted.scores(poses)
@@ -163,6 +165,8 @@ def _doubtful_search_answer(pair, best, search, transform: Sim3, metrics: dict, 
         timings["semantic"] = time.perf_counter() - t_semantic
     if opts.frame_snap != "off" and frame_snap.other_instances(metrics):
         transform, metrics = frame_snap.snap_to_frames(pair, best, transform, metrics)
+    if opts.frame_snap != "off" and frame_snap.whole_models(metrics):
+        transform, metrics = frame_snap.choose_relabelling(pair, best, transform, metrics)
     return transform, metrics
 
 
@@ -489,6 +493,12 @@ class _Pair:
     rng: np.random.Generator
     src_anchors: robust.Anchors | None = None
     dst_anchors: robust.Anchors | None = None
+    lifted: object | None = None  # semantic.LiftedPair, once the semantic tie-break lifted features
+
+    @functools.cached_property
+    def normal_frames(self) -> tuple[manhattan.NormalFrame, manhattan.NormalFrame]:
+        """Both models' dominant surface-normal frames (gsa.manhattan), computed once."""
+        return manhattan.manhattan_frame(self.source), manhattan.manhattan_frame(self.target)
 
     @classmethod
     def build(cls, source: GaussianModel, target: GaussianModel, opts: AlignOptions) -> _Pair:
