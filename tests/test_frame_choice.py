@@ -70,5 +70,7 @@ def test_a_doubtful_answer_end_for_end_is_turned_back(tmp_path):
     tilted = truth @ Sim3(1.0, axis_rotation([1, 1, 0], np.radians(40)), np.zeros(3))
     kept, report = frame_snap.choose_relabelling(pair, best, tilted, metrics)
     assert kept is tilted and report["frame_choice"]["used"] is False
+    offered = [Sim3.from_matrix(np.asarray(a["transform"])) for a in report["alternatives"]]
+    assert min(rotation_distance_deg(p.rotation, truth.rotation) for p in offered) < 2.0  # still offered
     # a part of a model inside another (overlap estimate below whole) is not asked
     assert not frame_snap.whole_models(metrics | {"overlap_estimate": 0.6})

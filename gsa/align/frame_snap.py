@@ -28,6 +28,9 @@ CHOICE_OFFERS = 4
 # another relabelling replaces the answer's only when its summed score leads by CHOICE_MARGIN.
 CHOICE_SPREAD_FLOOR = 0.02
 CHOICE_MARGIN = 0.5
+# An answer farther than this from every relabelling is not on the frames: it is kept (the
+# relabellings are only offered as alternatives).
+CHOICE_MAX_DEG = FRAME_SNAP_DEG
 
 
 def guided_snap(pair, best, transform: Sim3, metrics: dict, start: dict, symmetries) -> tuple[Sim3, dict]:
@@ -107,7 +110,7 @@ def snap_to_frames(pair, best, transform: Sim3, metrics: dict) -> tuple[Sim3, di
 
 
 def choose_relabelling(pair, best, transform: Sim3, metrics: dict) -> tuple[Sim3, dict]:
-    """A doubtful answer between whole models that lies within FRAME_SNAP_DEG of a relabelling
+    """A doubtful answer between whole models that lies within CHOICE_MAX_DEG of a relabelling
     of their frames (snapped onto it where they are other instances): the relabelling the
     models' shapes and, once lifted, their semantic features agree on most. Each of the 24 is scored by the surface-mass grids (manhattan.relabelling_agreement) and by
     the lifted features' agreement (pair.lifted, where the semantic tie-break ran); each score
@@ -115,7 +118,8 @@ def choose_relabelling(pair, best, transform: Sim3, metrics: dict) -> tuple[Sim3
     piles surface together (a bathtub end for end, a bottle upside down), where part-to-part
     mass and what a pretrained network sees tell the ends apart (docs/benchmarks.md, "Choosing
     among the relabellings"). The answer stays doubtful; the pose replaced becomes the first
-    alternative, and the best-scored other relabellings join after the existing ones."""
+    alternative, and the best-scored other relabellings join after the existing ones (also
+    where the answer lies off the frames and is kept)."""
     frames = pair.normal_frames
     src, dst = pair.anchors()
     reach = robust.PoseCriteria().truncation * dst.radius
@@ -128,23 +132,25 @@ def choose_relabelling(pair, best, transform: Sim3, metrics: dict) -> tuple[Sim3
         )
         for rotation in manhattan.relabellings(*frames)
     ]
-    offsets = [robust.rotation_offset_deg(transform, p) for p in poses]
-    current = int(np.argmin(offsets))
-    if offsets[current] > FRAME_SNAP_DEG:  # the answer is not on the frames: they do not explain it
-        return transform, metrics | {"frame_choice": {"used": False, "deg": offsets[current]}}
     shape = manhattan.relabelling_agreement(pair.source, pair.target, *frames)
     total = _standardised(shape)
     semantic = None
     if pair.lifted is not None:
         semantic = np.asarray(pair.lifted.scores(poses))
         total = total + _standardised(semantic)
+    offsets = [robust.rotation_offset_deg(transform, p) for p in poses]
+    current = int(np.argmin(offsets))
     order = [int(k) for k in np.argsort(-total, kind="stable")]
-    pick = order[0] if total[order[0]] > total[current] + CHOICE_MARGIN else current
+    # An answer farther from every relabelling is not on the frames: they do not explain it, and
+    # it is kept (the best-scored relabellings are still offered).
+    on_frames = offsets[current] <= CHOICE_MAX_DEG
+    pick = order[0] if on_frames and total[order[0]] > total[current] + CHOICE_MARGIN else current
     report = {
-        "used": True,
+        "used": on_frames,
+        "deg": offsets[current],
         "shape": shape.round(4).tolist(),
         "semantic": None if semantic is None else semantic.round(4).tolist(),
-        "on": current,  # the relabelling the answer lies on (within FRAME_SNAP_DEG)
+        "on": current,  # the nearest relabelling to the answer
         "picked": pick,
         "switched": pick != current,
     }
