@@ -66,6 +66,7 @@ def test_a_doubtful_answer_end_for_end_is_turned_back(tmp_path):
     assert updated["alternatives"][0]["origin"] == "before the relabelling choice"
     assert np.allclose(updated["alternatives"][0]["transform"], flipped.matrix())
     assert all(a["origin"] == "frame relabelling" for a in updated["alternatives"][1:])
+    assert all(a["tied"] is False for a in updated["alternatives"])  # every alternative says whether it ties
     # an answer far from every relabelling is left as it is: the frames do not explain it
     tilted = truth @ Sim3(1.0, axis_rotation([1, 1, 0], np.radians(40)), np.zeros(3))
     kept, report = frame_snap.choose_relabelling(pair, best, tilted, metrics)

@@ -86,6 +86,7 @@ def snap_to_frames(pair, best, transform: Sim3, metrics: dict) -> tuple[Sim3, di
         alternatives.append(
             {
                 "origin": "before the frame snap",
+                "tied": False,
                 "score": metrics.get("score"),
                 "geometry": metrics.get("overlap_score"),
                 "semantic_score": metrics.get("semantic_score"),
@@ -161,6 +162,7 @@ def choose_relabelling(pair, best, transform: Sim3, metrics: dict) -> tuple[Sim3
         alternatives.append(
             {
                 "origin": "before the relabelling choice",
+                "tied": False,
                 "score": metrics.get("score"),
                 "geometry": metrics.get("overlap_score"),
                 "semantic_score": metrics.get("semantic_score"),
@@ -179,6 +181,7 @@ def choose_relabelling(pair, best, transform: Sim3, metrics: dict) -> tuple[Sim3
             alternatives.append(
                 {
                     "origin": "frame relabelling",
+                    "tied": False,
                     "shape_agreement": float(shape[k]),
                     "semantic_score": None if semantic is None else float(semantic[k]),
                     "rotation_offset_deg": robust.rotation_offset_deg(poses[k], chosen),

@@ -123,6 +123,7 @@ def _semantic_tiebreak(pair, best, search, transform: Sim3, metrics: dict) -> tu
     chosen = poses[pick]
     previous = {
         "origin": "geometric choice (before the semantic tie-break)",
+        "tied": False,
         "score": metrics.get("score"),
         "geometry": metrics.get("overlap_score"),
         "rotation_offset_deg": robust.rotation_offset_deg(transform, chosen),
