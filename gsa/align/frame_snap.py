@@ -113,12 +113,13 @@ def snap_to_frames(pair, best, transform: Sim3, metrics: dict) -> tuple[Sim3, di
 def choose_relabelling(pair, best, transform: Sim3, metrics: dict) -> tuple[Sim3, dict]:
     """A doubtful answer between whole models that lies within CHOICE_MAX_DEG of a relabelling
     of their frames (snapped onto it where they are other instances): the relabelling the
-    models' shapes and, once lifted, their semantic features agree on most. Each of the 24 is scored by the surface-mass grids (manhattan.relabelling_agreement) and by
-    the lifted features' agreement (pair.lifted, where the semantic tie-break ran); each score
-    is standardised over the 24 and the sums compared. Across instances the geometric fit
-    piles surface together (a bathtub end for end, a bottle upside down), where part-to-part
-    mass and what a pretrained network sees tell the ends apart (docs/benchmarks.md, "Choosing
-    among the relabellings"). The answer stays doubtful; the pose replaced becomes the first
+    models' shapes and, once lifted, their semantic features agree on most. Each of the 24 is
+    scored by the surface-mass grids (manhattan.relabelling_agreement) and by the lifted
+    features' agreement (pair.lifted, where the semantic tie-break ran); each score is
+    standardised over the 24 and the sums compared (a lead of CHOICE_MARGIN to switch).
+    Across instances the geometric fit piles surface together (a bathtub end for end, a bottle
+    upside down), where part-to-part mass and what a pretrained network sees tell the ends
+    apart (docs/benchmarks.md, "Choosing among the relabellings"). The answer stays doubtful; the pose replaced becomes the first
     alternative, and the best-scored other relabellings join after the existing ones (also
     where the answer lies off the frames and is kept)."""
     frames = pair.normal_frames
