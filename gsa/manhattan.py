@@ -50,16 +50,24 @@ class NormalFrame:
 def surface_normals(model: GaussianModel) -> tuple[np.ndarray, np.ndarray]:
     """(N, 3) unit normals (each Gaussian's shortest axis) and (N,) area weights summing to 1,
     of the opaque Gaussians (floaters left out)."""
-    keep = model.opacities > 0.5
-    if keep.sum() < 3:
-        keep = np.ones(len(model), bool)
+    keep = _opaque(model)
     normals, _ = model.surface_normals(keep)
+    return normals, _area_weights(model, keep)
+
+
+def _opaque(model: GaussianModel) -> np.ndarray:
+    """The surface Gaussians (floaters are faint); all of them where fewer than 3 are opaque."""
+    keep = model.opacities > 0.5
+    return keep if keep.sum() >= 3 else np.ones(len(model), bool)
+
+
+def _area_weights(model: GaussianModel, keep: np.ndarray) -> np.ndarray:
+    """The kept Gaussians' areas (their two longer axes), summing to 1."""
     scales = np.exp(np.clip(np.asarray(model.log_scales[keep], np.float64), -30, 30))
     ordered = np.sort(scales, axis=1)
     area = ordered[:, 1] * ordered[:, 2]
     total = area.sum()
-    weights = area / total if np.isfinite(total) and total > 0 else np.full(len(area), 1.0 / len(area))
-    return normals, weights
+    return area / total if np.isfinite(total) and total > 0 else np.full(len(area), 1.0 / len(area))
 
 
 def manhattan_frame(model: GaussianModel, seed: int = 0) -> NormalFrame:
@@ -111,10 +119,8 @@ def relabelling_agreement(
 def _spread_coords(model: GaussianModel, frame: NormalFrame) -> tuple[np.ndarray, np.ndarray]:
     """The opaque Gaussians' centres in the frame, centred on the area-weighted centroid and
     divided per axis by MASS_REACH standard deviations, and their area weights."""
-    _, weights = surface_normals(model)
-    keep = model.opacities > 0.5
-    if keep.sum() < 3:
-        keep = np.ones(len(model), bool)
+    keep = _opaque(model)
+    weights = _area_weights(model, keep)
     points = np.asarray(model.means[keep], np.float64)
     centred = (points - weights @ points) @ frame.axes.T
     spread = np.sqrt(weights @ centred**2)
