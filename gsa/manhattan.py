@@ -179,9 +179,14 @@ def snapped(pose: Sim3, source: NormalFrame, target: NormalFrame, centre: np.nda
     candidates = relabellings(source, target)
     gaps = [rotation_distance_deg(r, pose.rotation) for r in candidates]
     k = int(np.argmin(gaps))
-    rotation = candidates[k]
+    return turned_onto(pose, candidates[k], centre), float(gaps[k])
+
+
+def turned_onto(pose: Sim3, rotation: np.ndarray, centre: np.ndarray) -> Sim3:
+    """`pose` with its rotation replaced by `rotation`, turning about the source point
+    `centre` (it stays where the pose put it; scale kept)."""
     centre = np.asarray(centre, np.float64)
-    return Sim3(pose.scale, rotation, pose.apply(centre) - pose.scale * rotation @ centre), float(gaps[k])
+    return Sim3(pose.scale, rotation, pose.apply(centre) - pose.scale * rotation @ centre)
 
 
 def fit_shift(

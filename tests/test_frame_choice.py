@@ -75,3 +75,58 @@ def test_a_doubtful_answer_end_for_end_is_turned_back(tmp_path):
     assert min(rotation_distance_deg(p.rotation, truth.rotation) for p in offered) < 2.0  # still offered
     # a part of a model inside another (overlap estimate below whole) is not asked
     assert not frame_snap.whole_models(metrics | {"overlap_estimate": 0.6})
+
+
+def _guided_pair(tmp_path, truth: Sim3, **hints):
+    from gsa.align.pipeline import _Hypothesis, _Pair
+    from gsa.align.types import AlignOptions
+
+    source, target = _pair(tmp_path, truth)
+    opts = AlignOptions(semantic="off", **hints)
+    pair = _Pair.build(source, target, opts)
+    from gsa.align import guided
+
+    start_pose, report = guided.start_transform(opts)
+    return pair, _Hypothesis("guided", pair.src_frame, start_pose), report
+
+
+def test_a_guided_answer_that_drifted_off_the_users_frame_is_turned_onto_the_relabelling_it_started_on(tmp_path):
+    from gsa.align import frame_snap
+
+    truth = random_sim3(np.random.default_rng(7))
+    start = truth @ Sim3(1.0, axis_rotation([1.0, 0.3, -0.5], np.radians(20)), np.zeros(3))
+    pair, best, report = _guided_pair(tmp_path, truth, init_transform=start.matrix().tolist())
+    # the refinement drifted 40 deg further, off the frames and beyond the plain snap's reach
+    drifted = truth @ Sim3(1.0, axis_rotation([1.0, 0.3, -0.5], np.radians(60)), np.zeros(3))
+    metrics = {"doubtful": True, "overlap_estimate": 0.8, "coincident_share": 0.3, "alternatives": []}
+    assert frame_snap.surfaces_apart(metrics) and not frame_snap.other_instances(metrics)
+    chosen, updated = frame_snap.guided_snap(pair, best, drifted, metrics, report, ())
+    assert rotation_distance_deg(chosen.rotation, truth.rotation) < 2.0
+    assert updated["frame_snap"]["used"] and updated["frame_snap"]["onto"]
+    assert updated["alternatives"][0]["origin"] == "before the frame snap"
+    assert np.allclose(updated["alternatives"][0]["transform"], drifted.matrix())
+    # two captures of one object that coincide keep their fit
+    kept, _ = frame_snap.guided_snap(pair, best, drifted, metrics | {"coincident_share": 0.9}, report, ())
+    assert kept is drifted
+
+
+def test_the_guidance_points_at_one_relabelling_or_none(tmp_path):
+    from gsa.align import frame_snap
+
+    truth = random_sim3(np.random.default_rng(8))
+    start = truth @ Sim3(1.0, axis_rotation([0.2, 1.0, 0.4], np.radians(22)), np.zeros(3))
+    pair, best, report = _guided_pair(tmp_path, truth, init_transform=start.matrix().tolist())
+    rotation = frame_snap.guided_relabelling(pair, best.init, report, ())
+    assert rotation_distance_deg(rotation, truth.rotation) < 2.0
+    # a pose midway between relabellings (60 deg about a diagonal) is on no relabelling's leash
+    frames = pair.normal_frames
+    between = Sim3(1.0, relabellings(*frames)[0] @ axis_rotation(frames[0].axes.sum(0), np.radians(60)), np.zeros(3))
+    pair2, best2, report2 = _guided_pair(tmp_path, truth, init_transform=between.matrix().tolist())
+    assert frame_snap.guided_relabelling(pair2, best2.init, report2, ()) is None
+    # picked pairs: the relabelling that misses the clicks least
+    rng = np.random.default_rng(9)
+    src = pair.source.means[rng.choice(len(pair.source), 4, replace=False)].astype(np.float64)
+    clicks = {"point_pairs": (src.tolist(), truth.apply(src + rng.normal(0, 0.02, src.shape)).tolist())}
+    pair3, best3, report3 = _guided_pair(tmp_path, truth, **clicks)
+    rotation = frame_snap.guided_relabelling(pair3, best3.init, report3, ())
+    assert rotation_distance_deg(rotation, truth.rotation) < 2.0

@@ -34,16 +34,50 @@ CHOICE_MAX_DEG = FRAME_SNAP_DEG
 
 
 def guided_snap(pair, best, transform: Sim3, metrics: dict, start: dict, symmetries) -> tuple[Sim3, dict]:
-    """A doubtful answer refined from a user's pose or picked pairs, between other instances:
-    turned onto the frames as a search answer is, where the turned pose is still the answer the
-    user pointed at (guided.near_start). A user's up axes are kept as given: no turn then."""
+    """A doubtful answer refined from a user's pose or picked pairs, between surfaces that do
+    not coincide (other instances, or parts of them): turned onto the relabelling of the frames
+    nearest it (as a search answer is) where that one is still the answer the user pointed at
+    (guided.near_start); else onto the relabelling the guidance points at (guided_relabelling):
+    across instances the refinement can drift 20-80 deg away from the frame the user started
+    on, where the relabelling nearest a start 20 deg off was within 3.2 deg of the truth on
+    every category-real pair (docs/benchmarks.md, "The guided snap"). A user's up axes are
+    kept as given: no turn then."""
     opts = pair.opts
-    if opts.frame_snap == "off" or opts.up_axes is not None or not other_instances(metrics):
+    if opts.frame_snap == "off" or opts.up_axes is not None or not surfaces_apart(metrics):
         return transform, metrics
     turned, updated = snap_to_frames(pair, best, transform, metrics)
-    if turned is transform or not guided.near_start(turned, best.init, opts, dict(start), symmetries=symmetries):
+    if turned is not transform and guided.near_start(turned, best.init, opts, dict(start), symmetries=symmetries):
+        return turned, updated
+    rotation = guided_relabelling(pair, best.init, start, symmetries)
+    if rotation is None:
         return transform, metrics
-    return turned, updated
+    return snap_to_frames(pair, best, transform, metrics, onto=rotation)
+
+
+def guided_relabelling(pair, start_pose: Sim3, start: dict, symmetries) -> np.ndarray | None:
+    """The relabelling of the two models' frames the guidance points at: of those on its leash
+    (guided.near_start), the one nearest a given pose (up to the source's turn symmetry), or
+    the one that misses the picked pairs least; None where none is on the leash."""
+    opts = pair.opts
+    on_leash = [
+        rotation
+        for rotation in manhattan.relabellings(*pair.normal_frames)
+        if guided.near_start(Sim3(1.0, rotation, np.zeros(3)), start_pose, opts, dict(start), symmetries=symmetries)
+    ]
+    if not on_leash:
+        return None
+    if start.get("from") == "point_pairs":
+        return min(on_leash, key=lambda rotation: guided.click_miss(rotation, opts, start))
+    return min(on_leash, key=lambda rotation: guided.start_distance_deg(rotation, start_pose, symmetries))
+
+
+def surfaces_apart(metrics: dict) -> bool:
+    """Whether the answer's surfaces do not coincide (fewer than half of the overlap's pairs
+    within the sampling: robust.refinement's test without its whole-overlap half): another
+    instance, whole or in part. Two captures of one object that a user's pose or clicks brought
+    together coincide; their fit stands."""
+    share = metrics.get("coincident_share")
+    return share is not None and share < robust.RefineCriteria().coincident_share
 
 
 def other_instances(metrics: dict) -> bool:
@@ -64,11 +98,12 @@ def whole_models(metrics: dict) -> bool:
     return fraction is not None and fraction >= robust.RefineCriteria().whole_overlap
 
 
-def snap_to_frames(pair, best, transform: Sim3, metrics: dict) -> tuple[Sim3, dict]:
+def snap_to_frames(pair, best, transform: Sim3, metrics: dict, onto: np.ndarray | None = None) -> tuple[Sim3, dict]:
     """A doubtful answer and its alternatives turned onto the nearest relabelling of the two
-    models' dominant-normal frames (gsa.manhattan) where that turn is at most FRAME_SNAP_DEG;
-    the pose as refined becomes the first alternative. The answer stays doubtful: which of
-    the relabellings is right is the question the snap does not answer."""
+    models' dominant-normal frames (gsa.manhattan) where that turn is at most FRAME_SNAP_DEG
+    (the answer onto the relabelling `onto` where given, however far); the pose as refined
+    becomes the first alternative. The answer stays doubtful: which of the relabellings is
+    right is the question the snap does not answer."""
     frames = pair.normal_frames
     src, dst = pair.anchors()
     report = {"support": [frames[0].support, frames[1].support], "max_deg": FRAME_SNAP_DEG}
@@ -78,8 +113,13 @@ def snap_to_frames(pair, best, transform: Sim3, metrics: dict) -> tuple[Sim3, di
 
     kept: list[Sim3] = []
     alternatives = []
-    chosen, gap = snap(transform)
-    snapping = 1e-6 < gap <= FRAME_SNAP_DEG
+    if onto is None:
+        chosen, gap = snap(transform)
+    else:
+        chosen = manhattan.turned_onto(transform, onto, src.center)
+        gap = robust.rotation_offset_deg(transform, chosen)
+        report["onto"] = "the relabelling the guidance points at"
+    snapping = 1e-6 < gap <= (FRAME_SNAP_DEG if onto is None else 180.0)
     if snapping:
         chosen = manhattan.fit_shift(chosen, src.points, dst.points, robust.PoseCriteria().truncation * dst.radius)
         kept.append(chosen)

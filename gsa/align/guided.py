@@ -256,27 +256,40 @@ def near_start(
     another side of the object, away from what the user gave."""
     k = criteria or _DEFAULT
     if report.get("from") != "point_pairs":
-        return any(
-            rotation_distance_deg(pose.rotation @ g, start.rotation) <= k.start_leash_deg
-            for g in [np.eye(3), *symmetries]
-        )
+        return start_distance_deg(pose.rotation, start, symmetries) <= k.start_leash_deg
     if rotation_distance_deg(pose.rotation, start.rotation) > k.pairs_max_turn_deg:
         return False
+    _, dst = kept_clicks(opts, report)
+    spread = float(np.sqrt(np.mean(np.sum((dst - dst.mean(0)) ** 2, axis=1))))
+    return (
+        click_miss(pose.rotation, opts, report)
+        <= click_miss(start.rotation, opts, report) + k.pairs_leash_share * spread
+    )
+
+
+def kept_clicks(opts, report: dict) -> tuple[np.ndarray, np.ndarray]:
+    """The picked pairs (source, target) less the misclick start_transform left out."""
     src, dst = (np.asarray(p, np.float64) for p in opts.point_pairs)
     if report.get("left_out") is not None:
         keep = np.arange(len(src)) != report["left_out"]
         src, dst = src[keep], dst[keep]
-    spread = float(np.sqrt(np.mean(np.sum((dst - dst.mean(0)) ** 2, axis=1))))
+    return src, dst
 
-    def worst_miss(t: Sim3) -> float:
-        # The clicks pin which way the object faces; where it sits and how large it is the
-        # refinement judges better between two instances (the clicks' own fit is off in both):
-        # the pose's rotation with the scale and shift that fit the clicks best.
-        turned, centred = (src - src.mean(0)) @ t.rotation.T, dst - dst.mean(0)
-        scale = max(float(np.sum(turned * centred) / max(np.sum(turned**2), 1e-300)), 0.0)
-        return float(np.max(np.linalg.norm(scale * turned - centred, axis=1)))
 
-    return worst_miss(pose) <= worst_miss(start) + k.pairs_leash_share * spread
+def click_miss(rotation: np.ndarray, opts, report: dict) -> float:
+    """How far a pose with this rotation misses the worst kept click, at the scale and shift
+    that fit the clicks best. The clicks pin which way the object faces; where it sits and how
+    large it is the refinement judges better between two instances (the clicks' own fit is
+    off in both)."""
+    src, dst = kept_clicks(opts, report)
+    turned, centred = (src - src.mean(0)) @ np.asarray(rotation).T, dst - dst.mean(0)
+    scale = max(float(np.sum(turned * centred) / max(np.sum(turned**2), 1e-300)), 0.0)
+    return float(np.max(np.linalg.norm(scale * turned - centred, axis=1)))
+
+
+def start_distance_deg(rotation: np.ndarray, start: Sim3, symmetries: list[np.ndarray] = ()) -> float:
+    """Degrees between a rotation and a given pose's, up to the source's own `symmetries`."""
+    return min(rotation_distance_deg(rotation @ g, start.rotation) for g in [np.eye(3), *symmetries])
 
 
 def source_symmetries(points: np.ndarray, sample_size: int = 3000, dense_size: int = 50_000) -> list[np.ndarray]:
@@ -354,6 +367,7 @@ def describe(opts) -> dict:
 __all__ = [
     "GuidanceCriteria",
     "check_guidance",
+    "click_miss",
     "constrain",
     "describe",
     "doubt_reason",
@@ -363,6 +377,7 @@ __all__ = [
     "near_start",
     "pair_arrays",
     "pairs_transform",
+    "start_distance_deg",
     "start_transform",
     "up_rotations",
 ]
