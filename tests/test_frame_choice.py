@@ -130,3 +130,32 @@ def test_the_guidance_points_at_one_relabelling_or_none(tmp_path):
     pair3, best3, report3 = _guided_pair(tmp_path, truth, **clicks)
     rotation = frame_snap.guided_relabelling(pair3, best3.init, report3, ())
     assert rotation_distance_deg(rotation, truth.rotation) < 2.0
+
+
+def test_a_doubtful_answer_about_given_up_axes_is_turned_onto_the_frames_and_kept_upright(tmp_path):
+    from gsa.align import frame_snap
+
+    truth = random_sim3(np.random.default_rng(11))
+    up = np.array([0.0, 1.0, 0.0])  # the benches' back rises along +y in both
+    hints = {"up_axes": (up.tolist(), (truth.rotation @ up).tolist())}
+    from gsa.align.pipeline import _Hypothesis, _Pair
+    from gsa.align.types import AlignOptions
+
+    source, target = _pair(tmp_path, truth)
+    pair = _Pair.build(source, target, AlignOptions(semantic="off", **hints))
+    metrics = {"doubtful": True, "overlap_estimate": 0.95, "coincident_share": 0.2, "alternatives": []}
+    for turn_deg in (35.0, 180.0):  # drifted about the up axis; end for end (the heavy ends piled together)
+        answer = truth @ Sim3(1.0, axis_rotation(up, np.radians(turn_deg)), np.zeros(3))
+        best = _Hypothesis("guided:up", pair.src_frame, answer)
+        chosen, updated = frame_snap.up_snap(pair, best, answer, metrics)
+        assert rotation_distance_deg(chosen.rotation, truth.rotation) < 2.0, (turn_deg, updated.get("frame_choice"))
+        assert np.degrees(np.arccos(np.clip((chosen.rotation @ up) @ (truth.rotation @ up), -1, 1))) < 1e-6
+        assert updated["alternatives"][0]["origin"] in ("before the frame snap", "before the relabelling choice")
+    # two captures of one object keep their fit; so does an answer about up axes no relabelling
+    # keeps (a target up half way between two of its frame's axes: a wrong hint)
+    kept, _ = frame_snap.up_snap(pair, best, answer, metrics | {"coincident_share": 0.9})
+    assert kept is answer
+    wrong = truth.rotation @ axis_rotation([0.0, 0.0, 1.0], np.radians(45)) @ up
+    pair_wrong = _Pair.build(source, target, AlignOptions(semantic="off", up_axes=(up.tolist(), wrong.tolist())))
+    kept, _ = frame_snap.up_snap(pair_wrong, best, answer, metrics)
+    assert kept is answer

@@ -12,6 +12,7 @@ import numpy as np
 
 from gsa import manhattan
 from gsa.align import guided, robust
+from gsa.geometry import rotation_distance_deg
 from gsa.sim3 import Sim3
 
 # A doubtful pose this near a relabelling of the dominant-normal frames is turned onto it:
@@ -28,6 +29,9 @@ CHOICE_OFFERS = 4
 # another relabelling replaces the answer's only when its summed score leads by CHOICE_MARGIN.
 CHOICE_SPREAD_FLOOR = 0.02
 CHOICE_MARGIN = 0.5
+# A relabelling keeps a user's up axes when it maps the source's within this of the target's
+# (the frames' own error is a degree or two; a relabelling that tilts up is another answer).
+UP_KEPT_DEG = 10.0
 # An answer farther than this from every relabelling is not on the frames: it is kept (the
 # relabellings are only offered as alternatives).
 CHOICE_MAX_DEG = FRAME_SNAP_DEG
@@ -52,6 +56,37 @@ def guided_snap(pair, best, transform: Sim3, metrics: dict, start: dict, symmetr
     if rotation is None:
         return transform, metrics
     return snap_to_frames(pair, best, transform, metrics, onto=rotation)
+
+
+def up_snap(pair, best, transform: Sim3, metrics: dict) -> tuple[Sim3, dict]:
+    """A doubtful answer searched about a user's up axes, between surfaces that do not coincide:
+    the relabellings of the frames that keep the up axes (within UP_KEPT_DEG) are quarter turns
+    about them, and every answer lies within 45 deg of one: turned onto the nearest, then
+    checked against the others by shape (choose_relabelling restricted to them). Between
+    instances the turn about the up axis drifts (pianos, tables 7-40 deg) or piles the heavy
+    ends together (a bathtub end for end). Every pose is brought back onto the given up axes."""
+    opts = pair.opts
+    if opts.frame_snap == "off" or opts.up_axes is None or not surfaces_apart(metrics):
+        return transform, metrics
+    src_up, dst_up = (np.asarray(v, np.float64) / np.linalg.norm(v) for v in opts.up_axes)
+    rotations = manhattan.relabellings(*pair.normal_frames)
+    keeps = np.array(
+        [np.degrees(np.arccos(np.clip((r @ src_up) @ dst_up, -1.0, 1.0))) <= UP_KEPT_DEG for r in rotations]
+    )
+    if not keeps.any():  # no relabelling keeps the given up axes (a wrong hint): nothing for the frames to say
+        return transform, metrics
+    candidates = np.flatnonzero(keeps)
+    nearest = min(candidates, key=lambda k: rotation_distance_deg(rotations[k], transform.rotation))
+    turned, updated = snap_to_frames(
+        pair,
+        best,
+        transform,
+        metrics,
+        onto=rotations[nearest],
+        hold=pair.constrain,
+        why="the nearest relabelling that keeps the up axes",
+    )
+    return choose_relabelling(pair, best, turned, updated, allowed=keeps, hold=pair.constrain)
 
 
 def guided_relabelling(pair, start_pose: Sim3, start: dict, symmetries) -> np.ndarray | None:
@@ -98,27 +133,38 @@ def whole_models(metrics: dict) -> bool:
     return fraction is not None and fraction >= robust.RefineCriteria().whole_overlap
 
 
-def snap_to_frames(pair, best, transform: Sim3, metrics: dict, onto: np.ndarray | None = None) -> tuple[Sim3, dict]:
+def snap_to_frames(
+    pair,
+    best,
+    transform: Sim3,
+    metrics: dict,
+    onto: np.ndarray | None = None,
+    hold=None,
+    why: str = "the relabelling the guidance points at",
+) -> tuple[Sim3, dict]:
     """A doubtful answer and its alternatives turned onto the nearest relabelling of the two
     models' dominant-normal frames (gsa.manhattan) where that turn is at most FRAME_SNAP_DEG
-    (the answer onto the relabelling `onto` where given, however far); the pose as refined
-    becomes the first alternative. The answer stays doubtful: which of the relabellings is
+    (the answer onto the relabelling `onto` where given, however far; every turned pose passed
+    through `hold`, which brings it back onto the user's hints); the pose as refined becomes
+    the first alternative. The answer stays doubtful: which of the relabellings is
     right is the question the snap does not answer."""
     frames = pair.normal_frames
     src, dst = pair.anchors()
     report = {"support": [frames[0].support, frames[1].support], "max_deg": FRAME_SNAP_DEG}
+    hold = hold or (lambda pose: pose)
 
     def snap(pose: Sim3) -> tuple[Sim3, float]:
-        return manhattan.snapped(pose, *frames, src.center)
+        turned, gap = manhattan.snapped(pose, *frames, src.center)
+        return hold(turned), gap
 
     kept: list[Sim3] = []
     alternatives = []
     if onto is None:
         chosen, gap = snap(transform)
     else:
-        chosen = manhattan.turned_onto(transform, onto, src.center)
+        chosen = hold(manhattan.turned_onto(transform, onto, src.center))
         gap = robust.rotation_offset_deg(transform, chosen)
-        report["onto"] = "the relabelling the guidance points at"
+        report["onto"] = why
     snapping = 1e-6 < gap <= (FRAME_SNAP_DEG if onto is None else 180.0)
     if snapping:
         chosen = manhattan.fit_shift(chosen, src.points, dst.points, robust.PoseCriteria().truncation * dst.radius)
@@ -150,7 +196,9 @@ def snap_to_frames(pair, best, transform: Sim3, metrics: dict, onto: np.ndarray 
     return chosen, updated | {"frame_snap": report | {"used": True, "deg": gap}}
 
 
-def choose_relabelling(pair, best, transform: Sim3, metrics: dict) -> tuple[Sim3, dict]:
+def choose_relabelling(
+    pair, best, transform: Sim3, metrics: dict, allowed: np.ndarray | None = None, hold=None
+) -> tuple[Sim3, dict]:
     """A doubtful answer between whole models that lies within CHOICE_MAX_DEG of a relabelling
     of their frames (snapped onto it where they are other instances): the relabelling the
     models' shapes and, once lifted, their semantic features agree on most. Each of the 24 is
@@ -161,35 +209,39 @@ def choose_relabelling(pair, best, transform: Sim3, metrics: dict) -> tuple[Sim3
     upside down), where part-to-part mass and what a pretrained network sees tell the ends
     apart (docs/benchmarks.md, "Choosing among the relabellings"). The answer stays doubtful; the pose replaced becomes the first
     alternative, and the best-scored other relabellings join after the existing ones (also
-    where the answer lies off the frames and is kept)."""
+    where the answer lies off the frames and is kept). `allowed`: a (24,) mask of the
+    relabellings that may be chosen or offered (those that keep a user's up axes); `hold`
+    brings every relabelled pose back onto the user's hints."""
     frames = pair.normal_frames
     src, dst = pair.anchors()
     reach = robust.PoseCriteria().truncation * dst.radius
+    hold = hold or (lambda pose: pose)
     poses = [
         manhattan.fit_shift(
-            Sim3(transform.scale, rotation, transform.apply(src.center) - transform.scale * rotation @ src.center),
+            hold(manhattan.turned_onto(transform, rotation, src.center)),
             src.points,
             dst.points,
             reach,
         )
         for rotation in manhattan.relabellings(*frames)
     ]
+    allowed = np.ones(len(poses), bool) if allowed is None else np.asarray(allowed, bool)
     shape = manhattan.relabelling_agreement(pair.source, pair.target, *frames)
     total = _standardised(shape)
     semantic = None
     if pair.lifted is not None:
         semantic = np.asarray(pair.lifted.scores(poses))
         total = total + _standardised(semantic)
-    offsets = [robust.rotation_offset_deg(transform, p) for p in poses]
-    current = int(np.argmin(offsets))
-    order = [int(k) for k in np.argsort(-total, kind="stable")]
+    offsets = np.array([robust.rotation_offset_deg(transform, p) for p in poses])
+    current = int(np.argmin(np.where(allowed, offsets, np.inf)))
+    order = [int(k) for k in np.argsort(-total, kind="stable") if allowed[k]]
     # An answer farther from every relabelling is not on the frames: they do not explain it, and
     # it is kept (the best-scored relabellings are still offered).
-    on_frames = offsets[current] <= CHOICE_MAX_DEG
+    on_frames = bool(offsets[current] <= CHOICE_MAX_DEG)
     pick = order[0] if on_frames and total[order[0]] > total[current] + CHOICE_MARGIN else current
     report = {
         "used": on_frames,
-        "deg": offsets[current],
+        "deg": float(offsets[current]),
         "shape": shape.round(4).tolist(),
         "semantic": None if semantic is None else semantic.round(4).tolist(),
         "on": current,  # the nearest relabelling to the answer

@@ -174,12 +174,13 @@ def _doubtful_search_answer(pair, best, search, transform: Sim3, metrics: dict, 
 def _doubtful_answer(pair, best, search, transform: Sim3, metrics: dict, guidance, leash, timings: dict, progress):
     """A doubtful answer of the search: the automatic one goes through the semantic tie-break
     and the frame snap; one refined from a user's pose or pairs (leash: the start's report and
-    the source's symmetries) through the frame snap alone, on the user's leash."""
+    the source's symmetries) through the frame snap alone, on the user's leash; one searched
+    about the user's up axes onto the relabellings that keep them."""
     if guidance is None:
         return _doubtful_search_answer(pair, best, search, transform, metrics, timings, progress)
     if leash is not None:
         return frame_snap.guided_snap(pair, best, transform, metrics, *leash)
-    return transform, metrics
+    return frame_snap.up_snap(pair, best, transform, metrics)
 
 
 def _swept_poses(pair, lifted, known: list[Sim3], search) -> list[robust.Candidate]:
