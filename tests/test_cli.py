@@ -129,6 +129,17 @@ def test_rigid_flag_reaches_the_options():
     assert _align_options(parser.parse_args([])).rigid is False
 
 
+def test_frame_snap_flag_reaches_the_options():
+    from gsa.align.command import _align_options, add_align_arguments
+
+    parser = argparse.ArgumentParser()
+    add_align_arguments(parser)
+    assert _align_options(parser.parse_args(["--frame-snap", "off"])).frame_snap == "off"
+    assert _align_options(parser.parse_args([])).frame_snap == "auto"
+    with pytest.raises(SystemExit):  # argparse refuses other values with its usage line
+        parser.parse_args(["--frame-snap", "sometimes"])
+
+
 def test_unreadable_target_cameras_are_one_line(pair, tmp_path):
     (tmp_path / "cams.json").write_text("not json")
     r = gsa("align", pair[0], pair[1], "--target-cameras", tmp_path / "cams.json", "--out", tmp_path / "r.json")

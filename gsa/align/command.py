@@ -59,6 +59,7 @@ def _align_options(args: argparse.Namespace):
         "rigid": args.rigid,
         "semantic": getattr(args, "semantic", None) or _semantic_default(),
         "photo_matches": getattr(args, "photo_matches", None) or "auto",
+        "frame_snap": getattr(args, "frame_snap", None) or "auto",
     }
     for name in ("fine_iterations", "fine_views", "fine_lr", "fine_image_size", "fine_on"):
         value = getattr(args, name, None)
@@ -249,6 +250,13 @@ def add_align_arguments(p: argparse.ArgumentParser) -> None:
         help="a doubtful answer: pretrained DINOv2 features pick among the chosen pose and its "
         "alternatives (auto: when a backbone is installed or --backbone given; off: never; "
         "default: env GSA_SEMANTIC, else auto)",
+    )
+    g.add_argument(
+        "--frame-snap",
+        choices=("auto", "off"),
+        default="auto",
+        help="a doubtful answer between other instances: turned onto the relabellings of the two "
+        "models' dominant surface-normal frames and checked among them (auto), or left as refined (off)",
     )
     g.add_argument(
         "--photo-matches",
