@@ -29,6 +29,10 @@ CHOICE_OFFERS = 4
 # another relabelling replaces the answer's only when its summed score leads by CHOICE_MARGIN.
 CHOICE_SPREAD_FLOOR = 0.02
 CHOICE_MARGIN = 0.5
+# The relabelling a given pose points at lies at most this far from it: a rough start (the guided
+# issue's "20 deg off", the snap's reach) plus the frames' own error (within 5 deg of the truth on
+# every category-real pair). A pose farther from every relabelling is the user's own answer.
+GUIDED_REACH_DEG = FRAME_SNAP_DEG + 5.0
 # A relabelling keeps a user's up axes when it maps the source's within this of the target's
 # (the frames' own error is a degree or two; a relabelling that tilts up is another answer).
 UP_KEPT_DEG = 10.0
@@ -94,8 +98,9 @@ def up_snap(pair, best, transform: Sim3, metrics: dict) -> tuple[Sim3, dict]:
 
 def guided_relabelling(pair, start_pose: Sim3, start: dict, symmetries) -> np.ndarray | None:
     """The relabelling of the two models' frames the guidance points at: of those on its leash
-    (guided.near_start), the one nearest a given pose (up to the source's turn symmetry), or
-    the one that misses the picked pairs least; None where none is on the leash."""
+    (guided.near_start), the one nearest a given pose (up to the source's turn symmetry) where
+    it is within GUIDED_REACH_DEG, or the one that misses the picked pairs least; None where
+    none is."""
     opts = pair.opts
     on_leash = [
         rotation
@@ -106,7 +111,8 @@ def guided_relabelling(pair, start_pose: Sim3, start: dict, symmetries) -> np.nd
         return None
     if start.get("from") == "point_pairs":
         return min(on_leash, key=lambda rotation: guided.click_miss(rotation, opts, start))
-    return min(on_leash, key=lambda rotation: guided.start_distance_deg(rotation, start_pose, symmetries))
+    nearest = min(on_leash, key=lambda rotation: guided.start_distance_deg(rotation, start_pose, symmetries))
+    return nearest if guided.start_distance_deg(nearest, start_pose, symmetries) <= GUIDED_REACH_DEG else None
 
 
 def surfaces_apart(metrics: dict) -> bool:
