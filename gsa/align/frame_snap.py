@@ -56,9 +56,10 @@ def guided_snap(pair, best, transform: Sim3, metrics: dict, start: dict, symmetr
     opts = pair.opts
     if opts.frame_snap == "off" or opts.up_axes is not None or not surfaces_apart(metrics):
         return transform, metrics
-    turned, updated = snap_to_frames(pair, best, transform, metrics)
-    if turned is not transform and guided.near_start(turned, best.init, opts, dict(start), symmetries=symmetries):
-        return turned, updated
+    # the leash reads the rotation alone: the nearest relabelling is judged before any refit
+    nearest, gap = manhattan.snapped(transform, *pair.normal_frames, pair.anchors()[0].center)
+    if 1e-6 < gap <= FRAME_SNAP_DEG and guided.near_start(nearest, best.init, opts, dict(start), symmetries=symmetries):
+        return snap_to_frames(pair, best, transform, metrics)
     rotation = guided_relabelling(pair, best.init, start, symmetries)
     if rotation is None:
         return transform, metrics
@@ -77,9 +78,7 @@ def up_snap(pair, best, transform: Sim3, metrics: dict) -> tuple[Sim3, dict]:
         return transform, metrics
     src_up, dst_up = (np.asarray(v, np.float64) / np.linalg.norm(v) for v in opts.up_axes)
     rotations = manhattan.relabellings(*pair.normal_frames)
-    keeps = np.array(
-        [np.degrees(np.arccos(np.clip((r @ src_up) @ dst_up, -1.0, 1.0))) <= UP_KEPT_DEG for r in rotations]
-    )
+    keeps = np.array([(r @ src_up) @ dst_up >= np.cos(np.radians(UP_KEPT_DEG)) for r in rotations])
     if not keeps.any():  # no relabelling keeps the given up axes (a wrong hint): nothing for the frames to say
         return transform, metrics
     candidates = np.flatnonzero(keeps)
