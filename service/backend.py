@@ -8,6 +8,7 @@ import logging
 import shutil
 import tempfile
 import threading
+import time
 import uuid
 from dataclasses import dataclass, field
 from datetime import timedelta
@@ -57,7 +58,7 @@ class RQQueue:
         """True if RQ no longer holds a live message for this ref (dropped, failed,
         or "started" by a worker that died before claiming the job), or none was ever
         sent (ref None: the API died, or Redis went, between creating the job and
-        enqueuing it)."""
+        enqueuing it), or a retry's delayed message is long overdue (see below)."""
         from rq.exceptions import NoSuchJobError  # lazy: see RQQueue.__init__
         from rq.job import Job as RQJob
 
@@ -73,7 +74,17 @@ class RQQueue:
             # killed before it marks the message started leaves it "queued" in no list.
             r = self.q.connection
             return r.lpos(self.q.key, ref) is None and r.lpos(self.q.intermediate_queue_key, ref) is None
-        return status not in ("deferred", "scheduled")
+        if status == "scheduled":
+            # RQ's scheduler runs in one worker holding a lock that lapses 61 s after that
+            # worker dies (SIGKILL, OOM), and the others retry taking it every maintenance
+            # pass: meanwhile a retry's back-off message stays "scheduled" past its time. One
+            # overdue by more than two leases is re-sent now (a duplicate delivery is harmless:
+            # the claim is a compare-and-set).
+            from rq.registry import ScheduledJobRegistry  # lazy: see RQQueue.__init__
+
+            due = self.q.connection.zscore(ScheduledJobRegistry(queue=self.q).key, ref)
+            return due is None or due < time.time() - 2 * self.settings.lease_s
+        return status != "deferred"
 
     def enqueue_webhook(self, job_id: str) -> None:
         from rq import Retry  # lazy: see RQQueue.__init__

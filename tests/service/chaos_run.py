@@ -78,6 +78,8 @@ class Report:
     jobs_on_server: int = 0
     final: dict[str, int] = field(default_factory=dict)
     lost: list[str] = field(default_factory=list)
+    # What the store and RQ held for each lost job at the end: why it never finished
+    lost_detail: dict[str, dict] = field(default_factory=dict)
     duplicated: list[str] = field(default_factory=list)
     missing_webhooks: list[str] = field(default_factory=list)
     # succeeded jobs whose storage holds artifacts of more than one attempt (a second
@@ -275,6 +277,7 @@ class ChaosRun:
             j = by_id.get(jid)
             if j is None or j["state"] not in FINAL:
                 rep.lost.append(jid)
+                rep.lost_detail[jid] = self._inside(jid)
                 continue
             rep.final[j["state"]] = rep.final.get(j["state"], 0) + 1
             rep.attempts_max = max(rep.attempts_max, j["attempts"])
@@ -294,6 +297,31 @@ class ChaosRun:
             f.recovered = min(after) if after else None
             rep.faults.append({"fault": f.kind, "recovery_s": f.recovery_s(), "note": f.note})
         return rep
+
+    def _inside(self, job_id: str) -> dict:
+        """The stored job's queue fields and its RQ message's status (a lost job's diagnosis)."""
+        import redis
+        from rq.exceptions import NoSuchJobError
+        from rq.job import Job as RQJob
+
+        from service.stores.redis_store import RedisJobStore
+
+        conn = redis.Redis.from_url(self.redis.url)
+        try:
+            job = RedisJobStore(conn).get(job_id)
+            if job is None:
+                return {"stored": None}
+            fields = ("state", "stage", "attempts", "queue_ref", "enqueued_at", "next_attempt_at", "lease_until", "worker")
+            out = {k: getattr(job, k) for k in fields} | {"now": time.time()}
+            try:
+                out["rq_status"] = str(RQJob.fetch(job.queue_ref, connection=conn).get_status(refresh=False))
+            except (NoSuchJobError, TypeError, ValueError) as exc:
+                out["rq_status"] = repr(exc)
+            return out
+        except redis.RedisError as exc:
+            return {"error": repr(exc)}
+        finally:
+            conn.close()
 
     def close(self) -> None:
         self.stop.set()

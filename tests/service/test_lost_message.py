@@ -1,7 +1,9 @@
 """A queue message taken by a worker that died before marking it started: RQ still
 says "queued", but no list holds it any more. The reaper must send it again (found
 by the chaos run: one job of 100 stayed queued for good). Nor may a job whose message
-was never sent stay queued (the API SIGKILLed between creating and enqueuing it)."""
+was never sent stay queued (the API SIGKILLed between creating and enqueuing it), nor
+a retry whose delayed message RQ's scheduler does not move (its worker died holding the
+scheduler's lock)."""
 
 from __future__ import annotations
 
@@ -63,3 +65,21 @@ def test_a_job_whose_message_was_never_sent_is_sent(redis_url, tmp_path):
     ref = b.store.get(job.id).queue_ref
     assert ref is not None and b.queue.q.job_ids == [ref]
     assert resend_lost(b) == []  # sent now: not sent again
+
+
+def test_a_retry_message_the_scheduler_left_overdue_is_resent(redis_url, tmp_path):
+    redislib.Redis.from_url(redis_url + "/6").flushdb()  # private test server, db 6
+    b = make_backend(Settings(redis_url=redis_url + "/6", storage_root=tmp_path, queue_name="overdue", lease_s=1))
+    a = _asset()
+    job = create_job(b, "o", "job_overdue", [a], a, {}, None, None)
+    b.redis.delete(b.queue.q.key)
+    # A retry's back-off message: "scheduled" in RQ's registry, due in 1 s; no scheduler runs here.
+    ref = b.queue.enqueue(job.id, delay_s=1.0)
+    b.store.update(job.id, queue_ref=ref, enqueued_at=time.time() - 10, next_attempt_at=time.time() - 0.5)
+    assert b.queue.q.fetch_job(ref).get_status(refresh=True).value == "scheduled"
+    assert resend_lost(b) == []  # due moments ago: the scheduler's next pass moves it
+    registry = b.queue.q.scheduled_job_registry
+    b.redis.zadd(registry.key, {ref: time.time() - 5})  # now overdue by more than two leases
+    assert resend_lost(b) == [job.id]
+    new_ref = b.store.get(job.id).queue_ref
+    assert new_ref != ref and b.queue.q.job_ids == [new_ref]
