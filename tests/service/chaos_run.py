@@ -311,7 +311,16 @@ class ChaosRun:
             job = RedisJobStore(conn).get(job_id)
             if job is None:
                 return {"stored": None}
-            fields = ("state", "stage", "attempts", "queue_ref", "enqueued_at", "next_attempt_at", "lease_until", "worker")
+            fields = (
+                "state",
+                "stage",
+                "attempts",
+                "queue_ref",
+                "enqueued_at",
+                "next_attempt_at",
+                "lease_until",
+                "worker",
+            )
             out = {k: getattr(job, k) for k in fields} | {"now": time.time()}
             try:
                 out["rq_status"] = str(RQJob.fetch(job.queue_ref, connection=conn).get_status(refresh=False))
