@@ -67,6 +67,13 @@ def test_a_doubtful_answer_end_for_end_is_turned_back(tmp_path):
     assert np.allclose(updated["alternatives"][0]["transform"], flipped.matrix())
     assert all(a["origin"] == "frame relabelling" for a in updated["alternatives"][1:])
     assert all(a["tied"] is False for a in updated["alternatives"])  # every alternative says whether it ties
+    # every other relabelling is offered once (the replaced pose is one of them), best-scored first
+    relabelled = [a for a in updated["alternatives"][1:]]
+    assert len(relabelled) == 22, len(relabelled)
+    scores = [a["shape_agreement"] for a in relabelled]
+    assert scores == sorted(scores, reverse=True)
+    others = [Sim3.from_matrix(np.asarray(a["transform"])).rotation for a in updated["alternatives"]]
+    assert all(rotation_distance_deg(r, chosen.rotation) > 2.0 for r in others)
     # an answer far from every relabelling is left as it is: the frames do not explain it
     tilted = truth @ Sim3(1.0, axis_rotation([1, 1, 0], np.radians(40)), np.zeros(3))
     kept, report = frame_snap.choose_relabelling(pair, best, tilted, metrics)
