@@ -68,7 +68,7 @@ def test_a_doubtful_answer_end_for_end_is_turned_back(tmp_path):
     assert all(a["origin"] == "frame relabelling" for a in updated["alternatives"][1:])
     assert all(a["tied"] is False for a in updated["alternatives"])  # every alternative says whether it ties
     # every other relabelling is offered once (the replaced pose is one of them), best-scored first
-    relabelled = [a for a in updated["alternatives"][1:]]
+    relabelled = updated["alternatives"][1:]
     assert len(relabelled) == 22, len(relabelled)
     scores = [a["shape_agreement"] for a in relabelled]
     assert scores == sorted(scores, reverse=True)
