@@ -128,6 +128,7 @@ OPTION_CHOICES: dict[str, tuple[str, ...]] = {
     "fine_on": ("features", "colors"),
     "semantic": ("auto", "off"),
     "photo_matches": ("auto", "off"),
+    "frame_snap": ("auto", "off"),
 }
 STAGE_NAMES = ("auto", "coarse", "fine")
 BOOL_OPTIONS = {"renders", "weight_by_opacity", "rigid"}
@@ -369,6 +370,12 @@ class AlignOptionsIn(BaseModel):
         None,
         description="auto | off: a doubtful answer's pose is picked among its alternatives by pretrained "
         "DINOv2 features when the deployment has a backbone (default auto)",
+    )
+    frame_snap: str | None = Field(
+        None,
+        description="auto | off: a doubtful answer between other instances is turned onto the nearest "
+        "relabelling of the models' dominant surface-normal frames and checked against the others; off "
+        "keeps the poses as refined (default auto)",
     )
 
     @model_validator(mode="after")

@@ -115,6 +115,9 @@ def test_unknown_stage_is_rejected_at_submission(http, stub, pair):
     assert code == grpc.StatusCode.INVALID_ARGUMENT and problem["option"] == "semantic"
     for value in ("auto", "off"):  # valid: past the options to the missing assets
         assert_problem(_json_job(http, {"semantic": value}), 404)
+        assert_problem(_json_job(http, {"frame_snap": value}), 404)
+    body = assert_problem(_json_job(http, {"frame_snap": "never"}), 422, "invalid-input")
+    assert body["option"] == "frame_snap"
     # valid stage lists still pass
     for stages in (["auto"], ["coarse"], ["coarse", "fine"]):
         assert_problem(_json_job(http, {"stages": stages}), 404)

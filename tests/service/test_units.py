@@ -389,3 +389,12 @@ def test_the_deployment_can_turn_the_semantic_tie_break_off():
     assert align_options(on, {}).semantic == "auto"
     assert align_options(on, {"semantic": "off"}).semantic == "off"
     assert align_options(Settings(semantic="off"), {"semantic": "auto"}).semantic == "off"  # the deployment wins
+
+
+def test_a_job_can_keep_its_poses_as_refined():
+    from service.jobs.options import align_options, check_option_values
+
+    assert align_options(Settings(), {}).frame_snap == "auto"
+    assert align_options(Settings(), {"frame_snap": "off"}).frame_snap == "off"
+    with pytest.raises(Exception, match="frame_snap"):
+        check_option_values({"frame_snap": "sometimes"})
