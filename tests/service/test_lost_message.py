@@ -48,11 +48,16 @@ def _asset() -> Asset:
     )
 
 
-def test_a_job_whose_message_was_never_sent_is_sent(redis_url, tmp_path):
-    redislib.Redis.from_url(redis_url + "/5").flushdb()  # private test server, db 5
-    b = make_backend(Settings(redis_url=redis_url + "/5", storage_root=tmp_path, queue_name="unsent", lease_s=1))
+def _queued_job(redis_url: str, tmp_path, db: int, name: str):
+    """A backend on the private test server's database `db` (emptied) and one queued job."""
+    redislib.Redis.from_url(f"{redis_url}/{db}").flushdb()
+    b = make_backend(Settings(redis_url=f"{redis_url}/{db}", storage_root=tmp_path, queue_name=name, lease_s=1))
     a = _asset()
-    job = create_job(b, "o", "job_unsent", [a], a, {}, None, None)
+    return b, create_job(b, "o", f"job_{name}", [a], a, {}, None, None)
+
+
+def test_a_job_whose_message_was_never_sent_is_sent(redis_url, tmp_path):
+    b, job = _queued_job(redis_url, tmp_path, 5, "unsent")
     # What the store holds when the API died right after creating the record: no message.
     b.redis.delete(b.queue.q.key)
     b.store.update(job.id, queue_ref=None, enqueued_at=None)
@@ -68,10 +73,7 @@ def test_a_job_whose_message_was_never_sent_is_sent(redis_url, tmp_path):
 
 
 def test_a_retry_message_the_scheduler_left_overdue_is_resent(redis_url, tmp_path):
-    redislib.Redis.from_url(redis_url + "/6").flushdb()  # private test server, db 6
-    b = make_backend(Settings(redis_url=redis_url + "/6", storage_root=tmp_path, queue_name="overdue", lease_s=1))
-    a = _asset()
-    job = create_job(b, "o", "job_overdue", [a], a, {}, None, None)
+    b, job = _queued_job(redis_url, tmp_path, 6, "overdue")
     b.redis.delete(b.queue.q.key)
     # A retry's back-off message: "scheduled" in RQ's registry, due in 1 s; no scheduler runs here.
     ref = b.queue.enqueue(job.id, delay_s=1.0)
