@@ -80,9 +80,7 @@ class RQQueue:
             # pass: meanwhile a retry's back-off message stays "scheduled" past its time. One
             # overdue by more than two leases is re-sent now (a duplicate delivery is harmless:
             # the claim is a compare-and-set).
-            from rq.registry import ScheduledJobRegistry  # lazy: see RQQueue.__init__
-
-            due = self.q.connection.zscore(ScheduledJobRegistry(queue=self.q).key, ref)
+            due = self.q.connection.zscore(self.q.scheduled_job_registry.key, ref)
             return due is None or due < time.time() - 2 * self.settings.lease_s
         return status != "deferred"
 
