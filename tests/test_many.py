@@ -411,3 +411,60 @@ def test_write_captures_gives_exactly_the_count_asked(tmp_path):
     paths = nway.write_captures(tmp_path, 3, 1500)
     assert [p.name for p in paths] == ["capture_0.ply", "capture_1.ply", "capture_2.ply"]
     assert [len(read_ply(p)) for p in paths] == [1500] * 3
+
+
+def _frame_evidence(truth, seed: int, misleading: dict | None = None):
+    """Frames that move with the members (model k's axes: a random relabelling of the truth's
+    rotation into the reference) and grid scores that favour each edge's true relabelling by
+    one standard deviation, except `misleading` edges {(i, j): by how much the half turn about
+    the first axis leads instead}."""
+    from gsa.align import many_frames
+    from gsa.canonical import SIGNED_PERMUTATIONS
+    from gsa.manhattan import NormalFrame
+
+    rng = np.random.default_rng(seed)
+    perms = [np.eye(3)] + [SIGNED_PERMUTATIONS[rng.integers(24)] for _ in truth[1:]]
+    frames = [NormalFrame(p @ t.rotation, 0.5) for p, t in zip(perms, truth)]
+    shape = {}
+    for i, j in itertools.combinations(range(len(truth)), 2):
+        true = many_frames._index_of(perms[j] @ perms[i].T)
+        z = np.zeros(24)
+        z[true] = 1.0
+        if misleading and (i, j) in misleading:
+            z[many_frames._index_of(np.diag([1.0, -1.0, -1.0]) @ perms[j] @ perms[i].T)] = 1.0 + misleading[(i, j)]
+        shape[(i, j)] = z
+    return many_frames.FrameEvidence(frames, shape)
+
+
+def test_frames_put_right_a_member_flipped_on_every_edge():
+    # Model 2 measured turned half a turn on all four of its edges (doubtful, nothing else
+    # offered): the cycles cannot tell (the flips agree with one another), and without the
+    # frames it stays turned. Its frames' grid scores favour the right relabelling on three of
+    # its edges and the turn on one: one relabelling per member, summed over its edges, puts it
+    # right, its edges rebuilt onto that relabelling and marked corrected.
+    truth, centres, sizes, edges = _graph(5, seed=8, noise_deg=0.0)
+    flipped = {k for k, e in enumerate(edges) if 2 in (e.source, e.target)}
+    _flip_member(edges, 2, centres[2], flipped)
+    for e in edges:
+        e.alternatives, e.confidence = [], 0.05
+        e.doubtful = True
+    evidence = _frame_evidence(truth, seed=8, misleading={(0, 2): 0.5})
+    import copy
+
+    alone = solve_graph(5, copy.deepcopy(edges), 0, centres, sizes)
+    assert _errors(alone, truth)[2][0] > 170
+    result = solve_graph(5, edges, 0, centres, sizes, frames=evidence)
+    for rot, log_s in _errors(result, truth):
+        assert rot < 1.5 and log_s < 0.02
+    assert {k for k, e in enumerate(result.edges) if e.status == "corrected"} == flipped
+
+
+def test_a_confident_edge_outweighs_the_frames_grid_scores():
+    # Every grid score of model 3's edges favours its half turn, but its edges are confident
+    # and right: they keep their poses and model 3 stays right.
+    truth, centres, sizes, edges = _graph(4, seed=9)
+    misleading = {(i, j): 1.0 for i, j in itertools.combinations(range(4), 2) if 3 in (i, j)}
+    result = solve_graph(4, edges, 0, centres, sizes, frames=_frame_evidence(truth, seed=9, misleading=misleading))
+    for rot, _ in _errors(result, truth):
+        assert rot < 1.5
+    assert all(e.status == "kept" for e in result.edges)

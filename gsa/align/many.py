@@ -33,6 +33,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from gsa.align.many_frames import FrameEvidence, edge_targets, frame_evidence, synchronise
 from gsa.errors import GSAError
 from gsa.geometry import rotation_angle
 from gsa.model import GaussianModel
@@ -479,10 +480,13 @@ def solve_graph(
     centres: Sequence[np.ndarray] | None = None,
     sizes: Sequence[float] | None = None,
     names: Sequence[str] | None = None,
+    frames: FrameEvidence | None = None,
 ) -> ManyResult:
     """The global step: every model's Sim(3) into the reference frame, consistent with the
     edges; sets each edge's status, weight and residual. centres and sizes: each model's
-    centroid and RMS radius in its own frame (residual units; default 0 and 1)."""
+    centroid and RMS radius in its own frame (residual units; default 0 and 1). frames: the
+    members' frames and grid scores (many_frames.frame_evidence): the consensus is then one
+    relabelling per member (many_frames.synchronise) instead of one of the edges' poses."""
     _check_graph(n, edges, reference)
     t0 = time.perf_counter()
     names = list(names) if names is not None else [f"model_{k}" for k in range(n)]
@@ -497,10 +501,17 @@ def solve_graph(
     # The consensus over each edge's poses first: an edge whose alternative the consensus agrees
     # with (and not its measured pose) enters the least squares with that alternative.
     by_consensus = set()
-    for e_idx, (edge, pose) in enumerate(zip(edges, consensus_poses(n, reference, edges))):
-        if pose:
-            chosen[e_idx] = normalised(edge, edge.alternatives[pose - 1])
-            edge.used = edge.alternatives[pose - 1]
+    if frames is not None:
+        used = _frame_consensus(edges, frames, reference, n, centres)
+    else:
+        used = [
+            None if not pose else edge.alternatives[pose - 1]
+            for edge, pose in zip(edges, consensus_poses(n, reference, edges))
+        ]
+    for e_idx, (edge, pose) in enumerate(zip(edges, used)):
+        if pose is not None:
+            chosen[e_idx] = normalised(edge, pose)
+            edge.used = pose
             by_consensus.add(e_idx)
     pairs = [(e.source, e.target, t) for e, t in zip(edges, chosen)]
     prior = np.array([max(float(e.confidence), 0.05) for e in edges])
@@ -534,6 +545,34 @@ def solve_graph(
         timings={"global": time.perf_counter() - t0},
         contested=_contested(n, reference, edges),
     )
+
+
+def _frame_consensus(
+    edges: list[Edge], frames: FrameEvidence, reference: int, n: int, centres: Sequence[np.ndarray]
+) -> list[Sim3 | None]:
+    """Per edge, the pose it enters the least squares with when the members' relabelling
+    assignment disagrees with its measured pose (None: the measured pose agrees): its most
+    plausible pose within CONSENSUS_DEG of the assigned relabelling, else (doubtful edges only)
+    the measured pose turned onto that relabelling about the source's centroid. A confident
+    edge is never rebuilt: where the assignment overrules it, the least squares do the rest."""
+    from gsa.manhattan import turned_onto
+
+    assignment = synchronise(n, reference, edges, frames)
+    out: list[Sim3 | None] = []
+    for edge, target in zip(edges, edge_targets(edges, frames, assignment)):
+        if target is None:
+            out.append(None)
+            continue
+        cos = (np.einsum("ab,hab->h", target, _pose_rotations(edge)) - 1.0) / 2.0
+        near = np.flatnonzero(cos > np.cos(np.radians(CONSENSUS_DEG)))
+        if len(near):
+            pick = int(near[np.argmax(pose_weights(edge)[near])])
+            out.append(None if pick == 0 else edge.alternatives[pick - 1])
+        elif edge.doubtful:
+            out.append(turned_onto(edge.transform, target, centres[edge.source]))
+        else:
+            out.append(None)
+    return out
 
 
 def _contested(n: int, reference: int, edges: list[Edge]) -> dict[int, list[int]]:
@@ -784,8 +823,11 @@ def align_many(
     graph = pairwise_edges(models, pairs, options, progress, edge_progress)
     t_pairwise = time.perf_counter() - t_edges
     frames = [model_frame(m) for m in models]
-    result = solve_graph(n, graph, reference, [c for c, _ in frames], [s for _, s in frames], names)
+    t_frames = time.perf_counter()
+    evidence = frame_evidence(models, pairs)
+    result = solve_graph(n, graph, reference, [c for c, _ in frames], [s for _, s in frames], names, frames=evidence)
     result.timings.update(
+        frames=time.perf_counter() - t_frames - result.timings["global"],
         pairwise=t_pairwise,
         per_edge=t_pairwise / max(len(graph), 1),
         edges=len(graph),

@@ -33,6 +33,7 @@ from pathlib import Path
 import numpy as np
 
 from gsa.align.many import Edge, model_frame, pairwise_edges, select_edges, solve_graph
+from gsa.align.many_frames import frame_evidence
 from gsa.align.pipeline import AlignOptions
 from gsa.bench.category_real import FLOATERS, _symmetries
 from gsa.bench.records import SUCCESS_RRE_DEG, save_rows
@@ -214,7 +215,8 @@ def _cross_rows(quick: bool, seed: int, data: str | Path) -> tuple[list[dict], l
             wrong += not ok
             fixable += (not ok) and any(a < SUCCESS_RRE_DEG for a in alts)
             pair_recs.append({"category": category, "pair": [e.source, e.target], **rec, "confidence": e.confidence})
-        result = solve_graph(n, edges, 0, [c for c, _ in frames], [s for _, s in frames])
+        evidence = frame_evidence(models, [(e.source, e.target) for e in edges])
+        result = solve_graph(n, edges, 0, [c for c, _ in frames], [s for _, s in frames], frames=evidence)
         before = _pairwise_to_reference(edges, n)
         set_before, set_after = [], []
         for k in range(1, n):
@@ -284,6 +286,7 @@ def protocol_nway(
     edges = pairwise_edges(models, select_edges(models, "all"), AlignOptions(stages=("coarse",), seed=seed))
     pairwise_s = time.perf_counter() - t0
     per_edge = pairwise_s / len(edges)
+    evidence = frame_evidence(models, [(e.source, e.target) for e in edges])
 
     rows = []
     lines = [
@@ -306,7 +309,7 @@ def protocol_nway(
             "|---|---:|---:|---:|---:|---:|---:|---:|---:|",
         ]
         t1 = time.perf_counter()
-        result = solve_graph(n, graph, 0, centres, sizes)
+        result = solve_graph(n, graph, 0, centres, sizes, frames=evidence)
         global_s = time.perf_counter() - t1
         before = _errors(_pairwise_to_reference(graph, n), truth, frames)
         after = _errors(result.transforms, truth, frames)

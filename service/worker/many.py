@@ -83,6 +83,7 @@ def _run_edges(backend: Backend, job: Job, token: str, prog: JobProgress, models
     """Every edge's pairwise alignment (spread over the workers: service.worker.edges), then the
     global step; the edges' results say which worker ran each."""
     from gsa.align.many import ManyError, model_frame, solve_graph
+    from gsa.align.many_frames import frame_evidence
 
     t0 = time.perf_counter()
     reports = _EdgeReports(prog)
@@ -102,7 +103,15 @@ def _run_edges(backend: Backend, job: Job, token: str, prog: JobProgress, models
     frames = [model_frame(m) for m in models]
     t_pairwise = time.perf_counter() - t0
     try:
-        result = solve_graph(len(models), graph, reference, [c for c, _ in frames], [s for _, s in frames], names)
+        result = solve_graph(
+            len(models),
+            graph,
+            reference,
+            [c for c, _ in frames],
+            [s for _, s in frames],
+            names,
+            frames=frame_evidence(models, pairs),
+        )
     except ManyError as exc:  # input the global step cannot work with: the client's
         raise invalid_input(str(exc)) from None
     result.timings.update(
