@@ -97,11 +97,12 @@ def test_a_wrong_edge_with_a_consistent_alternative_is_corrected():
         assert rot < 1.5
 
 
-def _flip_member(edges, member, centre, turned_edges):
-    """Model `member` turned half a turn about its centroid, as seen by turned_edges (indices):
-    those measure the turned frame, with the right pose as their alternative; the others measure
-    the right frame, with the turned one as theirs."""
-    half = Sim3(1.0, euler_xyz(np.array([0.0, np.pi, 0.0])), np.zeros(3))
+def _flip_member(edges, member, centre, turned_edges, half_turn=None):
+    """Model `member` turned half a turn about its centroid (about its y axis, or the rotation
+    half_turn), as seen by turned_edges (indices): those measure the turned frame, with the
+    right pose as their alternative; the others measure the right frame, with the turned one
+    as theirs."""
+    half = Sim3(1.0, euler_xyz(np.array([0.0, np.pi, 0.0])) if half_turn is None else half_turn, np.zeros(3))
     flip = Sim3(1.0, np.eye(3), centre) @ half @ Sim3(1.0, np.eye(3), -centre)
     for k, e in enumerate(edges):
         if member not in (e.source, e.target):
@@ -441,14 +442,15 @@ def test_frames_put_right_a_member_flipped_on_every_edge():
     # offered): the cycles cannot tell (the flips agree with one another), and without the
     # frames it stays turned. Its frames' grid scores favour the right relabelling on three of
     # its edges and the turn on one: one relabelling per member, summed over its edges, puts it
-    # right, its edges rebuilt onto that relabelling and marked corrected.
+    # right, its edges turned onto that relabelling and marked corrected.
     truth, centres, sizes, edges = _graph(5, seed=8, noise_deg=0.0)
+    evidence = _frame_evidence(truth, seed=8, misleading={(0, 2): 0.5})
     flipped = {k for k, e in enumerate(edges) if 2 in (e.source, e.target)}
-    _flip_member(edges, 2, centres[2], flipped)
+    axes = evidence.frames[2].axes  # the half turn about one of model 2's frame axes: a relabelling
+    _flip_member(edges, 2, centres[2], flipped, axes.T @ np.diag([1.0, -1.0, -1.0]) @ axes)
     for e in edges:
         e.alternatives, e.confidence = [], 0.05
         e.doubtful = True
-    evidence = _frame_evidence(truth, seed=8, misleading={(0, 2): 0.5})
     import copy
 
     alone = solve_graph(5, copy.deepcopy(edges), 0, centres, sizes)
@@ -460,11 +462,56 @@ def test_frames_put_right_a_member_flipped_on_every_edge():
 
 
 def test_a_confident_edge_outweighs_the_frames_grid_scores():
-    # Every grid score of model 3's edges favours its half turn, but its edges are confident
-    # and right: they keep their poses and model 3 stays right.
+    # Every grid score of model 3's edges favours its half turn by half a standard deviation,
+    # but its edges are confident (0.8) and right: they keep their poses and model 3 stays right.
     truth, centres, sizes, edges = _graph(4, seed=9)
-    misleading = {(i, j): 1.0 for i, j in itertools.combinations(range(4), 2) if 3 in (i, j)}
+    misleading = {(i, j): 0.5 for i, j in itertools.combinations(range(4), 2) if 3 in (i, j)}
     result = solve_graph(4, edges, 0, centres, sizes, frames=_frame_evidence(truth, seed=9, misleading=misleading))
     for rot, _ in _errors(result, truth):
         assert rot < 1.5
     assert all(e.status == "kept" for e in result.edges)
+
+
+def test_the_members_relabellings_are_the_best_assignment():
+    # The beam search against every assignment of 4 members (24³), on random grid scores and
+    # no belief of the edges' own (so the scores alone decide).
+    from gsa.align import many_frames
+    from gsa.manhattan import NormalFrame
+
+    rng = np.random.default_rng(11)
+    frames = [NormalFrame(np.eye(3), 0.5)] * 4
+    shape = {p: rng.normal(size=24) for p in itertools.combinations(range(4), 2)}
+    evidence = many_frames.FrameEvidence(frames, shape)
+    edges = [Edge(i, j, Sim3.identity()) for i, j in shape]
+    got = many_frames.synchronise(4, 0, edges, evidence, [np.zeros(24)] * len(edges))
+
+    def total(g):
+        return sum(z[many_frames.RELATIVE[g[j], g[i]]] for (i, j), z in shape.items())
+
+    best = max(((many_frames.IDENTITY, *rest) for rest in itertools.product(range(24), repeat=3)), key=total)
+    assert got[0] == many_frames.IDENTITY
+    assert total(got) == pytest.approx(total(best))
+
+
+def test_an_edge_off_its_members_frames_or_on_no_cycle_is_not_turned():
+    # The same flipped member, but its edges' half turn is about an axis of no frame (the
+    # frames do not explain the edges): nothing is turned onto the frames, and the member stays
+    # as the cycles left it. And a lone edge (no cycle) keeps its pose whatever the grid says.
+    truth, centres, sizes, edges = _graph(5, seed=8, noise_deg=0.0)
+    evidence = _frame_evidence(truth, seed=8)
+    flipped = {k for k, e in enumerate(edges) if 2 in (e.source, e.target)}
+    off_axis = (
+        evidence.frames[2].axes.T @ euler_xyz(np.radians([180.0, 0.0, 0.0])) @ euler_xyz(np.radians([0, 0, 35.0]))
+    )
+    _flip_member(edges, 2, centres[2], flipped, off_axis)
+    for e in edges:
+        e.alternatives, e.confidence, e.doubtful = [], 0.05, True
+    result = solve_graph(5, edges, 0, centres, sizes, frames=evidence)
+    assert _errors(result, truth)[2][0] > 30 and result.doubtful(2)
+    assert not any(e.status == "corrected" for e in result.edges)
+
+    truth, centres, sizes, edges = _graph(2, seed=9, noise_deg=0.0)
+    edges[0].confidence, edges[0].doubtful = 0.05, True
+    lone = _frame_evidence(truth, seed=9, misleading={(0, 1): 2.0})
+    result = solve_graph(2, edges, 0, centres, sizes, frames=lone)
+    assert result.edges[0].status == "kept" and _errors(result, truth)[1][0] < 1.5

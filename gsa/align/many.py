@@ -33,7 +33,15 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from gsa.align.many_frames import FrameEvidence, edge_targets, frame_evidence, synchronise
+from gsa.align.many_frames import (
+    FrameEvidence,
+    edge_targets,
+    frame_evidence,
+    on_cycles,
+    on_frames,
+    relabelled,
+    synchronise,
+)
 from gsa.errors import GSAError
 from gsa.geometry import rotation_angle
 from gsa.model import GaussianModel
@@ -63,6 +71,9 @@ MODEL_DOUBTFUL = 0.5
 # edge of it the solution agrees with: the cycles and the most confident measurement disagree,
 # and either may be wrong (three agreeing half turns outvote one right edge).
 CONTEST_MARGIN = 0.1
+# A doubtful edge's pose this near the relabelling the frames' consensus gives it is taken as
+# it is; farther, it is turned onto the relabelling (as frame_snap.FRAME_SNAP_SAME_DEG).
+FRAME_EXACT_DEG = 2.0
 EDGE_STATUSES = ("kept", "down-weighted", "pruned", "corrected")
 
 
@@ -501,8 +512,10 @@ def solve_graph(
     # The consensus over each edge's poses first: an edge whose alternative the consensus agrees
     # with (and not its measured pose) enters the least squares with that alternative.
     by_consensus = set()
+    agrees = np.zeros(len(edges))  # 1 where the edge enters with a pose the frames' consensus gave it
     if frames is not None:
-        used = _frame_consensus(edges, frames, reference, n, centres)
+        used, agreeing = _frame_consensus(edges, frames, reference, n, centres)
+        agrees[agreeing] = 1.0
     else:
         used = [
             None if not pose else edge.alternatives[pose - 1]
@@ -516,9 +529,10 @@ def solve_graph(
     pairs = [(e.source, e.target, t) for e, t in zip(edges, chosen)]
     prior = np.array([max(float(e.confidence), 0.05) for e in edges])
     support, triangles_measured = _triangle_support(n, pairs)
-    # Triangle support first, confidence to break ties: a confident edge no cycle agrees with
-    # is not trusted for the initial solution.
-    tree = _spanning_tree(n, pairs, support + 0.1 * prior)
+    # The frames' consensus first (where given), then triangle support, confidence to break ties:
+    # a confident edge no cycle (or the members' relabellings) agrees with is not trusted for the
+    # initial solution.
+    tree = _spanning_tree(n, pairs, 2.0 * agrees + support + 0.1 * prior)
     x, w, res = _irls(n, reference, pairs, prior, _tree_solution(n, reference, pairs, tree))
     measured = [residual_of(_edge_error(x, e.source, e.target, normalised(e, e.transform))) for e in edges]
 
@@ -549,30 +563,42 @@ def solve_graph(
 
 def _frame_consensus(
     edges: list[Edge], frames: FrameEvidence, reference: int, n: int, centres: Sequence[np.ndarray]
-) -> list[Sim3 | None]:
+) -> tuple[list[Sim3 | None], list[int]]:
     """Per edge, the pose it enters the least squares with when the members' relabelling
     assignment disagrees with its measured pose (None: the measured pose agrees): its most
     plausible pose within CONSENSUS_DEG of the assigned relabelling, else (doubtful edges only)
-    the measured pose turned onto that relabelling about the source's centroid. A confident
-    edge is never rebuilt: where the assignment overrules it, the least squares do the rest."""
+    the measured pose turned onto that relabelling about the source's centroid; and the edges
+    that so agree with the assignment (they seed the least squares). A confident edge is never
+    rebuilt: where the assignment overrules it, the least squares and the contest do the rest."""
     from gsa.manhattan import turned_onto
 
-    assignment = synchronise(n, reference, edges, frames)
+    beliefs = []
+    for edge in edges:  # each relabelling: the plausibility of the edge's pose agreeing with it
+        cos = (np.einsum("kab,hab->kh", relabelled(edge, frames), _pose_rotations(edge)) - 1.0) / 2.0
+        beliefs.append(np.where(cos > np.cos(np.radians(CONSENSUS_DEG)), pose_weights(edge)[None], 0.0).max(axis=1))
+    assignment = synchronise(n, reference, edges, frames, beliefs)
     out: list[Sim3 | None] = []
-    for edge, target in zip(edges, edge_targets(edges, frames, assignment)):
-        if target is None:
+    agreeing = []
+    cycled = on_cycles(n, edges)
+    for k, (edge, target) in enumerate(zip(edges, edge_targets(edges, frames, assignment))):
+        if target is None or not cycled[k]:
             out.append(None)
             continue
         cos = (np.einsum("ab,hab->h", target, _pose_rotations(edge)) - 1.0) / 2.0
         near = np.flatnonzero(cos > np.cos(np.radians(CONSENSUS_DEG)))
-        if len(near):
-            pick = int(near[np.argmax(pose_weights(edge)[near])])
-            out.append(None if pick == 0 else edge.alternatives[pick - 1])
-        elif edge.doubtful:
-            out.append(turned_onto(edge.transform, target, centres[edge.source]))
-        else:
+        pick = int(near[np.argmax(pose_weights(edge)[near])]) if len(near) else 0
+        pose = edge.transform if pick == 0 else edge.alternatives[pick - 1]
+        if edge.doubtful and on_frames(edge, frames, CONSENSUS_DEG):
+            # Across instances the frames are exact where the fits drift (docs/benchmarks.md,
+            # "Dominant-normal frames"): the pose is turned onto the relabelling itself.
+            if cos[pick] < np.cos(np.radians(FRAME_EXACT_DEG)):
+                pose = turned_onto(pose, target, centres[edge.source])
+        elif not len(near):
             out.append(None)
-    return out
+            continue
+        out.append(None if pose is edge.transform else pose)
+        agreeing.append(k)
+    return out, agreeing
 
 
 def _contested(n: int, reference: int, edges: list[Edge]) -> dict[int, list[int]]:

@@ -13,13 +13,15 @@ member shows its flip on every edge).
 
 The assignment maximises, summed over the edges, each relabelling's grid score (standardised
 over the 24, as frame_snap's choice does) plus the edge's own belief in it: POSE_GAIN times
-the plausibility (many.pose_weights) of the edge's pose, measured or alternative, that lies
-within many.CONSENSUS_DEG of it. A confident edge's measured pose so outweighs the shapes.
+the plausibility (many.pose_weights, computed by the caller) of the edge's pose, measured or
+alternative, that lies within many.CONSENSUS_DEG of it. A confident edge's measured pose so
+counts as much as a standard deviation of the shapes. What the global step does with the
+assignment (gsa.align.many._frame_consensus): a doubtful edge on its frames is turned onto the
+relabelling it is given; an edge off its frames or on no cycle is left as measured.
 """
 
 from __future__ import annotations
 
-import itertools
 from collections.abc import Sequence
 from dataclasses import dataclass
 
@@ -30,11 +32,14 @@ from gsa.canonical import SIGNED_PERMUTATIONS
 from gsa.model import GaussianModel
 
 # How much the edge's own poses count against the shapes' standardised grid scores: a
-# confident edge (weight ~1) is worth POSE_GAIN standard deviations of the grid.
-POSE_GAIN = 3.0
+# confident edge (weight ~1) is worth POSE_GAIN standard deviations of the grid. 0, 1 and 3
+# measured alike on the cross-instance sets (docs/benchmarks.md, n-way; 3 one member fewer).
+POSE_GAIN = 1.0
 # Spread floor of the standardisation (as frame_snap.CHOICE_SPREAD_FLOOR): between two
 # frameless blobs every relabelling scores alike, and noise must not read as a preference.
 SPREAD_FLOOR = 0.02
+# Gaussians per member the frames and grids are computed from.
+MAX_GAUSSIANS = 30_000
 # Partial assignments kept while members are added one at a time.
 BEAM = 256
 
@@ -65,6 +70,7 @@ class FrameEvidence:
 
 def frame_evidence(models: Sequence[GaussianModel], pairs: Sequence[tuple[int, int]]) -> FrameEvidence:
     """Frames of every member and grid agreements of every pair (~0.6 s a model, ~0.05 s a pair)."""
+    models = [_sampled(m) for m in models]
     frames = [manhattan.manhattan_frame(m) for m in models]
     shape = {}
     for i, j in pairs:
@@ -73,29 +79,42 @@ def frame_evidence(models: Sequence[GaussianModel], pairs: Sequence[tuple[int, i
     return FrameEvidence(frames, shape)
 
 
-def _edge_gains(edge, evidence: FrameEvidence) -> np.ndarray:
-    """(24,) what the edge says of each relabelling: grid score plus POSE_GAIN times the
-    plausibility of its most plausible pose agreeing with it."""
-    from gsa.align.many import CONSENSUS_DEG, _pose_rotations, pose_weights
+def _sampled(model: GaussianModel) -> GaussianModel:
+    """At most MAX_GAUSSIANS of the model (a fixed random subset): frames and grids are a few
+    numbers each, and N = 50 members of 100k Gaussians must not pay for every one."""
+    if len(model) <= MAX_GAUSSIANS:
+        return model
+    rows = np.random.default_rng(0).choice(len(model), MAX_GAUSSIANS, replace=False)
+    return model.subset(np.sort(rows))
 
+
+def _edge_gains(edge, evidence: FrameEvidence, belief: np.ndarray) -> np.ndarray:
+    """(24,) what the edge says of each relabelling: its grid score plus POSE_GAIN times the
+    edge's own belief in it (the plausibility of its pose agreeing with it, from the caller)."""
     i, j = edge.source, edge.target
-    gains = np.array(evidence.shape.get((i, j), np.zeros(24)), np.float64)
-    if (i, j) not in evidence.shape and (j, i) in evidence.shape:  # the pair scored the other way
+    if (i, j) in evidence.shape:
+        gains = np.array(evidence.shape[(i, j)], np.float64)
+    elif (j, i) in evidence.shape:  # the pair scored the other way
         back = evidence.shape[(j, i)]
         gains = np.array([back[_index_of(_PERMS[k].T)] for k in range(24)])
-    relabelled = np.stack([evidence.relabelling(i, j, k) for k in range(24)])
-    poses = _pose_rotations(edge)
-    cos = (np.einsum("kab,hab->kh", relabelled, poses) - 1.0) / 2.0
-    near = cos > np.cos(np.radians(CONSENSUS_DEG))
-    belief = np.where(near, pose_weights(edge)[None], 0.0).max(axis=1)
-    return gains + POSE_GAIN * belief
+    else:
+        gains = np.zeros(24)
+    return gains + POSE_GAIN * np.asarray(belief, np.float64)
 
 
-def synchronise(n: int, reference: int, edges: Sequence, evidence: FrameEvidence) -> list[int | None]:
+def relabelled(edge, evidence: FrameEvidence) -> np.ndarray:
+    """(24, 3, 3) the edge's relabellings, source member's frame onto the target's."""
+    return np.stack([evidence.relabelling(edge.source, edge.target, k) for k in range(24)])
+
+
+def synchronise(
+    n: int, reference: int, edges: Sequence, evidence: FrameEvidence, beliefs: Sequence[np.ndarray]
+) -> list[int | None]:
     """One relabelling index G_k per member (the reference's the identity; None for a member no
-    edge reaches) maximising the summed edge gains of P_ij = G_jᵀ G_i: a beam search adding the
-    members in order of how many edges join them to those placed before."""
-    gains = [_edge_gains(e, evidence) for e in edges]
+    edge reaches) maximising the summed edge gains of P_ij = G_jᵀ G_i (beliefs: per edge, (24,)
+    its own belief in each relabelling): a beam search adding the members in order of how many
+    edges join them to those placed before."""
+    gains = [_edge_gains(e, evidence, b) for e, b in zip(edges, beliefs)]
     incident: dict[int, list[int]] = {k: [] for k in range(n)}
     for idx, e in enumerate(edges):
         incident[e.source].append(idx)
@@ -142,5 +161,31 @@ def edge_targets(edges: Sequence, evidence: FrameEvidence, assignment: Sequence[
     return out
 
 
-def all_pairs(n: int) -> list[tuple[int, int]]:
-    return list(itertools.combinations(range(n), 2))
+def on_frames(edge, evidence: FrameEvidence, degrees: float) -> bool:
+    """Whether the edge's measured pose lies within `degrees` of one of the 24 relabellings of
+    its members' frames: the frames explain it, and only which relabelling is in question. Off
+    them (a partial capture whose dominant normals moved, a frameless blob), the frames cannot
+    say what the edge should have been."""
+    cos = (np.einsum("kab,ab->k", relabelled(edge, evidence), edge.transform.rotation) - 1.0) / 2.0
+    return bool(cos.max() > np.cos(np.radians(degrees)))
+
+
+def on_cycles(n: int, edges: Sequence) -> list[bool]:
+    """Per edge, whether a cycle runs through it (its two members stay joined without it). An
+    edge on no cycle has nothing but itself to be judged by, and align() already weighed the
+    same grid scores (frame_snap.choose_relabelling) for it."""
+    out = []
+    for skip in range(len(edges)):
+        parent = list(range(n))
+        for idx, e in enumerate(edges):
+            if idx != skip:
+                parent[_root(parent, e.source)] = _root(parent, e.target)
+        out.append(_root(parent, edges[skip].source) == _root(parent, edges[skip].target))
+    return out
+
+
+def _root(parent: list[int], k: int) -> int:
+    while parent[k] != k:
+        parent[k] = parent[parent[k]]
+        k = parent[k]
+    return k
