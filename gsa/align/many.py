@@ -37,6 +37,7 @@ from gsa.align.many_frames import (
     FrameEvidence,
     edge_targets,
     frame_evidence,
+    incident_edges,
     on_cycles,
     on_frames,
     relabelled,
@@ -236,10 +237,7 @@ def consensus_rotations(n: int, reference: int, edges: list[Edge]) -> tuple[list
     A beam search adding models in order of their edges' weight to the models placed before."""
     rot = [_pose_rotations(e) for e in edges]
     weights = [pose_weights(e) for e in edges]
-    incident: dict[int, list[int]] = {k: [] for k in range(n)}
-    for idx, e in enumerate(edges):
-        incident[e.source].append(idx)
-        incident[e.target].append(idx)
+    incident = incident_edges(n, edges)
     placed, order = {reference}, []
     while True:
         pull = {
@@ -572,10 +570,8 @@ def _frame_consensus(
     rebuilt: where the assignment overrules it, the least squares and the contest do the rest."""
     from gsa.manhattan import turned_onto
 
-    beliefs = []
-    for edge in edges:  # each relabelling: the plausibility of the edge's pose agreeing with it
-        cos = (np.einsum("kab,hab->kh", relabelled(edge, frames), _pose_rotations(edge)) - 1.0) / 2.0
-        beliefs.append(np.where(cos > np.cos(np.radians(CONSENSUS_DEG)), pose_weights(edge)[None], 0.0).max(axis=1))
+    # Each relabelling's belief: the plausibility of the edge's pose agreeing with it.
+    beliefs = [_agreement(_pose_rotations(e), relabelled(e, frames), pose_weights(e)) for e in edges]
     assignment = synchronise(n, reference, edges, frames, beliefs)
     out: list[Sim3 | None] = []
     agreeing = []

@@ -107,6 +107,15 @@ def relabelled(edge, evidence: FrameEvidence) -> np.ndarray:
     return np.stack([evidence.relabelling(edge.source, edge.target, k) for k in range(24)])
 
 
+def incident_edges(n: int, edges: Sequence) -> dict[int, list[int]]:
+    """Per member, the indices of the edges that join it."""
+    incident: dict[int, list[int]] = {k: [] for k in range(n)}
+    for idx, e in enumerate(edges):
+        incident[e.source].append(idx)
+        incident[e.target].append(idx)
+    return incident
+
+
 def synchronise(
     n: int, reference: int, edges: Sequence, evidence: FrameEvidence, beliefs: Sequence[np.ndarray]
 ) -> list[int | None]:
@@ -115,10 +124,7 @@ def synchronise(
     its own belief in each relabelling): a beam search adding the members in order of how many
     edges join them to those placed before."""
     gains = [_edge_gains(e, evidence, b) for e, b in zip(edges, beliefs)]
-    incident: dict[int, list[int]] = {k: [] for k in range(n)}
-    for idx, e in enumerate(edges):
-        incident[e.source].append(idx)
-        incident[e.target].append(idx)
+    incident = incident_edges(n, edges)
     placed, order = {reference}, []
     while True:
         links = {
