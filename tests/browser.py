@@ -93,9 +93,10 @@ def colour_fractions(rgb: np.ndarray) -> dict[str, float]:
     }
 
 
-def wait_colours(page, selector: str, predicate, timeout: float = 30.0) -> dict[str, float]:
+def wait_colours(page, selector: str, predicate, timeout: float = 60.0) -> dict[str, float]:
     """The view's colour fractions once `predicate` holds for them (a toggle redraws
-    on a later frame); the last ones in the assertion message otherwise."""
+    on a later frame); the last ones in the assertion message otherwise. 60 s: software WebGL
+    on a shared 2-core machine has missed 30 s (a clean-clone run beside a benchmark)."""
     deadline = time.monotonic() + timeout
     while True:
         found = colour_fractions(canvas_pixels(page, selector))
