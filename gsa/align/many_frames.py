@@ -69,7 +69,8 @@ class FrameEvidence:
 
 
 def frame_evidence(models: Sequence[GaussianModel], pairs: Sequence[tuple[int, int]]) -> FrameEvidence:
-    """Frames of every member and grid agreements of every pair (~0.6 s a model, ~0.05 s a pair)."""
+    """Frames of every member and grid agreements of every pair (at 100k Gaussians: 0.12 s a
+    model, 0.025 s a pair)."""
     models = [_sampled(m) for m in models]
     frames = [manhattan.manhattan_frame(m) for m in models]
     shape = {}
