@@ -105,7 +105,7 @@ def _edge_gains(edge, evidence: FrameEvidence, belief: np.ndarray) -> np.ndarray
 
 def relabelled(edge, evidence: FrameEvidence) -> np.ndarray:
     """(24, 3, 3) the edge's relabellings, source member's frame onto the target's."""
-    return np.stack([evidence.relabelling(edge.source, edge.target, k) for k in range(24)])
+    return manhattan.relabellings(evidence.frames[edge.source], evidence.frames[edge.target])
 
 
 def incident_edges(n: int, edges: Sequence) -> dict[int, list[int]]:
