@@ -10,6 +10,8 @@ from __future__ import annotations
 import numba
 import numpy as np
 
+from gsa.kernels import KERNEL_LOCK
+
 # Candidate scans below which one thread does the table: a parallel region is worth its
 # hand-off only for large tables. On 2 shared cores a 6k × 6 scan took 0.1 ms on one thread
 # and 0.7–7 ms in parallel whenever another process (or a spinning BLAS thread) held a core:
@@ -20,8 +22,10 @@ PARALLEL_SCANS = 1_000_000
 def nearest_candidate(x: np.ndarray, q: np.ndarray, table: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Per row i: (distance to, index of) the candidate table[i, k] (-1 = none) closest to
     x[i] among the rows of q."""
-    kernel = _scan_parallel if table.size >= PARALLEL_SCANS else _scan_serial
-    return kernel(x, q, table)
+    if table.size < PARALLEL_SCANS:
+        return _scan_serial(x, q, table)
+    with KERNEL_LOCK:
+        return _scan_parallel(x, q, table)
 
 
 @numba.njit(cache=True, inline="always")

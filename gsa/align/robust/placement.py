@@ -20,6 +20,7 @@ import numpy as np
 
 from gsa.align.robust.anchoring import Anchors, NearestGrid, _sample, grid_index
 from gsa.geometry import super_fibonacci_rotations
+from gsa.kernels import KERNEL_LOCK
 
 Capture = Callable[[np.ndarray, np.ndarray, np.ndarray, tuple[float, ...]], tuple[np.ndarray, np.ndarray]]
 
@@ -63,32 +64,33 @@ def placed_starts(
     d = NearestGrid(dst.points, cell, dst.radius)
     r = NearestGrid(src.points, cell * src.radius / dst.radius, src.radius)
     best = np.zeros((len(coarse), 5))
-    _place_poses(
-        coarse,
-        scale_trials,
-        centres,
-        p,
-        q,
-        src.center,
-        d.nearest_flat,
-        d.lo,
-        1.0 / d.cell,
-        d.shape,
-        dst.points,
-        r.nearest_flat,
-        r.lo,
-        1.0 / r.cell,
-        r.shape,
-        src.points,
-        truncation * dst.radius,
-        src.lab[p_rows],
-        dst.lab[q_rows],
-        src.lab,
-        dst.lab,
-        w_colour,
-        colour_sigma,
-        best,
-    )
+    with KERNEL_LOCK:
+        _place_poses(
+            coarse,
+            scale_trials,
+            centres,
+            p,
+            q,
+            src.center,
+            d.nearest_flat,
+            d.lo,
+            1.0 / d.cell,
+            d.shape,
+            dst.points,
+            r.nearest_flat,
+            r.lo,
+            1.0 / r.cell,
+            r.shape,
+            src.points,
+            truncation * dst.radius,
+            src.lab[p_rows],
+            dst.lab[q_rows],
+            src.lab,
+            dst.lab,
+            w_colour,
+            colour_sigma,
+            best,
+        )
     top = _distinct_rows(np.argsort(-best[:, 0]), coarse, count, min_deg)
     scale, t = capture(coarse[top], best[top, 1], best[top, 2:], capture_steps)
     return [(coarse[i], float(scale[k]), t[k]) for k, i in enumerate(top)]

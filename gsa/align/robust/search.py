@@ -26,6 +26,7 @@ from gsa.align.robust.poses import (
 )
 from gsa.canonical import SIGNED_PERMUTATIONS
 from gsa.geometry import axis_rotation, rotation_distance_deg, super_fibonacci_rotations
+from gsa.kernels import KERNEL_LOCK
 from gsa.sim3 import Sim3
 
 
@@ -401,8 +402,11 @@ class _GridScorer:
         scale, t = scale.astype(np.float64).copy(), t.astype(np.float64).copy()
         u = np.ascontiguousarray(np.einsum("rij,pj->rpi", rotations, self.ps - self.src.center))
         g = self.dst_grid
-        for reach in reaches:
-            _capture_step(u, scale, t, g.nearest_flat, g.lo, 1.0 / g.cell, g.shape, self.dst.points, reach * self.tau)
+        with KERNEL_LOCK:
+            for reach in reaches:
+                _capture_step(
+                    u, scale, t, g.nearest_flat, g.lo, 1.0 / g.cell, g.shape, self.dst.points, reach * self.tau
+                )
         return scale, t
 
     def score(self, rotations, scale, t, blend: bool = False) -> np.ndarray:
@@ -411,6 +415,10 @@ class _GridScorer:
         rotations = np.asarray(rotations, np.float64)
         lin = scale[:, None, None] * rotations
         off = t - np.einsum("rij,j->ri", lin, self.src.center)
+        with KERNEL_LOCK:
+            return self._scores_both_ways(rotations, scale, t, lin, off, blend)
+
+    def _scores_both_ways(self, rotations, scale, t, lin, off, blend: bool) -> np.ndarray:
         g = self.dst_grid
         fwd = _score_poses(
             np.ascontiguousarray(lin),
