@@ -39,6 +39,12 @@ MAX_NORMALS = 10_000  # normals sampled (by area) for the search: the frame is a
 MASS_CELLS = 16
 MASS_REACH = 2.5
 MASS_BLUR = 1.0
+# How alike the models' parts look under a relabelling (feature_agreement): the lifted semantic
+# features on a coarser FEATURE_CELLS^3 grid in the same coordinates (features are sparser than
+# surface: only the Gaussians the views saw), blurred by FEATURE_BLUR cells, each cell's mean
+# feature direction compared (a cell is a part, whatever its share of the surface).
+FEATURE_CELLS = 6
+FEATURE_BLUR = 0.7
 
 
 @dataclass(frozen=True)
@@ -114,6 +120,65 @@ def relabelling_agreement(
     target_grid = _mass_grid(*_spread_coords(target, target_frame))
     points, weights = source_coords
     return np.array([float(np.sum(_mass_grid(points @ g.T, weights) * target_grid)) for g in SIGNED_PERMUTATIONS])
+
+
+def feature_agreement(
+    source: GaussianModel,
+    target: GaussianModel,
+    source_frame: NormalFrame,
+    target_frame: NormalFrame,
+    source_features: tuple[np.ndarray, np.ndarray],
+    target_features: tuple[np.ndarray, np.ndarray],
+) -> np.ndarray:
+    """(24,) agreement of the models' lifted features under each relabelling (relabellings'
+    order): each model's (points, unit features) of its Gaussians (gsa.align.semantic), gridded
+    in the coordinates the surface-mass grids use (its own frame, centred on its centroid, per
+    axis in standard deviations), each cell's features averaged to a direction; the score is
+    the cosine of the two grids. Where the mass grids compare where the surface lies, this
+    compares what lies there, part to part across proportions (a tub's taps end, a vase's
+    mouth); a pretrained network's nearest-neighbour agreement between posed models compares
+    parts that proportions have moved apart (docs/benchmarks.md, "Parts compared in the
+    frames")."""
+    source_grid = _feature_grid(_frame_coords(source, source_frame, source_features[0]), source_features[1])
+    target_grid = _feature_grid(_frame_coords(target, target_frame, target_features[0]), target_features[1])
+    return np.array([float(np.sum(_relabelled_grid(source_grid, g) * target_grid)) for g in SIGNED_PERMUTATIONS])
+
+
+def _frame_coords(model: GaussianModel, frame: NormalFrame, points: np.ndarray) -> np.ndarray:
+    """`points` in the coordinates of _spread_coords (centred on the model's opaque surface's
+    centroid, per axis in MASS_REACH of its standard deviations)."""
+    keep = _opaque(model)
+    weights = _area_weights(model, keep)
+    surface = np.asarray(model.means[keep], np.float64)
+    centre = weights @ surface
+    spread = np.sqrt(weights @ ((surface - centre) @ frame.axes.T) ** 2)
+    return ((np.asarray(points, np.float64) - centre) @ frame.axes.T) / np.maximum(MASS_REACH * spread, 1e-12)
+
+
+def _feature_grid(coords: np.ndarray, features: np.ndarray) -> np.ndarray:
+    """(n, n, n, k) unit-norm grid of the features at coords in [-1, 1]^3, blurred, each cell's
+    sum turned to a unit direction (empty cells stay 0)."""
+    from scipy.ndimage import gaussian_filter
+
+    n = FEATURE_CELLS
+    features = np.asarray(features, np.float64)
+    cells = np.clip(((coords + 1.0) * 0.5 * n).astype(np.int64), 0, n - 1)
+    flat = (cells[:, 0] * n + cells[:, 1]) * n + cells[:, 2]
+    sums = np.stack([np.bincount(flat, features[:, c], n**3) for c in range(features.shape[1])], axis=-1)
+    grid = gaussian_filter(sums.reshape(n, n, n, -1), (FEATURE_BLUR, FEATURE_BLUR, FEATURE_BLUR, 0))
+    grid = grid / (np.linalg.norm(grid, axis=-1, keepdims=True) + 1e-9)
+    return grid / max(float(np.linalg.norm(grid)), 1e-300)
+
+
+def _relabelled_grid(grid: np.ndarray, g: np.ndarray) -> np.ndarray:
+    """The grid of points moved by the signed permutation g (x -> g x): its axis i is the
+    source's axis j where g[i, j] = ±1, reversed where -1 (the cells are symmetric about 0)."""
+    axes = [int(np.flatnonzero(g[i])[0]) for i in range(3)]
+    out = np.transpose(grid, axes + list(range(3, grid.ndim)))
+    for i in range(3):
+        if g[i, axes[i]] < 0:
+            out = np.flip(out, i)
+    return out
 
 
 def _spread_coords(model: GaussianModel, frame: NormalFrame) -> tuple[np.ndarray, np.ndarray]:

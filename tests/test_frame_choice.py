@@ -166,3 +166,54 @@ def test_a_doubtful_answer_about_given_up_axes_is_turned_onto_the_frames_and_kep
     pair_wrong = _Pair.build(source, target, AlignOptions(semantic="off", up_axes=(up.tolist(), wrong.tolist())))
     kept, _ = frame_snap.up_snap(pair_wrong, best, answer, metrics)
     assert kept is answer
+
+
+def _box(half, seed: int, folder):
+    v, f = _box_mesh(half)
+    path = folder / f"box{seed}_0.npz"
+    np.savez(path, V=v, F=f)
+    return mesh_to_gaussians(load_mesh(path), 6000, np.random.default_rng(seed), floaters=0.0)
+
+
+def _end_features(model) -> np.ndarray:
+    """A part label as a network would give it: one direction on the +x end of a long box (a
+    tub's taps end), another elsewhere; unit vectors, as the lifted features are."""
+    x = np.asarray(model.means, np.float64)[:, 0]
+    return np.where((x > 0.5 * x.max())[:, None], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0])
+
+
+def test_the_lifted_features_tell_the_ends_of_two_boxes_apart_where_the_mass_cannot(tmp_path):
+    from gsa.manhattan import feature_agreement
+
+    truth = random_sim3(np.random.default_rng(7))
+    source = _box((1.0, 0.3, 0.5), 1, tmp_path)
+    target = _box((0.8, 0.4, 0.45), 2, tmp_path)  # other proportions
+    source_features, target_features = _end_features(source), _end_features(target)
+    target = target.transformed(truth)  # the features stay with their Gaussians
+    frames = manhattan_frame(source), manhattan_frame(target)
+    candidates = relabellings(*frames)
+    errors = np.array([rotation_distance_deg(r, truth.rotation) for r in candidates])
+    end_for_end = int(
+        np.argmin([rotation_distance_deg(r, truth.rotation @ axis_rotation([0, 1, 0], np.pi)) for r in candidates])
+    )
+    right = int(np.argmin(errors))
+    assert errors[right] < 2.0
+    mass = relabelling_agreement(source, target, *frames)
+    assert abs(mass[right] - mass[end_for_end]) < 0.01, mass.round(4)  # a box: both ends alike
+    parts = feature_agreement(
+        source,
+        target,
+        *frames,
+        (np.asarray(source.means), source_features),
+        (np.asarray(target.means), target_features),
+    )
+    assert parts[right] > parts[end_for_end] + 0.1, parts.round(3)
+    # the best-scored keep the +x end where it belongs: the truth, or its half turn about x
+    about_x = truth.rotation @ axis_rotation([1, 0, 0], np.pi)
+    best = candidates[int(np.argmax(parts))]
+    assert min(rotation_distance_deg(best, truth.rotation), rotation_distance_deg(best, about_x)) < 2.0
+    # a model against itself agrees perfectly at the identity
+    assert (
+        feature_agreement(source, source, frames[0], frames[0], *[(np.asarray(source.means), source_features)] * 2)[0]
+        > 0.999
+    )

@@ -193,6 +193,8 @@ def test_a_doubtful_answer_reports_the_tie_break_and_stays_doubtful():
         assert len(report["scores"]) == len(offered) + 1
     for a in swept:  # each a pose of its own, not one the search had already offered
         assert a["rotation_offset_deg"] > semantic.SemanticCriteria().swept_distinct_deg
+    if choice:  # the relabellings were scored by the lifted features' grids in the frames too
+        assert len(choice["parts"]) == 24 and all(-1 <= s <= 1 for s in choice["parts"])
     # Each scored pose carries its score (what a many-model job weighs its edges' poses by).
     if choice.get("switched"):
         assert m["semantic_score"] == pytest.approx(choice["semantic"][choice["picked"]], abs=1e-4)

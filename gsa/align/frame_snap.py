@@ -214,9 +214,11 @@ def choose_relabelling(
     """A doubtful answer between whole models that lies within CHOICE_MAX_DEG of a relabelling
     of their frames (snapped onto it where they are other instances): the relabelling the
     models' shapes and, once lifted, their semantic features agree on most. Each of the 24 is
-    scored by the surface-mass grids (manhattan.relabelling_agreement) and by the lifted
-    features' agreement (pair.lifted, where the semantic tie-break ran); each score is
-    standardised over the 24 and the sums compared (a lead of CHOICE_MARGIN to switch).
+    scored by the surface-mass grids (manhattan.relabelling_agreement) and, where the semantic
+    tie-break lifted features (pair.lifted), by their agreement between the posed models and by
+    their grids in the frames (manhattan.feature_agreement: part to part across proportions);
+    each score is standardised over the 24 and the sums compared (a lead of CHOICE_MARGIN to
+    switch).
     Across instances the geometric fit piles surface together (a bathtub end for end, a bottle
     upside down), where part-to-part mass and what a pretrained network sees tell the ends
     apart (docs/benchmarks.md, "Choosing among the relabellings"). The answer stays doubtful; the pose replaced becomes the first
@@ -240,10 +242,14 @@ def choose_relabelling(
     allowed = np.ones(len(poses), bool) if allowed is None else np.asarray(allowed, bool)
     shape = manhattan.relabelling_agreement(pair.source, pair.target, *frames)
     total = _standardised(shape)
-    semantic = None
+    semantic = parts = None
     if pair.lifted is not None:
-        semantic = np.asarray(pair.lifted.scores(poses))
-        total = total + _standardised(semantic)
+        lifted = pair.lifted
+        semantic = np.asarray(lifted.scores(poses))
+        parts = manhattan.feature_agreement(
+            pair.source, pair.target, *frames, (lifted.src_pts, lifted.src_f), (lifted.dst_pts, lifted.dst_f)
+        )
+        total = total + _standardised(semantic) + _standardised(parts)
     offsets = np.array([robust.rotation_offset_deg(transform, p) for p in poses])
     current = int(np.argmin(np.where(allowed, offsets, np.inf)))
     order = [int(k) for k in np.argsort(-total, kind="stable") if allowed[k]]
@@ -256,6 +262,7 @@ def choose_relabelling(
         "deg": float(offsets[current]),
         "shape": shape.round(4).tolist(),
         "semantic": None if semantic is None else semantic.round(4).tolist(),
+        "parts": None if parts is None else parts.round(4).tolist(),
         "on": current,  # the nearest relabelling to the answer
         "picked": pick,
         "switched": pick != current,
