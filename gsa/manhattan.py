@@ -150,9 +150,7 @@ def _frame_coords(model: GaussianModel, frame: NormalFrame, points: np.ndarray) 
     keep = _opaque(model)
     weights = _area_weights(model, keep)
     surface = np.asarray(model.means[keep], np.float64)
-    centre = weights @ surface
-    spread = np.sqrt(weights @ ((surface - centre) @ frame.axes.T) ** 2)
-    return ((np.asarray(points, np.float64) - centre) @ frame.axes.T) / np.maximum(MASS_REACH * spread, 1e-12)
+    return _standardised_in(frame, surface, weights, np.asarray(points, np.float64))
 
 
 def _feature_grid(coords: np.ndarray, features: np.ndarray) -> np.ndarray:
@@ -187,9 +185,15 @@ def _spread_coords(model: GaussianModel, frame: NormalFrame) -> tuple[np.ndarray
     keep = _opaque(model)
     weights = _area_weights(model, keep)
     points = np.asarray(model.means[keep], np.float64)
-    centred = (points - weights @ points) @ frame.axes.T
-    spread = np.sqrt(weights @ centred**2)
-    return centred / np.maximum(MASS_REACH * spread, 1e-12), weights
+    return _standardised_in(frame, points, weights, points), weights
+
+
+def _standardised_in(frame: NormalFrame, surface: np.ndarray, weights: np.ndarray, points: np.ndarray) -> np.ndarray:
+    """`points` in the frame, centred on the weighted centroid of `surface` and divided per axis
+    by MASS_REACH of its standard deviations."""
+    centre = weights @ surface
+    spread = np.sqrt(weights @ ((surface - centre) @ frame.axes.T) ** 2)
+    return ((points - centre) @ frame.axes.T) / np.maximum(MASS_REACH * spread, 1e-12)
 
 
 def _mass_grid(coords: np.ndarray, weights: np.ndarray) -> np.ndarray:
