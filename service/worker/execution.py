@@ -27,6 +27,7 @@ from service.worker.leases import (
     JobProgress,
     JobTimeout,
     LeaseLost,
+    attempt_artifacts,
     finish_attempt,
     heartbeat,
     job_workspace,
@@ -86,7 +87,7 @@ def execute(job_id: str, backend: Backend) -> JobState | None:
     hb = threading.Thread(target=heartbeat, args=(backend, job_id, token, lost, stop), daemon=True)
     hb.start()
     prog = JobProgress(backend, job, token, lost, max(len(job.sources), 1))
-    art_prefix = f"jobs/{job_id}/{token}"
+    art_prefix = attempt_artifacts(job_id, token)
     final: JobState | None = None
     try:
         final = _run(backend, job, token, prog, art_prefix)

@@ -245,9 +245,29 @@ def reap(backend: Backend, *, force: bool = False) -> list[str]:
                 job.worker,
             )
             touched.append(job.id)
+            _discard_lost_artifacts(backend, job.id, job.run_token)
             if job.cancel_requested or job.attempts >= job.max_attempts:
                 notify_webhook(backend, job.id)
     return touched
+
+
+def attempt_artifacts(job_id: str, token: str) -> str:
+    """The storage prefix one attempt (run token) of a job stores its artifacts under."""
+    return f"jobs/{job_id}/{token}"
+
+
+def _discard_lost_artifacts(backend: Backend, job_id: str, token: str | None) -> None:
+    """What a lost attempt stored before it died goes with it: an attempt removes its own set
+    when it does not succeed, but one killed between storing its artifacts and finishing cannot,
+    and the next attempt's set would then be the job's second (seen once in the chaos test: a
+    worker SIGKILLed in that window). An attempt still alive past its lease removes what it
+    stores later itself: its finish fails on the token."""
+    if not token:
+        return
+    try:
+        backend.storage.delete_prefix(attempt_artifacts(job_id, token))
+    except Exception:  # storage down: the set stays, the job is requeued all the same
+        log.exception("job %s: could not remove the lost attempt's artifacts", job_id)
 
 
 def _requeue(backend: Backend, job_id: str) -> None:

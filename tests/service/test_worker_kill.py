@@ -138,3 +138,39 @@ def test_lost_queue_message_is_resent(redis_url, tmp_path):
     assert resend_lost(b) == [job.id]
     new_ref = b.store.get(job.id).queue_ref
     assert new_ref != ref and b.queue.q.job_ids == [new_ref]
+
+
+def test_the_reaper_removes_what_a_lost_attempt_stored(tmp_path):
+    # An attempt SIGKILLed between storing its artifacts and finishing cannot remove them; the
+    # retry's set would then be the job's second (the chaos test saw it once).
+    import io
+    import time
+
+    from service.backend import make_backend
+    from service.models import InputRef, Job, JobState
+    from service.settings import Settings
+    from service.worker.leases import attempt_artifacts, reap
+
+    b = make_backend(Settings(storage_root=tmp_path, max_attempts=3))
+    ref = InputRef(asset_id="a", key="uploads/x/y", kind="ply")
+    now = time.time()
+    for jid, lease in (("lost", now - 1), ("alive", now + 60)):
+        b.store.create(
+            Job(
+                id=jid,
+                owner="o",
+                created_at=now,
+                updated_at=now,
+                sources=[ref],
+                target=ref,
+                state=JobState.running,
+                attempts=1,
+                run_token="t1",
+                lease_until=lease,
+            )
+        )
+        b.storage.put(attempt_artifacts(jid, "t1") + "/result.json", io.BytesIO(b"{}"))
+    assert reap(b) == ["lost"]
+    assert b.store.get("lost").state == JobState.queued
+    assert not b.storage.exists(attempt_artifacts("lost", "t1") + "/result.json")
+    assert b.storage.exists(attempt_artifacts("alive", "t1") + "/result.json")  # its lease still holds
