@@ -51,43 +51,15 @@ def test_lost_job_is_failed_when_attempts_are_spent(tmp_path):
     import time
 
     from service.backend import make_backend
-    from service.models import InputRef, Job, JobState
+    from service.models import JobState
     from service.settings import Settings
     from service.worker.leases import reap
 
     b = make_backend(Settings(storage_root=tmp_path, max_attempts=2))
-    ref = InputRef(asset_id="a", key="uploads/x/y", kind="ply")
     now = time.time()
     for jid, attempts in (("j1", 1), ("j2", 2)):
-        b.store.create(
-            Job(
-                id=jid,
-                owner="o",
-                created_at=now,
-                updated_at=now,
-                max_attempts=2,
-                sources=[ref],
-                target=ref,
-                state=JobState.running,
-                attempts=attempts,
-                run_token="t",
-                lease_until=now - 1,
-            )
-        )
-    b.store.create(
-        Job(
-            id="j3",
-            owner="o",
-            created_at=now,
-            updated_at=now,
-            sources=[ref],
-            target=ref,
-            state=JobState.running,
-            attempts=1,
-            run_token="t",
-            lease_until=now + 60,
-        )
-    )
+        _running_job(b, jid, attempts, now - 1, max_attempts=2)
+    _running_job(b, "j3", 1, now + 60)
     assert sorted(reap(b)) == ["j1", "j2"]
     assert b.store.get("j1").state == JobState.queued and b.store.get("j1").run_token is None
     j2 = b.store.get("j2")
@@ -147,30 +119,41 @@ def test_the_reaper_removes_what_a_lost_attempt_stored(tmp_path):
     import time
 
     from service.backend import make_backend
-    from service.models import InputRef, Job, JobState
+    from service.models import JobState
     from service.settings import Settings
     from service.worker.leases import attempt_artifacts, reap
 
     b = make_backend(Settings(storage_root=tmp_path, max_attempts=3))
-    ref = InputRef(asset_id="a", key="uploads/x/y", kind="ply")
     now = time.time()
     for jid, lease in (("lost", now - 1), ("alive", now + 60)):
-        b.store.create(
-            Job(
-                id=jid,
-                owner="o",
-                created_at=now,
-                updated_at=now,
-                sources=[ref],
-                target=ref,
-                state=JobState.running,
-                attempts=1,
-                run_token="t1",
-                lease_until=lease,
-            )
-        )
-        b.storage.put(attempt_artifacts(jid, "t1") + "/result.json", io.BytesIO(b"{}"))
+        _running_job(b, jid, 1, lease)
+        b.storage.put(attempt_artifacts(jid, "t") + "/result.json", io.BytesIO(b"{}"))
     assert reap(b) == ["lost"]
     assert b.store.get("lost").state == JobState.queued
-    assert not b.storage.exists(attempt_artifacts("lost", "t1") + "/result.json")
-    assert b.storage.exists(attempt_artifacts("alive", "t1") + "/result.json")  # its lease still holds
+    assert not b.storage.exists(attempt_artifacts("lost", "t") + "/result.json")
+    assert b.storage.exists(attempt_artifacts("alive", "t") + "/result.json")  # its lease still holds
+
+
+def _running_job(b, jid: str, attempts: int, lease_until: float, **fields) -> None:
+    """A job record as a worker's claim leaves it: running on run token "t" (or fields'), leased."""
+    import time
+
+    from service.models import InputRef, Job, JobState
+
+    ref = InputRef(asset_id="a", key="uploads/x/y", kind="ply")
+    now = time.time()
+    b.store.create(
+        Job(
+            id=jid,
+            owner="o",
+            created_at=now,
+            updated_at=now,
+            sources=[ref],
+            target=ref,
+            state=JobState.running,
+            attempts=attempts,
+            run_token="t",
+            lease_until=lease_until,
+            **fields,
+        )
+    )
