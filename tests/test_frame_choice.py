@@ -217,3 +217,66 @@ def test_the_lifted_features_tell_the_ends_of_two_boxes_apart_where_the_mass_can
         feature_agreement(source, source, frames[0], frames[0], *[(np.asarray(source.means), source_features)] * 2)[0]
         > 0.999
     )
+
+
+def test_a_models_own_symmetries_among_the_relabellings_of_its_frame(tmp_path):
+    from gsa.canonical import SIGNED_PERMUTATIONS
+    from gsa.manhattan import equivalent_relabellings, self_relabellings
+
+    identity = next(k for k, g in enumerate(SIGNED_PERMUTATIONS) if np.array_equal(g, np.eye(3)))
+    bench = _bench((1.0, 0.15, 0.35), (0.12, 0.45, 0.35), 1, tmp_path)  # a mirror plane, no turn
+    bench_self = self_relabellings(bench, manhattan_frame(bench))
+    assert bench_self.sum() == 1 and bench_self[identity], bench_self
+    box = _box((1.0, 0.3, 0.5), 1, tmp_path)  # three half turns
+    box_self = self_relabellings(box, manhattan_frame(box))
+    assert box_self.sum() == 4 and box_self[identity], box_self
+    square = _box((0.5, 0.3, 0.5), 2, tmp_path)  # also quarter turns about its short axis
+    assert self_relabellings(square, manhattan_frame(square)).sum() == 8
+    # relabellings that differ by a symmetry of either model are one answer
+    alone = np.zeros(24, bool)
+    alone[identity] = True
+    assert equivalent_relabellings(identity, alone, alone).sum() == 1
+    alike = equivalent_relabellings(5, box_self, alone)
+    assert alike.sum() == 4 and alike[5]
+    assert equivalent_relabellings(5, alone, box_self).sum() == 4
+
+
+def test_the_shapes_settle_the_choice_between_two_benches_and_the_tiebreak_is_skipped(tmp_path):
+    from gsa.align import frame_snap
+    from gsa.align.pipeline import _Hypothesis, _Pair, _shape_settled_answer
+    from gsa.align.types import AlignOptions
+
+    truth = random_sim3(np.random.default_rng(5))
+    source, target = _pair(tmp_path, truth)
+    pair = _Pair.build(source, target, AlignOptions())
+    flipped = truth @ Sim3(1.0, axis_rotation([0, 1, 0], np.pi), np.zeros(3))
+    best = _Hypothesis("test", pair.src_frame, flipped)
+    metrics = {"doubtful": True, "overlap_estimate": 0.95, "coincident_share": 0.2, "alternatives": []}
+    settled = _shape_settled_answer(pair, best, flipped, metrics)
+    assert settled is not None
+    chosen, report = settled
+    assert rotation_distance_deg(chosen.rotation, truth.rotation) < 2.0
+    assert report["semantic"]["used"] is False
+    assert report["semantic"]["settled_by_shape"]["lead_sigma"] >= frame_snap.SHAPE_DECISIVE_SIGMA
+    assert report["doubtful"] is True  # still a guess between other instances
+    assert len(report["alternatives"]) >= 22  # every relabelling still offered
+    # a part inside a whole, or the tie-break turned off, is left to the usual path
+    assert _shape_settled_answer(pair, best, flipped, metrics | {"overlap_estimate": 0.6}) is None
+    assert (
+        _shape_settled_answer(_Pair.build(source, target, AlignOptions(semantic="off")), best, flipped, metrics) is None
+    )
+
+
+def test_the_shapes_do_not_settle_the_choice_between_two_boxes(tmp_path):
+    """A box turns onto itself by half turns: which end is which is the question the mass
+    grids cannot answer, so the semantic tie-break keeps it."""
+    from gsa.align.pipeline import _Hypothesis, _Pair, _shape_settled_answer
+    from gsa.align.types import AlignOptions
+
+    truth = random_sim3(np.random.default_rng(7))
+    source = _box((1.0, 0.3, 0.5), 1, tmp_path)
+    target = _box((0.8, 0.4, 0.45), 2, tmp_path).transformed(truth)
+    pair = _Pair.build(source, target, AlignOptions())
+    best = _Hypothesis("test", pair.src_frame, truth)
+    metrics = {"doubtful": True, "overlap_estimate": 0.95, "coincident_share": 0.2, "alternatives": []}
+    assert _shape_settled_answer(pair, best, truth, metrics) is None

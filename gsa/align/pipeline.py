@@ -159,6 +159,9 @@ def _doubtful_search_answer(pair, best, search, transform: Sim3, metrics: dict, 
     onto the dominant-normal frames where the models are other instances (each as its option
     allows)."""
     opts = pair.opts
+    settled = _shape_settled_answer(pair, best, transform, metrics)
+    if settled is not None:
+        return settled
     if opts.semantic != "off":
         t_semantic = time.perf_counter()
         _report(progress, "semantic", 0.0)
@@ -169,6 +172,25 @@ def _doubtful_search_answer(pair, best, search, transform: Sim3, metrics: dict, 
     if opts.frame_snap != "off" and frame_snap.whole_models(metrics):
         transform, metrics = frame_snap.choose_relabelling(pair, best, transform, metrics)
     return transform, metrics
+
+
+def _shape_settled_answer(pair, best, transform: Sim3, metrics: dict) -> tuple[Sim3, dict] | None:
+    """The frame snap and the relabelling choice on the shapes alone, kept where the shapes
+    settle it (frame_snap.shape_settles): the semantic tie-break (lifting features onto both
+    models, most of a doubtful pair's time) is then skipped. None where they do not, or
+    where the answer is not one between other instances' whole models."""
+    opts = pair.opts
+    if opts.semantic == "off" or opts.frame_snap == "off":
+        return None
+    if not (frame_snap.other_instances(metrics) and frame_snap.whole_models(metrics)):
+        return None
+    snapped, snapped_metrics = frame_snap.snap_to_frames(pair, best, transform, metrics)
+    chosen, chosen_metrics = frame_snap.choose_relabelling(pair, best, snapped, snapped_metrics)
+    why = frame_snap.shape_settles(pair, chosen_metrics)
+    if why is None:
+        return None
+    reason = "the shapes settle the relabelling: the semantic tie-break is not needed"
+    return chosen, chosen_metrics | {"semantic": {"used": False, "reason": reason, "settled_by_shape": why}}
 
 
 def _doubtful_answer(pair, best, search, transform: Sim3, metrics: dict, guidance, leash, timings: dict, progress):
