@@ -260,7 +260,15 @@ def test_the_shapes_settle_the_choice_between_two_benches_and_the_tiebreak_is_sk
     assert report["semantic"]["settled_by_shape"]["lead_sigma"] >= frame_snap.SHAPE_DECISIVE_SIGMA
     assert report["doubtful"] is True  # still a guess between other instances
     assert len(report["alternatives"]) >= 22  # every relabelling still offered
-    # a part inside a whole, or the tie-break turned off, is left to the usual path
+    # an answer far off every relabelling is turned onto the settled one all the same
+    tilted = truth @ Sim3(1.0, axis_rotation([1, 1, 0], np.radians(40)), np.zeros(3))
+    chosen, report = _shape_settled_answer(pair, best, tilted, metrics)
+    assert rotation_distance_deg(chosen.rotation, truth.rotation) < 2.0
+    assert report["frame_snap"]["onto"] == "the relabelling the shapes settle"
+    assert np.allclose(report["alternatives"][0]["transform"], tilted.matrix())  # the search's answer offered
+    # a part inside a whole, two captures whose surfaces coincide, or the tie-break turned off:
+    # left to the usual path
+    assert _shape_settled_answer(pair, best, flipped, metrics | {"coincident_share": 0.9}) is None
     assert _shape_settled_answer(pair, best, flipped, metrics | {"overlap_estimate": 0.6}) is None
     assert (
         _shape_settled_answer(_Pair.build(source, target, AlignOptions(semantic="off")), best, flipped, metrics) is None

@@ -46,7 +46,7 @@ UP_KEPT_DEG = 10.0
 # the choice weighs all 24 relabellings anyway; at 45 deg a turn-symmetric vase, whose frame
 # is any turn about its axis, was switched off a right answer (docs/benchmarks.md).
 CHOICE_MAX_DEG = 30.0
-# The shapes alone settle the choice (shape_settles: the semantic tie-break is not needed) where
+# The shapes alone settle the choice (shape_settled: the semantic tie-break is not needed) where
 # the best relabelling's surface-mass score leads every relabelling that is another answer by
 # SHAPE_DECISIVE_SIGMA standard deviations, and fewer than SHAPE_SETTLES_BELOW relabellings are
 # that same answer up to the models' own symmetries. On the category-real pairs a lead of 0.75
@@ -319,25 +319,23 @@ def choose_relabelling(
     return chosen, updated | {"frame_choice": report}
 
 
-def shape_settles(pair, metrics: dict) -> dict | None:
-    """Whether choose_relabelling's answer, made on the shapes alone (metrics['frame_choice']),
-    is one the surface-mass grids settle (SHAPE_DECISIVE_SIGMA, SHAPE_SETTLES_BELOW): the
-    report of why where it is (the lead, the relabellings alike), else None."""
-    report = metrics.get("frame_choice") or {}
-    if not report.get("used") or report.get("semantic") is not None:
-        return None
-    shape = _standardised(np.asarray(report["shape"], np.float64))
+def shape_settled(pair) -> tuple[int, dict] | None:
+    """The relabelling of the two models' frames their surface-mass grids settle on their own
+    (SHAPE_DECISIVE_SIGMA, SHAPE_SETTLES_BELOW), with the report of why (its lead over every
+    other answer, the relabellings alike); None where the shapes leave it open."""
+    shape = _standardised(manhattan.relabelling_agreement(pair.source, pair.target, *pair.normal_frames))
     top = int(np.argmax(shape))
     source_self, target_self = (
-        manhattan.self_relabellings(m, f) for m, f in zip((pair.source, pair.target), pair.normal_frames)
+        manhattan.self_relabellings(model, frame)
+        for model, frame in zip((pair.source, pair.target), pair.normal_frames)
     )
     alike = manhattan.equivalent_relabellings(top, source_self, target_self)
-    if alike.sum() >= SHAPE_SETTLES_BELOW or not alike[report["picked"]]:
+    if alike.sum() >= SHAPE_SETTLES_BELOW:
         return None
     lead = float(shape[top] - shape[~alike].max())
     if lead < SHAPE_DECISIVE_SIGMA:
         return None
-    return {"lead_sigma": round(lead, 3), "alike": int(alike.sum())}
+    return top, {"lead_sigma": round(lead, 3), "alike": int(alike.sum())}
 
 
 def _standardised(scores: np.ndarray) -> np.ndarray:

@@ -175,20 +175,27 @@ def _doubtful_search_answer(pair, best, search, transform: Sim3, metrics: dict, 
 
 
 def _shape_settled_answer(pair, best, transform: Sim3, metrics: dict) -> tuple[Sim3, dict] | None:
-    """The frame snap and the relabelling choice on the shapes alone, kept where the shapes
-    settle it (frame_snap.shape_settles): the semantic tie-break (lifting features onto both
-    models, most of a doubtful pair's time) is then skipped. None where they do not, or
-    where the answer is not one between other instances' whole models."""
+    """A doubtful answer between whole models whose surfaces do not coincide, where their
+    surface-mass grids settle which relabelling of the frames is right (frame_snap.shape_settled):
+    turned onto it however far it lies (on the category-real pairs the settled relabelling was
+    within 5 deg of the truth on 22 / 22, the search's answer up to 120 deg off), checked by the
+    relabelling choice, and the semantic tie-break (lifting features onto both models, most of
+    a doubtful pair's time) skipped. None where the shapes leave it open, or the answer is
+    not one between whole models."""
     opts = pair.opts
     if opts.semantic == "off" or opts.frame_snap == "off":
         return None
-    if not (frame_snap.other_instances(metrics) and frame_snap.whole_models(metrics)):
+    if not (frame_snap.surfaces_apart(metrics) and frame_snap.whole_models(metrics)):
         return None
-    snapped, snapped_metrics = frame_snap.snap_to_frames(pair, best, transform, metrics)
-    chosen, chosen_metrics = frame_snap.choose_relabelling(pair, best, snapped, snapped_metrics)
-    why = frame_snap.shape_settles(pair, chosen_metrics)
-    if why is None:
+    settled = frame_snap.shape_settled(pair)
+    if settled is None:
         return None
+    index, why = settled
+    rotation = manhattan.relabellings(*pair.normal_frames)[index]
+    turned, turned_metrics = frame_snap.snap_to_frames(
+        pair, best, transform, metrics, onto=rotation, why="the relabelling the shapes settle"
+    )
+    chosen, chosen_metrics = frame_snap.choose_relabelling(pair, best, turned, turned_metrics)
     reason = "the shapes settle the relabelling: the semantic tie-break is not needed"
     return chosen, chosen_metrics | {"semantic": {"used": False, "reason": reason, "settled_by_shape": why}}
 
