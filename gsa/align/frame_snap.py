@@ -250,7 +250,7 @@ def choose_relabelling(
         for rotation in manhattan.relabellings(*frames)
     ]
     allowed = np.ones(len(poses), bool) if allowed is None else np.asarray(allowed, bool)
-    shape = manhattan.relabelling_agreement(pair.source, pair.target, *frames)
+    shape = pair.shape_agreement
     total = _standardised(shape)
     semantic = parts = None
     if pair.lifted is not None:
@@ -323,8 +323,12 @@ def shape_settled(pair) -> tuple[int, dict] | None:
     """The relabelling of the two models' frames their surface-mass grids settle on their own
     (SHAPE_DECISIVE_SIGMA, SHAPE_SETTLES_BELOW), with the report of why (its lead over every
     other answer, the relabellings alike); None where the shapes leave it open."""
-    shape = _standardised(manhattan.relabelling_agreement(pair.source, pair.target, *pair.normal_frames))
+    shape = _standardised(pair.shape_agreement)
     top = int(np.argmax(shape))
+    # With fewer than SHAPE_SETTLES_BELOW alike, the one that many places down is another answer:
+    # where even it is within reach, the models' symmetries (about a second a pair) need not be measured.
+    if shape[top] - np.sort(shape)[-SHAPE_SETTLES_BELOW] < SHAPE_DECISIVE_SIGMA:
+        return None
     source_self, target_self = (
         manhattan.self_relabellings(model, frame)
         for model, frame in zip((pair.source, pair.target), pair.normal_frames)

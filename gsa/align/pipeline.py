@@ -531,6 +531,12 @@ class _Pair:
         """Both models' dominant surface-normal frames (gsa.manhattan), computed once."""
         return manhattan.manhattan_frame(self.source), manhattan.manhattan_frame(self.target)
 
+    @functools.cached_property
+    def shape_agreement(self) -> np.ndarray:
+        """(24,) how alike the models spread their surface under each relabelling of their frames
+        (manhattan.relabelling_agreement), computed once: the settling test and the choice both ask."""
+        return manhattan.relabelling_agreement(self.source, self.target, *self.normal_frames)
+
     @classmethod
     def build(cls, source: GaussianModel, target: GaussianModel, opts: AlignOptions) -> _Pair:
         scene.check_models(source, target)
