@@ -155,9 +155,10 @@ def _with_semantic_scores(alternatives: list[dict], scored: list[tuple[Sim3, flo
 
 
 def _doubtful_search_answer(pair, best, search, transform: Sim3, metrics: dict, timings: dict, progress):
-    """What a doubtful global-search answer goes through: the semantic tie-break, then the turn
-    onto the dominant-normal frames where the models are other instances (each as its option
-    allows)."""
+    """What a doubtful global-search answer goes through: the relabelling the shapes settle where
+    they do (_shape_settled_answer, which ends it); else the semantic tie-break, then the turn
+    onto the dominant-normal frames where the models are other instances and the choice among
+    their relabellings (each as its option allows)."""
     opts = pair.opts
     settled = _shape_settled_answer(pair, best, transform, metrics)
     if settled is not None:
