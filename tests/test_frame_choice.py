@@ -74,14 +74,67 @@ def test_a_doubtful_answer_end_for_end_is_turned_back(tmp_path):
     assert scores == sorted(scores, reverse=True)
     others = [Sim3.from_matrix(np.asarray(a["transform"])).rotation for a in updated["alternatives"]]
     assert all(rotation_distance_deg(r, chosen.rotation) > 2.0 for r in others)
-    # an answer far from every relabelling is left as it is: the frames do not explain it
+    # an answer far from every relabelling, between other instances neither of which spins
+    # freely: the frames hold the truth all the same, and it is turned onto them
     tilted = truth @ Sim3(1.0, axis_rotation([1, 1, 0], np.radians(40)), np.zeros(3))
-    kept, report = frame_snap.choose_relabelling(pair, best, tilted, metrics)
+    turned, report = frame_snap.choose_relabelling(pair, best, tilted, metrics)
+    assert report["frame_choice"]["frames_hold"] and report["frame_choice"]["switched"], report["frame_choice"]
+    assert rotation_distance_deg(turned.rotation, truth.rotation) < 2.0
+    assert np.allclose(report["alternatives"][0]["transform"], tilted.matrix())
+    # where the surfaces coincide (two captures of one object) it is left as it is: the frames do not explain it
+    coinciding = metrics | {"coincident_share": 0.9}
+    kept, report = frame_snap.choose_relabelling(pair, best, tilted, coinciding)
     assert kept is tilted and report["frame_choice"]["used"] is False
     offered = [Sim3.from_matrix(np.asarray(a["transform"])) for a in report["alternatives"]]
     assert min(rotation_distance_deg(p.rotation, truth.rotation) for p in offered) < 2.0  # still offered
     # a part of a model inside another (overlap estimate below whole) is not asked
     assert not frame_snap.whole_models(metrics | {"overlap_estimate": 0.6})
+
+
+def _vase(radius: float, height: float, neck: float, seed: int, folder):
+    """A cylinder with a narrower neck on top (a vase, a bottle): it turns freely about its axis
+    (y), so its dominant-normal frame is any turn about it."""
+    segments = 96
+    t = np.linspace(0.0, 2.0 * np.pi, segments, endpoint=False)
+    rings = [(radius, 0.0), (radius, height), (neck, height), (neck, 1.3 * height)]
+    vertices = np.array([[r * np.cos(a), y, r * np.sin(a)] for r, y in rings for a in t], np.float32)
+    faces = []
+    for ring in range(len(rings) - 1):
+        for k in range(segments):
+            a, b = ring * segments + k, ring * segments + (k + 1) % segments
+            faces += [[a, b, a + segments], [b, b + segments, a + segments]]
+    bottom = len(vertices)
+    vertices = np.concatenate([vertices, np.array([[0.0, 0.0, 0.0]], np.float32)])
+    faces += [[bottom, (k + 1) % segments, k] for k in range(segments)]
+    path = folder / f"vase{seed}_0.npz"
+    np.savez(path, V=vertices, F=np.array(faces, np.int32))
+    return mesh_to_gaussians(load_mesh(path), 6000, np.random.default_rng(seed), floaters=0.02)
+
+
+def test_an_answer_off_the_frames_of_a_model_that_spins_freely_is_kept(tmp_path):
+    from gsa.align import frame_snap
+    from gsa.align.pipeline import _Hypothesis, _Pair
+    from gsa.align.types import AlignOptions
+
+    truth = random_sim3(np.random.default_rng(7))
+    source = _vase(0.5, 1.0, 0.2, 1, tmp_path)
+    target = _vase(0.35, 1.2, 0.15, 2, tmp_path).transformed(truth)
+    pair = _Pair.build(source, target, AlignOptions(semantic="off"))
+    assert pair.spins_freely
+
+    # right up to the vase's own turn about its axis, as far from every relabelling as such a turn goes
+    def spun_by(deg: float) -> Sim3:
+        return truth @ Sim3(1.0, axis_rotation([0, 1, 0], np.radians(deg)), np.zeros(3))
+
+    def off_frames(pose: Sim3) -> float:
+        return min(rotation_distance_deg(r, pose.rotation) for r in relabellings(*pair.normal_frames))
+
+    spun = spun_by(max(range(90), key=lambda deg: off_frames(spun_by(deg))))
+    assert off_frames(spun) > frame_snap.CHOICE_MAX_DEG
+    best = _Hypothesis("test", pair.src_frame, spun)
+    metrics = {"doubtful": True, "overlap_estimate": 0.95, "coincident_share": 0.2, "alternatives": []}
+    kept, report = frame_snap.choose_relabelling(pair, best, spun, metrics)
+    assert kept is spun and report["frame_choice"]["frames_hold"] is False, report["frame_choice"]
 
 
 def _guided_pair(tmp_path, truth: Sim3, **hints):

@@ -44,7 +44,10 @@ UP_KEPT_DEG = 10.0
 # relabellings are only offered as alternatives). Wider than the snap's reach: across instances
 # the refinement drifts up to ~30 deg off the frames (rifles rolled about their length), and
 # the choice weighs all 24 relabellings anyway; at 45 deg a turn-symmetric vase, whose frame
-# is any turn about its axis, was switched off a right answer (docs/benchmarks.md).
+# is any turn about its axis, was switched off a right answer (docs/benchmarks.md). Where
+# neither model spins freely and the surfaces are other instances', no reach applies: a right
+# answer then lies within a few degrees of a relabelling, and one farther off is turned onto the
+# frames (choose_relabelling's frames_hold; docs/benchmarks.md, "Answers off the frames").
 CHOICE_MAX_DEG = 30.0
 # The shapes alone settle the choice (shape_settled: the semantic tie-break is not needed) where
 # the best relabelling's surface-mass score leads every relabelling that is another answer by
@@ -222,7 +225,8 @@ def choose_relabelling(
     pair, best, transform: Sim3, metrics: dict, allowed: np.ndarray | None = None, hold=None
 ) -> tuple[Sim3, dict]:
     """A doubtful answer between whole models that lies within CHOICE_MAX_DEG of a relabelling
-    of their frames (snapped onto it where they are other instances): the relabelling the
+    of their frames (snapped onto it where they are other instances; at any distance where
+    neither spins freely about an axis, turned onto the nearest): the relabelling the
     models' shapes and, once lifted, their semantic features agree on most. Each of the 24 is
     scored by the surface-mass grids (manhattan.relabelling_agreement) and, where the semantic
     tie-break lifted features (pair.lifted), by their agreement between the posed models and by
@@ -263,24 +267,30 @@ def choose_relabelling(
     offsets = np.array([robust.rotation_offset_deg(transform, p) for p in poses])
     current = int(np.argmin(np.where(allowed, offsets, np.inf)))
     order = [int(k) for k in np.argsort(-total, kind="stable") if allowed[k]]
-    # An answer farther from every relabelling is not on the frames: they do not explain it, and
-    # it is kept (the best-scored relabellings are still offered).
-    on_frames = bool(offsets[current] <= CHOICE_MAX_DEG)
+    # Beyond the snap's reach the answer is off the frames. Where neither model spins freely
+    # about an axis and the surfaces are other instances', the frames hold the truth wherever the
+    # answer lies: it is turned onto the relabelling nearest it unless another scores better.
+    # Elsewhere an answer farther than CHOICE_MAX_DEG is kept (the relabellings still offered).
+    off_frames = bool(offsets[current] > FRAME_SNAP_DEG)
+    frames_hold = off_frames and surfaces_apart(metrics) and not pair.spins_freely
+    on_frames = frames_hold or bool(offsets[current] <= CHOICE_MAX_DEG)
     pick = order[0] if on_frames and total[order[0]] > total[current] + CHOICE_MARGIN else current
+    turned = pick != current or frames_hold
     report = {
         "used": on_frames,
+        "frames_hold": frames_hold,
         "deg": float(offsets[current]),
         "shape": shape.round(4).tolist(),
         "semantic": None if semantic is None else semantic.round(4).tolist(),
         "parts": None if parts is None else parts.round(4).tolist(),
         "on": current,  # the nearest relabelling to the answer
         "picked": pick,
-        "switched": pick != current,
+        "switched": turned,
     }
-    chosen = poses[pick] if pick != current else transform
+    chosen = poses[pick] if turned else transform
     offered = [chosen]
     alternatives = []
-    if pick != current:
+    if turned:
         alternatives.append(
             {
                 "origin": "before the relabelling choice",
@@ -313,8 +323,8 @@ def choose_relabelling(
                     "transform": poses[k].matrix().tolist(),
                 }
             )
-    updated = metrics | (pair.quality(chosen, best) if pick != current else {}) | {"alternatives": alternatives}
-    if semantic is not None and pick != current:
+    updated = metrics | (pair.quality(chosen, best) if turned else {}) | {"alternatives": alternatives}
+    if semantic is not None and turned:
         updated["semantic_score"] = float(semantic[pick])
     return chosen, updated | {"frame_choice": report}
 

@@ -647,6 +647,14 @@ class _Pair:
         src, _ = self.anchors()
         return guided.source_symmetries(self.src_pts[src.kept])
 
+    @functools.cached_property
+    def spins_freely(self) -> bool:
+        """Whether either model turns freely onto itself about an axis (a bottle, a vase:
+        guided.source_symmetries), floaters left out: its dominant-normal frame is then any
+        turn about that axis, and a right answer can lie anywhere between two relabellings."""
+        src, dst = self.anchors()
+        return bool(self.source_symmetries) or bool(guided.source_symmetries(self.dst_pts[dst.kept]))
+
     def constrain(self, transform: Sim3) -> Sim3:
         """The pose brought back onto the user's up axes and scale (gsa.align.guided), pivoting
         about the source's centre."""
