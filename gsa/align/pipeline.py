@@ -652,7 +652,7 @@ class _Pair:
         """Whether either model turns freely onto itself about an axis (a bottle, a vase:
         guided.source_symmetries), floaters left out: its dominant-normal frame is then any
         turn about that axis, and a right answer can lie anywhere between two relabellings."""
-        src, dst = self.anchors()
+        _, dst = self.anchors()
         return bool(self.source_symmetries) or bool(guided.source_symmetries(self.dst_pts[dst.kept]))
 
     def constrain(self, transform: Sim3) -> Sim3:
