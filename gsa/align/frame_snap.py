@@ -164,7 +164,9 @@ def whole_models(metrics: dict) -> bool:
     fraction = metrics.get("overlap_estimate")
     if fraction is None:
         return False
-    return fraction >= robust.RefineCriteria().whole_overlap or (surfaces_apart(metrics) and fraction >= INSTANCES_OVERLAP)
+    return fraction >= robust.RefineCriteria().whole_overlap or (
+        surfaces_apart(metrics) and fraction >= INSTANCES_OVERLAP
+    )
 
 
 def snap_to_frames(
