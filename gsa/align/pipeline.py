@@ -19,7 +19,7 @@ from scipy.spatial import cKDTree
 from threadpoolctl import threadpool_limits
 
 from gsa import manhattan
-from gsa.align import frame_snap, guided, photo, robust, scene
+from gsa.align import frame_snap, guided, open_ends, photo, robust, scene
 from gsa.align.choices import (
     EXTRACTOR_MODES,
     FEATURE_MODES,
@@ -157,8 +157,9 @@ def _with_semantic_scores(alternatives: list[dict], scored: list[tuple[Sim3, flo
 def _doubtful_search_answer(pair, best, search, transform: Sim3, metrics: dict, timings: dict, progress):
     """What a doubtful global-search answer goes through: the relabelling the shapes settle where
     they do (_shape_settled_answer, which ends it); else the semantic tie-break, then the turn
-    onto the dominant-normal frames where the models are other instances and the choice among
-    their relabellings (each as its option allows)."""
+    onto the dominant-normal frames where the models are other instances, the choice among
+    their relabellings and, between two spinning models, their open ends matched (each as its
+    option allows)."""
     opts = pair.opts
     settled = _shape_settled_answer(pair, best, transform, metrics)
     if settled is not None:
@@ -172,6 +173,7 @@ def _doubtful_search_answer(pair, best, search, transform: Sim3, metrics: dict, 
         transform, metrics = frame_snap.snap_to_frames(pair, best, transform, metrics)
     if opts.frame_snap != "off" and frame_snap.whole_models(metrics):
         transform, metrics = frame_snap.choose_relabelling(pair, best, transform, metrics)
+        transform, metrics = open_ends.turn_open_ends(pair, best, transform, metrics)
     return transform, metrics
 
 
@@ -652,8 +654,13 @@ class _Pair:
         """Whether either model turns freely onto itself about an axis (a bottle, a vase:
         guided.source_symmetries), floaters left out: its dominant-normal frame is then any
         turn about that axis, and a right answer can lie anywhere between two relabellings."""
+        return bool(self.source_symmetries) or bool(self.target_symmetries)
+
+    @functools.cached_property
+    def target_symmetries(self) -> list[np.ndarray]:
+        """The target's own turn symmetries, as source_symmetries (target coordinates)."""
         _, dst = self.anchors()
-        return bool(self.source_symmetries) or bool(guided.source_symmetries(self.dst_pts[dst.kept]))
+        return guided.source_symmetries(self.dst_pts[dst.kept])
 
     def constrain(self, transform: Sim3) -> Sim3:
         """The pose brought back onto the user's up axes and scale (gsa.align.guided), pivoting
