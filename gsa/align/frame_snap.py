@@ -205,16 +205,7 @@ def snap_to_frames(
     if snapping:
         chosen = manhattan.fit_shift(chosen, src.points, dst.points, robust.PoseCriteria().truncation * dst.radius)
         kept.append(chosen)
-        alternatives.append(
-            {
-                "origin": "before the frame snap",
-                "tied": False,
-                "score": metrics.get("score"),
-                "geometry": metrics.get("overlap_score"),
-                "semantic_score": metrics.get("semantic_score"),
-                "transform": transform.matrix().tolist(),
-            }
-        )
+        alternatives.append(replaced_pose(transform, metrics, "before the frame snap"))
     else:
         kept.append(transform)
     for alt in metrics.get("alternatives") or []:
@@ -302,16 +293,7 @@ def choose_relabelling(
     offered = [chosen]
     alternatives = []
     if turned:
-        alternatives.append(
-            {
-                "origin": "before the relabelling choice",
-                "tied": False,
-                "score": metrics.get("score"),
-                "geometry": metrics.get("overlap_score"),
-                "semantic_score": metrics.get("semantic_score"),
-                "transform": transform.matrix().tolist(),
-            }
-        )
+        alternatives.append(replaced_pose(transform, metrics, "before the relabelling choice"))
         offered.append(transform)
     for alt in metrics.get("alternatives") or []:
         pose = Sim3.from_matrix(np.asarray(alt["transform"], np.float64))
@@ -338,6 +320,19 @@ def choose_relabelling(
     if semantic is not None and turned:
         updated["semantic_score"] = float(semantic[pick])
     return chosen, updated | {"frame_choice": report}
+
+
+def replaced_pose(transform: Sim3, metrics: dict, origin: str) -> dict:
+    """The alternative a doubtful answer becomes when a later step replaces it (`origin` names
+    the step), with the scores it was given."""
+    return {
+        "origin": origin,
+        "tied": False,
+        "score": metrics.get("score"),
+        "geometry": metrics.get("overlap_score"),
+        "semantic_score": metrics.get("semantic_score"),
+        "transform": transform.matrix().tolist(),
+    }
 
 
 def shape_settled(pair) -> tuple[int, dict] | None:

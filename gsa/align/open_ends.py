@@ -14,7 +14,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from gsa import manhattan
-from gsa.align import robust
+from gsa.align import frame_snap, robust
 from gsa.geometry import axis_rotation
 from gsa.sim3 import Sim3
 
@@ -111,14 +111,6 @@ def turn_open_ends(pair, best, transform: Sim3, metrics: dict) -> tuple[Sim3, di
         return transform, metrics | {"open_ends": report}
     turned = turned_end_for_end(transform, source_axis, source_points.mean(axis=0))
     turned = manhattan.fit_shift(turned, src.points, dst.points, robust.PoseCriteria().truncation * dst.radius)
-    replaced = {
-        "origin": "before the open-end turn",
-        "tied": False,
-        "score": metrics.get("score"),
-        "geometry": metrics.get("overlap_score"),
-        "semantic_score": metrics.get("semantic_score"),
-        "transform": transform.matrix().tolist(),
-    }
     others = [
         alt
         for alt in metrics.get("alternatives") or []
@@ -126,6 +118,6 @@ def turn_open_ends(pair, best, transform: Sim3, metrics: dict) -> tuple[Sim3, di
         > SAME_POSE_DEG
     ]
     return turned, metrics | pair.quality(turned, best) | {
-        "alternatives": [replaced] + others,
+        "alternatives": [frame_snap.replaced_pose(transform, metrics, "before the open-end turn")] + others,
         "open_ends": report | {"turned": True},
     }
