@@ -18,9 +18,6 @@ from gsa.align import frame_snap, robust
 from gsa.geometry import axis_rotation
 from gsa.sim3 import Sim3
 
-# An alternative this near the turned answer is that answer.
-SAME_POSE_DEG = 2.0
-
 
 @dataclass(frozen=True)
 class OpenEndCriteria:
@@ -115,7 +112,7 @@ def turn_open_ends(pair, best, transform: Sim3, metrics: dict) -> tuple[Sim3, di
         alt
         for alt in metrics.get("alternatives") or []
         if robust.rotation_offset_deg(Sim3.from_matrix(np.asarray(alt["transform"], np.float64)), turned)
-        > SAME_POSE_DEG
+        > frame_snap.FRAME_SNAP_SAME_DEG
     ]
     return turned, metrics | pair.quality(turned, best) | {
         "alternatives": [frame_snap.replaced_pose(transform, metrics, "before the open-end turn")] + others,
