@@ -202,6 +202,23 @@ def test_verdict_reads_how_well_an_overlap_coincides_where_the_overlap_is_large_
     assert robust.verdict(partial, tied, (0.7, 0.93))["doubtful"]  # coinciding does not make a margin
 
 
+def test_a_source_shrunk_onto_a_speck_of_the_target_does_not_coincide():
+    # Seen on two rifles at 5k Gaussians: the source 14x too small sat wholly within the
+    # coincidence tolerance of a few target points (share 1.0), and the verdict called a pose
+    # 115 degrees off confident. An overlap no wider than the tolerance says nothing.
+    model = make_object("car", seed=3, n_gaussians=4000)
+    points = model.means.astype(np.float64)
+    tree = cKDTree(points)
+    ratio_truth = robust.coincidence(points, points, tree, tree, Sim3.identity())
+    assert ratio_truth[1] > 0.9  # the true pose coincides
+    centre = points[0]
+    speck = Sim3(0.01, np.eye(3), centre - 0.01 * points.mean(axis=0))  # the whole source onto one spot
+    fraction, share = robust.coincidence(points, points, tree, tree, speck)
+    assert share == 0.0, (fraction, share)
+    wide = robust.RefineCriteria(resolved_overlap=0.0)  # the guard off: the speck reads as coinciding
+    assert robust.coincidence(points, points, tree, tree, speck, wide)[1] > 0.7
+
+
 def test_duplicates_stay_exact_and_confident():
     truth = random_sim3(np.random.default_rng(11))
     model = make_object("boat", seed=2, n_gaussians=6000)

@@ -42,6 +42,12 @@ class RefineCriteria:
     whole_overlap: float = 0.875
     coincident_spacings: float = 2.0
     coincident_share: float = 0.5
+    # Coincidence says something only where the overlap is wider than the distance it is tested
+    # at: a source shrunk onto a speck of the target coincides wherever it lands (a rifle 14x too
+    # small, n-way's cross-instance sets at 5k Gaussians: every pair of the speck within the
+    # tolerance, share 1.0, confidence 0.53 on a pose 115 degrees off). The overlap's RMS radius
+    # must reach this many tolerances (coincident_spacings spacings) for its share to count.
+    resolved_overlap: float = 2.0
     # The fit of two captures of one surface holds the core_fraction closest pairs (the floor
     # of overlap_fraction's grid) from the search's pose to the end. From a pose a degree or two
     # off, residuals grow smoothly everywhere and the overlap estimate reads most pairs as
@@ -368,14 +374,24 @@ def coincidence(
     pairs closer than coincident_spacings sampling spacings: how much of the overlap
     coincides, whatever the share of each model the overlap is."""
     k = criteria or _REFINE
-    d_f, _ = target_tree.query(transform.apply(source_points), workers=_workers(len(source_points)))
+    moved = transform.apply(source_points)
+    d_f, _ = target_tree.query(moved, workers=_workers(len(source_points)))
     d_r, _ = source_tree.query(transform.inverse().apply(target_points), workers=_workers(len(target_points)))
     d = np.concatenate([d_f, d_r * transform.scale])
     spacing = max(sampling_spacing(target_tree), sampling_spacing(source_tree) * transform.scale)
+    tolerance = k.coincident_spacings * spacing
     fraction = overlap_fraction(d, k.overlap_lambda)
     kept = np.sort(d)[: max(int(fraction * len(d)), 3)]
     # ≤: where a model's median spacing is 0 (stacked duplicate Gaussians), pairs at 0 coincide.
-    return fraction, float(np.mean(kept <= k.coincident_spacings * spacing))
+    share = float(np.mean(kept <= tolerance))
+    near = np.concatenate([moved[d_f <= tolerance], np.asarray(target_points)[d_r * transform.scale <= tolerance]])
+    if len(near) >= 3 and _rms_radius(near) < k.resolved_overlap * tolerance:
+        share = 0.0  # an unresolved speck of overlap: its coincidence says nothing
+    return fraction, share
+
+
+def _rms_radius(points: np.ndarray) -> float:
+    return float(np.sqrt(np.mean(np.sum((points - points.mean(axis=0)) ** 2, axis=1))))
 
 
 def _plane_step(x: np.ndarray, y: np.ndarray, n: np.ndarray, w: np.ndarray) -> Sim3 | None:
