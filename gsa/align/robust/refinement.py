@@ -377,14 +377,15 @@ def coincidence(
     moved = transform.apply(source_points)
     d_f, _ = target_tree.query(moved, workers=_workers(len(source_points)))
     d_r, _ = source_tree.query(transform.inverse().apply(target_points), workers=_workers(len(target_points)))
-    d = np.concatenate([d_f, d_r * transform.scale])
+    d_back = d_r * transform.scale  # in the target's units, as d_f
+    d = np.concatenate([d_f, d_back])
     spacing = max(sampling_spacing(target_tree), sampling_spacing(source_tree) * transform.scale)
     tolerance = k.coincident_spacings * spacing
     fraction = overlap_fraction(d, k.overlap_lambda)
     kept = np.sort(d)[: max(int(fraction * len(d)), 3)]
     # ≤: where a model's median spacing is 0 (stacked duplicate Gaussians), pairs at 0 coincide.
     share = float(np.mean(kept <= tolerance))
-    near = np.concatenate([moved[d_f <= tolerance], np.asarray(target_points)[d_r * transform.scale <= tolerance]])
+    near = np.concatenate([moved[d_f <= tolerance], target_points[d_back <= tolerance]])
     if len(near) >= 3 and _rms_radius(near) < k.resolved_overlap * tolerance:
         share = 0.0  # an unresolved speck of overlap: its coincidence says nothing
     return fraction, share
