@@ -251,3 +251,87 @@ def test_cli_semantic_flag_and_environment(tmp_path):
     r = subprocess.run([*cmd, "--semantic", "off"], env=env, capture_output=True, text=True, timeout=300)
     assert r.returncode == 0, r.stderr
     assert "semantic" not in json.loads((tmp_path / "r.json").read_text())["metrics"]
+
+
+def _tiny_vit(seed: int = 0):
+    from gsa.features.vit import DinoV2, VitConfig
+
+    torch.manual_seed(seed)
+    vit = DinoV2(VitConfig(embed_dim=32, depth=2, num_heads=2, pos_grid=16)).eval()
+    with torch.no_grad():
+        for p in vit.parameters():
+            p.copy_(torch.randn(p.shape) * 0.3)
+    return vit
+
+
+def test_patches_left_out_do_not_reach_the_ones_kept():
+    """A batch whose images keep different patches: each kept token is what that image gives
+    alone (the padding is masked out of attention), every left-out patch comes back zero, and
+    keeping every patch is the plain forward."""
+    vit = _tiny_vit()
+    images = torch.randn(3, 3, 224, 224)
+    rng = np.random.default_rng(1)
+    keep = torch.as_tensor(rng.random((3, 16, 16)) < np.array([0.2, 0.5, 0.9])[:, None, None])
+    with torch.no_grad():
+        _, batched = vit(images, keep)
+        alone = [vit(images[i : i + 1], keep[i : i + 1])[1][0] for i in range(3)]
+        _, plain = vit(images)
+        _, all_kept = vit(images, torch.ones(3, 16, 16, dtype=torch.bool))
+    for i in range(3):
+        assert torch.allclose(batched[i][keep[i]], alone[i][keep[i]], atol=1e-5)
+        assert float(batched[i][~keep[i]].abs().max()) == 0.0
+    assert torch.allclose(all_kept, plain, atol=1e-5)
+    # and a patch left out changes what the others see: the mask is not a no-op
+    assert not torch.allclose(batched[0][keep[0]], plain[0][keep[0]], atol=1e-3)
+
+
+def test_the_object_patches_cover_every_pixel_of_the_object_and_their_neighbours():
+    criteria = semantic.SemanticCriteria()
+    alpha = np.zeros((2, 224, 224), np.float32)
+    alpha[0, 100:101, 60:61] = 0.5  # one pixel: patch (7, 4)
+    alpha[1, 14:56, 140:224] = 1.0  # patches rows 1-3, columns 10-15
+    keep = semantic._object_patches(alpha, 224, 14, criteria)
+    assert keep.shape == (2, 16, 16)
+    assert np.flatnonzero(keep[0].ravel()).tolist() == [r * 16 + c for r in (6, 7, 8) for c in (3, 4, 5)]
+    rows, cols = np.nonzero(keep[1])
+    assert (rows.min(), rows.max(), cols.min(), cols.max()) == (0, 4, 9, 15)
+    # views at another size than the backbone's, or the option off: every patch computed
+    assert semantic._object_patches(alpha[:, :112, :112], 224, 14, criteria) is None
+    assert semantic._object_patches(alpha, 224, 14, dataclasses.replace(criteria, skip_background=False)) is None
+
+
+@needs_bundled
+@pytest.mark.semantic
+def test_the_backbone_on_the_object_patches_alone_gives_nearly_the_full_tokens():
+    """The measured basis of leaving background out (docs/benchmarks.md): on the object's
+    patches, the tokens computed without the empty background around it are within a cosine
+    of 0.98 of those computed over the whole image, on a real render with the real weights."""
+    criteria = semantic.SemanticCriteria(views=4, rolls=2)
+    _, images, alpha = semantic._render(make_object("chair", seed=2, n_gaussians=3000), criteria, 0)
+    backbone = semantic.available_backbone()
+    pruned = semantic._tokens(backbone, images, criteria, alpha)
+    full = semantic._tokens(backbone, images, dataclasses.replace(criteria, skip_background=False), alpha)
+    keep = torch.as_tensor(semantic._object_patches(alpha, criteria.image_size, backbone.patch_size, criteria))
+    assert 0.05 < float(keep.float().mean()) < 0.9  # some background was left out
+    cosine = torch.nn.functional.cosine_similarity(pruned[keep], full[keep], dim=-1)
+    assert float(cosine.mean()) > 0.98, float(cosine.mean())
+    assert float(pruned[~keep].abs().max()) == 0.0
+
+
+def test_lifting_through_smaller_cameras_keeps_the_features_and_the_visibility_in_rendered_pixels():
+    """lift_size: the maps lifted through cameras of fewer pixels give each Gaussian nearly the
+    feature the full-size cameras give, and its weight in the rendered cameras' pixels."""
+    model = make_object("chair", seed=2, n_gaussians=3000)
+    criteria = semantic.SemanticCriteria(views=4, image_size=224)
+    cams, _, _ = semantic._render(model, criteria, 0)
+    rng = np.random.default_rng(0)
+    grid = torch.as_tensor(rng.normal(size=(len(cams), 4, 16, 16)), dtype=torch.float32)
+    results = {size: semantic._lift_maps(model, cams, grid, size) for size in (None, 160)}
+    (full_f, full_w), (small_f, small_w) = results[None], results[160]
+    seen = (full_w > 2.0) & (small_w > 2.0)
+    assert seen.sum() > 0.3 * len(model)
+    cosine = np.sum(full_f[seen] * small_f[seen], 1) / (
+        np.linalg.norm(full_f[seen], axis=1) * np.linalg.norm(small_f[seen], axis=1)
+    )
+    assert float(np.median(cosine)) > 0.98, float(np.median(cosine))
+    assert 0.8 < float(np.median(small_w[seen] / full_w[seen])) < 1.25

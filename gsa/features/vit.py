@@ -69,10 +69,10 @@ class _Attention(nn.Module):
         self.qkv = nn.Linear(dim, dim * 3, bias=qkv_bias)
         self.proj = nn.Linear(dim, dim)
 
-    def forward(self, x: torch.Tensor) -> torch.Tensor:
+    def forward(self, x: torch.Tensor, key_mask: torch.Tensor | None = None) -> torch.Tensor:
         b, n, c = x.shape
         q, k, v = self.qkv(x).reshape(b, n, 3, self.heads, c // self.heads).permute(2, 0, 3, 1, 4)
-        x = F.scaled_dot_product_attention(q, k, v)
+        x = F.scaled_dot_product_attention(q, k, v, attn_mask=key_mask)
         return self.proj(x.transpose(1, 2).reshape(b, n, c))
 
 
@@ -116,8 +116,8 @@ class Block(nn.Module):
         self.ls1 = _LayerScale(dim) if layerscale else nn.Identity()
         self.ls2 = _LayerScale(dim) if layerscale else nn.Identity()
 
-    def forward(self, x: torch.Tensor) -> torch.Tensor:
-        x = x + self.ls1(self.attn(self.norm1(x)))
+    def forward(self, x: torch.Tensor, key_mask: torch.Tensor | None = None) -> torch.Tensor:
+        x = x + self.ls1(self.attn(self.norm1(x), key_mask))
         return x + self.ls2(self.mlp(self.norm2(x)))
 
 
@@ -162,22 +162,46 @@ class DinoV2(nn.Module):
         grid = F.interpolate(grid, size=(h, w), mode="bicubic", align_corners=False)
         return torch.cat([pos[:, :1], grid.permute(0, 2, 3, 1).reshape(1, h * w, -1)], 1)
 
-    def forward(self, images: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    def forward(self, images: torch.Tensor, keep: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+        """keep: optional (B, h, w) bool, the patches to compute; the others are left out of
+        the transformer altogether (they come back as zero tokens). Patches of empty background
+        around a rendered object cost as much as the object's: leaving them out of a grey
+        render on white changed the object's tokens by a cosine of ~0.994 (docs/benchmarks.md,
+        "Background patches left out")."""
         b, _, hh, ww = images.shape
         p = self.cfg.patch_size
         if hh % p or ww % p:
             raise ValueError(f"image size {hh}x{ww} is not a multiple of the patch size {p}")
         h, w = hh // p, ww // p
-        x = self.patch_embed.proj(images).flatten(2).transpose(1, 2)
-        x = torch.cat([self.cls_token.expand(b, -1, -1), x], 1) + self._pos(h, w)
+        pos = self._pos(h, w)
+        x = self.patch_embed.proj(images).flatten(2).transpose(1, 2) + pos[:, 1:]
+        cls = self.cls_token + pos[:, :1]
+        key_mask = order = None
+        if keep is not None:
+            keep = keep.reshape(b, h * w).bool()
+            count = int(keep.sum(1).max())
+            # kept patches first (stable: in image order), padded to the batch's largest count
+            order = torch.argsort((~keep).to(torch.int8), dim=1, stable=True)[:, :count]
+            x = torch.gather(x, 1, order[..., None].expand(-1, -1, x.shape[-1]))
+            valid = torch.gather(keep, 1, order)
+            key_mask = torch.cat([torch.ones(b, 1 + self.cfg.num_register_tokens, dtype=torch.bool), valid], 1)
+            key_mask = key_mask[:, None, None, :]
+        x = torch.cat([cls.expand(b, -1, -1), x], 1)
         if self.register_tokens is not None:
             x = torch.cat([x[:, :1], self.register_tokens.expand(b, -1, -1), x[:, 1:]], 1)
         for blk in self.blocks:
-            x = blk(x)
+            x = blk(x, key_mask)
         skip = 1 + self.cfg.num_register_tokens
-        pre = x[:, skip:]
-        post = self.norm(x)[:, skip:]
+        pre, post = x[:, skip:], self.norm(x)[:, skip:]
+        if order is not None:
+            pre, post = (_scattered(t, order, valid, h * w) for t in (pre, post))
         return pre.reshape(b, h, w, -1), post.reshape(b, h, w, -1)
+
+
+def _scattered(tokens: torch.Tensor, order: torch.Tensor, valid: torch.Tensor, n: int) -> torch.Tensor:
+    """(B, K, D) tokens of the patches `order` names (`valid` of them real) -> (B, n, D), zeros elsewhere."""
+    out = torch.zeros(tokens.shape[0], n, tokens.shape[-1], dtype=tokens.dtype)
+    return out.scatter(1, order[..., None].expand(-1, -1, tokens.shape[-1]), tokens * valid[..., None])
 
 
 def sphere_mapper_head(embed_dim: int = 768, hidden: int | None = None, heads: int | None = None) -> nn.Sequential:
