@@ -138,8 +138,7 @@ def _object_patches(alpha: np.ndarray, size: int, patch: int, criteria: Semantic
         return None
     n = size // patch
     touched = alpha.reshape(len(alpha), n, patch, n, patch).max(axis=(2, 4)) > criteria.object_alpha
-    grown = np.stack([binary_dilation(t, np.ones((3, 3), bool)) for t in touched])
-    return grown
+    return binary_dilation(touched, np.ones((1, 3, 3), bool))  # within each view, not across them
 
 
 @functools.cache
@@ -239,12 +238,12 @@ class LiftedPair:
 
     def scores(self, poses: list[Sim3]) -> list[float]:
         """Semantic agreement of each source -> target pose, in [-1, 1] (module docstring)."""
-        rows = self._sample(self.criteria.sample)
-        pts, feats = self.src_pts[rows], self.src_f[rows]
         from gsa.align.nearest import query_workers
 
         if not poses:
             return []
+        rows = self._sample(self.criteria.sample)
+        pts, feats = self.src_pts[rows], self.src_f[rows]
         radius = self.criteria.neighbour_radius * self.diagonal
         # every pose's points in one query: scipy's threads pay off only on a large one
         moved = np.concatenate([pose.apply(pts) for pose in poses])

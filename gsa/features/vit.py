@@ -167,7 +167,7 @@ class DinoV2(nn.Module):
         the transformer altogether (they come back as zero tokens). Patches of empty background
         around a rendered object cost as much as the object's: leaving them out of a grey
         render on white changed the object's tokens by a cosine of ~0.994 (docs/benchmarks.md,
-        "Background patches left out")."""
+        "The backbone on the object's patches alone")."""
         b, _, hh, ww = images.shape
         p = self.cfg.patch_size
         if hh % p or ww % p:
