@@ -335,3 +335,68 @@ def test_lifting_through_smaller_cameras_keeps_the_features_and_the_visibility_i
     )
     assert float(np.median(cosine)) > 0.98, float(np.median(cosine))
     assert 0.8 < float(np.median(small_w[seen] / full_w[seen])) < 1.25
+
+
+class _CountingBackbone:
+    """A backbone that counts its forward calls (what ModelViewCache saves)."""
+
+    def __init__(self, vit):
+        self.vit, self.patch_size, self.calls = vit, vit.patch_size, 0
+
+    def __call__(self, images, keep=None):
+        self.calls += 1
+        return self.vit(images, keep)
+
+
+def test_a_model_met_again_reuses_its_views_and_lifts_the_same_features(monkeypatch):
+    """The second pair that brings a model runs the backbone on the other model only, and lifts
+    exactly what a cold run lifts; a moved copy of the model is another model; the cache keeps
+    the models used last, no more."""
+    cache = semantic.ModelViewCache(kept=2)
+    monkeypatch.setattr(semantic, "MODEL_VIEWS", cache)
+    backbone = _CountingBackbone(_tiny_vit())
+    criteria = semantic.SemanticCriteria(views=4, rolls=1, batch=4, components=8)
+    chair, other, third = (make_object("chair", seed=s, n_gaussians=2000) for s in (2, 3, 4))
+
+    semantic.lifted_features(chair, other, backbone, criteria)
+    cold_calls = backbone.calls
+    assert cold_calls == 2 and (cache.misses, cache.hits) == (2, 0)  # one batch of 4 views per model
+    warm = semantic.lifted_features(chair, third, backbone, criteria)
+    assert backbone.calls == cold_calls + 1 and (cache.misses, cache.hits) == (3, 1)  # the chair's views kept
+
+    cache.clear()
+    cold = semantic.lifted_features(chair, third, backbone, criteria)
+    for (warm_f, warm_w), (cold_f, cold_w) in zip(warm, cold):
+        assert np.array_equal(warm_f, cold_f) and np.array_equal(warm_w, cold_w)
+
+    moved = chair.transformed(Sim3(1.0, axis_rotation(np.array([0.0, 0.0, 1.0]), 0.3), np.zeros(3)))
+    assert semantic.geometry_digest(moved) != semantic.geometry_digest(chair)
+    recoloured = dataclasses.replace(chair, sh=chair.sh * 0.5)  # colours do not reach the shaded views
+    assert semantic.geometry_digest(recoloured) == semantic.geometry_digest(chair)
+    calls = backbone.calls
+    semantic.lifted_features(moved, third, backbone, criteria)  # third kept, moved computed
+    assert backbone.calls == calls + 1
+    assert len(cache._entries) == 2  # chair, the least recently used, made room
+    semantic.lifted_features(chair, third, backbone, criteria)
+    assert backbone.calls == calls + 2
+
+
+def test_every_bench_run_is_timed_without_the_views_of_the_run_before():
+    """gsa.bench.records.evaluate empties the view cache before each run: a bench's source met
+    in several pairs, or one pair under several runners, is timed as a lone alignment."""
+    from gsa.bench.records import evaluate
+
+    seen = []
+
+    def runner(source, target):
+        seen.append(len(semantic.MODEL_VIEWS._entries))
+        semantic.MODEL_VIEWS._entries[("stand-in", len(seen))] = None  # what a doubtful run leaves
+        return {"probe": (Sim3.identity(), 0.0, {})}
+
+    model = make_object("chair", seed=2, n_gaussians=500)
+    pairs = [(f"p{k}", lambda: (model, model, Sim3.identity())) for k in range(2)]
+    try:
+        evaluate("probe", pairs, [runner, runner])
+    finally:
+        semantic.MODEL_VIEWS.clear()
+    assert seen == [0, 0, 0, 0]

@@ -19,11 +19,19 @@ none of them.
 
 The scores only break ties: a doubtful result keeps its pose unless another offered pose
 scores `switch_ratio` times higher, and it stays flagged doubtful either way.
+
+A model's views and tokens depend on the model alone (its geometry, the criteria, the seed and
+the backbone), so they are kept for the next pair that brings the same model (ModelViewCache):
+an N-way alignment meets every model in N - 1 pairs, and a service aligns upload after upload
+against one reference, while the backbone is most of a doubtful pair's time.
 """
 
 from __future__ import annotations
 
 import functools
+import hashlib
+import threading
+from collections import OrderedDict
 from dataclasses import dataclass
 
 import numpy as np
@@ -174,23 +182,78 @@ def lifted_features(source: GaussianModel, target: GaussianModel, backbone, crit
     import torch
     import torch.nn.functional as F
 
-    views = [_render(m, criteria, seed) for m in (source, target)]
-    tokens = [_tokens(backbone, images, criteria, alpha) for _, images, alpha in views]
+    seen = [MODEL_VIEWS.views(m, backbone, criteria, seed) for m in (source, target)]
+    views = [(cams, alpha) for cams, alpha, _ in seen]
+    tokens = [tok for _, _, tok in seen]
 
     def foreground(tok, alpha):
         a = torch.as_tensor(alpha)[:, None]
         return tok[F.interpolate(a, size=tok.shape[1:3], mode="area")[:, 0] > 0.5]
 
-    both = torch.cat([foreground(t, v[2]) for t, v in zip(tokens, views)]).double()
+    both = torch.cat([foreground(t, v[1]) for t, v in zip(tokens, views)]).double()
     if len(both) <= criteria.components:
         raise ValueError("too few foreground patches to compare the models semantically")
     mean = both.mean(0)
     basis = torch.linalg.svd(both - mean, full_matrices=False)[2][: criteria.components].T
     out = []
-    for model, (cams, _, _), tok in zip((source, target), views, tokens):
+    for model, (cams, _), tok in zip((source, target), views, tokens):
         proj = ((tok.double() - mean) @ basis).float().permute(0, 3, 1, 2)
         out.append(_lift_maps(model, cams, proj, criteria.lift_size))
     return out[0], out[1]
+
+
+# Models whose views and tokens are kept (ModelViewCache): about 15 MB each at the default
+# criteria (24 views' 16 x 16 tokens of 384 floats, and their 224 px alpha).
+MODEL_VIEWS_KEPT = 8
+
+
+class ModelViewCache:
+    """Each model's orbit cameras, rendered alpha and backbone tokens (_render, _tokens), the
+    MODEL_VIEWS_KEPT models used last, keyed by the model's geometry (what the shaded views are
+    rendered from: its colours do not reach them), the criteria, the seed and the backbone.
+    Thread-safe (the service's embedded workers are threads); two threads that miss on one
+    model at once both compute it, and the tokens come out the same."""
+
+    def __init__(self, kept: int = MODEL_VIEWS_KEPT):
+        self.kept = kept
+        self.hits = self.misses = 0
+        self._entries: OrderedDict = OrderedDict()
+        self._lock = threading.Lock()
+
+    def views(self, model: GaussianModel, backbone, criteria: SemanticCriteria, seed: int):
+        """(cameras, alpha (C,H,W), tokens (C,h,w,D)) of `model`, computed once while kept."""
+        key = (geometry_digest(model), criteria, seed, backbone)  # the backbone itself: no id reused
+        with self._lock:
+            if key in self._entries:
+                self._entries.move_to_end(key)
+                self.hits += 1
+                return self._entries[key]
+        cams, images, alpha = _render(model, criteria, seed)
+        entry = (cams, alpha, _tokens(backbone, images, criteria, alpha))
+        with self._lock:
+            self.misses += 1
+            self._entries[key] = entry
+            while len(self._entries) > self.kept:
+                self._entries.popitem(last=False)
+        return entry
+
+    def clear(self) -> None:
+        with self._lock:
+            self._entries.clear()
+            self.hits = self.misses = 0
+
+
+MODEL_VIEWS = ModelViewCache()
+
+
+def geometry_digest(model: GaussianModel) -> str:
+    """A digest of what a model's shaded views are rendered from: its Gaussians' means,
+    rotations, scales and opacities (a few ms for 50k Gaussians)."""
+    h = hashlib.blake2b(digest_size=20)
+    for a in (model.means, model.quats, model.log_scales, model.opacity_logits):
+        h.update(np.ascontiguousarray(a).view(np.uint8).reshape(-1))
+        h.update(str(a.shape).encode())
+    return h.hexdigest()
 
 
 def _lift_maps(model: GaussianModel, cams, grids, size: int | None):

@@ -15,6 +15,7 @@ from pathlib import Path
 
 import numpy as np
 
+from gsa.align.semantic import MODEL_VIEWS
 from gsa.metrics import accuracy, rre_deg
 from gsa.sim3 import Sim3
 
@@ -53,6 +54,9 @@ def evaluate(
     for done, (label, make) in enumerate(pairs, 1):
         source, target, truth = make()
         for run in runners:
+            # every run timed as a lone alignment: a model met again (one source in several pairs,
+            # one pair under several runners) would find its views kept from the run before
+            MODEL_VIEWS.clear()
             for method, (est, seconds, *fields) in run(source, target).items():
                 rec = {"pair": label, "seconds": seconds, **(extra(label) if extra else {})}
                 if fields:
