@@ -179,7 +179,8 @@ def snap_to_frames(
     why: str = "the relabelling the guidance points at",
 ) -> tuple[Sim3, dict]:
     """A doubtful answer and its alternatives turned onto the nearest relabelling of the two
-    models' dominant-normal frames (gsa.manhattan) where that turn is at most FRAME_SNAP_DEG
+    models' dominant-normal frames (gsa.manhattan; up to the source's spins, where it turns
+    freely about an axis: the spin is kept, the tilt taken out) where that turn is at most FRAME_SNAP_DEG
     (the answer onto the relabelling `onto` where given, however far; every turned pose passed
     through `hold`, which brings it back onto the user's hints); the pose as refined becomes
     the first alternative. The answer stays doubtful: which of the relabellings is
@@ -189,8 +190,11 @@ def snap_to_frames(
     report = {"support": [frames[0].support, frames[1].support], "max_deg": FRAME_SNAP_DEG}
     hold = hold or (lambda pose: pose)
 
+    # up to the source's spins (a vase, a bottle): a spin about its axis is the same answer
+    turns = pair.source_symmetries
+
     def snap(pose: Sim3) -> tuple[Sim3, float]:
-        turned, gap = manhattan.snapped(pose, *frames, src.center)
+        turned, gap = manhattan.snapped(pose, *frames, src.center, turns)
         return hold(turned), gap
 
     kept: list[Sim3] = []
