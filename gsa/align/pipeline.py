@@ -116,6 +116,15 @@ def _semantic_tiebreak(pair, best, search, transform: Sim3, metrics: dict) -> tu
     pick = semantic.pick(scores)
     report = {"used": True, "scores": scores, "picked": pick, "swept": len(swept)}
     scored = list(zip(poses, scores))
+    if pick:
+        # Between whole models a pose that leaves part of them apart is no answer: the features
+        # favoured like parts piled onto one end (a rifle's barrel on the other's, half of each
+        # model uncovered), where the pose they replaced covered both (docs/benchmarks.md,
+        # "Whole models stay whole").
+        reading = pair.overlap_reading(poses[pick])
+        if frame_snap.whole_models(metrics) and not frame_snap.whole_models(reading):
+            report |= {"picked": 0, "vetoed": {"pick": pick} | reading}
+            pick = 0
     if pick == 0:
         offers = [c.to_dict(transform) | {"tied": False} for c in swept]
         alternatives = _with_semantic_scores((metrics.get("alternatives") or []) + offers, scored)
@@ -713,14 +722,27 @@ class _Pair:
             w_colour = search.colour_weight
         else:
             w_colour = robust.colour_trust(src, dst, 0.5 * (robust.colour_noise(src) + robust.colour_noise(dst)))
+        coincide = self._coincidence(transform)
+        out = robust.verdict(robust.score_pose(src, dst, transform, "final", w_colour), search, coincide)
+        out["colour_gain"] = list(src.colour_gain)  # exposure/white balance matched onto the target's
+        return out
+
+    def _coincidence(self, transform: Sim3):
+        """robust.coincidence of the posed models' surfaces (floaters left out), on JUDGE_POINTS
+        of each drawn by the options' seed: (overlap estimate, coincident share) or None."""
         src_tree, dst_tree = self.kept_trees
         rng = np.random.default_rng(self.opts.seed)
         p = src_tree.data[_subsample(rng, src_tree.n, JUDGE_POINTS)]
         q = dst_tree.data[_subsample(rng, dst_tree.n, JUDGE_POINTS)]
-        coincide = robust.coincidence(p, q, src_tree, dst_tree, transform)
-        out = robust.verdict(robust.score_pose(src, dst, transform, "final", w_colour), search, coincide)
-        out["colour_gain"] = list(src.colour_gain)  # exposure/white balance matched onto the target's
-        return out
+        return robust.coincidence(p, q, src_tree, dst_tree, transform)
+
+    def overlap_reading(self, transform: Sim3) -> dict:
+        """The verdict's overlap estimate and coincident share of a pose, as judge reads them."""
+        coincide = self._coincidence(transform)
+        return {
+            "overlap_estimate": None if coincide is None else coincide[0],
+            "coincident_share": None if coincide is None else coincide[1],
+        }
 
     @property
     def refine(self) -> bool:
