@@ -181,6 +181,7 @@ def build_parser() -> argparse.ArgumentParser:
 def _add_module_commands(sub) -> None:
     """Commands defined beside their modules; the service verbs only with the service extra."""
     from gsa.align.many_command import add_align_many_parser
+    from gsa.align.orient_command import add_orient_parser
     from gsa.features.command import add_lift_parser
     from gsa.recon.command import add_reconstruct_parser
     from gsa.render.command import add_render_parser
@@ -191,6 +192,7 @@ def _add_module_commands(sub) -> None:
     add_reconstruct_parser(sub)
     add_view_parser(sub)
     add_align_many_parser(sub)
+    add_orient_parser(sub)
     # Verbs of other packages (the service's `serve`, `worker`, `submit`, ...) come through
     # the "gsa.commands" entry point group: service/ depends on gsa/, never the reverse.
     for entry in entry_points(group="gsa.commands"):

@@ -60,6 +60,7 @@ def _align_options(args: argparse.Namespace):
         "semantic": getattr(args, "semantic", None) or _semantic_default(),
         "photo_matches": getattr(args, "photo_matches", None) or "auto",
         "frame_snap": getattr(args, "frame_snap", None) or "auto",
+        "learned": getattr(args, "learned", None) or "auto",
     }
     for name in ("fine_iterations", "fine_views", "fine_lr", "fine_image_size", "fine_on"):
         value = getattr(args, name, None)
@@ -250,6 +251,13 @@ def add_align_arguments(p: argparse.ArgumentParser) -> None:
         help="a doubtful answer: pretrained DINOv2 features pick among the chosen pose and its "
         "alternatives (auto: when a backbone is installed or --backbone given; off: never; "
         "default: env GSA_SEMANTIC, else auto)",
+    )
+    g.add_argument(
+        "--learned",
+        choices=("auto", "off"),
+        default="auto",
+        help="a doubtful answer: decided by the learned canonical head (each model's pose in its "
+        "category's canonical frame, `gsa orient`) where both models' poses are sure (auto), or never (off)",
     )
     g.add_argument(
         "--frame-snap",

@@ -19,7 +19,7 @@ from scipy.spatial import cKDTree
 from threadpoolctl import threadpool_limits
 
 from gsa import manhattan
-from gsa.align import frame_snap, guided, open_ends, photo, robust, scene
+from gsa.align import frame_snap, guided, learned, open_ends, photo, robust, scene
 from gsa.align.choices import (
     EXTRACTOR_MODES,
     FEATURE_MODES,
@@ -170,6 +170,14 @@ def _doubtful_search_answer(pair, best, search, transform: Sim3, metrics: dict, 
     their relabellings and, between two spinning models, their open ends matched (each as its
     option allows)."""
     opts = pair.opts
+    if opts.learned != "off":
+        t_learned = time.perf_counter()
+        _report(progress, "learned", 0.0)
+        decided, report = learned.learned_answer(pair, search, transform, metrics)
+        timings["learned"] = time.perf_counter() - t_learned
+        if decided is not None:
+            return decided, report
+        metrics = metrics | {"learned": report}
     settled = _shape_settled_answer(pair, best, transform, metrics)
     if settled is not None:
         return settled
@@ -398,7 +406,7 @@ def _align_models(
     metrics["scene"] = choice.to_dict()
     if guidance is not None:
         metrics["guidance"] = guidance | {"doubt": guided.doubt_reason(metrics, start[1] if start else None)}
-    timings["metrics"] = time.perf_counter() - t - timings.get("semantic", 0.0)
+    timings["metrics"] = time.perf_counter() - t - timings.get("semantic", 0.0) - timings.get("learned", 0.0)
     timings["total"] = time.perf_counter() - t_start
     _report(progress, "done", 1.0)
     return AlignmentResult(

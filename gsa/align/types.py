@@ -119,6 +119,8 @@ class AlignOptions:
         one's SfM points and their SIFT descriptors, model.metadata["photo_anchors"]) by their
         photos' shared texture (gsa.align.photo) where enough matched points agree, and skips
         the geometric search then; "off" never does. Hints take precedence over it.
+    learned: "auto" lets the learned canonical head (gsa.align.learned) decide a doubtful
+        global-search answer where both models' canonical poses are sure; "off" never does.
     frame_snap: "auto" turns a doubtful global-search answer (and its alternatives) onto the
         nearest of the 24 relabellings of the two models' dominant surface-normal frames where
         that turn is at most 20 degrees (gsa.manhattan): across instances the refinement drifts
@@ -160,6 +162,7 @@ class AlignOptions:
     semantic: Literal["auto", "off"] = "auto"
     photo_matches: Literal["auto", "off"] = "auto"
     frame_snap: Literal["auto", "off"] = "auto"
+    learned: Literal["auto", "off"] = "auto"
 
     def __post_init__(self) -> None:
         from gsa.align.guided import check_guidance  # one place checks every hint's shape
@@ -191,6 +194,8 @@ class AlignOptions:
             raise ValueError(f"photo_matches must be auto or off, got {self.photo_matches!r}")
         if self.frame_snap not in ("auto", "off"):
             raise ValueError(f"frame_snap must be auto or off, got {self.frame_snap!r}")
+        if self.learned not in ("auto", "off"):
+            raise ValueError(f"learned must be auto or off, got {self.learned!r}")
         if not isinstance(self.rigid, bool):
             raise ValueError(f"rigid must be true or false, got {self.rigid!r}")
 

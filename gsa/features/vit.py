@@ -162,12 +162,16 @@ class DinoV2(nn.Module):
         grid = F.interpolate(grid, size=(h, w), mode="bicubic", align_corners=False)
         return torch.cat([pos[:, :1], grid.permute(0, 2, 3, 1).reshape(1, h * w, -1)], 1)
 
-    def forward(self, images: torch.Tensor, keep: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+    def forward(
+        self, images: torch.Tensor, keep: torch.Tensor | None = None, layers: tuple[int, ...] = ()
+    ) -> tuple[torch.Tensor, ...]:
         """keep: optional (B, h, w) bool, the patches to compute; the others are left out of
         the transformer altogether (they come back as zero tokens). Patches of empty background
         around a rendered object cost as much as the object's: leaving them out of a grey
         render on white changed the object's tokens by a cosine of ~0.994 (docs/benchmarks.md,
-        "The backbone on the object's patches alone")."""
+        "The backbone on the object's patches alone").
+        layers: indices of blocks whose (un-normed) output patch tokens are returned after the
+        two, each (B,h,w,D)."""
         b, _, hh, ww = images.shape
         p = self.cfg.patch_size
         if hh % p or ww % p:
@@ -189,13 +193,16 @@ class DinoV2(nn.Module):
         x = torch.cat([cls.expand(b, -1, -1), x], 1)
         if self.register_tokens is not None:
             x = torch.cat([x[:, :1], self.register_tokens.expand(b, -1, -1), x[:, 1:]], 1)
-        for blk in self.blocks:
-            x = blk(x, key_mask)
         skip = 1 + self.cfg.num_register_tokens
-        pre, post = x[:, skip:], self.norm(x)[:, skip:]
+        taken = []
+        for i, blk in enumerate(self.blocks):
+            x = blk(x, key_mask)
+            if i in layers:
+                taken.append(x[:, skip:])
+        out = [x[:, skip:], self.norm(x)[:, skip:], *taken]
         if order is not None:
-            pre, post = (_scattered(t, order, valid, h * w) for t in (pre, post))
-        return pre.reshape(b, h, w, -1), post.reshape(b, h, w, -1)
+            out = [_scattered(t, order, valid, h * w) for t in out]
+        return tuple(t.reshape(b, h, w, -1) for t in out)
 
 
 def _scattered(tokens: torch.Tensor, order: torch.Tensor, valid: torch.Tensor, n: int) -> torch.Tensor:

@@ -129,6 +129,7 @@ OPTION_CHOICES: dict[str, tuple[str, ...]] = {
     "semantic": ("auto", "off"),
     "photo_matches": ("auto", "off"),
     "frame_snap": ("auto", "off"),
+    "learned": ("auto", "off"),
 }
 STAGE_NAMES = ("auto", "coarse", "fine")
 BOOL_OPTIONS = {"renders", "weight_by_opacity", "rigid"}
@@ -370,6 +371,11 @@ class AlignOptionsIn(BaseModel):
         None,
         description="auto | off: a doubtful answer's pose is picked among its alternatives by pretrained "
         "DINOv2 features when the deployment has a backbone (default auto)",
+    )
+    learned: str | None = Field(
+        None,
+        description="auto | off: a doubtful answer is decided by the learned canonical head (each model's "
+        "pose in its category's canonical frame) where both models' poses are sure (default auto)",
     )
     frame_snap: str | None = Field(
         None,
