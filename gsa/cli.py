@@ -22,7 +22,7 @@ from pathlib import Path
 import numpy as np
 
 from gsa.align.command import _print_transform, add_align_parser
-from gsa.cli_base import EXIT_FAILED, FORMAT_CHOICES, CliError, ProgressPrinter, lazy_choices
+from gsa.cli_base import EXIT_FAILED, FORMAT_CHOICES, CliError, ProgressPrinter, VectorArgumentParser, lazy_choices
 from gsa.errors import GSAError
 
 
@@ -125,7 +125,7 @@ def cmd_bench(args: argparse.Namespace) -> int:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="gsa", description="Gaussian Splatting Alignment (GSA)")
+    parser = VectorArgumentParser(prog="gsa", description="Gaussian Splatting Alignment (GSA)")
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
 
     add_align_parser(sub)

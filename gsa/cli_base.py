@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import argparse
 import importlib
+import re
 import sys
 from collections.abc import Sequence
 
@@ -13,6 +14,17 @@ from gsa.errors import GSAError
 EXIT_FAILED = 1
 # gsa.io.formats.FORMATS, spelled out so building the parser imports nothing (a test checks they agree)
 FORMAT_CHOICES = ("ply", "compressed-ply", "splat", "ksplat", "spz", "sog", "glb")
+
+
+class VectorArgumentParser(argparse.ArgumentParser):
+    """argparse reads a value that starts with "-" as an option unless it is one plain negative
+    number, so `--up -0.1,0.99,0:0,1,0` failed with "expected one argument". Here any value made
+    of a minus sign, digits, points, exponents, commas and colons is a value (no gsa option looks
+    like that). Sub-commands' parsers are of this class too (add_subparsers uses the parent's)."""
+
+    def __init__(self, *args, **kwargs):
+        super().__init__(*args, **kwargs)
+        self._negative_number_matcher = re.compile(r"^-\.?\d[\d.eE+\-,:;]*$")
 
 
 class CliError(GSAError):

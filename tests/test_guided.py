@@ -250,3 +250,30 @@ def test_noisy_clicks_are_not_misclicks():
         fit, report = pairs_transform(src, dst)
         assert report["left_out"] is None
         assert rre_deg(fit.rotation, truth.rotation) < 5.0
+
+
+@pytest.mark.parametrize(
+    "value, expected",
+    [
+        ("-0.1,0.99,0:0,1,0", ((-0.1, 0.99, 0.0), (0.0, 1.0, 0.0))),
+        ("-1e-3,-1,0:0,-1,-0", ((-1e-3, -1.0, 0.0), (0.0, -1.0, 0.0))),
+        (".5,1,0:-.5,1,0", ((0.5, 1.0, 0.0), (-0.5, 1.0, 0.0))),
+    ],
+)
+def test_up_axes_that_begin_with_a_minus_sign_are_values_not_options(value, expected):
+    """argparse took `--up -0.1,...` for an option ("expected one argument"); half of real up
+    vectors begin with a minus sign."""
+    from gsa.align.command import _guidance_fields
+    from gsa.cli import build_parser
+
+    args = build_parser().parse_args(["align", "a.ply", "b.ply", "--up", value])
+    assert _guidance_fields(args)["up_axes"] == expected
+
+
+def test_an_option_after_a_vector_is_still_an_option():
+    from gsa.cli import build_parser
+
+    args = build_parser().parse_args(["align", "a.ply", "b.ply", "--up", "-0,1,0:0,1,0", "--seed", "3"])
+    assert args.up == "-0,1,0:0,1,0" and args.seed == 3
+    with pytest.raises(SystemExit):  # a real unknown option is still refused
+        build_parser().parse_args(["align", "a.ply", "b.ply", "--up", "-x"])
