@@ -286,6 +286,18 @@ def cmd_wait(args) -> int:
 @_errors
 def cmd_fetch(args) -> int:
     with _client(args) as c:
+        if not args.names:
+            # A job with nothing to fetch (failed, cancelled, not finished) says so and fails:
+            # it used to exit 0 having printed and written nothing.
+            job = c.status(args.job_id)
+            if not job.get("artifacts"):
+                error = job.get("error") or {}
+                why = f": {error.get('detail') or error.get('title')}" if error else ""
+                print(
+                    f"gsa: error: job {args.job_id} is {job.get('state')}{why}; it has no results to fetch",
+                    file=sys.stderr,
+                )
+                return 1
         for p in c.fetch_all(args.job_id, args.out, args.names or None):
             print(p)
     return 0

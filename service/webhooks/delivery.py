@@ -33,7 +33,9 @@ def verify(secret: str, timestamp: str, body: bytes, signature: str) -> bool:
     return hmac.compare_digest(sign(secret, timestamp, body), signature)
 
 
-_NAT64 = ipaddress.ip_network("64:ff9b::/96")
+# IPv6 forms whose low 32 bits are an IPv4 address a stack may reach: NAT64, IPv4-compatible
+# (::a.b.c.d, deprecated but still routed by some stacks) and SIIT (::ffff:0:a.b.c.d).
+_EMBED_LOW32 = tuple(ipaddress.ip_network(n) for n in ("64:ff9b::/96", "::/96", "::ffff:0:0:0/96"))
 # IANA special-purpose blocks that are not globally reachable, spelled out because older
 # Pythons' is_global misses some of them (192.0.0.0/24 beyond /29, for one).
 _NOT_GLOBAL = tuple(
@@ -71,7 +73,7 @@ def non_global(ip: ipaddress.IPv4Address | ipaddress.IPv6Address) -> bool:
         return True
     if ip.version == 6:
         embedded = [ip.ipv4_mapped, ip.sixtofour, *(ip.teredo or ())]
-        if ip in _NAT64:
+        if any(ip in n for n in _EMBED_LOW32):
             embedded.append(ipaddress.IPv4Address(int(ip) & 0xFFFFFFFF))
         return any(e is not None and non_global(e) for e in embedded)
     return False
@@ -91,11 +93,13 @@ def _loopback_only(host: str, allow_private: bool) -> list[str]:
                 f"webhook host {host!r} is not a loopback address (this deployment is loopback-only)"
             ) from None
         return list(_LOCALHOST)
+    # Loopback is what this mode is for: a literal is taken whatever GSA_WEBHOOK_ALLOW_PRIVATE says,
+    # as `localhost` is (it used to refuse 127.0.0.1 and accept localhost without ALLOW_PRIVATE).
+    if ip.is_loopback:
+        return [str(ip)]
     if not allow_private and non_global(ip):
         raise ValueError(f"webhook host {host!r} resolves to a non-public address")
-    if not ip.is_loopback:
-        raise ValueError(f"webhook host {host!r} is not a loopback address (this deployment is loopback-only)")
-    return [str(ip)]
+    raise ValueError(f"webhook host {host!r} is not a loopback address (this deployment is loopback-only)")
 
 
 def check_url(url: str, allow_private: bool, *, resolve: bool | None = None, loopback_only: bool = False) -> list[str]:

@@ -70,6 +70,22 @@ def test_fetch_one_named_artifact(stack, finished_job, tmp_path):
     assert r.returncode == 1 and "Traceback" not in r.stderr and "404" in r.stderr, r.stderr
 
 
+def test_fetch_of_a_job_without_results_says_so_and_fails(stack, http, pair, tmp_path):
+    """It exited 0 having printed and written nothing."""
+
+    r = submit_pair(http, pair, {"stages": ["coarse"]})
+    assert r.status_code == 202, r.text
+    job_id = r.json()["id"]
+    http.post(f"/v1/jobs/{job_id}:cancel")
+    job = wait_job(http, job_id, timeout=120)
+    if job["state"] == "succeeded":
+        pytest.skip("the job finished before the cancel reached it")
+    r = gsa("fetch", job_id, "--out", str(tmp_path / "o"), server=stack["url"])
+    assert r.returncode == 1, r
+    assert f"job {job_id} is {job['state']}" in r.stderr and "no results" in r.stderr, r.stderr
+    assert r.stdout == "" and not (tmp_path / "o").exists()
+
+
 def test_output_into_a_closed_pipe_is_quiet(stack, finished_job):
     # The reader is gone before we write a byte: every write fails with EPIPE.
     p = subprocess.Popen(

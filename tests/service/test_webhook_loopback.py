@@ -64,6 +64,14 @@ def test_loopback_only_accepts_loopback_and_pins_localhost(monkeypatch):
     assert check_url("http://127.8.9.10/h", True, loopback_only=True, resolve=True) == ["127.8.9.10"]
     assert check_url("http://[::1]:9/h", True, loopback_only=True, resolve=True) == ["::1"]
     assert check_url("http://LOCALHOST.:9/h", True, loopback_only=True, resolve=True) == ["127.0.0.1", "::1"]
+    # the same without GSA_WEBHOOK_ALLOW_PRIVATE: loopback is what the mode is for (literals were refused)
+    for url, addrs in (
+        ("http://127.0.0.1:9/h", ["127.0.0.1"]),
+        ("http://[::1]/", ["::1"]),
+        ("http://localhost/", ["127.0.0.1", "::1"]),
+    ):
+        assert check_url(url, False, loopback_only=True) == addrs
+        assert check_url(url, False, loopback_only=True, resolve=True) == addrs
 
 
 @pytest.fixture(scope="module")

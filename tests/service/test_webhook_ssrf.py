@@ -48,6 +48,8 @@ NON_GLOBAL = [
     "http://[::ffff:100.100.100.200]/",
     "http://[2002:a00:1::1]/",  # 6to4 around 10.0.0.1
     "http://[64:ff9b::6464:64c8]/",  # NAT64 around 100.100.100.200
+    "http://[::a9fe:a9fe]/",  # IPv4-compatible around 169.254.169.254
+    "http://[::ffff:0:a9fe:a9fe]/",  # SIIT around 169.254.169.254
     "http://2130706433/",  # 127.0.0.1 as one number (numeric: no DNS)
     "http://0x7f.1/",
 ]
