@@ -346,3 +346,42 @@ def test_the_shapes_do_not_settle_the_choice_between_two_boxes(tmp_path):
     best = _Hypothesis("test", pair.src_frame, truth)
     metrics = {"doubtful": True, "overlap_estimate": 0.95, "coincident_share": 0.2, "alternatives": []}
     assert _shape_settled_answer(pair, best, truth, metrics) is None
+
+
+def _ellipsoid(radii, bump, seed: int, folder):
+    """A curved body (a UV-sphere mesh scaled per axis) with a smaller one stuck on at `bump`:
+    its dominant-normal frame holds little of the surface, as animals', people's and mugs' do."""
+    lat, lon = np.meshgrid(np.linspace(0, np.pi, 25), np.linspace(0, 2 * np.pi, 49), indexing="ij")
+    grid = np.stack([np.sin(lat) * np.cos(lon), np.cos(lat), np.sin(lat) * np.sin(lon)], -1).reshape(-1, 3)
+    rows, cols = lat.shape
+    quads = [
+        (i * cols + j, i * cols + j + 1, (i + 1) * cols + j + 1, (i + 1) * cols + j)
+        for i in range(rows - 1)
+        for j in range(cols - 1)
+    ]
+    faces = np.array([f for a, b, c, d in quads for f in ((a, b, c), (a, c, d))], np.int32)
+    body = grid * np.asarray(radii)
+    knob = grid * 0.3 * min(radii) + np.asarray(bump)
+    path = folder / f"blob{seed}_0.npz"
+    np.savez(path, V=np.concatenate([body, knob]).astype(np.float32), F=np.concatenate([faces, faces + len(grid)]))
+    return mesh_to_gaussians(load_mesh(path), 6000, np.random.default_rng(seed), floaters=0.02)
+
+
+def test_frames_that_hold_little_of_the_surfaces_turn_nothing(tmp_path):
+    """Curved models' relabellings are arbitrary turns: a doubtful answer between them is left as
+    the search and tie-break gave it (the frame snap reports why), where boxes' frames still act."""
+    from gsa.align import frame_snap
+    from gsa.align.pipeline import AlignOptions, _Pair, align
+
+    truth = random_sim3(np.random.default_rng(8))
+    source = _ellipsoid((1.0, 0.6, 0.45), (0.9, 0.3, 0.0), 1, tmp_path)
+    target = _ellipsoid((0.9, 0.65, 0.5), (0.8, 0.35, 0.0), 2, tmp_path).transformed(truth)
+    pair = _Pair.build(source, target, AlignOptions(semantic="off"))
+    assert not frame_snap.frames_supported(pair), [f.support for f in pair.normal_frames]
+    result = align(source, target, AlignOptions(semantic="off"))
+    m = result.metrics
+    assert m["doubtful"], "the pair was meant to be doubtful (a near-symmetric body)"
+    assert m["frame_snap"]["used"] is False and "not a frame" in m["frame_snap"]["reason"], m["frame_snap"]
+    assert "frame_choice" not in m
+    boxes = _Pair.build(*_pair(tmp_path, truth), AlignOptions(semantic="off"))
+    assert frame_snap.frames_supported(boxes), [f.support for f in boxes.normal_frames]

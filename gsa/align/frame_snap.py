@@ -15,6 +15,14 @@ from gsa.align import guided, robust
 from gsa.geometry import rotation_distance_deg
 from gsa.sim3 import Sim3
 
+# The dominant-normal frames are a frame only where they hold much of both surfaces: boxy things
+# (tables, pianos, desktops, rifles, bathtubs, benches, guitars: median 0.59-0.86 of the area
+# within manhattan.SUPPORT_DEG of an axis) and not curved ones (spiders, dogs, horses, dolphins,
+# people, trees, hands: 0.03-0.12; mugs, chairs, airplanes 0.23-0.25), measured on the 248
+# training meshes (training/manifest.json). Below it the 24 relabellings are arbitrary turns: on
+# deformed copies of real meshes nobody tuned on, turning answers onto them took mugs, dolphins,
+# trees and horses 22-180 deg off (docs/benchmarks.md, "Frames that hold the surface").
+FRAME_SUPPORT_MIN = 0.3
 # A doubtful pose this near a relabelling of the dominant-normal frames is turned onto it:
 # across instances the refinement drifts 5-20 degrees off the frame both are built along
 # (docs/benchmarks.md, "Dominant-normal frames"), while a pose farther off meant another one.
@@ -67,6 +75,20 @@ SHAPE_DECISIVE_SIGMA = 1.0
 SHAPE_SETTLES_BELOW = 4
 
 
+def frames_supported(pair) -> bool:
+    """Whether both models' dominant-normal frames hold FRAME_SUPPORT_MIN of their surface, or a
+    model spins freely (a bottle, a vase: its frame's axis is the spin axis, whatever its normals
+    hold, and the relabellings about it are its own turns; up against down is what is left)."""
+    return pair.spins_freely or min(frame.support for frame in pair.normal_frames) >= FRAME_SUPPORT_MIN
+
+
+def unsupported(metrics: dict, pair) -> dict:
+    """metrics with the frame snap's report that the frames were too weak to turn anything onto."""
+    support = [round(float(frame.support), 3) for frame in pair.normal_frames]
+    reason = f"the dominant-normal frames hold {support[0]:.0%} / {support[1]:.0%} of the surfaces: not a frame"
+    return metrics | {"frame_snap": {"used": False, "support": support, "reason": reason}}
+
+
 def guided_snap(pair, best, transform: Sim3, metrics: dict, start: dict, symmetries) -> tuple[Sim3, dict]:
     """A doubtful answer refined from a user's pose or picked pairs, between surfaces that do
     not coincide (other instances, or parts of them): turned onto the relabelling of the frames
@@ -79,6 +101,8 @@ def guided_snap(pair, best, transform: Sim3, metrics: dict, start: dict, symmetr
     opts = pair.opts
     if opts.frame_snap == "off" or opts.up_axes is not None or not surfaces_apart(metrics):
         return transform, metrics
+    if not frames_supported(pair):
+        return transform, unsupported(metrics, pair)
     # the leash reads the rotation alone: the nearest relabelling is judged before any refit
     nearest, gap = manhattan.snapped(transform, *pair.normal_frames, pair.anchors()[0].center)
     if 1e-6 < gap <= FRAME_SNAP_DEG and guided.near_start(nearest, best.init, opts, dict(start), symmetries=symmetries):
@@ -99,6 +123,8 @@ def up_snap(pair, best, transform: Sim3, metrics: dict) -> tuple[Sim3, dict]:
     opts = pair.opts
     if opts.frame_snap == "off" or opts.up_axes is None or not surfaces_apart(metrics):
         return transform, metrics
+    if not frames_supported(pair):
+        return transform, unsupported(metrics, pair)
     src_up, dst_up = (np.asarray(v, np.float64) / np.linalg.norm(v) for v in opts.up_axes)
     rotations = manhattan.relabellings(*pair.normal_frames)
     keeps = np.array([(r @ src_up) @ dst_up >= np.cos(np.radians(UP_KEPT_DEG)) for r in rotations])

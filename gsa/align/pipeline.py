@@ -168,7 +168,8 @@ def _doubtful_search_answer(pair, best, search, transform: Sim3, metrics: dict, 
     they do (_shape_settled_answer, which ends it); else the semantic tie-break, then the turn
     onto the dominant-normal frames where the models are other instances, the choice among
     their relabellings and, between two spinning models, their open ends matched (each as its
-    option allows)."""
+    option allows); the frames' steps only where the frames hold the surfaces
+    (frame_snap.frames_supported)."""
     opts = pair.opts
     if opts.learned != "off":
         t_learned = time.perf_counter()
@@ -178,7 +179,8 @@ def _doubtful_search_answer(pair, best, search, transform: Sim3, metrics: dict, 
         if decided is not None:
             return decided, report
         metrics = metrics | {"learned": report}
-    settled = _shape_settled_answer(pair, best, transform, metrics)
+    framed = opts.frame_snap != "off" and frame_snap.frames_supported(pair)
+    settled = _shape_settled_answer(pair, best, transform, metrics) if framed else None
     if settled is not None:
         return settled
     if opts.semantic != "off":
@@ -186,6 +188,12 @@ def _doubtful_search_answer(pair, best, search, transform: Sim3, metrics: dict, 
         _report(progress, "semantic", 0.0)
         transform, metrics = _semantic_tiebreak(pair, best, search, transform, metrics)
         timings["semantic"] = time.perf_counter() - t_semantic
+    if opts.frame_snap != "off" and not framed:
+        # Two spinning models' open ends are read on their spin axes, not on the frames.
+        metrics = frame_snap.unsupported(metrics, pair)
+        if frame_snap.whole_models(metrics):
+            transform, metrics = open_ends.turn_open_ends(pair, best, transform, metrics)
+        return transform, metrics
     if opts.frame_snap != "off" and frame_snap.other_instances(metrics):
         transform, metrics = frame_snap.snap_to_frames(pair, best, transform, metrics)
     if opts.frame_snap != "off" and frame_snap.whole_models(metrics):
