@@ -189,11 +189,7 @@ def _doubtful_search_answer(pair, best, search, transform: Sim3, metrics: dict, 
         transform, metrics = _semantic_tiebreak(pair, best, search, transform, metrics)
         timings["semantic"] = time.perf_counter() - t_semantic
     if opts.frame_snap != "off" and not framed:
-        # Two spinning models' open ends are read on their spin axes, not on the frames.
-        metrics = frame_snap.unsupported(metrics, pair)
-        if frame_snap.whole_models(metrics):
-            transform, metrics = open_ends.turn_open_ends(pair, best, transform, metrics)
-        return transform, metrics
+        return transform, frame_snap.unsupported(metrics, pair)
     if opts.frame_snap != "off" and frame_snap.other_instances(metrics):
         transform, metrics = frame_snap.snap_to_frames(pair, best, transform, metrics)
     if opts.frame_snap != "off" and frame_snap.whole_models(metrics):
