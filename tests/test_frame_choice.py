@@ -381,7 +381,7 @@ def test_frames_that_hold_little_of_the_surfaces_turn_nothing(tmp_path):
     result = align(source, target, AlignOptions(semantic="off"))
     m = result.metrics
     assert m["doubtful"], "the pair was meant to be doubtful (a near-symmetric body)"
-    assert m["frame_snap"]["used"] is False and "not a frame" in m["frame_snap"]["reason"], m["frame_snap"]
-    assert "frame_choice" not in m
+    assert m["frames"]["used"] is False and "not a frame" in m["frames"]["reason"], m["frames"]
+    assert "frame_snap" not in m and "frame_choice" not in m
     boxes = _Pair.build(*_pair(tmp_path, truth), AlignOptions(semantic="off"))
     assert frame_snap.frames_supported(boxes), [f.support for f in boxes.normal_frames]

@@ -83,10 +83,10 @@ def frames_supported(pair) -> bool:
 
 
 def unsupported(metrics: dict, pair) -> dict:
-    """metrics with the frame snap's report that the frames were too weak to turn anything onto."""
+    """metrics with the report (`frames`) that the frames were too weak to turn anything onto."""
     support = [round(float(frame.support), 3) for frame in pair.normal_frames]
     reason = f"the dominant-normal frames hold {support[0]:.0%} / {support[1]:.0%} of the surfaces: not a frame"
-    return metrics | {"frame_snap": {"used": False, "support": support, "reason": reason}}
+    return metrics | {"frames": {"used": False, "support": support, "reason": reason}}
 
 
 def guided_snap(pair, best, transform: Sim3, metrics: dict, start: dict, symmetries) -> tuple[Sim3, dict]:
