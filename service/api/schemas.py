@@ -15,10 +15,53 @@ from service.models import Asset, Job, JobState
 log = logging.getLogger("gsa.api")
 
 
-class Problem(BaseModel):
-    """RFC 9457 problem details (media type application/problem+json)."""
+# The extension members the service puts in its problems (service.problems.Problem's **extra),
+# declared so that generated clients type them; each is present only where it applies. Declared in
+# the schema only, not as model fields: a job's stored `error` is served as stored, without nulls.
+PROBLEM_EXTENSIONS: dict[str, dict[str, Any]] = {
+    "errors": {
+        "type": "array",
+        "description": "validation-error: each failed check (loc: where, msg: what, type: the check)",
+        "items": {
+            "type": "object",
+            "properties": {
+                "loc": {"type": "array", "items": {"anyOf": [{"type": "string"}, {"type": "integer"}]}},
+                "msg": {"type": "string"},
+                "type": {"type": "string"},
+            },
+        },
+    },
+    "option": {"type": "string", "description": "the job option (or request field) that was refused"},
+    "value": {"description": "the refused value (e.g. the predicted memory in MB for option 'memory')"},
+    "minimum": {"type": "number", "description": "the option's smallest allowed value"},
+    "exclusive_minimum": {"type": "number", "description": "the option must be above this"},
+    "maximum": {"type": "number", "description": "the option's largest allowed value"},
+    "allowed": {"type": "array", "items": {}, "description": "the values the option may take"},
+    "expected": {"type": "string", "description": "the shape a guidance option must have"},
+    "conflicts_with": {"type": "string", "description": "the option this one may not be given with"},
+    "job_id": {"type": "string", "description": "asset-in-use: the queued or running job that reads the asset"},
+    "limit": {"type": "number", "description": "rate-limited: requests a second; too-many-jobs: active jobs"},
+    "active": {"type": "integer", "description": "too-many-jobs: the tenant's queued and running jobs"},
+    "quota": {"type": "integer", "description": "storage-quota-exceeded: the tenant's quota in bytes"},
+    "used": {"type": "integer", "description": "storage-quota-exceeded: the bytes the tenant stores"},
+    "retry_after": {"type": "integer", "description": "429: seconds until a retry may succeed (as Retry-After)"},
+    "checks": {
+        "type": "object",
+        "additionalProperties": {"type": "boolean"},
+        "description": "not-ready: each readiness check and whether it passed",
+    },
+}
 
-    model_config = ConfigDict(extra="allow")
+
+def _problem_schema(schema: dict[str, Any]) -> None:
+    schema["properties"].update(PROBLEM_EXTENSIONS)
+
+
+class Problem(BaseModel):
+    """RFC 9457 problem details (media type application/problem+json): `type`, `title`,
+    `status`, `detail`, `instance` and the service's extension members."""
+
+    model_config = ConfigDict(extra="allow", json_schema_extra=_problem_schema)
     type: str = Field(examples=["https://gsa.dev/problems/not-found"])
     title: str
     status: int

@@ -80,6 +80,45 @@ def test_job_result_schema_is_typed(http):
     assert "loss_history" in fine["properties"]
 
 
+def test_every_error_is_one_problem_schema(http):
+    """What a generator reads: each 4xx/5xx response has exactly one media type,
+    application/problem+json, with the Problem schema (no application/json twin, no FastAPI
+    HTTPValidationError, which the server never sends); the Problem declares RFC 9457's members
+    and the extensions the service sends; and what the server sends fits it."""
+    doc = http.get("/openapi.json").json()
+    ref = {"$ref": "#/components/schemas/Problem"}
+    errors = 0
+    for path, ops in doc["paths"].items():
+        for method, op in ops.items():
+            for code, response in op["responses"].items():
+                if code[0] in "45":
+                    errors += 1
+                    assert response["content"] == {"application/problem+json": {"schema": ref}}, (method, path, code)
+    assert errors > 50
+    schemas = doc["components"]["schemas"]
+    assert "HTTPValidationError" not in schemas and "ValidationError" not in schemas
+    problem = schemas["Problem"]
+    props = problem["properties"]
+    assert {"type", "title", "status", "detail", "instance"} <= set(props)
+    assert {"errors", "option", "minimum", "maximum", "allowed", "job_id", "limit", "quota", "retry_after"} <= set(
+        props
+    )
+    assert set(problem["required"]) == {"type", "title", "status"}
+    assert problem.get("additionalProperties", True) is not False  # members added later still reach clients
+    kinds = {"integer": int, "number": (int, float), "string": str, "array": list, "object": dict}
+    sent = [
+        http.get("/v1/jobs/job_nope").json(),
+        http.get("/v1/jobs", params={"limit": 0}).json(),
+        http.post("/v1/jobs", json={"source": "a", "target": "b", "options": {"coarse_iterations": 0}}).json(),
+    ]
+    for body in sent:
+        for member, value in body.items():
+            declared = props.get(member, {})
+            options = [d.get("type") for d in declared.get("anyOf", [declared])]
+            if value is not None and any(options):
+                assert any(isinstance(value, kinds[t]) for t in options if t in kinds), (member, value, declared)
+
+
 def test_every_member_of_a_stored_result_is_typed(done_job):
     """What the worker stores has no member the schema leaves untyped."""
     result = done_job["result"]
