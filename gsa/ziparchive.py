@@ -12,11 +12,12 @@ own exceptions:
 - every entry: not encrypted, a compression method zipfile can read, the declared
   sizes within `max_bytes` in total and not a suspicious compression ratio (above
   `ratio_floor` bytes, more than `max_ratio` x its compressed size);
-- with verify (the default): every file entry is read through, streaming, so its
-  local header must agree with the central directory (name, method), its data must
-  decompress, and its size and CRC-32 must be the declared ones. An archive whose
-  entries lie about their sizes is refused here, not half-way through an extraction.
-  The work is bounded: no entry yields more than its declared size.
+- with verify (the default): every file entry's local header must say what the central
+  directory says (name, method, encryption, CRC-32 and both sizes, or its data descriptor
+  must), and the entry is read through, streaming: its data must decompress, and its size
+  and CRC-32 must be the declared ones. An archive whose entries lie about their sizes
+  is refused here, not half-way through an extraction. The work is bounded: no entry
+  yields more than its declared size.
 
 Stdlib only: the service imports this at start-up.
 """
@@ -24,11 +25,13 @@ Stdlib only: the service imports this at start-up.
 from __future__ import annotations
 
 import stat
+import struct
 import zipfile
 from collections.abc import Callable
 from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path, PurePosixPath, PureWindowsPath
+from typing import BinaryIO
 
 from gsa.errors import GSAError
 
@@ -136,9 +139,82 @@ def check_zip(
                 )
             files.append(info)
         if verify:
-            for info in files:
-                _verify_entry(zf, info, label, head_bytes, on_file)
+            with open(path, "rb") as raw:
+                for info in files:
+                    _check_local_header(raw, info, label)
+                    _verify_entry(zf, info, label, head_bytes, on_file)
     return files
+
+
+_LOCAL = struct.Struct("<4sHHHHHIIIHH")  # a local file header up to its name and extra field
+_DESCRIPTOR_SIG = b"PK\x07\x08"
+
+
+def _check_local_header(raw: BinaryIO, info: zipfile.ZipInfo, label: str) -> None:
+    """The entry's local header must say what the central directory says: zipfile reads an entry
+    by the directory's sizes and CRC and never looks at the local header's, but other unzip tools
+    (and the extraction of other services) go by the local one, so an archive whose two disagree
+    holds different files for different readers. With a data descriptor (flag bit 3) the local
+    fields may be 0 and the descriptor after the data must agree instead."""
+    name = info.filename
+
+    def differs(what: str, local, central) -> ZipArchiveError:
+        return ZipArchiveError(
+            f"{label}: entry {name!r}: its local header says {what} {local}, the central directory {central}"
+        )
+
+    raw.seek(info.header_offset)
+    head = raw.read(_LOCAL.size)
+    if len(head) != _LOCAL.size or head[:4] != b"PK\x03\x04":
+        raise ZipArchiveError(f"{label}: entry {name!r} has no local file header where the directory points")
+    _, _, flags, method, _, _, crc, csize, usize, name_len, extra_len = _LOCAL.unpack(head)
+    if method != info.compress_type:
+        raise differs("compression method", method, info.compress_type)
+    if (flags ^ info.flag_bits) & 0x1:
+        raise differs("encryption flag", flags & 0x1, info.flag_bits & 0x1)
+    raw.seek(name_len, 1)
+    extra = raw.read(extra_len)
+    zip64 = _zip64_sizes(extra) if 0xFFFFFFFF in (csize, usize) else None
+    if zip64 is not None:
+        usize, csize = zip64
+    described = flags & 0x8
+    for what, local, central in (
+        ("CRC-32", crc, info.CRC),
+        ("compressed size", csize, info.compress_size),
+        ("size", usize, info.file_size),
+    ):
+        if local != central and not (described and local == 0):
+            raise differs(what, local, central)
+    if described:
+        raw.seek(info.header_offset + _LOCAL.size + name_len + extra_len + info.compress_size)
+        tail = raw.read(28)
+        if not _descriptor_agrees(tail, info):
+            raise ZipArchiveError(
+                f"{label}: entry {name!r}: its data descriptor does not say what the central directory says "
+                f"(CRC-32 {info.CRC:#010x}, {info.compress_size} bytes compressed, {info.file_size} bytes)"
+            )
+
+
+def _zip64_sizes(extra: bytes) -> tuple[int, int] | None:
+    """(size, compressed size) from a local header's zip64 extra field (id 1), if it has both."""
+    i = 0
+    while i + 4 <= len(extra):
+        tag, size = struct.unpack_from("<HH", extra, i)
+        if tag == 1 and size >= 16 and i + 4 + 16 <= len(extra):
+            return struct.unpack_from("<QQ", extra, i + 4)
+        i += 4 + size
+    return None
+
+
+def _descriptor_agrees(tail: bytes, info: zipfile.ZipInfo) -> bool:
+    """A data descriptor (CRC-32, compressed size, size) after the entry's data that matches the
+    directory: with or without its optional signature, with 4- or 8-byte sizes (zip64)."""
+    want = (info.CRC, info.compress_size, info.file_size)
+    for start in (4, 0) if tail[:4] == _DESCRIPTOR_SIG else (0,):
+        for fmt in ("<III", "<IQQ"):
+            if len(tail) >= start + struct.calcsize(fmt) and struct.unpack_from(fmt, tail, start) == want:
+                return True
+    return False
 
 
 def _verify_entry(zf: zipfile.ZipFile, info: zipfile.ZipInfo, label: str, head_bytes: int, on_file) -> None:

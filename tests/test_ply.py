@@ -122,6 +122,26 @@ def test_bad_files_get_one_clear_error(tmp_path, car_model, mutate, message):
     assert str(path) in str(info.value)
 
 
+def test_a_body_longer_than_every_element_needs_is_refused(tmp_path, car_model):
+    """Counted over all the header's elements when none has a list property: a scalar element
+    after the vertices does not hide extra rows (binary), and an ASCII body with more rows than
+    the count is refused as a binary one is; a list element leaves the length unknown."""
+    m = car_model.subset(np.arange(50)).with_sh_degree(1)
+    _write_custom(tmp_path / "a.ply", m, "ascii")
+    data = (tmp_path / "a.ply").read_bytes()
+    p = _bad(tmp_path, data.replace(b"element vertex 50", b"element vertex 40"))
+    with pytest.raises(PlyError, match="declares 40 Gaussians but the ASCII body holds .*count in the header is wrong"):
+        read_ply(p)
+    data = write_ply(m, tmp_path / "good.ply").read_bytes()
+    two = data.replace(b"end_header\n", b"element extra 2\nproperty uchar flag\nend_header\n") + b"\x01\x02"
+    assert len(read_ply(_bad(tmp_path, two))) == 50
+    p = _bad(tmp_path, two + bytes(64))
+    with pytest.raises(PlyError, match="count in the header is wrong"):
+        read_ply(p)
+    listed = data.replace(b"end_header\n", b"element face 1\nproperty list uchar int vertex_indices\nend_header\n")
+    assert len(read_ply(_bad(tmp_path, listed + b"\x03" + bytes(12)))) == 50
+
+
 def test_nan_values_are_rejected(tmp_path, car_model):
     m = car_model.subset(np.arange(10))
     m.means[3, 1] = np.inf

@@ -53,6 +53,59 @@ def test_lies_about_sizes_are_named(tmp_path):
         shared_check_zip(p)
 
 
+class _Stream:
+    """A write-only stream: zipfile then writes each entry's CRC and sizes in a data descriptor
+    after its data (flag bit 3), with zeros in its local header, as streaming zip tools do."""
+
+    def __init__(self):
+        self.data = bytearray()
+
+    def write(self, b):
+        self.data += b
+        return len(b)
+
+    def flush(self):
+        pass
+
+
+def test_local_headers_are_held_to_the_directory(tmp_path):
+    """zipfile reads by the central directory and never compares a local header's sizes or CRC
+    with it; other readers go by the local header, so an archive whose two disagree is refused,
+    naming the field. Local headers that agree in another form still pass: zip64 sizes in the
+    extra field, zeros with a data descriptor after the data."""
+    p = tmp_path / "z.zip"
+    for defect, what in [
+        ("local-size-differs", "size"),
+        ("local-compressed-size-differs", "compressed size"),
+        ("local-crc-differs", "CRC-32"),
+        ("local-method-differs", "compression method"),
+    ]:
+        p.write_bytes(CASES[defect])
+        with pytest.raises(ZipArchiveError, match=f"its local header says {what} \\d+, the central directory \\d+"):
+            shared_check_zip(p)
+    import io
+
+    buf = io.BytesIO()
+    with zipfile.ZipFile(buf, "w", zipfile.ZIP_DEFLATED) as z:
+        for i in range(3):
+            with z.open(f"v{i}.png", "w", force_zip64=True) as fh:  # as the service stores image sets
+                fh.write(png(seed=i))
+    p.write_bytes(buf.getvalue())
+    assert len(shared_check_zip(p)) == 3
+    stream = _Stream()
+    with zipfile.ZipFile(stream, "w", zipfile.ZIP_DEFLATED) as z:
+        for i in range(3):
+            z.writestr(f"v{i}.png", png(seed=i))
+    data = bytes(stream.data)
+    assert data[6] & 0x8  # the local header defers to a data descriptor
+    p.write_bytes(data)
+    assert len(shared_check_zip(p)) == 3
+    at = data.index(b"PK\x07\x08")  # the first entry's descriptor: a size that is not the directory's
+    p.write_bytes(data[: at + 12] + (123).to_bytes(4, "little") + data[at + 16 :])
+    with pytest.raises(ZipArchiveError, match="its data descriptor does not say what the central directory says"):
+        shared_check_zip(p)
+
+
 def test_limits_are_flagged_as_limits(tmp_path):
     p = tmp_path / "z.zip"
     p.write_bytes(build({f"v{i}.png": png(seed=i) for i in range(4)}))

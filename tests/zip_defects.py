@@ -59,6 +59,12 @@ def set_both(data: bytes, which: str, value: int, nth: int = 0) -> bytes:
     return _patch(data, b"PK\x01\x02", CENTRAL, which, value, 4, nth)
 
 
+def set_local(data: bytes, which: str, value: int, nth: int = 0) -> bytes:
+    """Set a 4-byte field in the nth entry's local header only: the central directory, which
+    zipfile reads by, keeps the truth."""
+    return _patch(data, b"PK\x03\x04", LOCAL, which, value, 4, nth)
+
+
 def set_both16(data: bytes, which: str, value: int, nth: int = 0) -> bytes:
     data = _patch(data, b"PK\x03\x04", LOCAL, which, value, 2, nth)
     return _patch(data, b"PK\x01\x02", CENTRAL, which, value, 2, nth)
@@ -98,6 +104,10 @@ def cases() -> dict[str, bytes]:
         "stored-size-lies": set_both(set_both(stored, "usize", size - 7), "csize", size - 7),
         "compressed-size-lies": set_both(g, "csize", 40),
         "bad-crc": set_both(g, "crc", 0x12345678),
+        "local-size-differs": set_local(g, "usize", size + 5000),
+        "local-compressed-size-differs": set_local(g, "csize", 40, nth=1),
+        "local-crc-differs": set_local(g, "crc", 0x12345678, nth=2),
+        "local-method-differs": _patch(g, b"PK\x03\x04", LOCAL, "method", 0, 2, 0),
         "truncated": g[: len(g) // 2] + g[-22:],
         "encrypted-flag": set_both16(g, "flags", 0x1),
         "unknown-method": set_both16(g, "method", 99),

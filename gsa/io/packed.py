@@ -120,8 +120,10 @@ def _check_compressed_ply(data: bytes, max_gaussians: int) -> None:
         raise PackedError("no 'end_header' line")
     need, vertices = end + len(b"end_header\n"), 0
     size = current = 0
+    lists = False  # a list property's rows have their lengths in the body: the total is not known
     for line in data[:end].decode("ascii", "replace").splitlines():
         tok = line.split()
+        lists |= tok[:2] == ["property", "list"]
         if tok[:1] == ["element"] and len(tok) == 3 and tok[2].isdigit():
             count = int(tok[2])
             vertices = count if tok[1] == "vertex" else vertices
@@ -135,6 +137,11 @@ def _check_compressed_ply(data: bytes, max_gaussians: int) -> None:
         raise PackedError(f"{vertices} Gaussians exceeds the limit of {max_gaussians}")
     if len(data) < need:
         raise PackedError(f"truncated: the header declares {need} bytes, the file has {len(data)}")
+    if len(data) > need and not lists:
+        raise PackedError(
+            f"the header declares {need} bytes ({vertices} Gaussians) but the file has {len(data)}; "
+            "a count in the header is wrong"
+        )
 
 
 def decode(fmt: str, data: bytes) -> GaussianModel:

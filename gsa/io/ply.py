@@ -283,22 +283,45 @@ def _data_chunks(
     body: the bytes after the header, checked against the count for binary files."""
     _, count, props = elements[0]
     if FORMATS[fmt] is None:
-        table = _read_ascii(path, header_len, count, len(props))
+        table = _read_ascii(path, header_len, count, len(props), _scalar_values(elements))
         return iter([(0, count, lambda keys: table[:, [index[key] for key in keys]])])
     dtype = np.dtype([(n, FORMATS[fmt] + t) for n, t in props])
-    need = count * dtype.itemsize
+    check_body_length(path, body, elements)
+    return _binary_chunks(path, header_len, dtype, count, props, index)
+
+
+def _scalar_values(elements: list[tuple[str, int, list[tuple[str, str]]]]) -> int | None:
+    """Values (ASCII) the header's elements hold in all, or None when one has a list property
+    (its rows' lengths are in the body)."""
+    if any(t == "list" for _, _, props in elements for _, t in props):
+        return None
+    return sum(n * len(props) for _, n, props in elements)
+
+
+def check_body_length(path: Path, body: int, elements: list[tuple[str, int, list[tuple[str, str]]]]) -> None:
+    """A binary body's length against the header's counts (the reader's rule, and the service's at
+    upload): fewer bytes than the vertex rows need is truncated; more than every element needs
+    (known when none has a list property) means a count in the header is wrong. Either way the
+    header and the body disagree on how many Gaussians there are: refused, never read in part."""
+    _, count, props = elements[0]
+    row = sum(np.dtype(t).itemsize for _, t in props)
+    need = count * row
     if body < need:
         raise PlyError(
             path,
-            f"truncated: the header declares {count} Gaussians ({need} bytes) but only {body} bytes of data follow",
+            f"truncated: the header declares {count} Gaussians ({need} bytes) but only {body} bytes of data "
+            f"follow ({body // row} Gaussians' worth)",
         )
-    if body > need and len(elements) == 1:
+    if any(t == "list" for _, _, p in elements for _, t in p):
+        return
+    total = sum(n * sum(np.dtype(t).itemsize for _, t in p) for _, n, p in elements)
+    if body > total:
+        held = f" ({body // row} Gaussians' worth)" if len(elements) == 1 else ""
         raise PlyError(
             path,
-            f"the header declares {count} Gaussians ({need} bytes) but {body} bytes of "
-            f"data follow; the count in the header is wrong",
+            f"the header declares {count} Gaussians ({total} bytes in all) but {body} bytes of "
+            f"data follow{held}; the count in the header is wrong",
         )
-    return _binary_chunks(path, header_len, dtype, count, props, index)
 
 
 def _apply_3d_filter(path: Path, model: GaussianModel, filter_3d: np.ndarray) -> None:
@@ -354,7 +377,9 @@ def _slice(flat: np.ndarray, idx: list[int]) -> np.ndarray:
     return flat[:, idx]
 
 
-def _read_ascii(path: Path, header_len: int, count: int, nprops: int) -> np.ndarray:
+def _read_ascii(path: Path, header_len: int, count: int, nprops: int, total: int | None) -> np.ndarray:
+    """The vertex rows of an ASCII body; `total`: the values every element holds, when known
+    (more values than that mean the header's count is wrong)."""
     with open(path, "rb") as fh:
         fh.seek(header_len)
         text = fh.read()
@@ -368,6 +393,12 @@ def _read_ascii(path: Path, header_len: int, count: int, nprops: int) -> np.ndar
             path,
             f"truncated: the header declares {count} Gaussians but the ASCII body holds "
             f"only {values.size // nprops} complete rows",
+        )
+    if total is not None and values.size > total:
+        raise PlyError(
+            path,
+            f"the header declares {count} Gaussians but the ASCII body holds {values.size} values "
+            f"({values.size // nprops} rows' worth); the count in the header is wrong",
         )
     return values[:need].reshape(count, nprops)
 

@@ -63,14 +63,9 @@ def validate_ply(path: Path, max_gaussians: int, display_name: str) -> int:
         if plymod.FORMATS[fmt] is None:
             plymod.read_ply(path, max_gaussians=max_gaussians)  # ASCII: only a full parse can tell
         else:
-            itemsize = sum(np.dtype(t).itemsize for _, t in props)
-            need = count * itemsize
-            body = path.stat().st_size - header_len
-            if body < need:
-                raise plymod.PlyError(
-                    path,
-                    f"truncated: the header declares {count} Gaussians ({need} bytes) but only {body} bytes follow",
-                )
+            # the reader's own rule: a body shorter or longer than the header's counts say is refused
+            # here, not accepted and failed in the worker
+            plymod.check_body_length(path, path.stat().st_size - header_len, elements)
             _check_ply_values(path, fmt, header_len, int(count), props)
         return int(count)
     except plymod.PlyError as exc:

@@ -114,3 +114,44 @@ def test_a_header_claiming_too_many_gaussians_is_413(http, formatted):
     r = http.post("/v1/assets", files={"file": ("huge.spz", gzip.compress(bytes(raw)))})
     body = assert_problem(r, 413)
     assert "6000000 Gaussians exceeds the limit" in body["detail"]
+
+
+def _ascii(header: bytes, body: bytes, count: int) -> bytes:
+    """The same rows as an ASCII PLY (write_ply writes every property as a float)."""
+    names = [ln.split()[2] for ln in header.decode().splitlines() if ln.startswith("property ")]
+    rows = np.frombuffer(body, "<f4").reshape(-1, len(names))
+    head = f"ply\nformat ascii 1.0\nelement vertex {count}\n" + "".join(f"property float {n}\n" for n in names)
+    return (head + "end_header\n" + "\n".join(" ".join(f"{v:.9g}" for v in r) for r in rows) + "\n").encode()
+
+
+def test_a_ply_whose_header_count_disagrees_with_its_body_is_refused_at_upload(http, formatted):
+    """A header that says 100 Gaussians over a body of 3,000 (binary, ASCII, compressed PLY), or a
+    body shorter than the header says: 422 at upload naming the mismatch, on POST /v1/assets and
+    on a multipart job, not 201 and a job failed later; the file as written still uploads."""
+    model = formatted["model"]
+    n = len(model)
+    data = write_model(model, formatted["dir"] / "whole.ply", "ply").read_bytes()
+    end = data.index(b"end_header\n") + len(b"end_header\n")
+    header, body = data[:end], data[end:]
+    fewer = header.replace(f"element vertex {n}\n".encode(), b"element vertex 100\n")
+    packed = write_model(model, formatted["dir"] / "whole.compressed.ply", "compressed-ply").read_bytes()
+    cases = {
+        "more-rows.ply": (fewer + body, f"declares 100 Gaussians ({100 * (len(body) // n)} bytes in all)"),
+        "short-body.ply": (header + body[: len(body) // 2], "truncated: the header declares"),
+        "ascii-more-rows.ply": (_ascii(header, body, 100), "the header declares 100 Gaussians"),
+        "packed-more.ply": (packed + bytes(4096), "a count in the header is wrong"),
+    }
+    for name, (content, said) in cases.items():
+        r = http.post("/v1/assets", files={"file": (name, content)})
+        detail = assert_problem(r, 422, "invalid-input")["detail"]
+        assert detail.startswith(f"{name}: ") and said in detail, detail
+    assert f"{n} Gaussians' worth" in http.post("/v1/assets", files={"file": ("x.ply", fewer + body)}).json()["detail"]
+    r = http.post(
+        "/v1/jobs",
+        files=[("source", ("more-rows.ply", fewer + body)), ("target", ("whole.ply", data))],
+        data={"options": json.dumps({"stages": ["coarse"]})},
+    )
+    assert "count in the header is wrong" in assert_problem(r, 422)["detail"]
+    for content in (data, _ascii(header, body, n), packed):
+        r = http.post("/v1/assets", files={"file": ("fine.ply", content)})
+        assert r.status_code == 201 and r.json()["n_gaussians"] == n, r.text
