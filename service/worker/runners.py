@@ -164,6 +164,53 @@ def _scheduler_dies_with_its_worker() -> None:
     rq_scheduler.run = run
 
 
+# An idle worker checks its RQ scheduler at least this often (seconds): see _worker_class.
+SCHEDULER_CHECK_S = 10
+
+
+def _worker_class():
+    """RQ's Worker, made to re-establish its scheduler soon after a Redis outage.
+
+    RQ's scheduler child exits on its first Redis error, and RQ starts it again only at a
+    maintenance pass, which an idle worker reaches only between blocking dequeues of
+    worker_ttl - 15 = 405 s: after an outage with idle workers no scheduler ran (no retry
+    back-off or webhook retry was delivered) for minutes. Here the blocking dequeue is bounded,
+    and each turn of the work loop after it (every SCHEDULER_CHECK_S at most, and as soon as
+    Redis answers again) asks for the scheduler lock when this worker runs no scheduler: the
+    lock is taken if it is free or still this worker's own (its dead child's lock, restored
+    from Redis's append-only file), and a scheduler child is forked for it."""
+    from rq import Worker  # lazy: embedded mode runs without RQ
+
+    class GsaWorker(Worker):
+        keep_scheduler = True  # off in burst mode, where RQ runs no scheduler process
+
+        @property
+        def dequeue_timeout(self) -> int:
+            return min(super().dequeue_timeout, SCHEDULER_CHECK_S)
+
+        @property
+        def should_run_maintenance_tasks(self) -> bool:
+            return super().should_run_maintenance_tasks or self._scheduler_check_due()
+
+        def run_maintenance_tasks(self) -> None:
+            if super().should_run_maintenance_tasks:  # RQ's own pass (also restarts a dead scheduler)
+                super().run_maintenance_tasks()
+            else:
+                self.scheduler.acquire_locks(auto_start=True)  # starts a child if it gets a lock
+                # Only a check Redis answered counts: one that failed is retried on the next turn.
+                self._scheduler_checked = time.monotonic()
+
+        def _scheduler_check_due(self) -> bool:
+            s = self.scheduler
+            if not self.keep_scheduler or s is None or getattr(self, "_stop_requested", False):
+                return False
+            if s._process is not None and s._process.is_alive():
+                return False
+            return time.monotonic() - getattr(self, "_scheduler_checked", 0.0) >= SCHEDULER_CHECK_S
+
+    return GsaWorker
+
+
 def run_rq_worker(burst: bool = False, name: str | None = None, settings: Settings | None = None) -> None:
     """A worker process: RQ worker on the job + webhook queues, plus a reaper.
 
@@ -175,7 +222,6 @@ def run_rq_worker(burst: bool = False, name: str | None = None, settings: Settin
     (SIGTERM/SIGINT), or when the queue is drained in burst mode."""
     from redis.exceptions import ConnectionError as RedisConnectionError
     from redis.exceptions import TimeoutError as RedisTimeoutError
-    from rq import Worker  # lazy: embedded mode runs without RQ
 
     backend = process_backend(settings)
     if backend.redis is None:
@@ -189,6 +235,7 @@ def run_rq_worker(burst: bool = False, name: str | None = None, settings: Settin
     stop = threading.Event()
     start_reaper(backend, stop)
     _scheduler_dies_with_its_worker()
+    worker_class = _worker_class()
     queues = [backend.queue.hooks, backend.queue.q]  # webhooks first: they are tiny
     base = name or f"gsa-{uuid.uuid4().hex[:8]}"
     delay, retry = s.worker_reconnect_min_s, 0
@@ -203,13 +250,14 @@ def run_rq_worker(burst: bool = False, name: str | None = None, settings: Settin
                 # RQ retries a task whose worker died mid-run (a webhook delivery, whose
                 # Retry would else be lost with it) only at a maintenance pass: every
                 # 10 min by default, so this worker runs one every 30 s.
-                w = Worker(
+                w = worker_class(
                     queues,
                     connection=backend.redis,
                     name=base if retry == 0 else f"{base}.{retry}",
                     maintenance_interval=30,
                 )
                 w.max_connection_wait_time = s.worker_reconnect_max_s  # RQ's own retry while dequeuing
+                w.keep_scheduler = not burst
                 w.work(burst=burst, with_scheduler=True)
             except (RedisConnectionError, RedisTimeoutError) as exc:  # registering, or in teardown
                 error = exc
