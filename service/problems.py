@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import errno
+import re
 import sqlite3
 import sys
 from typing import Any
@@ -43,9 +44,20 @@ class Problem(Exception):
         return d
 
 
+# An id or name echoed back in a problem: the service's own are far shorter. A longer one is
+# described, not repeated (a 9 KB id, echoed in gRPC's status message and trailing metadata both,
+# passed the client's metadata limit: RESOURCE_EXHAUSTED instead of NOT_FOUND).
+ECHO_MAX = 64
+_ECHOABLE = re.compile(r"[A-Za-z0-9_.:/-]*")
+
+
 def not_found(what: str, ident: str) -> Problem:
     # Same answer for "missing" and "owned by someone else": never leak existence.
-    return Problem(404, "not-found", f"{what} not found", f"no {what.lower()} with id {ident!r}")
+    if len(ident) <= ECHO_MAX and _ECHOABLE.fullmatch(ident):
+        said = f"id {ident!r}"
+    else:
+        said = f"the id given ({len(ident)} characters, not one of this service's)"
+    return Problem(404, "not-found", f"{what} not found", f"no {what.lower()} with {said}")
 
 
 def invalid_input(detail: str, **extra: Any) -> Problem:

@@ -204,6 +204,27 @@ def _job_request(header: pb.SubmitHeader, files: dict[tuple[int, int], core.Uplo
     return core.JobRequest(sources, target, options, webhook, identity, separators=(", ", ": "))
 
 
+# Status details and trailing metadata share the client's metadata limit (grpc's defaults: 8 KiB soft,
+# 16 KiB hard): past it the client sees RESOURCE_EXHAUSTED, not the status sent. Whatever a
+# problem repeats from the request (names, values, lists) is clipped to stay well within it.
+_TEXT_MAX = 512
+_PROBLEM_MAX = 4096
+
+
+def _clip(text: str) -> str:
+    return text if len(text) <= _TEXT_MAX else text[: _TEXT_MAX - 1] + "…"
+
+
+def _bounded_problem(p: Problem) -> str:
+    """The problem as gsa-problem's JSON, within _PROBLEM_MAX bytes: long strings clipped, and
+    if still too long, only its RFC 9457 members."""
+    d = {k: _clip(v) if isinstance(v, str) else v for k, v in p.to_dict().items()}
+    text = json.dumps(d)
+    if len(text.encode()) > _PROBLEM_MAX:
+        text = json.dumps({k: d[k] for k in ("type", "title", "status", "detail") if k in d})
+    return text
+
+
 class AlignmentServicer(pbg.AlignmentServiceServicer):
     def __init__(self, backend: Backend, metrics=None):
         self.b = backend
@@ -218,11 +239,11 @@ class AlignmentServicer(pbg.AlignmentServiceServicer):
 
     @staticmethod
     def _abort(context, p: Problem):
-        md = [("gsa-problem", json.dumps(p.to_dict()))]
+        md = [("gsa-problem", _bounded_problem(p))]
         if "Retry-After" in p.headers:  # as HTTP's header: 429 (rate, jobs), 503
             md.append(("retry-after", p.headers["Retry-After"]))
         context.set_trailing_metadata(tuple(md))
-        context.abort(_CODE.get(p.status, grpc.StatusCode.INTERNAL), p.detail or p.title)
+        context.abort(_CODE.get(p.status, grpc.StatusCode.INTERNAL), _clip(p.detail or p.title))
 
     def _guard(self, fn, context):
         try:

@@ -144,6 +144,34 @@ def test_grpc_errors(stub, pair):
     assert e.value.code() == grpc.StatusCode.INVALID_ARGUMENT
 
 
+def test_a_huge_id_is_not_found_not_echoed(stub, http):
+    """A 9 KB id (and option names as long) are answered with their own status and a short
+    message: the problem no longer repeats what the client sent in full, which put the trailing
+    metadata past gRPC's 8 KiB limit and the client saw RESOURCE_EXHAUSTED instead."""
+    s, _ = stub
+    huge = "job_" + "x" * 9000
+    for call in (s.GetJob, s.CancelJob, s.DeleteJob):
+        with pytest.raises(grpc.RpcError) as e:
+            call(pb.JobRef(job_id=huge), metadata=AUTH, timeout=30)
+        assert e.value.code() == grpc.StatusCode.NOT_FOUND, (call, e.value.code(), e.value.details()[:200])
+        assert len(e.value.details()) < 200 and "x" * 100 not in e.value.details(), e.value.details()[:300]
+        problem = json.loads(dict(e.value.trailing_metadata())["gsa-problem"])
+        assert problem["status"] == 404 and "9004 characters" in problem["detail"], problem
+    with pytest.raises(grpc.RpcError) as e:
+        list(s.GetArtifact(pb.ArtifactRequest(job_id=huge, name="result.json"), metadata=AUTH, timeout=30))
+    assert e.value.code() == grpc.StatusCode.NOT_FOUND
+    # an unknown option whose name is 9 KB: the problem lists it, clipped
+    header = pb.SubmitHeader(options_json=json.dumps({"o" * 9000: 1}), target_asset_id="ast_x")
+    with pytest.raises(grpc.RpcError) as e:
+        s.SubmitAlignment(iter([pb.SubmitRequest(header=header)]), metadata=AUTH, timeout=30)
+    assert e.value.code() == grpc.StatusCode.INVALID_ARGUMENT, e.value.code()
+    assert len(dict(e.value.trailing_metadata())["gsa-problem"]) <= 4096
+    # over HTTP the id is in the problem's `instance` (the path); the detail says how long it was
+    r = http.get("/v1/jobs/" + "job_" + "y" * 2000)
+    assert r.status_code == 404 and "y" * 100 not in r.json()["detail"], r.text[:300]
+    assert "job_x" in http.get("/v1/jobs/job_x").json()["detail"]  # an id of our shape is still named
+
+
 def test_health_and_reflection(stub):
     from grpc_health.v1 import health_pb2, health_pb2_grpc
     from grpc_reflection.v1alpha import reflection_pb2, reflection_pb2_grpc
