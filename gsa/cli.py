@@ -125,7 +125,10 @@ def cmd_bench(args: argparse.Namespace) -> int:
 
 
 def build_parser() -> argparse.ArgumentParser:
+    from gsa import __version__
+
     parser = VectorArgumentParser(prog="gsa", description="Gaussian Splatting Alignment (GSA)")
+    parser.add_argument("--version", action="version", version=f"gsa {__version__}")
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
 
     add_align_parser(sub)

@@ -2,6 +2,7 @@ import argparse
 import json
 import subprocess
 import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -213,6 +214,22 @@ def test_doubtful_result_prints_one_warning_on_stderr(doubtful, capsys):
     assert "scale" in out and "warning" not in out
     warnings = [line for line in err.splitlines() if line.startswith("gsa: warning:")]
     assert len(warnings) == (1 if doubtful else 0)
+
+
+def test_version_prints_and_exits_0():
+    """`gsa --version` (it exited 2, "the following arguments are required: COMMAND"): the
+    installed distribution's version, on stdout, through the installed entry point too."""
+    from importlib.metadata import version
+
+    import gsa as package
+
+    assert package.__version__ == version("gsa")  # the code and the installed metadata agree
+    r = gsa("--version")
+    assert r.returncode == 0 and r.stdout.strip() == f"gsa {version('gsa')}", (r.returncode, r.stdout, r.stderr)
+    script = Path(sys.executable).with_name("gsa")
+    if script.exists():  # the console script an install made
+        r = subprocess.run([str(script), "--version"], capture_output=True, text=True, timeout=120)
+        assert r.returncode == 0 and r.stdout.strip() == f"gsa {version('gsa')}", (r.stdout, r.stderr)
 
 
 def test_parser_does_not_import_other_verbs_modules():

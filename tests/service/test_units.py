@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import io
+import re
 import shutil
 import subprocess
 import time
@@ -222,6 +223,28 @@ def test_compose_file_valid():
             cwd=ROOT,
         )
         assert r.returncode == 0, r.stderr
+
+
+def test_compose_publishes_on_loopback_by_default():
+    """docker-compose.yml's published ports bind 127.0.0.1 unless GSA_PUBLISH_HOST says
+    otherwise: the API and gRPC are plaintext, so `docker-compose up` must not put them on
+    every interface (it published 8000 and 50051 as "8000:8000")."""
+    lines = (ROOT / "docker-compose.yml").read_text().splitlines()
+    published = []
+    for i, line in enumerate(lines):
+        if line.strip() != "ports:":
+            continue
+        indent = len(line) - len(line.lstrip())
+        for item in lines[i + 1 :]:
+            if not item.strip() or item.lstrip().startswith("#"):
+                continue
+            if len(item) - len(item.lstrip()) <= indent or not item.lstrip().startswith("- "):
+                break
+            published.append(item.strip()[2:].strip("\"'"))
+    assert {p.rsplit(":", 1)[-1] for p in published} == {"8000", "50051"}, published
+    for p in published:
+        host = re.sub(r"\$\{[A-Z_]+:-([^}]*)\}", r"\1", p).rsplit(":", 2)[0]
+        assert host == "127.0.0.1", p
 
 
 def test_gsa_does_not_import_service():
