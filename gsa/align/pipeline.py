@@ -88,7 +88,7 @@ def _centroid_init(src: CanonicalFrame, dst: CanonicalFrame) -> Sim3:
     return Sim3(s, np.eye(3), dst.center - s * src.center)
 
 
-def _semantic_tiebreak(pair, best, search, transform: Sim3, metrics: dict) -> tuple[Sim3, dict]:
+def _semantic_tiebreak(pair, best, search, transform: Sim3, metrics: dict, progress=None) -> tuple[Sim3, dict]:
     """A doubtful global-search answer: let a pretrained backbone's features pick among the
     chosen pose, its alternatives and the poses their own sweep finds (gsa.align.semantic).
     The result stays doubtful; the geometric choice becomes the first alternative when another
@@ -106,10 +106,12 @@ def _semantic_tiebreak(pair, best, search, transform: Sim3, metrics: dict) -> tu
         return transform, metrics | {"semantic": {"used": False, "reason": reason}}
     geometric = [transform] + [Sim3.from_matrix(np.asarray(a["transform"])) for a in metrics.get("alternatives") or []]
     try:
-        lifted = semantic.LiftedPair.lift(pair.source, pair.target, backbone, semantic.SemanticCriteria(), opts.seed)
+        criteria = semantic.SemanticCriteria()
+        lifted = semantic.LiftedPair.lift(pair.source, pair.target, backbone, criteria, opts.seed, progress)
     except ValueError as exc:  # nothing visible to compare (a degenerate model)
         return transform, metrics | {"semantic": {"used": False, "reason": str(exc)}}
     pair.lifted = lifted  # the frame choice scores the relabellings with them too
+    _report(progress, "semantic", 0.9)  # the sweep and its few ICP runs: well under a second
     swept = _swept_poses(pair, lifted, geometric, search)
     poses = geometric + [c.transform for c in swept]
     scores = lifted.scores(poses)
@@ -186,7 +188,7 @@ def _doubtful_search_answer(pair, best, search, transform: Sim3, metrics: dict, 
     if opts.semantic != "off":
         t_semantic = time.perf_counter()
         _report(progress, "semantic", 0.0)
-        transform, metrics = _semantic_tiebreak(pair, best, search, transform, metrics)
+        transform, metrics = _semantic_tiebreak(pair, best, search, transform, metrics, progress)
         timings["semantic"] = time.perf_counter() - t_semantic
     if opts.frame_snap != "off" and not framed:
         return transform, frame_snap.unsupported(metrics, pair)

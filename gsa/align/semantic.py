@@ -28,6 +28,7 @@ against one reference, while the backbone is most of a doubtful pair's time.
 
 from __future__ import annotations
 
+import contextlib
 import functools
 import hashlib
 import threading
@@ -36,8 +37,16 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from gsa.align.choices import Progress
 from gsa.model import GaussianModel
 from gsa.sim3 import Sim3
+
+# Views rendered (or lifted through) per renderer call, at most this many views x Gaussians:
+# the renderer holds every Gaussian's projection in every view of a call (~150 B each), so 24
+# views of a 3M-Gaussian model at once took ~10 GB; a model of up to 50k Gaussians still
+# renders its 24 views in one call, as before. Each call also ends with a progress report,
+# where a cancelled service job stops.
+VIEW_GAUSSIANS_PER_CALL = 1_200_000
 
 
 @dataclass(frozen=True)
@@ -68,7 +77,9 @@ class SemanticCriteria:
 def _backbone_at(path: str):
     from gsa.features.vit import load_backbone
 
-    return load_backbone(path, "semantic backbone")
+    backbone = load_backbone(path, "semantic backbone")
+    _watch_blocks(backbone)
+    return backbone
 
 
 def available_backbone(path: str | None = None):
@@ -106,10 +117,11 @@ def shaded_views(depth: np.ndarray, alpha: np.ndarray, fx, fy, cx, cy) -> np.nda
     return out
 
 
-def _tokens(backbone, images: np.ndarray, criteria: SemanticCriteria, alpha: np.ndarray | None = None):
+def _tokens(backbone, images: np.ndarray, criteria: SemanticCriteria, alpha: np.ndarray | None = None, tick=None):
     """(C,h,w,D) normed patch tokens, averaged over `rolls` in-plane quarter turns. With the
     views' rendered `alpha` (C,H,W) and criteria.skip_background, the backbone computes only
-    the patches the object touches and their neighbours (_object_patches)."""
+    the patches the object touches and their neighbours (_object_patches). `tick(fraction)`
+    is called after each batch of the backbone."""
     import torch
 
     from gsa.features.vit import to_input
@@ -118,8 +130,20 @@ def _tokens(backbone, images: np.ndarray, criteria: SemanticCriteria, alpha: np.
     # views of like patch counts batched together: a batch runs at its largest count
     order = np.arange(len(images)) if keep is None else np.argsort(keep.sum((1, 2)), kind="stable")
     total = 0
+    batches, done = criteria.rolls * -(-len(images) // criteria.batch), 0
     half = criteria.bf16 and native_bf16()
-    with torch.no_grad(), torch.autocast("cpu", dtype=torch.bfloat16, enabled=half):
+    depth = len(getattr(backbone, "blocks", ())) or 1
+    blocks = [0]  # transformer blocks run in the current batch
+
+    def block_done():  # a batch of 8 views takes seconds on a busy CPU: report within it too
+        blocks[0] += 1
+        tick((done + min(blocks[0], depth) / depth) / batches)
+
+    with (
+        torch.no_grad(),
+        torch.autocast("cpu", dtype=torch.bfloat16, enabled=half),
+        _after_each_block(backbone, block_done if tick is not None else None),
+    ):
         for r in range(criteria.rolls):
             turned = np.ascontiguousarray(np.rot90(images, r, axes=(1, 2)))
             turned_keep = None if keep is None else torch.as_tensor(np.rot90(keep, r, axes=(1, 2)).copy())
@@ -132,8 +156,52 @@ def _tokens(backbone, images: np.ndarray, criteria: SemanticCriteria, alpha: np.
                 if tok is None:
                     tok = torch.zeros((len(turned),) + tuple(part.shape[1:]))
                 tok[torch.as_tensor(rows)] = part
+                done, blocks[0] = done + 1, 0
+                if tick is not None:
+                    tick(done / batches)
             total = total + torch.rot90(tok, -r, dims=(1, 2))
     return total / criteria.rolls
+
+
+_BLOCK_CALL = threading.local()  # this thread's callback for the backbone's blocks (_after_each_block)
+_HOOKS_LOCK = threading.Lock()
+
+
+def _block_hook(_module, _args, _output) -> None:
+    call = getattr(_BLOCK_CALL, "call", None)
+    if call is not None:
+        call()
+
+
+def _watch_blocks(backbone) -> bool:
+    """A forward hook on each transformer block of `backbone`, installed once (at load for the
+    backbones of available_backbone: the hooks are never added while another thread runs it),
+    that calls the running thread's callback; False for a backbone without `blocks`."""
+    with _HOOKS_LOCK:
+        if getattr(backbone, "_gsa_block_hooks", False):
+            return True
+        blocks = getattr(backbone, "blocks", None)
+        if not blocks:
+            return False
+        for block in blocks:
+            block.register_forward_hook(_block_hook)
+        backbone._gsa_block_hooks = True
+    return True
+
+
+@contextlib.contextmanager
+def _after_each_block(backbone, call):
+    """`call()` after each transformer block the backbone runs in this thread (the service's
+    embedded workers are threads sharing one backbone: another job's thread is not reported to)."""
+    if call is None or not _watch_blocks(backbone):
+        yield
+        return
+    previous = getattr(_BLOCK_CALL, "call", None)
+    _BLOCK_CALL.call = call
+    try:
+        yield
+    finally:
+        _BLOCK_CALL.call = previous
 
 
 def _object_patches(alpha: np.ndarray, size: int, patch: int, criteria: SemanticCriteria) -> np.ndarray | None:
@@ -159,30 +227,86 @@ def native_bf16() -> bool:
     return any(getattr(torch.cpu, name, lambda: False)() for name in probes)
 
 
-def _render(model: GaussianModel, criteria: SemanticCriteria, seed: int):
-    from gsa.render import cameras_around, render_model
+def _views_per_call(n_gaussians: int) -> int:
+    return max(1, VIEW_GAUSSIANS_PER_CALL // max(n_gaussians, 1))
+
+
+def _render(model: GaussianModel, criteria: SemanticCriteria, seed: int, tick=None):
+    """Orbit cameras, shaded views (C,H,W,3) and alpha (C,H,W) of `model`. Depth and alpha
+    only (the shaded views are drawn from the depth: colours from the SH would be C x N x 3
+    floats for nothing), a few views per call for a large model (VIEW_GAUSSIANS_PER_CALL);
+    each view composites alone, so the images are those of one call. `tick(fraction)` after
+    each call."""
+    import torch
+
+    from gsa.render import cameras_around, rasterize
 
     cams = cameras_around(model.means, criteria.views, width=criteria.image_size, seed=seed)
-    out = render_model(model, cams, features=False, depth=True)
-    depth, alpha = out.depth[..., 0].numpy(), out.alpha[..., 0].numpy()
+    depth, alpha = [], []
+    step = _views_per_call(len(model))
+    for start in range(0, len(cams), step):
+        with torch.no_grad():
+            out = rasterize(
+                model.means,
+                model.quats,
+                model.log_scales,
+                model.opacity_logits,
+                None,
+                None,
+                cams[start : start + step],
+                depth=True,
+            )
+        depth.append(out.depth[..., 0].cpu().numpy())
+        alpha.append(out.alpha[..., 0].cpu().numpy())
+        del out
+        if tick is not None:
+            tick(min(start + step, len(cams)) / len(cams))
+    depth, alpha = np.concatenate(depth), np.concatenate(alpha)
     return cams, shaded_views(depth, alpha, cams.fx, cams.fy, cams.cx, cams.cy), alpha
 
 
-def _lift(model: GaussianModel, cams, maps):
-    """Blend-weighted mean of the (C,H,W,k) maps per Gaussian -> (N,k) features, (N,) weight."""
+def _lift(model: GaussianModel, cams, maps, tick=None):
+    """Blend-weighted mean of the (C,H,W,k) maps per Gaussian -> (N,k) features, (N,) weight.
+    4 views a backward pass (fewer for a model past VIEW_GAUSSIANS_PER_CALL / 4); `tick`
+    after each."""
     from gsa.features.lift import back_project
 
-    acc = back_project(model, maps, cams)
+    acc = back_project(model, maps, cams, batch_views=min(4, _views_per_call(len(model))), tick=tick)
     weight = acc[:, -1]
     return (acc[:, :-1] / weight.clamp_min(1e-9)[:, None]).numpy(), weight.numpy()
 
 
-def lifted_features(source: GaussianModel, target: GaussianModel, backbone, criteria: SemanticCriteria, seed: int = 0):
-    """Both models' lifted features in one principal basis: (features (N,k), weights (N,)) each."""
+def _ticker(progress: Progress | None, lo: float, hi: float):
+    """tick(fraction) reporting stage `semantic` at lo + fraction x (hi - lo); None without
+    a progress callback."""
+    if progress is None:
+        return None
+    return lambda f: progress("semantic", lo + min(max(f, 0.0), 1.0) * (hi - lo))
+
+
+def _share(n_source: int, n_target: int) -> float:
+    return n_source / max(n_source + n_target, 1)
+
+
+def lifted_features(
+    source: GaussianModel,
+    target: GaussianModel,
+    backbone,
+    criteria: SemanticCriteria,
+    seed: int = 0,
+    progress: Progress | None = None,
+):
+    """Both models' lifted features in one principal basis: (features (N,k), weights (N,)) each.
+    `progress("semantic", fraction)` between views and between the backbone's batches (a
+    cancelled service job stops there): the views and tokens take the first 0.6 of the stage,
+    the lifting the next 0.3."""
     import torch
     import torch.nn.functional as F
 
-    seen = [MODEL_VIEWS.views(m, backbone, criteria, seed) for m in (source, target)]
+    seen = [
+        MODEL_VIEWS.views(source, backbone, criteria, seed, _ticker(progress, 0.0, 0.3)),
+        MODEL_VIEWS.views(target, backbone, criteria, seed, _ticker(progress, 0.3, 0.6)),
+    ]
     views = [(cams, alpha) for cams, alpha, _ in seen]
     tokens = [tok for _, _, tok in seen]
 
@@ -195,10 +319,13 @@ def lifted_features(source: GaussianModel, target: GaussianModel, backbone, crit
         raise ValueError("too few foreground patches to compare the models semantically")
     mean = both.mean(0)
     basis = torch.linalg.svd(both - mean, full_matrices=False)[2][: criteria.components].T
+    if progress is not None:
+        progress("semantic", 0.6)
     out = []
-    for model, (cams, _), tok in zip((source, target), views, tokens):
+    mid = 0.6 + 0.3 * _share(len(source), len(target))  # the lifting's time goes with the Gaussians
+    for model, (cams, _), tok, (lo, hi) in zip((source, target), views, tokens, ((0.6, mid), (mid, 0.9))):
         proj = ((tok.double() - mean) @ basis).float().permute(0, 3, 1, 2)
-        out.append(_lift_maps(model, cams, proj, criteria.lift_size))
+        out.append(_lift_maps(model, cams, proj, criteria.lift_size, _ticker(progress, lo, hi)))
     return out[0], out[1]
 
 
@@ -220,16 +347,18 @@ class ModelViewCache:
         self._entries: OrderedDict = OrderedDict()
         self._lock = threading.Lock()
 
-    def views(self, model: GaussianModel, backbone, criteria: SemanticCriteria, seed: int):
-        """(cameras, alpha (C,H,W), tokens (C,h,w,D)) of `model`, computed once while kept."""
+    def views(self, model: GaussianModel, backbone, criteria: SemanticCriteria, seed: int, tick=None):
+        """(cameras, alpha (C,H,W), tokens (C,h,w,D)) of `model`, computed once while kept;
+        `tick(fraction)` while computing (the renders a fifth, the backbone the rest)."""
         key = (geometry_digest(model), criteria, seed, backbone)  # the backbone itself: no id reused
         with self._lock:
             if key in self._entries:
                 self._entries.move_to_end(key)
                 self.hits += 1
                 return self._entries[key]
-        cams, images, alpha = _render(model, criteria, seed)
-        entry = (cams, alpha, _tokens(backbone, images, criteria, alpha))
+        part = (lambda lo, hi: lambda f: tick(lo + f * (hi - lo))) if tick is not None else (lambda lo, hi: None)
+        cams, images, alpha = _render(model, criteria, seed, part(0.0, 0.2))
+        entry = (cams, alpha, _tokens(backbone, images, criteria, alpha, part(0.2, 1.0)))
         with self._lock:
             self.misses += 1
             self._entries[key] = entry
@@ -256,7 +385,7 @@ def geometry_digest(model: GaussianModel) -> str:
     return h.hexdigest()
 
 
-def _lift_maps(model: GaussianModel, cams, grids, size: int | None):
+def _lift_maps(model: GaussianModel, cams, grids, size: int | None, tick=None):
     """(C,k,h,w) coarse maps upsampled and lifted (_lift) through the cameras resized to
     `size` pixels (None: as rendered) -> (N,k) features, (N,) weight in the rendered cameras'
     pixels. The maps are a 16 x 16 grid upsampled: lifted through cameras of half the rendered
@@ -267,7 +396,7 @@ def _lift_maps(model: GaussianModel, cams, grids, size: int | None):
     size = min(size or cams.width, cams.width)
     lift_cams = cams.resized(size, size) if size != cams.width else cams
     maps = F.interpolate(grids, size=(lift_cams.height, lift_cams.width), mode="bilinear", align_corners=False)
-    features, weight = _lift(model, lift_cams, maps.permute(0, 2, 3, 1))
+    features, weight = _lift(model, lift_cams, maps.permute(0, 2, 3, 1), tick)
     return features, weight * (cams.width * cams.height) / (lift_cams.width * lift_cams.height)
 
 
@@ -286,9 +415,18 @@ class LiftedPair:
         self.diagonal = float(np.linalg.norm(np.ptp(self.dst_pts, axis=0)))
 
     @classmethod
-    def lift(cls, source: GaussianModel, target: GaussianModel, backbone, criteria: SemanticCriteria, seed: int = 0):
-        """Render, run the backbone and lift (lifted_features), keeping what is seen well."""
-        (src_f, src_w), (dst_f, dst_w) = lifted_features(source, target, backbone, criteria, seed)
+    def lift(
+        cls,
+        source: GaussianModel,
+        target: GaussianModel,
+        backbone,
+        criteria: SemanticCriteria,
+        seed: int = 0,
+        progress: Progress | None = None,
+    ):
+        """Render, run the backbone and lift (lifted_features, which reports `progress`),
+        keeping what is seen well."""
+        (src_f, src_w), (dst_f, dst_w) = lifted_features(source, target, backbone, criteria, seed, progress)
         keep_src = (src_w >= criteria.min_visibility) & (source.opacities > 0.5)
         keep_dst = (dst_w >= criteria.min_visibility) & (target.opacities > 0.5)
         if keep_src.sum() < 3 or keep_dst.sum() < 3:

@@ -79,10 +79,18 @@ def _render_features(model: GaussianModel, feats: torch.Tensor, cameras, backend
     return out.features
 
 
-def back_project(model: GaussianModel, maps: torch.Tensor, cameras, batch_views: int = 4, backend: str = "auto"):
+def back_project(
+    model: GaussianModel,
+    maps: torch.Tensor,
+    cameras,
+    batch_views: int = 4,
+    backend: str = "auto",
+    tick: Callable[[float], None] | None = None,
+):
     """(C,H,W,k) per-pixel maps -> (N, k+1) float64: per Gaussian, Σ_p w_ip [m_p, 1] over every
     pixel p it is blended into with weight w_ip; the last column is its visibility (pixels).
-    It is d/df of Σ_p <render(f)_p, [m_p, 1]>, so one backward pass of the renderer per batch."""
+    It is d/df of Σ_p <render(f)_p, [m_p, 1]>, so one backward pass of the renderer per batch.
+    `tick(fraction of the views done)` after each batch (where a cancelled job stops)."""
     n, k = len(model), maps.shape[-1]
     acc = torch.zeros(n, k + 1, dtype=torch.float64)
     for sl in _chunks(len(maps), batch_views):
@@ -90,7 +98,11 @@ def back_project(model: GaussianModel, maps: torch.Tensor, cameras, batch_views:
         rendered = _render_features(model, probe, cameras[sl], backend)
         weights = torch.cat([maps[sl], torch.ones_like(maps[sl][..., :1])], -1)
         (grad,) = torch.autograd.grad(rendered, probe, grad_outputs=weights)
-        acc += grad.double()
+        del rendered, probe  # the graph's saved projections go before the next batch builds its own
+        acc += grad
+        del grad
+        if tick is not None:
+            tick(sl.stop / len(maps))
     return acc
 
 
