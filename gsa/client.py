@@ -24,6 +24,9 @@ import httpx
 from gsa import errors
 
 TERMINAL = ("succeeded", "failed", "cancelled")
+# GSAClient.wait's pauses before retrying a poll that failed in transport: 25.5 s in all, time for
+# an API process to be restarted.
+WAIT_RETRY_DELAYS = (0.5, 1.0, 2.0, 4.0, 8.0, 10.0)
 
 
 class ServiceError(errors.GSAError):
@@ -234,11 +237,25 @@ class GSAClient:
         poll: float = 0.5,
         on_progress: Callable[[dict], None] | None = None,
         raise_on_failure: bool = True,
+        retries: int = len(WAIT_RETRY_DELAYS),
     ) -> dict:
+        """Poll until the job is final. Once the service has answered, a poll that fails in
+        transport (connection refused or dropped, a read timed out: an API restarting, a proxy
+        closing a keep-alive connection) is retried `retries` times, after WAIT_RETRY_DELAYS;
+        only then is it raised. A service never reached at all is raised at once."""
         deadline = None if timeout is None else time.monotonic() + timeout
         last = None
+        answered, failures = False, 0
         while True:
-            job = self.status(job_id)
+            try:
+                job = self.status(job_id)
+            except (ServiceUnreachable, httpx.TransportError):
+                if not answered or failures >= retries:  # a wrong URL or a server down fails at once
+                    raise
+                time.sleep(WAIT_RETRY_DELAYS[min(failures, len(WAIT_RETRY_DELAYS) - 1)])
+                failures += 1
+                continue
+            answered, failures = True, 0
             if on_progress and (job["state"], job.get("stage"), job.get("progress")) != last:
                 last = (job["state"], job.get("stage"), job.get("progress"))
                 on_progress(job)
