@@ -159,6 +159,11 @@ class GSAClient:
         with open(p, "rb") as fh:
             return self._check(self.http.post("/v1/assets", files={"file": (p.name, fh)})).json()
 
+    def list_assets(self, limit: int = 50, cursor: str | None = None) -> dict:
+        """One page of your assets, newest first: {"items": [...], "next_cursor": ...}."""
+        params = {k: v for k, v in {"limit": limit, "cursor": cursor}.items() if v is not None}
+        return self._check(self.http.get("/v1/assets", params=params)).json()
+
     # ------------------------------------------------------------------ jobs
     def submit(
         self,

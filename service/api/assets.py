@@ -2,12 +2,16 @@
 
 from __future__ import annotations
 
-from fastapi import APIRouter, Request, Response
+from typing import Annotated
+
+from fastapi import APIRouter, Query, Request, Response
 from fastapi.concurrency import run_in_threadpool
 
 from service.api.deps import B, Owner
+from service.api.jobs import _decode_cursor as decode_cursor
+from service.api.jobs import _encode_cursor as encode_cursor
 from service.api.openapi import UPLOAD_BODY, problem_responses
-from service.api.schemas import AssetOut
+from service.api.schemas import AssetList, AssetOut
 from service.api.upload import parse_multipart
 from service.jobs import core, retention
 from service.problems import invalid_input
@@ -46,6 +50,32 @@ async def upload_asset(request: Request, response: Response, owner: Owner, b: B)
         form.close()
     response.headers["Location"] = f"/v1/assets/{asset.id}"
     return AssetOut.from_asset(asset)
+
+
+@router.get(
+    "/v1/assets",
+    operation_id="listAssets",
+    response_model=AssetList,
+    tags=["assets"],
+    summary="List your assets, newest first",
+    description="Every asset of the caller's tenant (never another's), `limit` a page, the next page "
+    "from `next_cursor` as in listJobs: an asset whose id was lost can be found and deleted.",
+    responses=problem_responses(401, 422),
+)
+async def list_assets(
+    owner: Owner,
+    b: B,
+    limit: Annotated[int, Query(ge=1, le=200)] = 50,
+    cursor: str | None = None,
+):
+    # the cursor of listJobs: (created_at, id) of the page's last item, base64 JSON
+    assets = await run_in_threadpool(b.store.list_assets, owner, limit + 1, decode_cursor(cursor) if cursor else None)
+    more = len(assets) > limit
+    assets = assets[:limit]
+    return AssetList(
+        items=[AssetOut.from_asset(a) for a in assets],
+        next_cursor=encode_cursor(assets[-1]) if more and assets else None,
+    )
 
 
 @router.get(

@@ -221,6 +221,11 @@ class AssetOut(BaseModel):
         )
 
 
+class AssetList(BaseModel):
+    items: list[AssetOut]
+    next_cursor: str | None = Field(None, description="pass as ?cursor= for the next page; null at the end")
+
+
 class Health(BaseModel):
     status: str
     checks: dict[str, bool] = Field(default_factory=dict)

@@ -97,6 +97,11 @@ class JobStore(Protocol):
 
     def get_asset(self, asset_id: str) -> Asset | None: ...
 
+    def list_assets(self, owner: str, limit: int, cursor: tuple[float, str] | None) -> list[Asset]:
+        """The owner's assets, newest first, after `cursor` (created_at, id), as `list` pages jobs:
+        a tenant finds (and can free) an asset whose id it lost."""
+        ...
+
     def active_jobs(self, owner: str) -> int:
         """The owner's queued and running jobs (service.jobs.quotas: GSA_TENANT_MAX_ACTIVE_JOBS)."""
         ...

@@ -213,10 +213,59 @@ class RedisJobStore:
         return sorted(i.decode() for i in self.r.smembers(f"{self.p}blobrefs:{key}"))
 
     def delete_asset(self, asset_id):
-        self.r.delete(f"{self.p}asset:{asset_id}")
+        asset = self.get_asset(asset_id)
+        pipe = self.r.pipeline(transaction=True)
+        pipe.delete(f"{self.p}asset:{asset_id}")
+        if asset is not None:
+            pipe.zrem(f"{self.p}owner-assets:{asset.owner}", asset_id)
+        pipe.execute()
 
     def put_asset(self, asset):
-        self.r.set(f"{self.p}asset:{asset.id}", asset.model_dump_json())
+        pipe = self.r.pipeline(transaction=True)
+        pipe.set(f"{self.p}asset:{asset.id}", asset.model_dump_json())
+        pipe.zadd(f"{self.p}owner-assets:{asset.owner}", {asset.id: asset.created_at})
+        pipe.execute()
+
+    def _index_assets(self) -> None:
+        """Assets stored before the per-owner index existed join it, once per database (a
+        second pass, from another process at the same time, only adds what is there again)."""
+        done = f"{self.p}owner-assets-indexed"
+        if self.r.exists(done):
+            return
+        ids = self.asset_ids()
+        for start in range(0, len(ids), 500):
+            chunk = ids[start : start + 500]
+            pipe = self.r.pipeline(transaction=False)
+            for raw in self.r.mget([f"{self.p}asset:{i}" for i in chunk]):
+                if raw:
+                    a = Asset.model_validate_json(raw)
+                    pipe.zadd(f"{self.p}owner-assets:{a.owner}", {a.id: a.created_at})
+            pipe.execute()
+        self.r.set(done, "1")
+
+    def list_assets(self, owner, limit, cursor):
+        self._index_assets()
+        key = f"{self.p}owner-assets:{owner}"
+        out: list[Asset] = []
+        top = "+inf" if cursor is None else cursor[0]
+        offset = 0
+        while len(out) < limit:
+            batch = self.r.zrevrangebyscore(key, top, "-inf", start=offset, num=200, withscores=True)
+            if not batch:
+                break
+            offset += len(batch)
+            # Ties in created_at: zrevrange orders equal scores by id descending.
+            ids = [i.decode() for i, score in batch if cursor is None or score < cursor[0] or i.decode() < cursor[1]]
+            raws = self.r.mget([f"{self.p}asset:{i}" for i in ids]) if ids else []
+            gone = [i for i, raw in zip(ids, raws) if raw is None]
+            if gone:  # deleted while the index was being filled: drop the stale entries
+                self.r.zrem(key, *gone)
+            for raw in raws:
+                if raw is not None:
+                    out.append(Asset.model_validate_json(raw))
+                    if len(out) == limit:
+                        break
+        return out
 
     def get_asset(self, asset_id):
         raw = self.r.get(f"{self.p}asset:{asset_id}")

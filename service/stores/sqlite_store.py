@@ -44,6 +44,8 @@ class SQLiteJobStore:
                 CREATE INDEX IF NOT EXISTS jobs_owner ON jobs(owner, created_at DESC, id DESC);
                 CREATE INDEX IF NOT EXISTS jobs_state ON jobs(state);
                 CREATE TABLE IF NOT EXISTS assets (id TEXT PRIMARY KEY, data TEXT);
+                CREATE INDEX IF NOT EXISTS assets_owner ON assets(json_extract(data, '$.owner'),
+                    json_extract(data, '$.created_at') DESC, id DESC);
                 CREATE TABLE IF NOT EXISTS idem (k TEXT PRIMARY KEY, job_id TEXT, hash TEXT, at REAL);
                 CREATE TABLE IF NOT EXISTS stages (stage TEXT PRIMARY KEY, n INTEGER, secs REAL);
                 CREATE TABLE IF NOT EXISTS blobrefs (k TEXT, asset_id TEXT, PRIMARY KEY (k, asset_id));
@@ -246,6 +248,19 @@ class SQLiteJobStore:
         with self.lock:
             row = self.db.execute("SELECT data FROM assets WHERE id=?", (asset_id,)).fetchone()
         return Asset.model_validate_json(row[0]) if row else None
+
+    def list_assets(self, owner, limit, cursor):
+        # An index on the record's own members (assets_owner): rows stored before it are listed too.
+        q = "SELECT data FROM assets WHERE json_extract(data, '$.owner')=?"
+        args: list = [owner]
+        if cursor is not None:
+            q += " AND (json_extract(data, '$.created_at') < ? OR (json_extract(data, '$.created_at') = ? AND id < ?))"
+            args += [cursor[0], cursor[0], cursor[1]]
+        q += " ORDER BY json_extract(data, '$.created_at') DESC, id DESC LIMIT ?"
+        args.append(limit)
+        with self.lock:
+            rows = self.db.execute(q, args).fetchall()
+        return [Asset.model_validate_json(r[0]) for r in rows]
 
     def active_jobs(self, owner):
         with self.lock:

@@ -19,6 +19,7 @@ OPERATIONS = {
     ("get", "/readyz"): "readyz",
     ("get", "/metrics"): "getMetrics",
     ("post", "/v1/assets"): "uploadAsset",
+    ("get", "/v1/assets"): "listAssets",
     ("get", "/v1/assets/{asset_id}"): "getAsset",
     ("delete", "/v1/assets/{asset_id}"): "deleteAsset",
     ("post", "/v1/jobs"): "createJob",
