@@ -16,6 +16,7 @@ from service.models import Asset, Job, JobState
 from service.stores.base import IDEM_PENDING_S, IDEM_TTL_S
 
 RESERVE_BYTES = 4 << 20
+RESERVE_SLICE = 256 << 10  # given up at a time for a write on a full disk
 
 
 def _disk_full(exc: BaseException) -> bool:
@@ -74,6 +75,16 @@ class SQLiteJobStore:
 
     def update(self, job_id, *, states=None, token=None, **fields):
         fields.setdefault("updated_at", time.time())
+        if fields.get("cancel_requested") or fields.get("state", JobState.running) != JobState.running:
+            # A change that brings a job to rest (cancelled, failed, back in the queue, a cancel
+            # request) must go through on a full disk, as deletes do: else no job could be
+            # cancelled there, nor a failed attempt leave "running". The claim and progress
+            # writes need not: on a full disk no job should start.
+            with self.lock:
+                return self._freeing(lambda: self._update(job_id, states, token, fields))
+        return self._update(job_id, states, token, fields)
+
+    def _update(self, job_id, states, token, fields):
         with self.lock:
             self.db.execute("BEGIN IMMEDIATE")
             try:
@@ -104,34 +115,53 @@ class SQLiteJobStore:
                 pass
 
     def _ensure_reserve(self) -> None:
-        """Keep the reserve file at its size; where the disk has no room for it, go without."""
+        """Grow the reserve file back to its size as far as the disk allows (what does not fit
+        now is taken back after a later write that frees space)."""
         if not self.reserve_bytes:
             return
         try:
-            if self.reserve.exists() and self.reserve.stat().st_size >= self.reserve_bytes:
+            have = self.reserve.stat().st_size if self.reserve.exists() else 0
+            if have >= self.reserve_bytes:
                 return
-            with open(self.reserve, "wb") as fh:
-                for _ in range(-(-self.reserve_bytes // (1 << 20))):
-                    fh.write(bytes(1 << 20))
-                fh.flush()
-                os.fsync(fh.fileno())
+            fd = os.open(self.reserve, os.O_WRONLY | os.O_CREAT, 0o600)
+            try:
+                while have < self.reserve_bytes:
+                    have += os.pwrite(fd, bytes(min(1 << 20, self.reserve_bytes - have)), have)
+                os.fsync(fd)
+            except OSError:
+                os.ftruncate(fd, have)  # what was written stays reserved
+            finally:
+                os.close(fd)
         except OSError:
-            self.reserve.unlink(missing_ok=True)
+            pass
 
     def _freeing(self, fn):
-        """Run a write that frees space (a delete); on a full disk, give up the reserve and
-        run it again, then take the reserve back if the freed space allows."""
+        """Run a write that must work on a full disk (a delete, a job brought to rest): on a
+        full disk, give up a slice of the reserve and run it again, as long as the reserve
+        lasts; then grow the reserve back as far as the disk allows. A slice at a time, so the
+        room freed for this write is small and taken back at once: other writers on the disk
+        (uploads, jobs) cannot use up the whole reserve in between."""
         try:
-            return fn()
-        except sqlite3.OperationalError as exc:
-            if not _disk_full(exc):
-                raise
-            self._rollback()
-            self.reserve.unlink(missing_ok=True)
-            return fn()
+            while True:
+                try:
+                    return fn()
+                except sqlite3.OperationalError as exc:
+                    if not _disk_full(exc) or not self._give_up_slice():
+                        raise
+                    self._rollback()
         finally:
-            if not self.reserve.exists():
-                self._ensure_reserve()
+            self._ensure_reserve()
+
+    def _give_up_slice(self) -> bool:
+        try:
+            size = self.reserve.stat().st_size
+        except OSError:
+            return False
+        if size <= RESERVE_SLICE:
+            self.reserve.unlink(missing_ok=True)
+        else:
+            os.truncate(self.reserve, size - RESERVE_SLICE)
+        return size > 0
 
     def list(self, owner, state, limit, cursor):
         q, args = "SELECT data FROM jobs WHERE owner=?", [owner]

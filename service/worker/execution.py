@@ -20,7 +20,7 @@ from service.jobs.inputs import load_input
 from service.jobs.many import is_many
 from service.jobs.options import DEFAULT_OUTPUTS, align_option_names, server_options
 from service.models import Job, JobState
-from service.problems import Problem, infrastructure_problem, invalid_input
+from service.problems import Problem, infrastructure_problem, invalid_input, store_errors
 from service.worker.artifacts import collect_outputs, store_artifacts, synchronized_renders
 from service.worker.leases import (
     JobCancelled,
@@ -117,16 +117,24 @@ def execute(job_id: str, backend: Backend) -> JobState | None:
             )
     finally:
         stop.set()
-        try:  # clean-up must not mask the attempt's outcome (e.g. Redis or the disk gone meanwhile)
-            prog.finish()
-            if final != JobState.succeeded:
-                backend.storage.delete_prefix(art_prefix)  # no partial artifacts from a failed attempt
-        except Exception:
-            log.exception("job %s: clean-up after the attempt failed", job_id)
+        _clean_up(backend, job_id, prog, final, art_prefix)
         _release_memory()
     if final is not None and final != JobState.queued:
         notify_webhook(backend, job_id)
     return final
+
+
+def _clean_up(backend: Backend, job_id: str, prog: JobProgress, final: JobState | None, art_prefix: str) -> None:
+    """After an attempt: its last stage's time, and no partial artifacts from a failed attempt."""
+    try:  # clean-up must not mask the attempt's outcome (e.g. Redis or the disk gone meanwhile)
+        prog.finish()
+        if final != JobState.succeeded:
+            backend.storage.delete_prefix(art_prefix)
+    except Exception as exc:
+        if infrastructure_problem(exc) is not None:  # a full disk, a store away: one line, not a traceback
+            log.warning("job %s: clean-up after the attempt failed: %s: %s", job_id, type(exc).__name__, exc)
+        else:
+            log.exception("job %s: clean-up after the attempt failed", job_id)
 
 
 def _retry_later(backend: Backend, job: Job, token: str, exc: Exception, problem: Problem) -> JobState | None:
@@ -165,12 +173,23 @@ def _retry_later(backend: Backend, job: Job, token: str, exc: Exception, problem
             next_attempt_at=time.time() + delay,
         ):
             return None
+    except Exception as err:  # last resort: the attempt's own error is what the job reports
+        if infrastructure_problem(err) is None:
+            log.exception("job %s: could not record the retry; the reaper will requeue it", job.id)
+        else:  # the store as full or away as the attempt found it: one line
+            log.warning(
+                "job %s: could not record the retry (%s: %s); the reaper will requeue it",
+                job.id,
+                type(err).__name__,
+                err,
+            )
+        return None
+    try:
         ref = backend.queue.enqueue(job.id, delay_s=delay)
         backend.store.update(job.id, queue_ref=ref, enqueued_at=time.time())
-        return JobState.queued
-    except Exception:  # last resort: the attempt's own error is what the job reports
-        log.exception("job %s: could not record the retry; the reaper will requeue it", job.id)
-        return None
+    except store_errors() as err:  # the job is back in the queue: the reaper re-sends a message it lacks
+        log.warning("job %s: requeued; recording its queue message failed: %s: %s", job.id, type(err).__name__, err)
+    return JobState.queued
 
 
 def retry_delay(settings, attempt: int) -> float:

@@ -15,7 +15,8 @@ import uuid
 from pathlib import Path
 
 from service.backend import Backend, process_backend
-from service.problems import store_errors
+from service.models import JobState
+from service.problems import infrastructure_problem, store_errors
 from service.settings import Settings
 from service.worker.execution import execute
 from service.worker.horse import remember_torch_threads, restore_torch_threads
@@ -29,17 +30,39 @@ def start_embedded_workers(backend: Backend, stop: threading.Event) -> list[thre
     reap(backend, force=True)  # jobs "running" in a previous process were lost with it
     sweep_workspaces(backend)  # and their temp folders with them
 
+    s = backend.settings
+
     def loop():
+        pause = 0.0
         while not stop.is_set():
-            ran = False
-            for job_id in backend.store.queued_ids():
-                if stop.is_set():
-                    break
-                try:
-                    if execute(job_id, backend) is not None:
-                        ran = True
-                except Exception:  # last resort: one job's unforeseen error never stops the worker thread
-                    log.exception("embedded worker error on %s", job_id)
+            ran, trouble = False, None
+            try:
+                for job_id in backend.store.queued_ids():
+                    if stop.is_set():
+                        break
+                    try:
+                        state = execute(job_id, backend)
+                    except Exception as exc:  # last resort: one job's unforeseen error never stops the worker thread
+                        if infrastructure_problem(exc) is None:
+                            log.exception("embedded worker error on %s", job_id)
+                            continue
+                        trouble = f"{type(exc).__name__}: {exc}"  # the store cannot take the claim
+                        break
+                    if state == JobState.queued:  # the attempt hit the infrastructure: put back for later
+                        trouble = "the last attempt hit an infrastructure error"
+                        break
+                    if state is not None:
+                        ran, pause = True, 0.0
+            except store_errors() as exc:  # the queue itself could not be read
+                trouble = f"{type(exc).__name__}: {exc}"
+            if trouble is not None:
+                # Every job needs the disk and the store: on a full disk (or a store that fails)
+                # the next job would fail the same way at once, so no job is started for a
+                # while (doubling, as a job's own retry back-off), one line each time.
+                pause = min(max(2 * pause, s.retry_backoff_base_s, 1.0), max(s.retry_backoff_max_s, 1.0))
+                log.warning("embedded worker: %s; starting no job for %.0f s", trouble, pause)
+                stop.wait(pause)
+                continue
             if not ran:
                 backend.queue.wake.wait(1.0)
                 backend.queue.wake.clear()

@@ -13,12 +13,23 @@ from __future__ import annotations
 import shutil
 import sqlite3
 import subprocess
+import time
 from pathlib import Path
 
 import httpx
 import pytest
 
-from tests.service.conftest import ALICE, PY, Proc, assert_problem, free_port, service_env, wait_job, wait_until
+from tests.service.conftest import (
+    ALICE,
+    PY,
+    Proc,
+    assert_problem,
+    free_port,
+    service_env,
+    submit_pair,
+    wait_job,
+    wait_until,
+)
 
 COARSE = {"stages": ["coarse"], "outputs": ["result"]}
 
@@ -32,14 +43,16 @@ def _namespaces_work() -> bool:
 pytestmark = pytest.mark.skipif(not _namespaces_work(), reason="needs unprivileged user namespaces (unshare -Urm)")
 
 
-@pytest.fixture
-def small_disk(tmp_path):
+def _serve_on_small_disk(tmp_path, size: str, **env_extra):
+    """`gsa serve` (embedded) with its storage and SQLite database on a tmpfs of `size`;
+    returns (url, control, proc): control("fill") fills the disk to its last byte,
+    control("free") removes that filler."""
     disk, ctl = tmp_path / "disk", tmp_path / "ctl"
     ctl.mkdir()
-    env = service_env(disk, GSA_MIN_FREE_BYTES=0)
+    env = service_env(disk, GSA_MIN_FREE_BYTES=0, **env_extra)
     env.pop("GSA_REDIS_URL", None)  # embedded mode
     port = free_port()
-    cmd = ["unshare", "-Urm", PY, "tests/service/fulldisk.py", str(disk), "16m", str(ctl), "--"]
+    cmd = ["unshare", "-Urm", PY, "tests/service/fulldisk.py", str(disk), size, str(ctl), "--"]
     cmd += [PY, "-m", "service.cli", "serve", "--port", str(port), "--log-level", "warning"]
     proc = Proc(cmd, env, tmp_path / "api.log")
     url = f"http://127.0.0.1:{port}"
@@ -60,6 +73,12 @@ def small_disk(tmp_path):
         wait_until(lambda: (ctl / done).exists(), 60, 0.05, what)
         (ctl / done).unlink()
 
+    return url, control, proc
+
+
+@pytest.fixture
+def small_disk(tmp_path):
+    url, control, proc = _serve_on_small_disk(tmp_path, "16m")
     yield url, control, proc
     proc.stop()
 
@@ -124,19 +143,105 @@ def test_a_failed_update_surfaces_its_own_error_not_the_rollbacks(tmp_path):
 
 
 def test_the_reserve_is_given_up_for_a_delete_and_taken_back(tmp_path):
-    from service.stores.sqlite_store import SQLiteJobStore
+    from service.stores.sqlite_store import RESERVE_SLICE, SQLiteJobStore
 
     store = SQLiteJobStore(tmp_path / "jobs.sqlite3", reserve_bytes=1 << 20)
     reserve = Path(str(tmp_path / "jobs.sqlite3") + ".reserve")
     assert reserve.stat().st_size == 1 << 20
     seen = []
 
-    def delete():  # full the first time, as a DELETE on a full disk is
-        seen.append(reserve.exists())
-        if len(seen) == 1:
+    def delete():  # full the first two times, as a DELETE on a full disk is
+        seen.append(reserve.stat().st_size if reserve.exists() else 0)
+        if len(seen) < 3:
             raise sqlite3.OperationalError("database or disk is full")
         return "deleted"
 
     assert store._freeing(delete) == "deleted"
-    assert seen == [True, False]  # retried once the reserve was given up
+    # retried with a slice of the reserve given up each time, not all of it at once
+    assert seen == [1 << 20, (1 << 20) - RESERVE_SLICE, (1 << 20) - 2 * RESERVE_SLICE]
     assert reserve.stat().st_size == 1 << 20  # and taken back
+
+
+@pytest.fixture(scope="module")
+def distinct_plys(tmp_path_factory):
+    """30 different 340 KB PLYs (5,000 Gaussians each) and a target."""
+    from gsa.io.ply import write_ply
+    from gsa.synth import make_object
+
+    d = tmp_path_factory.mktemp("distinct")
+    paths = []
+    for i in range(31):
+        paths.append(d / f"m{i}.ply")
+        write_ply(make_object("car", seed=100 + i, n_gaussians=5000), paths[-1])
+    return paths[0], paths[1:]
+
+
+def _log_lines(proc: Proc) -> int:
+    return len(proc.log.read_text(errors="replace").splitlines())
+
+
+@pytest.mark.slow
+def test_full_disk_with_queued_jobs_every_job_cancels_and_deletes_without_a_log_flood(tmp_path, distinct_plys, pair):
+    """Embedded mode, a 12 MB disk filled by uploads while their jobs queue (every job with
+    the default outputs). Before: `:cancel` answered 507 (its state change could not be
+    written to the full database), DELETE of jobs and assets 409, two jobs stayed "running"
+    and the worker logged ~12-18 tracebacks a second, trying one queued job after another."""
+    url, control, proc = _serve_on_small_disk(
+        tmp_path, "12m", GSA_RETRY_BACKOFF_BASE_S="2", GSA_RETRY_BACKOFF_MAX_S="8"
+    )
+    target_ply, sources = distinct_plys
+    try:
+        with httpx.Client(base_url=url, headers=ALICE, timeout=60) as c:
+            r = c.post("/v1/assets", files={"file": ("target.ply", target_ply.read_bytes())})
+            assert r.status_code == 201, r.text
+            assets, jobs = [r.json()["id"]], []
+            for p in sources:
+                r = c.post("/v1/assets", files={"file": (p.name, p.read_bytes())})
+                if r.status_code == 507:
+                    continue
+                assert r.status_code == 201, r.text
+                assets.append(r.json()["id"])
+                r = c.post("/v1/jobs", json={"source": assets[-1], "target": assets[0]})
+                if r.status_code != 507:
+                    assert r.status_code == 202, r.text
+                    jobs.append(r.json()["id"])
+            control("fill")  # to its last byte, whatever the jobs have stored so far
+            states = [c.get(f"/v1/jobs/{j}").json()["state"] for j in jobs]
+            assert states.count("queued") >= 5, states
+
+            # No flood: on the full disk the worker backs off, one line per failed attempt.
+            time.sleep(3)
+            lines, t = _log_lines(proc), time.monotonic()
+            time.sleep(10)
+            rate = (_log_lines(proc) - lines) / (time.monotonic() - t)
+            assert rate < 2, proc.tail(4000)
+
+            # Every queued and running job cancels, on the disk full to its last byte again
+            # (what the store gave up of its reserve meanwhile included).
+            control("fill")
+            for j in jobs:
+                r = c.post(f"/v1/jobs/{j}:cancel")
+                assert r.status_code == 202 or r.json().get("type", "").endswith("/job-finished"), r.text
+
+            def settled():
+                return all(c.get(f"/v1/jobs/{j}").json()["state"] not in ("queued", "running") for j in jobs)
+
+            wait_until(settled, 60, 0.5, "every job final")
+            # Then every job and every asset deletes.
+            for j in jobs:
+                r = c.delete(f"/v1/jobs/{j}")
+                assert r.status_code == 204, r.text
+            for a in assets:
+                r = c.delete(f"/v1/assets/{a}")
+                assert r.status_code == 204, r.text
+            assert c.get("/v1/jobs").json()["items"] == []
+
+            # Space back: the worker takes jobs again.
+            control("free")
+            job = submit_pair(c, pair, COARSE)
+            assert job.status_code == 202, job.text
+            assert wait_job(c, job.json()["id"], timeout=120)["state"] == "succeeded", proc.tail(4000)
+        log = proc.log.read_text(errors="replace")
+        assert log.count("Traceback") <= 2, proc.tail(8000)
+    finally:
+        proc.stop()
