@@ -76,10 +76,10 @@ class RQQueue:
             return r.lpos(self.q.key, ref) is None and r.lpos(self.q.intermediate_queue_key, ref) is None
         if status == "scheduled":
             # RQ's scheduler runs in one worker holding a lock that lapses 61 s after that
-            # worker dies (SIGKILL, OOM), and the others retry taking it every maintenance
-            # pass: meanwhile a retry's back-off message stays "scheduled" past its time. One
-            # overdue by more than two leases is re-sent now (a duplicate delivery is harmless:
-            # the claim is a compare-and-set).
+            # worker dies (SIGKILL, OOM), and the others retry taking it every 10 s
+            # (service.worker.runners): meanwhile a retry's back-off message stays "scheduled"
+            # past its time. One overdue by more than two leases is re-sent now (a duplicate
+            # delivery is harmless: the claim is a compare-and-set).
             due = self.q.connection.zscore(self.q.scheduled_job_registry.key, ref)
             return due is None or due < time.time() - 2 * self.settings.lease_s
         return status != "deferred"
