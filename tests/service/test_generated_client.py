@@ -12,6 +12,7 @@ from __future__ import annotations
 import json
 import os
 import subprocess
+import sys
 from pathlib import Path
 
 import httpx
@@ -21,7 +22,8 @@ from tests.service.conftest import ROOT, service_env, start_api
 
 pytestmark = pytest.mark.slow  # starts servers and a generator process
 
-CODEGEN = Path(os.environ.get("GSA_CODEGEN_VENV", ROOT / ".venv" / "codegen"))
+# dev.sh makes it inside the project's environment ($VENV/codegen), the one running this test
+CODEGEN = Path(os.environ.get("GSA_CODEGEN_VENV", Path(sys.prefix) / "codegen"))
 PACKAGE = "gsa_api_client"
 
 
