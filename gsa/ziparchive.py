@@ -146,6 +146,13 @@ def check_zip(
     return files
 
 
+def check_local_headers(raw: BinaryIO, infos: list[zipfile.ZipInfo], label: str) -> None:
+    """Every entry's local header against the central directory (see _check_local_header), for
+    archives read as something else than an image set (a SOG model: gsa.io.packed)."""
+    for info in infos:
+        _check_local_header(raw, info, label)
+
+
 _LOCAL = struct.Struct("<4sHHHHHIIIHH")  # a local file header up to its name and extra field
 _DESCRIPTOR_SIG = b"PK\x07\x08"
 

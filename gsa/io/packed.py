@@ -99,10 +99,16 @@ def _check_spz(data: bytes, max_gaussians: int) -> None:
 
 
 def _check_sog(data: bytes, max_gaussians: int) -> None:
+    from gsa.ziparchive import ZipArchiveError, check_local_headers
+
     try:
         with zipfile.ZipFile(io.BytesIO(data)) as zf:
             meta = json.loads(zf.read("meta.json"))
             unpacked = sum(i.file_size for i in zf.infolist())
+            # gaussforge may read by the local headers where zipfile reads by the directory
+            check_local_headers(io.BytesIO(data), [i for i in zf.infolist() if not i.is_dir()], "the archive")
+    except ZipArchiveError as exc:
+        raise PackedError(str(exc).removeprefix("the archive: ")) from None
     except (zipfile.BadZipFile, KeyError, OSError, ValueError, EOFError) as exc:
         raise PackedError(f"not a readable SOG archive ({exc})") from None
     count = meta.get("count", meta.get("means", {}).get("shape", [0])[0]) if isinstance(meta, dict) else 0

@@ -155,3 +155,17 @@ def test_a_ply_whose_header_count_disagrees_with_its_body_is_refused_at_upload(h
     for content in (data, _ascii(header, body, n), packed):
         r = http.post("/v1/assets", files={"file": ("fine.ply", content)})
         assert r.status_code == 201 and r.json()["n_gaussians"] == n, r.text
+
+
+def test_a_sog_whose_local_headers_disagree_with_its_directory_is_422(http, formatted):
+    """A SOG model is a zip: its entries' local headers are held to its central directory as an
+    image set's are (zipfile reads by the directory, the decoder need not)."""
+    from tests.zip_defects import set_local
+
+    data = write_model(formatted["model"], formatted["dir"] / "m.sog", "sog").read_bytes()
+    for which, value in (("usize", 7), ("crc", 0x12345678)):
+        r = http.post("/v1/assets", files={"file": ("m.sog", set_local(data, which, value, nth=1))})
+        detail = assert_problem(r, 422, "invalid-input")["detail"]
+        assert "its local header says" in detail and "the central directory" in detail, detail
+    r = http.post("/v1/assets", files={"file": ("m.sog", data)})
+    assert r.status_code == 201 and r.json()["n_gaussians"] == len(formatted["model"]), r.text
