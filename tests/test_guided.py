@@ -189,6 +189,35 @@ def test_up_axes_hold_and_fixed_scale_is_kept(pair):
     assert rre_deg(fixed.transform.rotation, truth.rotation) < 2.0
 
 
+def test_up_and_front_axes_decide_which_way_the_model_faces(pair):
+    """Up alone leaves the turn about it to the models; the front says which way it faces: the
+    answer follows the given fronts, even where they point a half turn away from the truth."""
+    source, target, truth = pair
+    up, front = np.array([0.0, 0.0, 1.0]), np.array([1.0, 0.0, 0.0])
+    ups = (up, truth.rotation @ up)
+    right = align(source, target, AlignOptions(up_axes=ups, front_axes=(front, truth.rotation @ front)))
+    assert rre_deg(right.transform.rotation, truth.rotation) < 2.0
+    assert right.metrics["guidance"]["front_axes"] is not None
+    # A person who says the target faces the other way gets the answer that faces the other way.
+    reversed_front = align(source, target, AlignOptions(up_axes=ups, front_axes=(front, -(truth.rotation @ front))))
+    turned = truth.rotation @ axis_rotation(up, np.pi)
+    assert rre_deg(reversed_front.transform.rotation, turned) < 20.0
+    assert rre_deg(reversed_front.transform.rotation, truth.rotation) > 140.0
+
+
+def test_fronts_keep_only_the_turns_about_up_that_face_them():
+    up, front = np.array([0.0, 0.0, 1.0]), np.array([1.0, 0.0, 0.0])
+    everything = up_rotations(up, up)
+    kept = up_rotations(up, up, fronts=(front, front))
+    assert len(everything) == 180 and 0 < len(kept) < len(everything) / 3
+    assert all((r @ front) @ front >= np.cos(np.radians(GuidanceCriteria().front_reach_deg)) for _, r in kept)
+    # in file coordinates the fronts turn with the files' frames as the up axes do
+    fronts = hints_from_files(
+        AlignOptions(up_axes=([0, 1, 0], [0, 1, 0]), front_axes=([0, 0, 1], [0, 0, 1])), "spz", "ply"
+    )
+    assert np.allclose(fronts.front_axes[0], [0, 0, -1]) and np.allclose(fronts.front_axes[1], [0, 0, 1])
+
+
 @pytest.mark.parametrize(
     "options, message",
     [
@@ -202,6 +231,9 @@ def test_up_axes_hold_and_fixed_scale_is_kept(pair):
         (dict(up_axes=([0, 0, 0], [0, 0, 1])), "must not be zero"),
         (dict(up_axes=[[0, 0, 1]]), "two vectors"),
         (dict(fixed_scale=-1.0), "fixed_scale"),
+        (dict(front_axes=([1, 0, 0], [1, 0, 0])), "needs up_axes"),
+        (dict(up_axes=([0, 0, 1], [0, 0, 1]), front_axes=([0, 0.1, 1], [1, 0, 0])), "within 20 deg"),
+        (dict(up_axes=([0, 0, 1], [0, 0, 1]), front_axes=[[1, 0, 0]]), "two vectors"),
         (dict(init_transform=np.eye(4), point_pairs=([[0, 0, 0], [1, 0, 0], [0, 1, 0]],) * 2), "not both"),
     ],
 )

@@ -68,4 +68,7 @@ def hints_from_files(options, source_format: str = "ply", target_format: str = "
     if options.up_axes is not None:
         src_up, dst_up = (np.asarray(v, np.float64) for v in options.up_axes)
         changes["up_axes"] = (to_src.rotation.T @ src_up, to_dst.rotation.T @ dst_up)
+    if options.front_axes is not None:
+        src_front, dst_front = (np.asarray(v, np.float64) for v in options.front_axes)
+        changes["front_axes"] = (to_src.rotation.T @ src_front, to_dst.rotation.T @ dst_front)
     return replace(options, **changes) if changes else options

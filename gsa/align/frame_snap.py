@@ -128,6 +128,8 @@ def up_snap(pair, best, transform: Sim3, metrics: dict) -> tuple[Sim3, dict]:
     src_up, dst_up = (np.asarray(v, np.float64) / np.linalg.norm(v) for v in opts.up_axes)
     rotations = manhattan.relabellings(*pair.normal_frames)
     keeps = np.array([(r @ src_up) @ dst_up >= np.cos(np.radians(UP_KEPT_DEG)) for r in rotations])
+    if opts.front_axes is not None:
+        keeps &= np.array([guided.keeps_front(r, opts.front_axes) for r in rotations])
     if not keeps.any():  # no relabelling keeps the given up axes (a wrong hint): nothing for the frames to say
         return transform, metrics
     candidates = np.flatnonzero(keeps)
@@ -308,6 +310,9 @@ def choose_relabelling(
     on_frames = frames_hold or bool(offsets[current] <= CHOICE_MAX_DEG)
     pick = order[0] if on_frames and total[order[0]] > total[current] + CHOICE_MARGIN else current
     turned = pick != current or frames_hold
+    geometry = geometry_prefers(pair, transform, poses[pick], metrics) if turned else None
+    if geometry is not None and geometry["answer_wins"]:
+        turned, pick = False, current
     report = {
         "used": on_frames,
         "frames_hold": frames_hold,
@@ -318,6 +323,7 @@ def choose_relabelling(
         "on": current,  # the nearest relabelling to the answer
         "picked": pick,
         "switched": turned,
+        "geometry": geometry,
     }
     chosen = poses[pick] if turned else transform
     offered = [chosen]
@@ -350,6 +356,27 @@ def choose_relabelling(
     if semantic is not None and turned:
         updated["semantic_score"] = float(semantic[pick])
     return chosen, updated | {"frame_choice": report}
+
+
+def geometry_prefers(pair, answer: Sim3, turned: Sim3, metrics: dict) -> dict:
+    """Whether the models' own geometry keeps the answer against a turn onto the frames: the
+    turned pose taken on by the anchors' ICP (as the search takes its starts) and both scored
+    as the search ranks its poses; the answer wins where it leads by more than a tie
+    (PoseCriteria.score_tie). The frames' rules break ties the geometry leaves between other
+    instances; where the answer fits clearly better (two captures of one object, a deformed
+    copy whose frames moved with the bend) no rule made for other instances may turn it off."""
+    src, dst = pair.anchors()
+    weight = float(metrics.get("colour_weight") or 0.0)
+    k = robust.PoseCriteria()
+    kept = robust.score_pose(src, dst, answer, "answer", weight)
+    rival = robust.score_pose(src, dst, pair.constrain(pair.approach(turned)), "turned", weight)
+    measure = (lambda c: c.geometry) if metrics.get("ranked_by") == "geometry" else (lambda c: c.score)
+    lead = measure(kept) - measure(rival)
+    return {
+        "answer": round(measure(kept), 4),
+        "turned": round(measure(rival), 4),
+        "answer_wins": bool(lead > k.score_tie),
+    }
 
 
 def replaced_pose(transform: Sim3, metrics: dict, origin: str) -> dict:

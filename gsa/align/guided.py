@@ -7,6 +7,8 @@ Hints (AlignOptions fields; each optional):
   out), then the same local refinement.
 - up_axes: the up vector of each model: the search only turns about it, and every later pose
   is brought back onto it (a cross-instance refinement can tilt).
+- front_axes (with up_axes): the way each model faces: the turns about up are those that keep
+  the fronts within front_reach_deg (up alone cannot tell a nose from a tail).
 - fixed_scale: the answer's scale, kept through every stage.
 
 Functions taking `opts` take a gsa.align.AlignOptions (not imported here: it imports this module);
@@ -60,13 +62,20 @@ class GuidanceCriteria:
     # The local search also starts from the given pose turned by this about each axis, both ways
     # (the anchors' ICP from one start can stop in a nearer, worse minimum).
     local_turn_deg: float = 15.0
+    # Given fronts keep the turns about up within this of agreeing: a person's "front" is a
+    # rough direction (a click, a guess between instances), and a quarter turn is another answer.
+    front_reach_deg: float = 45.0
+    # A front within this of its model's up says nothing about the turn about up.
+    front_tilt_min_deg: float = 20.0
 
 
 _DEFAULT = GuidanceCriteria()
 
 
 def is_guided(opts) -> bool:
-    return any(x is not None for x in (opts.init_transform, opts.point_pairs, opts.up_axes, opts.fixed_scale))
+    return any(
+        x is not None for x in (opts.init_transform, opts.point_pairs, opts.up_axes, opts.front_axes, opts.fixed_scale)
+    )
 
 
 def _finite(values, name: str, shape: tuple[int, ...] | None = None) -> np.ndarray:
@@ -102,11 +111,36 @@ def check_guidance(opts) -> None:
                 raise ValueError(f"{name} must not be zero")
             ups.append(v / np.linalg.norm(v))
         opts.up_axes = (_tuple(ups[0]), _tuple(ups[1]))
+    if opts.front_axes is not None:
+        opts.front_axes = _checked_fronts(opts.front_axes, opts.up_axes)
     if opts.fixed_scale is not None:
         scale = float(_finite(opts.fixed_scale, "fixed_scale", ()))
         if not 1e-6 <= scale <= 1e6:
             raise ValueError("fixed_scale must be in 1e-6..1e6")
         opts.fixed_scale = scale
+
+
+def _checked_fronts(front_axes, up_axes) -> tuple:
+    """The fronts across their models' up axes, unit length; up_axes must be given, and each
+    front must lean at least front_tilt_min_deg off its up."""
+    if up_axes is None:
+        raise ValueError("front_axes needs up_axes: the front says which way to turn about up")
+    try:
+        src_front, dst_front = front_axes
+    except (TypeError, ValueError):
+        raise ValueError("front_axes must be two vectors: the source's front and the target's front") from None
+    fronts = []
+    for name, v, up in (("source front axis", src_front, up_axes[0]), ("target front axis", dst_front, up_axes[1])):
+        v = _finite(v, name, (3,))
+        up = np.asarray(up, np.float64)
+        across = v - (v @ up) * up
+        norm = float(np.linalg.norm(v))
+        if not norm > 1e-12 or np.linalg.norm(across) < np.sin(np.radians(_DEFAULT.front_tilt_min_deg)) * norm:
+            raise ValueError(
+                f"{name} must not be zero or within {_DEFAULT.front_tilt_min_deg:g} deg of that model's up axis"
+            )
+        fronts.append(across / np.linalg.norm(across))
+    return (_tuple(fronts[0]), _tuple(fronts[1]))
 
 
 def _tuple(a: np.ndarray):
@@ -191,11 +225,25 @@ def _fit(src: np.ndarray, dst: np.ndarray, fixed_scale: float | None) -> Sim3:
     return Sim3(fixed_scale, fit.rotation, dst.mean(0) - fixed_scale * fit.rotation @ src.mean(0))
 
 
-def up_rotations(src_up, dst_up, criteria: GuidanceCriteria | None = None) -> list[tuple[str, np.ndarray]]:
-    """Every rotation taking the source's up onto the target's, turned about it in steps of up_step_deg."""
-    step_deg = (criteria or _DEFAULT).up_step_deg
+def up_rotations(src_up, dst_up, criteria: GuidanceCriteria | None = None, fronts=None) -> list[tuple[str, np.ndarray]]:
+    """Every rotation taking the source's up onto the target's, turned about it in steps of
+    up_step_deg; with `fronts` (source front, target front), those that keep them within
+    front_reach_deg."""
+    k = criteria or _DEFAULT
     base = _min_rotation(np.asarray(src_up, np.float64), np.asarray(dst_up, np.float64))
-    return [(f"up:{deg:g}", axis_rotation(dst_up, np.radians(deg)) @ base) for deg in np.arange(0.0, 360.0, step_deg)]
+    rotations = [
+        (f"up:{deg:g}", axis_rotation(dst_up, np.radians(deg)) @ base) for deg in np.arange(0.0, 360.0, k.up_step_deg)
+    ]
+    if fronts is None:
+        return rotations
+    return [(name, r) for name, r in rotations if keeps_front(r, fronts, k)]
+
+
+def keeps_front(rotation: np.ndarray, fronts, criteria: GuidanceCriteria | None = None) -> bool:
+    """Whether `rotation` maps the source's front within front_reach_deg of the target's."""
+    src_front, dst_front = (np.asarray(v, np.float64) for v in fronts)
+    reach = (criteria or _DEFAULT).front_reach_deg
+    return bool((rotation @ src_front) @ dst_front >= np.cos(np.radians(reach)))
 
 
 def _min_rotation(a: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -360,6 +408,7 @@ def describe(opts) -> dict:
         "init_transform": opts.init_transform is not None,
         "point_pairs": None if opts.point_pairs is None else len(opts.point_pairs[0]),
         "up_axes": None if opts.up_axes is None else [list(v) for v in opts.up_axes],
+        "front_axes": None if opts.front_axes is None else [list(v) for v in opts.front_axes],
         "fixed_scale": opts.fixed_scale,
     }
 
@@ -373,6 +422,7 @@ __all__ = [
     "doubt_reason",
     "init_sim3",
     "is_guided",
+    "keeps_front",
     "local_turns",
     "near_start",
     "pair_arrays",

@@ -108,6 +108,10 @@ class AlignOptions:
             found and left out), then the same local refinement.
         up_axes: (source up, target up), one vector each in its model's coordinates: every pose
             keeps them aligned (the search turns about the up axis only).
+        front_axes: (source front, target front), with up_axes: which way each model faces
+            (its nose, its front door), so a nose-for-tail turn about up is ruled out: the
+            search turns about up only within GuidanceCriteria.front_reach_deg of the fronts
+            agreeing. Only their parts across the up axes count.
         fixed_scale: the scale s of the answer, when the user knows it.
         rigid: the two models are captures of one rigid object (two reconstructions, two
             scans), never another instance or a deformed copy: where they coincide nowhere at
@@ -157,6 +161,7 @@ class AlignOptions:
     init_transform: tuple | None = None
     point_pairs: tuple | None = None
     up_axes: tuple | None = None
+    front_axes: tuple | None = None
     fixed_scale: float | None = None
     rigid: bool = False
     semantic: Literal["auto", "off"] = "auto"
