@@ -385,3 +385,24 @@ def test_frames_that_hold_little_of_the_surfaces_turn_nothing(tmp_path):
     assert "frame_snap" not in m and "frame_choice" not in m
     boxes = _Pair.build(*_pair(tmp_path, truth), AlignOptions(semantic="off"))
     assert frame_snap.frames_supported(boxes), [f.support for f in boxes.normal_frames]
+
+
+def test_the_geometry_keeps_an_answer_it_fits_clearly_better_than_a_turn_onto_the_frames(tmp_path):
+    """Two samplings of one bench, one bent: the frames' rules are made for other instances,
+    and a turn end for end that the surfaces fit clearly worse is refused; a turn the geometry
+    cannot tell from the answer is left to the frames."""
+    from gsa.align.frame_snap import geometry_prefers
+    from gsa.align.pipeline import AlignOptions, _Pair
+    from gsa.synth.variants import deform
+
+    truth = random_sim3(np.random.default_rng(7))
+    source = _bench((1.0, 0.15, 0.35), (0.12, 0.45, 0.35), 1, tmp_path)
+    other = _bench((1.0, 0.15, 0.35), (0.12, 0.45, 0.35), 2, tmp_path)
+    target = deform(other, np.random.default_rng(3)).transformed(truth)
+    pair = _Pair.build(source, target, AlignOptions())
+    centre = pair.src_frame.center
+    half = axis_rotation(np.array([0.0, 1.0, 0.0]), np.pi)
+    end_for_end = truth.compose(Sim3(1.0, half, centre - half @ centre))
+    refused = geometry_prefers(pair, truth, end_for_end, {"colour_weight": 0.0})
+    assert refused["answer_wins"] and refused["answer"] > refused["turned"]
+    assert not geometry_prefers(pair, truth, truth, {"colour_weight": 0.0})["answer_wins"]

@@ -16,6 +16,7 @@ from gsa.align import scene as S
 from gsa.align.pipeline import AlignOptions, align
 from gsa.bench.pairs import SCENE_HARD
 from gsa.bench.scene import scene_judge
+from gsa.geometry import axis_rotation
 from gsa.io.ply import write_ply
 from gsa.metrics import rre_deg, scale_error_pct
 from gsa.sim3 import Sim3
@@ -152,3 +153,29 @@ def test_cli_scene_flag(room_pair, tmp_path):
     assert ran == {"on": True, "off": False}
     bad = _cli("align", src, tgt, "--scene", "maybe", "--out", tmp_path / "x.json")
     assert bad.returncode != 0 and "--scene" in bad.stderr
+
+
+def test_a_doubtful_scene_answer_is_weighed_against_the_object_paths(room_pair):
+    """Objects pass the scene test too (a mug, a car with its seats): a doubtful scene answer
+    meets the object path's, the better fit wins by more than a tie, and the other is offered."""
+    from dataclasses import replace
+
+    from gsa.align.pipeline import _second_opinion
+
+    cap = room_pair
+    rooms = align(cap.source, cap.target, AlignOptions(scene="on"))
+    assert rre_deg(rooms.transform.rotation, cap.truth.rotation) < 2.0
+    centre = cap.source.means.mean(0).astype(np.float64)
+    turn = axis_rotation(np.array([0.0, 0.0, 1.0]), np.radians(90.0))
+    wrong = rooms.transform.compose(Sim3(1.0, turn, centre - turn @ centre))
+    objects = replace(rooms, transform=wrong, metrics={"alternatives": [], "doubtful": True})
+    kept = _second_opinion(cap.source, cap.target, AlignOptions(), rooms, objects)
+    assert kept.transform is rooms.transform and kept.metrics["doubtful"]
+    assert kept.metrics["scene"]["second_opinion"]["chosen"] == "scene path"
+    offered = [a for a in kept.metrics["alternatives"] if a["origin"] == "object path"]
+    assert len(offered) == 1 and np.allclose(offered[0]["transform"], wrong.matrix())
+    # the other way round: the object path's better fit replaces a wrong scene answer
+    swapped = _second_opinion(cap.source, cap.target, AlignOptions(), objects, replace(rooms, metrics={}))
+    assert swapped.metrics["scene"]["second_opinion"]["chosen"] == "object path"
+    assert rre_deg(swapped.transform.rotation, cap.truth.rotation) < 2.0
+    assert any(a["origin"] == "scene path" for a in swapped.metrics["alternatives"])

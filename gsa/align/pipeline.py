@@ -490,7 +490,7 @@ def _second_opinion(
         "chosen": "object path" if chosen is objects else "scene path",
     }
     chosen.metrics = chosen.metrics | {"alternatives": alternatives, "doubtful": True}
-    chosen.metrics["scene"] = rooms.metrics["scene"] | {"second_opinion": report}
+    chosen.metrics["scene"] = rooms.metrics.get("scene", {}) | {"second_opinion": report}
     chosen.timings = rooms.timings | {f"object_path_{k}": v for k, v in objects.timings.items()}
     chosen.lifting = rooms.lifting
     return chosen
