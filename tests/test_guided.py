@@ -1,4 +1,4 @@
-"""Guided alignment (gsa.align.guided): start poses, picked pairs, up axes, fixed scale."""
+"""Guided alignment (gsa.align.guided): start poses, picked pairs, up and front axes, fixed scale."""
 
 import json
 import subprocess
@@ -300,6 +300,30 @@ def test_up_axes_that_begin_with_a_minus_sign_are_values_not_options(value, expe
 
     args = build_parser().parse_args(["align", "a.ply", "b.ply", "--up", value])
     assert _guidance_fields(args)["up_axes"] == expected
+
+
+def test_front_axes_on_the_command_line_reach_the_options():
+    """--front X,Y,Z:X,Y,Z beside --up, minus signs and all, becomes AlignOptions.front_axes (in
+    the internal frame once the files' formats are known); without --up it is one error line."""
+    from gsa.align.command import _align_options, _guidance_fields
+    from gsa.cli import build_parser
+    from gsa.cli_base import CliError
+
+    argv = ["align", "a.spz", "b.ply", "--up", "0,1,0:0,-1,0", "--front", "-2,.5,0:-0,0,-1", "--seed", "3"]
+    args = build_parser().parse_args(argv)
+    assert args.seed == 3 and _guidance_fields(args)["front_axes"] == ((-2.0, 0.5, 0.0), (0.0, 0.0, -1.0))
+    options = _align_options(args)
+    assert options.front_axes == ((-1.0, 0.0, 0.0), (0.0, 0.0, -1.0))  # across up, unit length
+    internal = hints_from_files(options, "spz", "ply")  # SPZ: a half turn about x
+    assert np.allclose(internal.front_axes[0], [-1, 0, 0]) and np.allclose(internal.front_axes[1], [0, 0, -1])
+    assert np.allclose(internal.up_axes[0], [0, -1, 0])
+    for bad, words in (
+        (["--front", "1,0,0:1,0,0"], "front_axes needs up_axes"),
+        (["--up", "0,1,0:0,1,0", "--front", "1,0,0"], "--front 1,0,0: expected X,Y,Z:X,Y,Z"),
+        (["--up", "0,1,0:0,1,0", "--front", "0,1,0:1,0,0"], "within 20 deg"),
+    ):
+        with pytest.raises(CliError, match=words):
+            _align_options(build_parser().parse_args(["align", "a.ply", "b.ply", *bad]))
 
 
 def test_an_option_after_a_vector_is_still_an_option():

@@ -1,7 +1,8 @@
 """The results page's guide on `gsa view` (issue 27): alternatives stated in file coordinates by
 the result writer, the page's guide config, and, in headless Chromium against a real `gsa view`,
-each control (alternatives, point picking by mouse and keyboard, up axes) showing the `gsa align`
-command that a person then runs: the commands are run here too and their results checked.
+each control (alternatives, point picking by mouse and keyboard, up and front axes) showing the
+`gsa align` command that a person then runs: the commands are run here too and their results
+checked.
 
 The source is an SPZ file (a 180° turn from the internal frame the previews are drawn in), so a
 point, pose or axis sent without its conversion into file coordinates fails these tests."""
@@ -257,6 +258,52 @@ def test_guide_controls_on_gsa_view(spz_pair, tmp_path):
 
             assert page.evaluate("() => gsaViewer.guide.requests.length") == 3
             assert project(page, "target", [0, 0, 0]) is not None
+            assert errors(messages) == [], messages
+    finally:
+        proc.terminate()
+        proc.wait(10)
+
+
+@pytest.mark.slow
+def test_front_axes_on_gsa_view(spz_pair, tmp_path):
+    """The fronts beside the up axes: both or neither, each across its own up (a message beside
+    them, and nothing shown, otherwise); given, the command carries --front in file coordinates
+    after --up, and its run reports them (internal frame: the SPZ source's turned back)."""
+    proc, url = serve(spz_pair["dir"] / "out" / "result.json")
+    try:
+        with browser_page() as (page, messages):
+            page.goto(url)
+            assert wait_ready(page)["error"] is None
+            page.select_option("#up-source", "+y")
+            page.select_option("#up-target", "+z")
+            assert not page.locator("#front-error").is_visible()
+            for source, target, words in (("+x", "", "both fronts"), ("-y", "+y", "source front is along its up")):
+                page.select_option("#front-source", source)
+                page.select_option("#front-target", target)
+                page.click("#up-submit")
+                assert words in page.locator("#front-error").inner_text()
+                assert page.locator("#guide-command").count() == 0
+            assert page.evaluate("() => gsaViewer.guide.requests.length") == 0
+            # TRUTH turns the source's x (SPZ +x, internal +x) 130° about the target's +z: +y is
+            # the target's axis nearest it (40° off, within the fronts' 45°).
+            page.select_option("#front-source", "+x")
+            page.select_option("#front-target", "+y")
+            assert not page.locator("#front-error").is_visible()  # a change clears the message
+            page.click("#up-submit")
+            command = page.locator("#guide-command").inner_text()
+            assert " --up 0,1,0:0,0,1 --front 1,0,0:0,1,0 " in command
+            assert page.evaluate("() => gsaViewer.guide.requests.at(-1)") == {
+                "up_axes": [[0, 1, 0], [0, 0, 1]],
+                "front_axes": [[1, 0, 0], [0, 1, 0]],
+            }
+            refined = run_shown_command(command, tmp_path / "front")
+            np.testing.assert_allclose(refined["metrics"]["guidance"]["front_axes"], [[1, 0, 0], [0, 1, 0]], atol=1e-9)
+            assert rre_deg(np.asarray(refined["rotation"]), file_truth_rotation()) < 5.0
+            # "not given" on both: the up axes alone, as before
+            page.select_option("#front-source", "")
+            page.select_option("#front-target", "")
+            page.click("#up-submit")
+            assert "--front" not in page.locator("#guide-command").inner_text()
             assert errors(messages) == [], messages
     finally:
         proc.terminate()

@@ -81,7 +81,7 @@ def _read_json_arg(path: str, flag: str):
 
 
 def _guidance_fields(args: argparse.Namespace) -> dict:
-    """--pairs / --up / --scale in each file's own coordinates (converted once the files are
+    """--pairs / --up / --front / --scale in each file's own coordinates (converted once the files are
     read, gsa.align.contract.hints_from_files); --init is resolved in `_init_transform`."""
     fields: dict = {}
     if getattr(args, "pairs", None):
@@ -90,15 +90,24 @@ def _guidance_fields(args: argparse.Namespace) -> dict:
             raise CliError(f'--pairs {args.pairs}: expected {{"source": [[x, y, z], …], "target": [[x, y, z], …]}}')
         fields["point_pairs"] = (data["source"], data["target"])
     if getattr(args, "up", None):
-        try:
-            fields["up_axes"] = tuple(tuple(float(x) for x in part.split(",")) for part in args.up.split(":"))
-        except ValueError:
-            raise CliError(f"--up {args.up}: expected X,Y,Z:X,Y,Z (source up : target up)") from None
-        if len(fields["up_axes"]) != 2:
-            raise CliError(f"--up {args.up}: expected X,Y,Z:X,Y,Z (source up : target up)")
+        fields["up_axes"] = _axis_pair(args.up, "--up", "up")
+    if getattr(args, "front", None):
+        fields["front_axes"] = _axis_pair(args.front, "--front", "front")
     if getattr(args, "scale", None) is not None:
         fields["fixed_scale"] = args.scale
     return fields
+
+
+def _axis_pair(value: str, flag: str, what: str) -> tuple:
+    """X,Y,Z:X,Y,Z -> (source vector, target vector); the library checks their values."""
+    expected = f"{flag} {value}: expected X,Y,Z:X,Y,Z (source {what} : target {what})"
+    try:
+        pair = tuple(tuple(float(x) for x in part.split(",")) for part in value.split(":"))
+    except ValueError:
+        raise CliError(expected) from None
+    if len(pair) != 2:
+        raise CliError(expected)
+    return pair
 
 
 def _init_transform(args: argparse.Namespace) -> tuple[list | None, bool]:
@@ -237,6 +246,12 @@ def add_align_arguments(p: argparse.ArgumentParser) -> None:
         "--pairs", metavar="JSON", help='≥ 3 picked point pairs: {"source": [[x,y,z],…], "target": [[x,y,z],…]}'
     )
     g.add_argument("--up", metavar="X,Y,Z:X,Y,Z", help="the up vector in the source's and in the target's coordinates")
+    g.add_argument(
+        "--front",
+        metavar="X,Y,Z:X,Y,Z",
+        help="with --up: the way each model faces, in the source's and in the target's coordinates "
+        "(the turns about up kept within 45° of the fronts agreeing)",
+    )
     g.add_argument("--scale", type=float, metavar="S", help="fix the scale of the answer")
     g.add_argument(
         "--rigid",

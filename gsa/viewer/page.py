@@ -207,8 +207,9 @@ def result_section(index: int, view: ResultView) -> str:
     )
 
 
-# Up-axis choices of the guide (gsa align --up, REST/gRPC up_axes): unit vectors in a file's own
-# coordinates; the viewer turns them into the internal frame the previews are drawn in.
+# Up- and front-axis choices of the guide (gsa align --up/--front, REST/gRPC up_axes/front_axes):
+# unit vectors in a file's own coordinates; the viewer turns them into the internal frame the
+# previews are drawn in.
 AXES = {"+x": (1, 0, 0), "-x": (-1, 0, 0), "+y": (0, 1, 0), "-y": (0, -1, 0), "+z": (0, 0, 1), "-z": (0, 0, -1)}
 
 
@@ -266,11 +267,12 @@ def guide_config(result: dict) -> dict:
 
 
 def _guide(view: ResultView, mode: str) -> str:
-    """The guide's controls (web/src/main.js drives them): alternatives, point pairs, up axes and
-    a known scale (sent with each of the others)."""
+    """The guide's controls (web/src/main.js drives them): alternatives, point pairs, up axes
+    (with the fronts, when given) and a known scale (sent with each of the others)."""
     m = view.result.get("metrics") if isinstance(view.result.get("metrics"), dict) else {}
     n_alt = len(m.get("alternatives") or [])
     axes = "".join(f'<option value="{a}">{a}</option>' for a in AXES)
+    fronts = '<option value="">not given</option>' + axes  # front_axes is optional
     act = (
         "starts a follow-up job; its page opens here and shows the result when it is done"
         if mode == "service"
@@ -296,7 +298,12 @@ def _guide(view: ResultView, mode: str) -> str:
         "<fieldset><legend>Up axes (in each file's own coordinates)</legend>"
         f"<label>source up <select id=up-source>{axes}</select></label> "
         f"<label>target up <select id=up-target>{axes}</select></label> "
-        "<button type=button id=up-submit>Align with these up axes</button></fieldset>"
+        f"<label>source front <select id=front-source aria-describedby=front-error>{fronts}</select></label> "
+        f"<label>target front <select id=front-target aria-describedby=front-error>{fronts}</select></label> "
+        "<button type=button id=up-submit>Align with these up axes</button>"
+        "<p class=hint>Optional: the way each model faces (its nose, its front door), across its up: "
+        "the answer then turns about up only where the two fronts agree.</p>"
+        "<p id=front-error class=error role=alert hidden></p></fieldset>"
         "<fieldset><legend>Scale</legend>"
         "<label>known scale (target units per source unit) "
         '<input id=scale-input type=text inputmode=decimal size=10 placeholder="not fixed" '

@@ -227,11 +227,11 @@ async def delete_job(job_id: str, owner: Owner, b: B):
     summary="Refine a finished job from a chosen pose or picked point pairs",
     description="Creates a follow-up job on the parent's own inputs and options, starting from one of "
     "the parent result's `metrics.alternatives` (`alternative`: its index), a pose (`init_transform`) or "
-    "picked point pairs (`point_pairs`); `up_axes` and `fixed_scale` replace the parent's (null drops "
-    "one). The new job has `parent_job`; the parent lists it in `children`. 409 while the parent is "
-    "queued or running (and for `alternative` when it has no result); 422 for a bad hint or an "
-    "alternative index the result does not have. `/v1/jobs/{job_id}/refine` is the same operation. "
-    "`Idempotency-Key` as for createJob.",
+    "picked point pairs (`point_pairs`); `up_axes`, `front_axes` and `fixed_scale` replace the parent's "
+    "(null drops one; new `up_axes` without `front_axes` drop the parent's fronts). The new job has "
+    "`parent_job`; the parent lists it in `children`. 409 while the parent is queued or running (and "
+    "for `alternative` when it has no result); 422 for a bad hint or an alternative index the result "
+    "does not have. `/v1/jobs/{job_id}/refine` is the same operation. `Idempotency-Key` as for createJob.",
     responses=problem_responses(401, 404, 409, 422),
 )
 async def refine_job(

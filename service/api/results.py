@@ -90,6 +90,9 @@ class Guidance(_Open):
     init_transform: bool | None = Field(None, description="started from a given pose")
     point_pairs: int | None = Field(None, description="how many picked pairs were given")
     up_axes: list[list[float]] | None = Field(None, description="(source up, target up), unit length, internal frame")
+    front_axes: list[list[float]] | None = Field(
+        None, description="(source front, target front), across their up axes, unit length, internal frame"
+    )
     fixed_scale: float | None = None
     start: dict[str, Any] | None = Field(
         None,

@@ -71,14 +71,15 @@ class Problem(BaseModel):
 
 class RefineIn(BaseModel):
     """POST /v1/jobs/{id}:refine: where the follow-up job starts (exactly one of alternative,
-    init_transform, point_pairs) and, optionally, new up_axes / fixed_scale (null drops the
-    parent's). Checked by service.jobs.core.refine_options and service.jobs.options (422 naming the field)."""
+    init_transform, point_pairs) and, optionally, new up_axes / front_axes / fixed_scale (null
+    drops the parent's; new up_axes without front_axes drop the parent's fronts). Checked by service.jobs.core.refine_options and service.jobs.options (422 naming the field)."""
 
     model_config = ConfigDict(extra="forbid")
     alternative: Any = Field(None, description="index into the parent result's metrics.alternatives", examples=[0])
     init_transform: Any = hint_field("init_transform", "start from this pose")
     point_pairs: Any = hint_field("point_pairs", "start from these picked pairs")
     up_axes: Any = hint_field("up_axes", "keep these up axes aligned")
+    front_axes: Any = hint_field("front_axes", "with up_axes: turn about up only where these fronts agree")
     fixed_scale: Any = Field(None, description="the answer's scale (null: free)", json_schema_extra={"type": "number"})
 
 

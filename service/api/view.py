@@ -248,8 +248,8 @@ async def job_page_refine(job_id: str, body: RefineIn, request: Request) -> JSON
 
 
 def _search_again(b: Backend, owner: str, parent_id: str, hints: dict) -> Job:
-    """A follow-up job on the parent's inputs and options with new up_axes (and fixed_scale when
-    given) and no start: the search runs again, turning only about the up axes. The REST refine
+    """A follow-up job on the parent's inputs and options with new up_axes (and front_axes and
+    fixed_scale when given) and no start: the search runs again, turning only about the up axes. The REST refine
     takes exactly one start (alternative, init_transform, point_pairs); a person who only knows
     which way is up needs the search, not a local refinement of a pose they doubt. Linked to the
     parent as core.refine_job links its jobs."""
@@ -259,9 +259,9 @@ def _search_again(b: Backend, owner: str, parent_id: str, hints: dict) -> Job:
     if len(parent.sources) != 1:
         raise invalid_input(f"job {parent.id} aligns {len(parent.sources)} sources; refine takes a job with one source")
     options = {k: v for k, v in parent.options.items() if k not in ("init_transform", "point_pairs")}
-    options.update({k: hints[k] for k in ("up_axes", "fixed_scale") if k in hints})
+    options = core.refined_hints(options, {k: hints[k] for k in core.REFINE_HINTS if k in hints})
     options = {k: v for k, v in options.items() if v is not None}
-    core.check_request(b, 1, options, parent.webhook)  # 422 naming a bad up_axes
+    core.check_request(b, 1, options, parent.webhook)  # 422 naming a bad up_axes or front_axes
     refs = (*parent.sources, parent.target)
     assets = [b.store.get_asset(ref.asset_id) for ref in refs]
     if any(a is None or a.owner != owner or a.key != ref.key for a, ref in zip(assets, refs)):

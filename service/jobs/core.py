@@ -538,13 +538,15 @@ def get_artifact(b: Backend, owner: str, job_id: str, name: str):
 # POST /v1/jobs/{id}:refine and gRPC RefineJob: where the follow-up job starts (exactly one) and
 # the hints it may change (the parent's are kept unless given; null drops one).
 REFINE_STARTS = ("alternative", "init_transform", "point_pairs")
-REFINE_FIELDS = (*REFINE_STARTS, "up_axes", "fixed_scale")
+REFINE_HINTS = ("up_axes", "front_axes", "fixed_scale")
+REFINE_FIELDS = (*REFINE_STARTS, *REFINE_HINTS)
 
 
 def refine_options(parent: Job, hints: dict[str, Any]) -> dict[str, Any]:
     """The follow-up job's options: the parent's, its start replaced by the one chosen in
-    `hints` (an alternative of its result, init_transform or point_pairs), up_axes and
-    fixed_scale the parent's unless `hints` gives them. 422 naming the field for a bad one."""
+    `hints` (an alternative of its result, init_transform or point_pairs), up_axes, front_axes
+    and fixed_scale the parent's unless `hints` gives them (refined_hints). 422 naming the field
+    for a bad one."""
     unknown = sorted(set(hints) - set(REFINE_FIELDS))
     if unknown:
         raise invalid_input(f"unknown refine field(s): {', '.join(unknown)}", allowed=list(REFINE_FIELDS))
@@ -558,16 +560,27 @@ def refine_options(parent: Job, hints: dict[str, Any]) -> dict[str, Any]:
         )
     if len(parent.sources) != 1:
         raise invalid_input(f"job {parent.id} aligns {len(parent.sources)} sources; refine takes a job with one source")
-    options = {k: v for k, v in parent.options.items() if k not in ("init_transform", "point_pairs")}
-    for k in ("up_axes", "fixed_scale"):
-        if k in hints:
-            options.pop(k, None)
-            if hints[k] is not None:
-                options[k] = hints[k]
+    kept = {k: v for k, v in parent.options.items() if k not in ("init_transform", "point_pairs")}
+    options = refined_hints(kept, hints)
     if starts[0] == "alternative":
         options["init_transform"] = alternative_transform(parent, hints["alternative"])
     else:
         options[starts[0]] = hints[starts[0]]
+    return options
+
+
+def refined_hints(options: dict[str, Any], hints: dict[str, Any]) -> dict[str, Any]:
+    """`options` with the REFINE_HINTS that `hints` gives replacing its own (null drops one). The
+    parent's fronts are stated about its up axes: new (or dropped) up axes drop them too, unless
+    `hints` gives fronts as well."""
+    options = dict(options)
+    if "up_axes" in hints and "front_axes" not in hints and hints["up_axes"] != options.get("up_axes"):
+        options.pop("front_axes", None)
+    for k in REFINE_HINTS:
+        if k in hints:
+            options.pop(k, None)
+            if hints[k] is not None:
+                options[k] = hints[k]
     return options
 
 

@@ -136,11 +136,12 @@ BOOL_OPTIONS = {"renders", "weight_by_opacity", "rigid"}
 # Guidance (gsa.align.guided, docs/service.md "Guided alignment"): what a person knows about the
 # pose, each in the input FILES' own coordinates (as the result states its transform). Their
 # shapes are checked by the library's own check_guidance, one hint at a time so a 422 names it.
-GUIDANCE_OPTIONS = ("init_transform", "point_pairs", "up_axes", "fixed_scale")
+GUIDANCE_OPTIONS = ("init_transform", "point_pairs", "up_axes", "front_axes", "fixed_scale")
 GUIDANCE_SHAPES = {
     "init_transform": "4×4 nested list, a Sim(3) source → target: rows [[r, r, r, t], …, [0, 0, 0, 1]]",
     "point_pairs": '{"source": [[x, y, z], …], "target": [[x, y, z], …]}, 3..1000 pairs',
     "up_axes": "[[x, y, z], [x, y, z]]: the source's up, the target's up",
+    "front_axes": "[[x, y, z], [x, y, z]]: the way the source faces, the way the target faces",
     "fixed_scale": "the answer's scale s",
 }
 # The fine stage's work, fine_views × fine_image_size² × fine_iterations, with the
@@ -193,8 +194,10 @@ def check_guidance_options(options: dict[str, Any]) -> None:
     given = {k: options[k] for k in GUIDANCE_OPTIONS if options.get(k) is not None}
     empty = dict.fromkeys(GUIDANCE_OPTIONS)
     for name, value in given.items():
+        # A front is checked against its up axes (it needs them); a bad up_axes was named before.
+        alone = {name: value, "up_axes": given.get("up_axes")} if name == "front_axes" else {name: value}
         try:
-            check_guidance(SimpleNamespace(**(empty | {name: value})))
+            check_guidance(SimpleNamespace(**(empty | alone)))
         except (TypeError, ValueError) as exc:
             detail = str(exc) if str(exc).startswith(name) else f"option {name!r}: {exc}"
             raise invalid_input(detail, option=name, expected=GUIDANCE_SHAPES[name]) from None
@@ -330,6 +333,12 @@ _HINT_SCHEMAS: dict[str, dict[str, Any]] = {
         "minItems": 2,
         "maxItems": 2,
     },
+    "front_axes": {
+        "type": "array",
+        "items": {"type": "array", "items": {"type": "number"}, "minItems": 3, "maxItems": 3},
+        "minItems": 2,
+        "maxItems": 2,
+    },
 }
 
 
@@ -366,6 +375,9 @@ class AlignOptionsIn(BaseModel):
     init_transform: Any = hint_field("init_transform", "start from this pose; only a local refinement runs")
     point_pairs: Any = hint_field("point_pairs", "picked point pairs: their Sim(3), then a local refinement")
     up_axes: Any = hint_field("up_axes", "every pose keeps these up axes aligned")
+    front_axes: Any = hint_field(
+        "front_axes", "with up_axes: the turns about up are kept within 45° of these fronts agreeing"
+    )
     fixed_scale: float | None = bounded_field("fixed_scale", "the answer's scale, kept through every stage")
     semantic: str | None = Field(
         None,

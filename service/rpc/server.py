@@ -146,7 +146,7 @@ def _point(p: pb.Point) -> list[float]:
 
 def guidance_options(g: pb.Guidance) -> dict:
     """A Guidance message as the JSON options it stands for (init_transform, point_pairs,
-    up_axes, fixed_scale): only the ones set. Their values are checked with the other options."""
+    up_axes, front_axes, fixed_scale): only the ones set. Their values are checked with the other options."""
     out: dict = {}
     if g.init_transform:
         m = list(g.init_transform)
@@ -156,6 +156,8 @@ def guidance_options(g: pb.Guidance) -> dict:
         out["point_pairs"] = {"source": [_point(x) for x in pp.source], "target": [_point(x) for x in pp.target]}
     if g.HasField("up_axes"):
         out["up_axes"] = [_point(g.up_axes.source), _point(g.up_axes.target)]
+    if g.HasField("front_axes"):
+        out["front_axes"] = [_point(g.front_axes.source), _point(g.front_axes.target)]
     if g.HasField("fixed_scale"):
         out["fixed_scale"] = g.fixed_scale
     return out

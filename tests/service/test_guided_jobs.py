@@ -1,5 +1,5 @@
 """Guided alignment over both APIs against the real stack (uvicorn + RQ worker + redis-server):
-the hints as job options (init_transform, point_pairs, up_axes, fixed_scale), their 422 /
+the hints as job options (init_transform, point_pairs, up_axes, front_axes, fixed_scale), their 422 /
 INVALID_ARGUMENT, and POST /v1/jobs/{id}:refine / RefineJob making linked follow-up jobs."""
 
 from __future__ import annotations
@@ -20,6 +20,7 @@ pytestmark = pytest.mark.slow  # starts servers and worker processes
 ALIGN = {"stages": ["coarse"], "coarse_iterations": 30, "seed": 0, "outputs": ["result"]}
 AUTH = (("authorization", "Bearer key-alice"),)
 DOWN = np.array([0.0, -1.0, 0.0])  # the generated objects' up (-y, the RDF convention)
+FRONT = np.array([1.0, 0.0, 0.0])  # an axis across it: what a person would call the chair's front
 
 
 @pytest.fixture(scope="module")
@@ -102,6 +103,74 @@ def test_point_pairs_and_fixed_scale_job(http, assets, guided_pair):
     assert guidance["fixed_scale"] == pytest.approx(guided_pair["gt"].scale)
 
 
+def up_and_front(guided_pair) -> dict:
+    """The true up and front axes of the pair (PLY: the files' coordinates are the internal ones)."""
+    rotation = guided_pair["gt"].rotation
+    return {
+        "up_axes": [DOWN.tolist(), (rotation @ DOWN).tolist()],
+        "front_axes": [FRONT.tolist(), (rotation @ FRONT).tolist()],
+    }
+
+
+@pytest.fixture(scope="module")
+def front_parent(stack, assets, guided_pair):
+    """A finished job given the true up and front axes."""
+    with httpx.Client(base_url=stack["url"], headers=ALICE, timeout=60) as c:
+        r = job_json(c, assets, {**ALIGN, **up_and_front(guided_pair)})
+        assert r.status_code == 202, r.text
+        assert r.json()["options"]["front_axes"] == up_and_front(guided_pair)["front_axes"]
+        return wait_job(c, r.json()["id"], timeout=120)
+
+
+def test_up_and_front_axes_job(front_parent, guided_pair):
+    assert front_parent["state"] == "succeeded", front_parent
+    res = front_parent["result"]
+    assert rre_deg(res["transform"], guided_pair["gt"]) < 2.0
+    guidance = res["metrics"]["guidance"]
+    hints = up_and_front(guided_pair)
+    np.testing.assert_allclose(guidance["front_axes"], hints["front_axes"], atol=1e-9)  # already across up, unit
+    np.testing.assert_allclose(guidance["up_axes"], hints["up_axes"], atol=1e-9)
+
+
+def test_refine_keeps_or_drops_the_parents_front_axes(http, front_parent, guided_pair):
+    """Kept with the parent's up axes; dropped by null, and by new up axes that come without
+    fronts (the parent's fronts are stated about its own up); replaced when given."""
+    hints = up_and_front(guided_pair)
+    url = f"/v1/jobs/{front_parent['id']}:refine"
+    pairs = {"point_pairs": picked_pairs(guided_pair, seed=5)}
+    made = []
+
+    def refine(body) -> dict:
+        r = http.post(url, json={**pairs, **body})
+        assert r.status_code == 202, r.text
+        made.append(r.json()["id"])
+        return r.json()["options"]
+
+    kept = refine({})
+    assert kept["front_axes"] == hints["front_axes"] and kept["up_axes"] == hints["up_axes"]
+    assert refine({"up_axes": hints["up_axes"]})["front_axes"] == hints["front_axes"]  # the same up
+    assert "front_axes" not in refine({"front_axes": None})
+    new_up = refine({"up_axes": [[0, -1, 0], [0, -1, 0]]})
+    assert "front_axes" not in new_up and new_up["up_axes"] == [[0, -1, 0], [0, -1, 0]]
+    no_up = refine({"up_axes": None})
+    assert "front_axes" not in no_up and "up_axes" not in no_up
+    turned = [hints["front_axes"][0], [-v for v in hints["front_axes"][1]]]
+    assert refine({"front_axes": turned})["front_axes"] == turned
+    # A front the parent's up makes invalid, given with the refine: 422 naming it, nothing made.
+    along_up = {**pairs, "front_axes": [DOWN.tolist(), hints["front_axes"][1]]}
+    body = assert_problem(http.post(url, json=along_up), 422, "invalid-input")
+    assert body["option"] == "front_axes" and "within 20 deg" in body["detail"], body
+    assert http.get(f"/v1/jobs/{front_parent['id']}").json()["children"] == made
+    # The kept one runs as its parent did: the fronts reach the library.
+    done = wait_job(http, made[0], timeout=120)
+    assert done["state"] == "succeeded", done
+    np.testing.assert_allclose(done["result"]["metrics"]["guidance"]["front_axes"], hints["front_axes"], atol=1e-9)
+    for job_id in made[1:]:
+        http.post(f"/v1/jobs/{job_id}:cancel")
+    for job_id in made[1:]:
+        wait_job(http, job_id, timeout=120)
+
+
 BAD_HINTS = [
     ({"init_transform": [[1, 0, 0, 0]]}, "init_transform", "4×4"),
     ({"init_transform": np.diag([1.0, 1.0, -1.0, 1.0]).tolist()}, "init_transform", "determinant"),
@@ -111,6 +180,11 @@ BAD_HINTS = [
     ({"point_pairs": {"from": []}}, "point_pairs", "source"),
     ({"up_axes": [[0, 0, 0], [0, 1, 0]]}, "up_axes", "zero"),
     ({"up_axes": [[0, 1, 0]]}, "up_axes", "two vectors"),
+    ({"front_axes": [[1, 0, 0], [1, 0, 0]]}, "front_axes", "needs up_axes"),
+    ({"up_axes": [[0, 1, 0], [0, 1, 0]], "front_axes": [[0, 0, 0], [1, 0, 0]]}, "front_axes", "zero"),
+    ({"up_axes": [[0, 1, 0], [0, 1, 0]], "front_axes": [[1, 0, 0], [0, -1, 0.1]]}, "front_axes", "within 20 deg"),
+    ({"up_axes": [[0, 1, 0], [0, 1, 0]], "front_axes": [[1, 0, 0]]}, "front_axes", "two vectors"),
+    ({"up_axes": [[0, 0, 0], [0, 1, 0]], "front_axes": [[1, 0, 0], [1, 0, 0]]}, "up_axes", "zero"),
     ({"fixed_scale": 0}, "fixed_scale", "1e-06"),
     ({"fixed_scale": -2.5}, "fixed_scale", ""),
     (
@@ -309,6 +383,39 @@ def test_grpc_guidance_and_refine(stub, assets, guided_pair, parent):
     assert final.state == pb.JOB_STATE_SUCCEEDED, final.error
     assert final.parent_job == child.id and json.loads(final.result_json)["parent_job"] == child.id
     assert rre_deg(np.reshape(final.transform.matrix, (4, 4)), guided_pair["gt"]) < 2.0
+
+
+def test_grpc_front_axes(stub, http, assets, guided_pair, front_parent):
+    """Guidance.front_axes as the option front_axes (with up_axes), its INVALID_ARGUMENT naming it,
+    and RefineJob replacing the parent's."""
+    hints = up_and_front(guided_pair)
+    up = pb.UpAxes(source=_pt(hints["up_axes"][0]), target=_pt(hints["up_axes"][1]))
+    front = pb.FrontAxes(source=_pt(hints["front_axes"][0]), target=_pt(hints["front_axes"][1]))
+    job = stub.SubmitAlignment(iter([_header(assets, pb.Guidance(up_axes=up, front_axes=front))]), metadata=AUTH)
+    np.testing.assert_allclose(json.loads(job.options_json)["front_axes"], hints["front_axes"], atol=1e-12)
+    # (the same job over HTTP ran in front_parent: cancelled here, only its options are under test)
+    http.post(f"/v1/jobs/{job.id}:cancel")
+    wait_job(http, job.id, timeout=120)
+
+    alone = pb.Guidance(front_axes=front)
+    problem = _invalid(lambda: stub.SubmitAlignment(iter([_header(assets, alone)]), metadata=AUTH))
+    assert problem["option"] == "front_axes" and "needs up_axes" in problem["detail"]
+    along_up = pb.Guidance(up_axes=up, front_axes=pb.FrontAxes(source=_pt(DOWN), target=front.target))
+    problem = _invalid(lambda: stub.SubmitAlignment(iter([_header(assets, along_up)]), metadata=AUTH))
+    assert problem["option"] == "front_axes" and "within 20 deg" in problem["detail"]
+    twice = _header(assets, pb.Guidance(up_axes=up, front_axes=front), {**ALIGN, "front_axes": hints["front_axes"]})
+    assert _invalid(lambda: stub.SubmitAlignment(iter([twice]), metadata=AUTH))["option"] == "front_axes"
+
+    turned = pb.FrontAxes(source=front.source, target=_pt(-np.asarray(hints["front_axes"][1])))
+    pairs = picked_pairs(guided_pair, seed=6)
+    pp = pb.PointPairs(source=[_pt(p) for p in pairs["source"]], target=[_pt(p) for p in pairs["target"]])
+    guidance = pb.Guidance(point_pairs=pp, front_axes=turned)
+    child = stub.RefineJob(pb.RefineRequest(job_id=front_parent["id"], guidance=guidance), metadata=AUTH)
+    options = json.loads(child.options_json)
+    assert options["front_axes"][1] == pytest.approx([-v for v in hints["front_axes"][1]])
+    assert options["up_axes"] == hints["up_axes"] and child.parent_job == front_parent["id"]
+    stub.CancelJob(pb.JobRef(job_id=child.id), metadata=AUTH)
+    wait_job(http, child.id, timeout=120)
 
 
 def test_grpc_bad_guidance_is_invalid_argument(stub, assets, parent):

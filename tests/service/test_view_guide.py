@@ -86,6 +86,9 @@ def test_refine_route_wants_the_pages_cookie_and_origin(guide_stack):
         assert assert_problem(c.post(route, json={"up_axes": [[0, 0, 0], [0, 0, 1]]}, headers=same), 422)["option"] == (
             "up_axes"
         )
+        front_alone = {"up_axes": [[0, -1, 0], [0, 0, 1]], "front_axes": [[0, -1, 0], [1, 0, 0]]}
+        body = assert_problem(c.post(route, json=front_alone, headers=same), 422)
+        assert body["option"] == "front_axes" and "within 20 deg" in body["detail"], body
         assert_problem(c.post(route, json={"alternative": 0, "colour": 1}, headers=same), 422)
         # The page's state route: this job only.
         state = c.get(f"/v1/jobs/{parent['id']}/view/state")
@@ -101,6 +104,26 @@ def test_refine_route_wants_the_pages_cookie_and_origin(guide_stack):
     assert_problem(httpx.get(f"{url}/v1/jobs/{parent['id']}/view/state"), 401)
     assert_problem(httpx.post(url + route, json={"alternative": 0}, headers=BOB), 404)  # another owner
     assert children(url, parent["id"]) == before  # none of them made a job
+
+
+def test_up_and_front_axes_through_the_pages_route(guide_stack):
+    """The up-axis control with fronts (what the page sends, web/src/guide.js): the search again
+    about the up axes, turning only where the fronts agree; the parent's other options kept."""
+    url, parent = guide_stack["url"], guide_stack["parent"]
+    # The chair's x across its up (-y); TRUTH turns it 130° about the target's +z, 40° from +y.
+    hints = {"up_axes": [[0, -1, 0], [0, 0, 1]], "front_axes": [[1, 0, 0], [0, 1, 0]]}
+    with page_client(url, parent["id"]) as c:
+        r = c.post(f"/v1/jobs/{parent['id']}/view/refine", json=hints, headers={"Origin": url})
+    assert r.status_code == 202, r.text
+    child = r.json()["job"]
+    assert {k: child["options"][k] for k in hints} == hints
+    assert {k: v for k, v in child["options"].items() if k not in hints} == parent["options"]
+    assert child["id"] in children(url, parent["id"])
+    with httpx.Client(base_url=url, headers=ALICE, timeout=30) as api:
+        done = wait_job(api, child["id"], timeout=180)
+    assert done["state"] == "succeeded", done
+    np.testing.assert_allclose(done["result"]["metrics"]["guidance"]["front_axes"], hints["front_axes"], atol=1e-9)
+    assert rre_deg(np.asarray(done["result"]["rotation"]), TRUTH.rotation) < 5.0
 
 
 def open_page(page, url: str, job_id: str) -> None:

@@ -1,8 +1,9 @@
 // The results page's guide (gsa/viewer/page.py _guide; config.guide, one-source results only):
 // step through the result's alternatives on the overlay, pick point pairs on the source and
-// target views, choose each model's up axis. Each control asks for a follow-up alignment: on the
-// service's page a POST to the page's refine route, then the follow-up job's page opens; on
-// `gsa view`'s page (no job to refine) the equivalent `gsa align` command, to copy. A known scale
+// target views, choose each model's up axis (and, optionally, the way each faces). Each control
+// asks for a follow-up alignment: on the service's page a POST to the page's refine route, then
+// the follow-up job's page opens; on `gsa view`'s page (no job to refine) the equivalent
+// `gsa align` command, to copy. A known scale
 // (its input; empty: not fixed) goes with whichever control is used: fixed_scale in the request,
 // --scale S in the command; an invalid one stops the control, with a message beside the input.
 //
@@ -319,9 +320,35 @@ export function setupGuide(guide, { panes, sourceBytes, targetBytes, redraw, sho
   };
   upSource.addEventListener("change", turn);
   upTarget.addEventListener("change", turn);
+  // Fronts (optional, both or neither): which way each model faces, sent as front_axes with the
+  // up axes. One along its own up says nothing about the turn about it: refused here, as the
+  // library would refuse it.
+  const frontSource = el("front-source");
+  const frontTarget = el("front-target");
+  const frontError = el("front-error");
+  const showFrontError = (message) => {
+    frontError.textContent = message;
+    frontError.hidden = !message;
+    for (const s of [frontSource, frontTarget]) s.setAttribute("aria-invalid", String(Boolean(message)));
+  };
+  const sameLine = (a, b) => a.slice(1) === b.slice(1); // "+y" and "-y": one axis
+  function fronts() {
+    const given = [frontSource.value, frontTarget.value];
+    if (!given[0] && !given[1]) return null;
+    if (!given[0] || !given[1]) return showFrontError("give both fronts (the source's and the target's), or neither");
+    const role = sameLine(given[0], upSource.value) ? "source" : sameLine(given[1], upTarget.value) ? "target" : null;
+    if (role) return showFrontError(`the ${role} front is along its up axis: choose an axis across it`);
+    return given.map((axis) => AXES[axis]);
+  }
+  for (const s of [frontSource, frontTarget, upSource, upTarget]) s.addEventListener("change", () => showFrontError(""));
   el("up-submit").addEventListener("click", () => {
     const up_axes = [AXES[upSource.value], AXES[upTarget.value]];
-    submit({ up_axes }, `--up ${up_axes[0].join(",")}:${up_axes[1].join(",")}`);
+    const vectors = (pair) => `${pair[0].join(",")}:${pair[1].join(",")}`;
+    const front_axes = fronts();
+    if (front_axes === undefined) return; // nothing sent: the message says why
+    showFrontError("");
+    if (front_axes === null) submit({ up_axes }, `--up ${vectors(up_axes)}`);
+    else submit({ up_axes, front_axes }, `--up ${vectors(up_axes)} --front ${vectors(front_axes)}`);
   });
 
   return (pane, x, y) => {

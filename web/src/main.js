@@ -3,7 +3,7 @@
 // The page (built by gsa/viewer/page.py) carries a JSON config in #gsa-config; this
 // script only reads it and the preview files it names (same origin, no CDN).
 // window.gsaViewer reports state for people and tests: {ready, firstFrameMs, error, ...}.
-// The guide (config.guide, one-source results) is in guide.js: alternatives, point pairs, up axes.
+// The guide (config.guide, one-source results) is in guide.js: alternatives, point pairs, up and front axes.
 import { SparkRenderer, SplatMesh } from "@sparkjsdev/spark";
 import * as THREE from "three";
 import { pollJob, setupGuide } from "./guide.js";

@@ -108,17 +108,27 @@ class UpAxes(_message.Message):
     target: Point
     def __init__(self, source: _Optional[_Union[Point, _Mapping]] = ..., target: _Optional[_Union[Point, _Mapping]] = ...) -> None: ...
 
+class FrontAxes(_message.Message):
+    __slots__ = ("source", "target")
+    SOURCE_FIELD_NUMBER: _ClassVar[int]
+    TARGET_FIELD_NUMBER: _ClassVar[int]
+    source: Point
+    target: Point
+    def __init__(self, source: _Optional[_Union[Point, _Mapping]] = ..., target: _Optional[_Union[Point, _Mapping]] = ...) -> None: ...
+
 class Guidance(_message.Message):
-    __slots__ = ("init_transform", "point_pairs", "up_axes", "fixed_scale")
+    __slots__ = ("init_transform", "point_pairs", "up_axes", "fixed_scale", "front_axes")
     INIT_TRANSFORM_FIELD_NUMBER: _ClassVar[int]
     POINT_PAIRS_FIELD_NUMBER: _ClassVar[int]
     UP_AXES_FIELD_NUMBER: _ClassVar[int]
     FIXED_SCALE_FIELD_NUMBER: _ClassVar[int]
+    FRONT_AXES_FIELD_NUMBER: _ClassVar[int]
     init_transform: _containers.RepeatedScalarFieldContainer[float]
     point_pairs: PointPairs
     up_axes: UpAxes
     fixed_scale: float
-    def __init__(self, init_transform: _Optional[_Iterable[float]] = ..., point_pairs: _Optional[_Union[PointPairs, _Mapping]] = ..., up_axes: _Optional[_Union[UpAxes, _Mapping]] = ..., fixed_scale: _Optional[float] = ...) -> None: ...
+    front_axes: FrontAxes
+    def __init__(self, init_transform: _Optional[_Iterable[float]] = ..., point_pairs: _Optional[_Union[PointPairs, _Mapping]] = ..., up_axes: _Optional[_Union[UpAxes, _Mapping]] = ..., fixed_scale: _Optional[float] = ..., front_axes: _Optional[_Union[FrontAxes, _Mapping]] = ...) -> None: ...
 
 class RefineRequest(_message.Message):
     __slots__ = ("job_id", "alternative", "guidance", "idempotency_key")
