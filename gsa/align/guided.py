@@ -62,9 +62,11 @@ class GuidanceCriteria:
     # The local search also starts from the given pose turned by this about each axis, both ways
     # (the anchors' ICP from one start can stop in a nearer, worse minimum).
     local_turn_deg: float = 15.0
-    # Given fronts keep the turns about up within this of agreeing: a person's "front" is a
-    # rough direction (a click, a guess between instances), and a quarter turn is another answer.
-    front_reach_deg: float = 45.0
+    # Given fronts keep the turn about up within this of agreeing, through the search and every
+    # later pose: a person's front (a nose, a handle, a door) is good to about this between two
+    # instances, and the geometry alone drifts farther where an object nearly spins about up
+    # (a mug turned 40 deg off its handle).
+    front_reach_deg: float = 15.0
     # A front within this of its model's up says nothing about the turn about up.
     front_tilt_min_deg: float = 20.0
 
@@ -239,6 +241,19 @@ def up_rotations(src_up, dst_up, criteria: GuidanceCriteria | None = None, front
     return [(name, r) for name, r in rotations if keeps_front(r, fronts, k)]
 
 
+def _front_held(rotation: np.ndarray, dst_up: np.ndarray, fronts, criteria: GuidanceCriteria | None = None):
+    """`rotation` (already keeping the up axes) turned about the target's up, as little as
+    needed, to map the source's front within front_reach_deg of the target's."""
+    src_front, dst_front = (np.asarray(v, np.float64) for v in fronts)
+    mapped = rotation @ src_front
+    # signed angle from the target's front to the mapped front, about the target's up
+    angle = float(np.arctan2(np.cross(dst_front, mapped) @ dst_up, dst_front @ mapped))
+    reach = np.radians((criteria or _DEFAULT).front_reach_deg)
+    if abs(angle) <= reach:
+        return rotation
+    return axis_rotation(dst_up, np.sign(angle) * reach - angle) @ rotation
+
+
 def keeps_front(rotation: np.ndarray, fronts, criteria: GuidanceCriteria | None = None) -> bool:
     """Whether `rotation` maps the source's front within front_reach_deg of the target's."""
     src_front, dst_front = (np.asarray(v, np.float64) for v in fronts)
@@ -266,6 +281,8 @@ def constrain(transform: Sim3, opts, pivot: np.ndarray) -> Sim3:
     if opts.up_axes is not None:
         src_up, dst_up = (np.asarray(v, np.float64) for v in opts.up_axes)
         rotation = _min_rotation(rotation @ src_up, dst_up) @ rotation
+        if opts.front_axes is not None:
+            rotation = _front_held(rotation, dst_up, opts.front_axes)
     if opts.fixed_scale is not None:
         scale = opts.fixed_scale
     if rotation is transform.rotation and scale == transform.scale:
