@@ -65,3 +65,20 @@ def test_render_command(tmp_path, capsys):
     assert args.func(args) == 0
     assert (tmp_path / "out" / "view_1_features.png").exists()
     assert "contact_sheet.png" in capsys.readouterr().out
+
+
+def test_a_large_model_is_rendered_a_few_views_a_call_into_the_same_images(monkeypatch):
+    # The renderer holds every Gaussian's projection in every view of a call (1.7 GB for the
+    # 3 views of a 3M-Gaussian source): calls are bounded, and the pixels do not change.
+    from gsa.render import render_model
+    from gsa.render import views as views_module
+    from gsa.render.cameras import cameras_around
+
+    model = blob_object(3000, seed=1)
+    cams = cameras_around(model.means, 5, 48, seed=3)
+    move = Sim3(1.2, np.eye(3), np.array([0.1, 0.0, 0.0]))
+    whole = render_model(model, cams, features=True, background=views_module.WHITE, sim3=move)
+    monkeypatch.setattr(views_module, "VIEW_GAUSSIANS_PER_CALL", 2 * len(model))  # 2 views a call
+    parts = views_module.render_views(model, cams, features=True, background=views_module.WHITE, sim3=move)
+    for name in ("colors", "features", "alpha", "depth"):
+        assert np.array_equal(getattr(whole, name).numpy(), getattr(parts, name).numpy()), name

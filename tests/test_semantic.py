@@ -442,3 +442,27 @@ def test_the_tie_break_does_not_trade_whole_models_for_a_pose_that_leaves_part_a
         else:
             assert "vetoed" not in report and report["picked"] == len(report["scores"]) - 1
             assert robust.rotation_offset_deg(result.transform, truth) < 1.0
+
+
+def test_the_views_and_the_lifting_of_a_large_model_in_bounded_calls_are_the_same(monkeypatch):
+    # 24 views of a 3M-Gaussian model in one renderer call took ~10 GB: the views are rendered
+    # a few a call (depth and alpha only) and lifted in bounded passes, to the same numbers.
+    from gsa.features.lift import back_project
+    from gsa.render import render_model
+
+    model = make_object("chair", seed=2, n_gaussians=3000)
+    criteria = semantic.SemanticCriteria(views=6, image_size=56)
+    cams, images, alpha = semantic._render(model, criteria, 0)
+    whole = render_model(model, cams, features=False, depth=True)
+    expected = semantic.shaded_views(
+        whole.depth[..., 0].numpy(), whole.alpha[..., 0].numpy(), cams.fx, cams.fy, cams.cx, cams.cy
+    )
+    monkeypatch.setattr(semantic, "VIEW_GAUSSIANS_PER_CALL", 2 * len(model))
+    ticks = []
+    cams2, parts, alpha2 = semantic._render(model, criteria, 0, ticks.append)
+    assert np.array_equal(parts, expected) and np.array_equal(alpha2, whole.alpha[..., 0].numpy())
+    assert ticks == [2 / 6, 4 / 6, 1.0]  # a report after each call
+    maps = torch.rand(6, 56, 56, 5)
+    one_pass = back_project(model, maps, cams, batch_views=4)
+    passes = back_project(model, maps, cams, batch_views=4, channels_per_pass=2)
+    assert torch.equal(one_pass, passes)

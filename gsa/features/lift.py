@@ -86,21 +86,27 @@ def back_project(
     batch_views: int = 4,
     backend: str = "auto",
     tick: Callable[[float], None] | None = None,
+    channels_per_pass: int | None = None,
 ):
     """(C,H,W,k) per-pixel maps -> (N, k+1) float64: per Gaussian, Σ_p w_ip [m_p, 1] over every
     pixel p it is blended into with weight w_ip; the last column is its visibility (pixels).
     It is d/df of Σ_p <render(f)_p, [m_p, 1]>, so one backward pass of the renderer per batch.
+    `channels_per_pass` of the k+1 columns a pass (None: all): the renderer materialises every
+    channel per view and Gaussian, and each channel's gradient is computed alone (the same
+    bits), so a large model is lifted in column groups at a fraction of the memory.
     `tick(fraction of the views done)` after each batch (where a cancelled job stops)."""
     n, k = len(model), maps.shape[-1]
     acc = torch.zeros(n, k + 1, dtype=torch.float64)
+    group = max(1, channels_per_pass or k + 1)
     for sl in _chunks(len(maps), batch_views):
-        probe = torch.zeros(n, k + 1, requires_grad=True)
-        rendered = _render_features(model, probe, cameras[sl], backend)
         weights = torch.cat([maps[sl], torch.ones_like(maps[sl][..., :1])], -1)
-        (grad,) = torch.autograd.grad(rendered, probe, grad_outputs=weights)
-        del rendered, probe  # the graph's saved projections go before the next batch builds its own
-        acc += grad
-        del grad
+        for cols in _chunks(k + 1, group):
+            probe = torch.zeros(n, cols.stop - cols.start, requires_grad=True)
+            rendered = _render_features(model, probe, cameras[sl], backend)
+            (grad,) = torch.autograd.grad(rendered, probe, grad_outputs=weights[..., cols].contiguous())
+            del rendered, probe  # the graph's saved projections go before the next pass builds its own
+            acc[:, cols] += grad
+            del grad
         if tick is not None:
             tick(sl.stop / len(maps))
     return acc

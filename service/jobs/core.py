@@ -331,9 +331,9 @@ def check_memory(b: Backend, sources: list[Asset], target: Asset, options: dict[
     budget_mb = b.settings.worker_memory_mb
     if not budget_mb:
         return
-    from service.jobs.memory import MB, predict_for_assets
+    from service.jobs.memory import MB, effective_options, predict_for_assets
 
-    predicted = predict_for_assets(options, sources, target)
+    predicted = predict_for_assets(effective_options(options, b.settings), sources, target)
     if predicted > budget_mb * MB:
         mb = -(-predicted // MB)
         raise invalid_input(

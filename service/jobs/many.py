@@ -102,12 +102,12 @@ def check_many_memory(b: Backend, assets: list[Asset], options: dict[str, Any], 
     budget_mb = b.settings.worker_memory_mb
     if not budget_mb:
         return
-    from service.jobs.memory import MARGIN, MB, gaussian_bytes, predict_job_memory
+    from service.jobs.memory import MARGIN, MB, effective_options, gaussian_bytes, predict_job_memory
 
     sized = sorted(((a.n_gaussians or 0, gaussian_bytes(a.n_gaussians, a.size)) for a in assets), reverse=True)
     (n1, b1), (n2, b2) = sized[0], sized[1]
     held = sum(n * bb for n, bb in sized[2:]) + (sum(n * bb for n, bb in sized) if merged else 0)
-    predicted = predict_job_memory(options, [n1], n2, [b1], b2) + int(MARGIN * held)
+    predicted = predict_job_memory(effective_options(options, b.settings), [n1], n2, [b1], b2) + int(MARGIN * held)
     if predicted > budget_mb * MB:
         mb = -(-predicted // MB)
         raise invalid_input(
