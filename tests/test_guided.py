@@ -158,12 +158,19 @@ def test_init_refines_locally_and_never_jumps(pair):
     result = align(source, target, AlignOptions(init_transform=near.matrix().tolist()))
     assert rre_deg(result.transform.rotation, truth.rotation) < 0.5
     assert result.metrics["guidance"]["init_transform"] is True and result.hypotheses == []
+    # the answer left the given pose: that pose is the first alternative, one step back to it
+    given = result.metrics["alternatives"][0]
+    assert given["origin"] == "the given start" and np.allclose(given["transform"], near.matrix())
+    assert given["rotation_offset_deg"] > 5.0
     # Half a turn away: the answer stays near where it was told to start (and is doubtful).
     far = Sim3(truth.scale, truth.rotation @ axis_rotation([0, 0, 1], np.pi), truth.translation)
     stay = align(source, target, AlignOptions(init_transform=far.matrix()))
     assert rre_deg(stay.transform.rotation, far.rotation) < 30.0
     assert stay.metrics["doubtful"]
     assert "fit better at another pose" in stay.metrics["guidance"]["doubt"]
+    # the pose the doubt points at is one the models offer, never the given start
+    index = int(stay.metrics["guidance"]["doubt"].split("(alternatives[")[1].split("]")[0])
+    assert stay.metrics["alternatives"][index]["origin"] != "the given start"
     assert result.metrics["guidance"]["doubt"] is None or result.metrics["doubtful"]
 
 

@@ -28,6 +28,8 @@ from scipy.spatial import cKDTree
 from gsa.geometry import axis_rotation, rotation_distance_deg
 from gsa.sim3 import Sim3, solve_sim3
 
+# The origin of the alternative that is the pose a person gave (or their picked pairs' fit).
+GIVEN_START = "the given start"
 # Picked pairs accepted at most: a bound on the input (the CLI, both APIs), not a tunable.
 MAX_PAIRS = 1000
 # A turn is a symmetry of the source when the turned surface lies within this many sample
@@ -404,10 +406,14 @@ def doubt_reason(metrics: dict, start_report: dict | None) -> str | None:
     if start_report and start_report.get("refinement"):
         reasons.append("the refinement moved away from what was given, so the nearest pose to it is kept")
     margin, alternatives = metrics.get("margin"), metrics.get("alternatives") or []
-    if margin is not None and margin < 0 and alternatives:
-        offset = alternatives[0].get("rotation_offset_deg")
+    # the first alternative the models offer (the given start, offered first, is the person's own)
+    index = next((i for i, a in enumerate(alternatives) if a.get("origin") != GIVEN_START), None)
+    if margin is not None and margin < 0 and index is not None:
+        offset = alternatives[index].get("rotation_offset_deg")
         where = f" {offset:.0f}° from this one" if offset is not None else ""
-        reasons.append(f"the models fit better at another pose{where} (alternatives[0]): the guidance may be wrong")
+        reasons.append(
+            f"the models fit better at another pose{where} (alternatives[{index}]): the guidance may be wrong"
+        )
     elif metrics.get("ambiguous"):
         reasons.append("another pose fits the models as well as this one (see alternatives)")
     share = metrics.get("coincident_share")

@@ -411,7 +411,7 @@ def _align_models(
         )
     metrics["scene"] = choice.to_dict()
     if guidance is not None:
-        metrics["guidance"] = guidance | {"doubt": guided.doubt_reason(metrics, start[1] if start else None)}
+        metrics = _guidance_report(pair, best.init if start else None, transform, metrics, guidance, start)
     timings["metrics"] = time.perf_counter() - t - timings.get("semantic", 0.0) - timings.get("learned", 0.0)
     timings["total"] = time.perf_counter() - t_start
     _report(progress, "done", 1.0)
@@ -428,6 +428,26 @@ def _align_models(
         target_frame=pair.dst_frame,
         lifting=lifting,
     )
+
+
+def _guidance_report(pair, given: Sim3 | None, transform: Sim3, metrics: dict, guidance: dict, start) -> dict:
+    """metrics with the given start offered (_offer_start) and metrics['guidance']: the hints
+    used and, where the answer is doubtful, why in words."""
+    if given is not None:
+        metrics = _offer_start(pair, given, transform, metrics)
+    return metrics | {"guidance": guidance | {"doubt": guided.doubt_reason(metrics, start[1] if start else None)}}
+
+
+def _offer_start(pair, start: Sim3, transform: Sim3, metrics: dict) -> dict:
+    """The pose the person gave (or their picked pairs' fit), as the first alternative wherever
+    the answer left it: one step back to what they asked for, scored as the search scores."""
+    if robust.rotation_offset_deg(start, transform) <= frame_snap.FRAME_SNAP_SAME_DEG:
+        return metrics
+    src, dst = pair.anchors()
+    scored = robust.score_pose(src, dst, start, guided.GIVEN_START, float(metrics.get("colour_weight") or 0.0))
+    offer = scored.to_dict(transform) | {"tied": False}
+    rest = [a for a in metrics.get("alternatives") or [] if a.get("origin") != guided.GIVEN_START]
+    return metrics | {"alternatives": [offer, *rest]}
 
 
 def _scene_answer(source, target, opts: AlignOptions, choice, progress, target_cameras, timings: dict, lifting):
