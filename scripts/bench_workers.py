@@ -39,6 +39,24 @@ sys.path.insert(0, str(ROOT / "scripts"))
 from bench_service import free_port, make_pair, start, wait_http  # noqa: E402
 
 KEY = "bench-key"
+# --profile: each job's work in the horse (service.worker.execution.execute) under cProfile, one
+# stats file per job; installed by a sitecustomize on the workers' PYTHONPATH, so the service runs
+# as documented otherwise.
+PROFILE_HOOK = """
+import cProfile, os, time
+import service.worker.runners as runners
+
+_execute = runners.execute
+
+def execute(job_id, backend):
+    prof = cProfile.Profile()
+    try:
+        return prof.runcall(_execute, job_id, backend)
+    finally:
+        prof.dump_stats(os.path.join(os.environ["GSA_BENCH_PROFILE"], f"{time.time_ns()}-{job_id}.prof"))
+
+runners.execute = execute
+"""
 FINAL = ("succeeded", "failed", "cancelled")
 
 
@@ -47,24 +65,50 @@ def gsa_exe() -> str:
     return str(exe) if exe.exists() else shutil.which("gsa") or "gsa"
 
 
+POLL_S = 0.05  # one request per poll: 20 a second, a fifth of the tenant's default rate (100/s)
+
+
+def request(c: httpx.Client, method: str, path: str, **kw) -> httpx.Response:
+    """One API call that waits out the service's pushback instead of failing on it: a 429
+    (the tenant's rate limit or job quota) or 503 is retried after its Retry-After, else
+    after a back-off that doubles from 0.1 s up to 5 s."""
+    backoff = 0.1
+    while True:
+        r = c.request(method, path, **kw)
+        if r.status_code not in (429, 503):
+            r.raise_for_status()
+            return r
+        try:
+            wait = float(r.headers.get("Retry-After", backoff))
+        except ValueError:
+            wait = backoff
+        time.sleep(max(wait, backoff))
+        backoff = min(2 * backoff, 5.0)
+
+
 def wait_final(c: httpx.Client, ids: list[str], timeout: float = 600) -> dict[str, dict]:
+    """The jobs' final records. One request per poll, whatever the batch size: the job itself
+    while one is pending, else the tenant's job list (every job of this run fits in a page)."""
     done: dict[str, dict] = {}
     deadline = time.monotonic() + timeout
     while len(done) < len(ids):
         if time.monotonic() > deadline:
             raise TimeoutError(f"{len(ids) - len(done)} jobs not finished")
-        for jid in ids:
-            if jid not in done:
-                j = c.get(f"/v1/jobs/{jid}").json()
-                if j["state"] in FINAL:
-                    done[jid] = j
-        time.sleep(0.02)
+        pending = [j for j in ids if j not in done]
+        if len(pending) == 1 or len(ids) > 200:  # a page holds 200 (the newest)
+            seen = [request(c, "GET", f"/v1/jobs/{j}").json() for j in pending[:1]]
+        else:
+            seen = request(c, "GET", "/v1/jobs", params={"limit": 200}).json()["items"]
+        for j in seen:
+            if j["id"] in pending and j["state"] in FINAL:
+                done[j["id"]] = j
+        if len(done) < len(ids):
+            time.sleep(POLL_S)
     return done
 
 
 def submit(c: httpx.Client, ids: list[str], options: dict) -> str:
-    r = c.post("/v1/jobs", json={"source": ids[0], "target": ids[1], "options": options})
-    r.raise_for_status()
+    r = request(c, "POST", "/v1/jobs", json={"source": ids[0], "target": ids[1], "options": options})
     return r.json()["id"]
 
 
@@ -85,6 +129,13 @@ def phases(job: dict) -> str:
     wait = ts(job["started_at"]) - ts(job["created_at"])
     run = ts(job["finished_at"]) - ts(job["started_at"])
     return f"queue->start {1e3 * wait:.0f} ms, start->end {1e3 * run:.0f} ms"
+
+
+def cpu_split(pid: int) -> tuple[float, float, float, int]:
+    """(own user+system s, reaped children's user s, their system s, their minor page faults)."""
+    f = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+    tick = os.sysconf("SC_CLK_TCK")
+    return (int(f[11]) + int(f[12])) / tick, int(f[13]) / tick, int(f[14]) / tick, int(f[8])
 
 
 def cpu_seconds(pid: int) -> float:
@@ -145,6 +196,15 @@ def many_job(c: httpx.Client, paths: list[Path], workers: int) -> int:
     return 0
 
 
+def profiled_env(env: dict, tmp: Path, out: Path) -> dict:
+    """The workers' environment with PROFILE_HOOK installed, stats written into `out`."""
+    out.mkdir(parents=True, exist_ok=True)
+    (tmp / "hook").mkdir()
+    (tmp / "hook" / "sitecustomize.py").write_text(PROFILE_HOOK)
+    path = os.pathsep.join([str(tmp / "hook"), str(ROOT), env.get("PYTHONPATH", "")])
+    return {**env, "PYTHONPATH": path, "GSA_BENCH_PROFILE": str(out.resolve())}
+
+
 def main() -> int:
     ap = argparse.ArgumentParser()
     ap.add_argument("--workers", type=int, default=2)
@@ -153,6 +213,7 @@ def main() -> int:
     ap.add_argument("--gaussians", type=int, default=3000)
     ap.add_argument("--outputs", default="all", help="comma list, or 'all' (the service default)")
     ap.add_argument("--keep", action="store_true", help="keep the temp folder (logs) for a look")
+    ap.add_argument("--profile", type=Path, help="write each job's cProfile stats here (the batch's jobs summed)")
     ap.add_argument("--many", type=int, default=0, help="run one many job over this many captures instead")
     ap.add_argument(
         "--cold-cache",
@@ -181,6 +242,7 @@ def main() -> int:
         env["GSA_REDIS_URL"] = redis_url
         if a.cold_cache:
             env["NUMBA_CACHE_DIR"] = str(tmp / "numba-cache")
+        worker_env = profiled_env(env, tmp, a.profile) if a.profile else env
         port = free_port()
         url = f"http://127.0.0.1:{port}"
         procs.append(start([gsa_exe(), "serve", "--port", str(port), "--log-level", "warning"], env, tmp / "api.log"))
@@ -192,7 +254,7 @@ def main() -> int:
                     ids.append(c.post("/v1/assets", files={"file": (p.name, fh)}).json()["id"])
             t_start = time.perf_counter()
             for i in range(a.workers):
-                procs.append(start([gsa_exe(), "worker"], env, tmp / f"worker{i}.log"))
+                procs.append(start([gsa_exe(), "worker"], worker_env, tmp / f"worker{i}.log"))
             deadline = time.monotonic() + 300
             while registered_workers(redis_url) < a.workers:
                 if time.monotonic() > deadline:
@@ -213,12 +275,15 @@ def main() -> int:
             warm_phases = phases(job)
             workers = procs[-a.workers :]
             cpu0 = sum(cpu_seconds(p.pid) for p in workers)
+            split0 = [sum(x) for x in zip(*(cpu_split(p.pid) for p in workers))]
             t0 = time.perf_counter()
             batch = [submit(c, ids, options) for _ in range(a.jobs)]
             done = wait_final(c, batch)
             elapsed = time.perf_counter() - t0
             time.sleep(0.5)  # the last horse reaped
             cpu_per_job = (sum(cpu_seconds(p.pid) for p in workers) - cpu0) / a.jobs
+            split = [sum(x) / a.jobs for x in zip(*(cpu_split(p.pid) for p in workers))]
+            split = [x - y / a.jobs for x, y in zip(split, split0)]
         ok = sum(j["state"] == "succeeded" for j in done.values())
         warm_med = statistics.median(warm)
         try:
@@ -237,6 +302,10 @@ def main() -> int:
         print(
             f"worker CPU per job (parents + horses): {cpu_per_job:.2f} s -> "
             f"{60 * (os.cpu_count() or 1) / cpu_per_job:.0f} jobs/min if the workers had all {os.cpu_count()} cores"
+        )
+        print(
+            f"  of which: worker parents {split[0]:.2f} s, horses user {split[1]:.2f} s + system {split[2]:.2f} s, "
+            f"horses' minor page faults {split[3]:,.0f} a job"
         )
         for i in range(a.workers):
             for line in (tmp / f"worker{i}.log").read_text(errors="replace").splitlines():

@@ -96,7 +96,7 @@ def run_job(job_id: str) -> str | None:
     return state.value if state else None
 
 
-def _warm_up() -> None:
+def _warm_up(settings: Settings | None = None) -> None:
     """Load the library and run one tiny alignment and render in the worker parent,
     so each forked work horse inherits imported modules and loaded numba kernels:
     a cold process pays ~1 s on its first alignment, and a fresh install (an empty
@@ -130,6 +130,13 @@ def _warm_up() -> None:
         res = align(m, m, AlignOptions(coarse_iterations=2))
         with tempfile.TemporaryDirectory(prefix="gsa-warm-up-") as d:
             write_outputs(res, m, m, Path(d), outputs={"result", "renders"})
+        if settings is not None and settings.semantic != "off":
+            # The semantic tie-break's backbone (~2 s to read, 90 MB) once per worker: read in
+            # a horse, it went with the horse, and every doubtful job read it again.
+            from gsa.align.semantic import available_backbone
+
+            if available_backbone(str(settings.dinov2_weights) if settings.dinov2_weights else None) is not None:
+                log.info("worker warm-up: semantic backbone loaded")
     except Exception:  # a broken library shows up in the jobs' errors; keep serving
         log.exception("worker warm-up failed")
         return
@@ -250,7 +257,7 @@ def run_rq_worker(burst: bool = False, name: str | None = None, settings: Settin
     if backend.redis is None:
         raise SystemExit("gsa worker needs GSA_REDIS_URL (embedded mode runs workers inside `gsa serve`)")
     s = backend.settings
-    _warm_up()
+    _warm_up(s)
     try:
         sweep_workspaces(backend)  # what a SIGKILLed horse on this machine left behind
     except store_errors() as exc:  # Redis not up yet: the reaper sweeps later

@@ -93,6 +93,8 @@ def test_cancel_stops_a_job_in_the_semantic_stage(tmp_path, redis_url, pair):
         assert done["state"] == "cancelled" and done["attempts"] == 1, done
         print(f"cancel in the semantic stage (at {seen['progress']:.3f}) took {took:.2f} s")
         assert took < SEMANTIC_CANCEL_BOUND_S, f"cancel took {took:.1f} s"
+        # read once by the worker before it forks its horses, not by every doubtful job
+        assert "semantic backbone loaded" in worker.tail(200_000)
     finally:
         worker.stop()
         api.stop()
