@@ -464,5 +464,7 @@ def test_the_views_and_the_lifting_of_a_large_model_in_bounded_calls_are_the_sam
     assert ticks == [2 / 6, 4 / 6, 1.0]  # a report after each call
     maps = torch.rand(6, 56, 56, 5)
     one_pass = back_project(model, maps, cams, batch_views=4)
-    passes = back_project(model, maps, cams, batch_views=4, channels_per_pass=2)
+    ticks = []
+    passes = back_project(model, maps, cams, batch_views=4, channels_per_pass=2, tick=ticks.append)
     assert torch.equal(one_pass, passes)
+    assert len(ticks) == 2 * 3 and ticks == sorted(ticks) and ticks[-1] == 1.0  # a report after each pass

@@ -94,7 +94,7 @@ def back_project(
     `channels_per_pass` of the k+1 columns a pass (None: all): the renderer materialises every
     channel per view and Gaussian, and each channel's gradient is computed alone (the same
     bits), so a large model is lifted in column groups at a fraction of the memory.
-    `tick(fraction of the views done)` after each batch (where a cancelled job stops)."""
+    `tick(fraction of the views done)` after each pass (where a cancelled job stops)."""
     n, k = len(model), maps.shape[-1]
     acc = torch.zeros(n, k + 1, dtype=torch.float64)
     group = max(1, channels_per_pass or k + 1)
@@ -107,8 +107,8 @@ def back_project(
             del rendered, probe  # the graph's saved projections go before the next pass builds its own
             acc[:, cols] += grad
             del grad
-        if tick is not None:
-            tick(sl.stop / len(maps))
+            if tick is not None:
+                tick((sl.start + (sl.stop - sl.start) * cols.stop / (k + 1)) / len(maps))
     return acc
 
 
