@@ -191,3 +191,16 @@ def test_failed_peer_counts_as_failure():
 def test_unknown_protocol():
     with pytest.raises(ValueError, match="unknown protocol"):
         P.run_protocols(["nope"])
+
+
+def test_deform_symmetric_pairs_bend_the_target_of_one_symmetric_object():
+    """Two captures of one symmetric object, the target bent: same family and k as the
+    symmetric protocol's pair, the target carrying the bend it was given."""
+    label, make = P.deform_symmetric_pairs(True, 0)[0]
+    plain_label, plain_make = P.symmetric_pairs(True, 0)[0]
+    source, target, truth = make()
+    plain_source, plain_target, plain_truth = plain_make()
+    assert label == plain_label and np.allclose(truth.matrix(), plain_truth.matrix())
+    assert "deform" in target.metadata and "deform" not in plain_target.metadata
+    assert np.allclose(source.means, plain_source.means)
+    assert not np.allclose(target.means, plain_target.means)

@@ -147,9 +147,10 @@ def deform_pairs(quick: bool, seed: int) -> list[Pair]:
     return _variant_pairs(quick, seed, 93, 600, lambda m, rng, side: deform(m, rng) if side == "target" else m)
 
 
-def symmetric_pairs(quick: bool, seed: int, exposure: bool = False) -> list[Pair]:
+def symmetric_pairs(quick: bool, seed: int, exposure: bool = False, deformed: bool = False) -> list[Pair]:
     """Symmetric instances (families cycling prism, wheel, bottle); labels 'family-kK-i'.
-    exposure: each capture also under its own exposure (±1 stop) and white balance."""
+    exposure: each capture also under its own exposure (±1 stop) and white balance;
+    deformed: the target a stretched, tapered and bent sampling of the same object."""
     count, n_src, n_dst = _robust_sizes(quick)
     pairs = []
     for i in range(count):
@@ -160,6 +161,8 @@ def symmetric_pairs(quick: bool, seed: int, exposure: bool = False) -> list[Pair
             truth = random_sim3(rng)
             source = make_symmetric_object(700 + i, n_src, sample_seed=7000 + i)
             target = make_symmetric_object(700 + i, n_dst, sample_seed=14_000 + i)
+            if deformed:
+                target = deform(target, np.random.default_rng([seed, 97, i]))
             if exposure:
                 light = np.random.default_rng([seed, 96, i])
                 source = shift_exposure(source, random_exposure(light))
@@ -168,6 +171,12 @@ def symmetric_pairs(quick: bool, seed: int, exposure: bool = False) -> list[Pair
 
         pairs.append((f"{family}-k{k}-{i}", make))
     return pairs
+
+
+def deform_symmetric_pairs(quick: bool, seed: int) -> list[Pair]:
+    """The symmetric pairs with the target bent (deform): two captures of one object whose
+    dominant-normal frames move with the bend, and whose k poses only the colour tells apart."""
+    return symmetric_pairs(quick, seed, deformed=True)
 
 
 def exposure_pairs(quick: bool, seed: int) -> list[Pair]:

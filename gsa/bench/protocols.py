@@ -23,6 +23,8 @@ symmetric 4- to 8-fold symmetric objects (prism, wheel, bottle) whose colour
           marks one sector; strict success against the true pose, plus
           `rre_any_symmetric_deg` (the best of the k symmetric poses)
 deform    target = a stretched, tapered and bent copy of the instance
+deform-symmetric  the symmetric pairs with the target bent (deform): two captures of one
+          object whose frames move with the bend and whose k poses only the colour tells apart
 exposure  the symmetric pairs, each capture under its own exposure (±1 stop) and
           white balance (gsa.synth.shift_exposure): colour must be compared through
           the gains between the captures (strict success, as symmetric)
@@ -73,6 +75,7 @@ from gsa.bench.pairs import (
     category_of,
     category_pairs,
     deform_pairs,
+    deform_symmetric_pairs,
     dup_pairs,
     exposure_pairs,
     noisy_pairs,
@@ -134,6 +137,7 @@ __all__ = [
     "category_pairs",
     "default_runners",
     "deform_pairs",
+    "deform_symmetric_pairs",
     "dup_pairs",
     "evaluate",
     "exposure_pairs",
@@ -298,6 +302,7 @@ protocol_opaque = _pair_protocol("opaque")
 protocol_deform = _pair_protocol("deform")
 protocol_symmetric = _pair_protocol("symmetric", symmetric_fields, symmetric_judge)
 protocol_exposure = _pair_protocol("exposure", symmetric_fields, symmetric_judge)
+protocol_deform_symmetric = _pair_protocol("deform_symmetric", symmetric_fields, symmetric_judge)
 
 
 def protocol_ablation(quick: bool, seed: int, out: Path, peers: list[str] | None = None) -> list[dict]:
@@ -396,6 +401,7 @@ PROTOCOLS = {
     "symmetric": protocol_symmetric,
     "deform": protocol_deform,
     "exposure": protocol_exposure,
+    "deform-symmetric": protocol_deform_symmetric,
     "scene": protocol_scene,
     "site": protocol_site,
     "category-real": protocol_category_real,
