@@ -483,15 +483,13 @@ def _second_opinion(
     doubtful; the other answer and its alternatives are offered after the chosen one's."""
     dst = robust.anchors(target, opts.anchor_count)
     src = robust.anchors(source, opts.anchor_count)
-    k = robust.PoseCriteria()
+    tie = robust.PoseCriteria().score_tie
     fit = {
         name: robust.score_pose(src, dst, r.transform, name).geometry
         for name, r in (("scene", rooms), ("object", objects))
     }
     chosen, other, other_name = (
-        (objects, rooms, "scene path")
-        if fit["object"] > fit["scene"] + k.score_tie
-        else (rooms, objects, "object path")
+        (objects, rooms, "scene path") if fit["object"] > fit["scene"] + tie else (rooms, objects, "object path")
     )
     offered = [chosen.transform]
     alternatives = list(chosen.metrics.get("alternatives") or [])
@@ -511,7 +509,7 @@ def _second_opinion(
     }
     chosen.metrics = chosen.metrics | {"alternatives": alternatives, "doubtful": True}
     chosen.metrics["scene"] = rooms.metrics.get("scene", {}) | {"second_opinion": report}
-    chosen.timings = rooms.timings | {f"object_path_{k}": v for k, v in objects.timings.items()}
+    chosen.timings = rooms.timings | {f"object_path_{step}": v for step, v in objects.timings.items()}
     chosen.lifting = rooms.lifting
     return chosen
 
