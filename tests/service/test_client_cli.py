@@ -8,7 +8,7 @@ import subprocess
 
 import pytest
 
-from tests.service.conftest import PY, ROOT, free_port, submit_pair, wait_job
+from tests.service.conftest import PY, ROOT, free_port, submit_pair, submit_slow_job, wait_job
 
 pytestmark = pytest.mark.slow  # starts servers and worker processes
 
@@ -73,13 +73,12 @@ def test_fetch_one_named_artifact(stack, finished_job, tmp_path):
 def test_fetch_of_a_job_without_results_says_so_and_fails(stack, http, pair, tmp_path):
     """It exited 0 having printed and written nothing."""
 
-    r = submit_pair(http, pair, {"stages": ["coarse"]})
-    assert r.status_code == 202, r.text
-    job_id = r.json()["id"]
+    slow, _ = submit_slow_job(http, pair, copies=3)  # long enough that the cancel lands mid-run
+    job_id = slow["id"]
+    wait_job(http, job_id, states=("running",), timeout=60)
     http.post(f"/v1/jobs/{job_id}:cancel")
     job = wait_job(http, job_id, timeout=120)
-    if job["state"] == "succeeded":
-        pytest.skip("the job finished before the cancel reached it")
+    assert job["state"] == "cancelled", job
     r = gsa("fetch", job_id, "--out", str(tmp_path / "o"), server=stack["url"])
     assert r.returncode == 1, r
     assert f"job {job_id} is {job['state']}" in r.stderr and "no results" in r.stderr, r.stderr
