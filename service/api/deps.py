@@ -14,6 +14,9 @@ from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
 from service.backend import Backend
 from service.jobs import core
 
+# The request scope's key for the caller's owner, once its key is known (service.api.middleware.RequestMetrics).
+OWNER_SCOPE = "gsa.owner"
+
 bearer = HTTPBearer(auto_error=False, description="API key: `Authorization: Bearer <key>`")
 
 
@@ -25,8 +28,15 @@ async def require_owner(
     request: Request,
     creds: HTTPAuthorizationCredentials | None = Depends(bearer),
 ) -> str:
-    """401 without a valid key, 429 past the tenant's request rate (service.jobs.core.authenticate)."""
-    return core.authenticate(get_backend(request), creds.credentials if creds else None)
+    """401 without a valid key, 429 past the tenant's request rate (service.jobs.core.authenticate).
+    The owner is left in the request's scope (OWNER_SCOPE) before the rate is checked, so the
+    request metrics count even a rate-limited request for its tenant (service.metrics)."""
+    b = get_backend(request)
+    key = creds.credentials if creds else None
+    owner = core.owner_for_key(b, key)
+    if owner is not None:
+        request.scope[OWNER_SCOPE] = owner
+    return core.authenticate(b, key)
 
 
 # Handler parameter types: the caller's owner id (401 without a valid key) and the app's backend.

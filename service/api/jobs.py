@@ -110,7 +110,7 @@ def _form_request(form: Form) -> core.JobRequest:
 async def _submit(request: Request, b: Backend, owner: str, req: core.JobRequest, idem: str | None):
     job, created = await run_in_threadpool(core.submit_job, b, owner, req, idem)
     if created:
-        request.app.state.metrics.jobs_created.labels("http").inc()
+        request.app.state.metrics.job_created("http", owner)
     return _job_response(job, created)
 
 
@@ -245,7 +245,7 @@ async def refine_job(
     hints = body.model_dump(exclude_unset=True)
     job, created = await run_in_threadpool(core.refine_job, b, owner, job_id, hints, idempotency_key)
     if created:
-        request.app.state.metrics.jobs_created.labels("http").inc()
+        request.app.state.metrics.job_created("http", owner)
     return _job_response(job, created)
 
 

@@ -66,7 +66,7 @@ async def create_many_job(
     req = request_from(spec)
     job, created = await run_in_threadpool(many.submit_many, b, owner, req, idempotency_key, "http")
     if created:
-        request.app.state.metrics.jobs_created.labels("http").inc()
+        request.app.state.metrics.job_created("http", owner)
     return _job_response(job, created)
 
 

@@ -12,6 +12,7 @@ from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
 from starlette.exceptions import HTTPException as StarletteHTTPException
 
+from service.api.deps import OWNER_SCOPE
 from service.problems import Problem, too_large
 
 log = logging.getLogger("gsa.api")
@@ -176,3 +177,6 @@ class RequestMetrics:
             path = getattr(route, "path", "unmatched")
             self.metrics.requests.labels(scope["method"], path, str(status[0])).inc()
             self.metrics.latency.labels(scope["method"], path).observe(time.perf_counter() - t0)
+            owner = scope.get(OWNER_SCOPE)  # set by service.api.deps.require_owner once the key is known
+            if owner is not None:
+                self.metrics.request_done(owner, status[0])

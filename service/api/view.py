@@ -239,7 +239,7 @@ async def job_page_refine(job_id: str, body: RefineIn, request: Request) -> JSON
         job = await run_in_threadpool(_search_again, b, owner, job_id, hints)
     else:
         job, _ = await run_in_threadpool(core.refine_job, b, owner, job_id, hints, None)
-    request.app.state.metrics.jobs_created.labels("http").inc()
+    request.app.state.metrics.job_created("http", owner)
     return JSONResponse(
         {"job": JobOut.from_job(job).model_dump(mode="json"), "view_url": _page_link(b, owner, job.id)},
         status_code=202,

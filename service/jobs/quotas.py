@@ -11,6 +11,9 @@ in embedded mode one in this process. Stored bytes are a ledger per owner in the
 (service.stores.base: `set_usage` / `drop_usage` / `usage`) keyed by what holds the bytes (an
 upload's blob key, `job:<id>` for a job's artifacts): setting an entry twice counts it once,
 so a retried write never counts double.
+
+Every refusal is counted where it is raised, per tenant and reason (service.metrics:
+`gsa_tenant_refusals_total{tenant, reason}`), for HTTP and gRPC alike.
 """
 
 from __future__ import annotations
@@ -96,6 +99,13 @@ def _retry_after(p: Problem, seconds: float) -> Problem:
     return p
 
 
+def _refused(b, owner: str, reason: str) -> None:
+    """Count a refusal (service.metrics.REFUSAL_REASONS) on the API's metrics, if it has them."""
+    metrics = getattr(b, "metrics", None)
+    if metrics is not None:
+        metrics.refused(owner, reason)
+
+
 _made = threading.Lock()
 
 
@@ -120,6 +130,7 @@ def check_rate(b, owner: str) -> None:
         return
     if wait > 0:
         s = b.settings
+        _refused(b, owner, "rate_limited")
         raise _retry_after(
             Problem(
                 429,
@@ -150,6 +161,7 @@ def check_storage(b, owner: str, incoming: int = 0) -> None:
         return
     used = b.store.usage(owner)
     if used + incoming > quota or (incoming == 0 and used >= quota):
+        _refused(b, owner, "storage_quota")
         raise Problem(
             507,
             "storage-quota-exceeded",
@@ -169,6 +181,7 @@ def check_active_jobs(b, owner: str) -> None:
         return
     active = b.store.active_jobs(owner)
     if active >= limit:
+        _refused(b, owner, "active_jobs")
         raise _retry_after(
             Problem(
                 429,

@@ -264,7 +264,7 @@ class AlignmentServicer(pbg.AlignmentServiceServicer):
             header = self._receive(request_iterator, files)
             job, created = core.submit_job(self.b, owner, _job_request(header, files), header.idempotency_key or None)
             if created and self.metrics is not None:
-                self.metrics.jobs_created.labels("grpc").inc()
+                self.metrics.job_created("grpc", owner)
             return job_to_pb(job)
         finally:
             for f in files.values():
@@ -313,7 +313,7 @@ class AlignmentServicer(pbg.AlignmentServiceServicer):
                 hints["alternative"] = request.alternative
             job, created = core.refine_job(self.b, owner, request.job_id, hints, request.idempotency_key or None)
             if created and self.metrics is not None:
-                self.metrics.jobs_created.labels("grpc").inc()
+                self.metrics.job_created("grpc", owner)
             return job_to_pb(job)
 
         return self._guard(refine, context)
@@ -342,7 +342,7 @@ class AlignmentServicer(pbg.AlignmentServiceServicer):
             )
             job, created = many.submit_many(self.b, owner, req, request.idempotency_key or None, "grpc")
             if created and self.metrics is not None:
-                self.metrics.jobs_created.labels("grpc").inc()
+                self.metrics.job_created("grpc", owner)
             return job_to_pb(job)
 
         return self._guard(submit, context)
