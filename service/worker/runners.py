@@ -31,8 +31,11 @@ def start_embedded_workers(backend: Backend, stop: threading.Event) -> list[thre
     sweep_workspaces(backend)  # and their temp folders with them
 
     s = backend.settings
+    warm = _warming_up(s)
 
     def loop():
+        if not _waited(warm, stop):
+            return
         pause = 0.0
         while not stop.is_set():
             ran, trouble = False, None
@@ -75,6 +78,30 @@ def start_embedded_workers(backend: Backend, stop: threading.Event) -> list[thre
     return threads
 
 
+def _warming_up(settings: Settings) -> threading.Event:
+    """The embedded workers' warm-up (_warm_up) in a thread of its own: the API answers
+    meanwhile (a job submitted then waits queued), and the workers take jobs once the returned
+    event is set (the warm-up done, or failed)."""
+    warm = threading.Event()
+
+    def run():
+        try:
+            _warm_up(settings, fork=False)
+        finally:
+            warm.set()
+
+    threading.Thread(target=run, name="gsa-worker-warm-up", daemon=True).start()
+    return warm
+
+
+def _waited(event: threading.Event, stop: threading.Event) -> bool:
+    """Wait for `event`; False if `stop` came first."""
+    while not event.wait(0.5):
+        if stop.is_set():
+            return False
+    return True
+
+
 def _terminated(signum, frame):
     raise SystemExit(128 + signum)
 
@@ -96,23 +123,26 @@ def run_job(job_id: str) -> str | None:
     return state.value if state else None
 
 
-def _warm_up(settings: Settings | None = None) -> None:
-    """Load the library and run one tiny alignment and render in the worker parent,
-    so each forked work horse inherits imported modules and loaded numba kernels:
-    a cold process pays ~1 s on its first alignment, and a fresh install (an empty
-    numba cache, as in a new container) ~20 s compiling the renderer on its first job.
+def _warm_up(settings: Settings | None = None, *, fork: bool = True) -> None:
+    """Load the library and run one tiny alignment and render before taking jobs: a cold
+    process pays ~1 s on its first alignment, ~2 s importing torch, and a fresh install (an
+    empty numba cache, as in a new container) ~20-80 s compiling the renderer on its first job.
 
-    numba's default GNU-OpenMP threading layer aborts a child that forks after
-    the parent ran parallel code, so the worker uses the fork-safe `workqueue`
-    layer (fine here: one job thread per process); torch runs on one thread here
-    (see service.worker.horse)."""
-    if "numba" not in sys.modules:
+    `fork=True`, the RQ worker parent: each forked work horse inherits the imported modules and
+    loaded numba kernels. numba's default GNU-OpenMP threading layer aborts a child that forks
+    after the parent ran parallel code, so the worker uses the fork-safe `workqueue` layer
+    (fine here: one job thread per process); torch runs on one thread here (see
+    service.worker.horse), and the heap is frozen for the horses' copy-on-write.
+
+    `fork=False`, the embedded workers (`gsa serve` without Redis): jobs run in threads of this
+    process, nothing forks, so none of that applies; torch keeps its thread count."""
+    if fork and "numba" not in sys.modules:
         os.environ.setdefault("NUMBA_THREADING_LAYER", "workqueue")
     t = time.perf_counter()
     try:
         import numba
 
-        if numba.config.THREADING_LAYER not in ("workqueue", "tbb"):
+        if fork and numba.config.THREADING_LAYER not in ("workqueue", "tbb"):
             log.warning(
                 "numba threading layer %s is not fork-safe: skipping warm-up",
                 numba.config.THREADING_LAYER,
@@ -124,8 +154,9 @@ def _warm_up(settings: Settings | None = None) -> None:
         from gsa.align.pipeline import AlignOptions, align
         from gsa.synth import make_object
 
-        remember_torch_threads(torch.get_num_threads())
-        torch.set_num_threads(1)
+        if fork:
+            remember_torch_threads(torch.get_num_threads())
+            torch.set_num_threads(1)
         m = make_object("car", seed=0, n_gaussians=500)
         res = align(m, m, AlignOptions(coarse_iterations=2))
         with tempfile.TemporaryDirectory(prefix="gsa-warm-up-") as d:
@@ -140,10 +171,11 @@ def _warm_up(settings: Settings | None = None) -> None:
     except Exception:  # a broken library shows up in the jobs' errors; keep serving
         log.exception("worker warm-up failed")
         return
-    # Pre-fork hygiene: move everything loaded so far out of the GC's reach so the
-    # horses' collections do not copy-on-write the whole inherited heap.
-    gc.collect()
-    gc.freeze()
+    if fork:
+        # Pre-fork hygiene: move everything loaded so far out of the GC's reach so the
+        # horses' collections do not copy-on-write the whole inherited heap.
+        gc.collect()
+        gc.freeze()
     log.info("worker warm-up took %.2f s", time.perf_counter() - t)
 
 
