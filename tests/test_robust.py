@@ -228,6 +228,35 @@ def test_duplicates_stay_exact_and_confident():
     assert result.metrics["confidence"] > 0.9 and not result.metrics["doubtful"]
 
 
+def test_a_confident_answer_lists_alternatives_only_when_asked_and_they_are_made_once_alike():
+    """The half turns offered beside an answer cost three ICPs: made on first use, from the
+    search's random state then (the same poses however often they are made), and listed for a
+    confident answer only with alternatives="always"."""
+    from dataclasses import replace
+
+    from gsa.align.types import AlignOptions
+
+    truth = random_sim3(np.random.default_rng(5))
+    model = make_object("car", seed=3, n_gaussians=3000)
+    target = model.transformed(truth)
+    quiet = align(model, target)
+    assert not quiet.metrics["doubtful"] and quiet.metrics["alternatives"] == []
+    listed = align(model, target, AlignOptions(alternatives="always"))
+    assert np.allclose(listed.transform.matrix(), quiet.transform.matrix())
+    assert len(listed.metrics["alternatives"]) >= 3  # the half turns at least, each a distinct pose
+    with pytest.raises(ValueError, match="alternatives must be doubtful or always"):
+        AlignOptions(alternatives="never")
+
+    src, dst = robust.anchors(model, 2000, 0), robust.anchors(target, 2000, 0)
+    found = robust.global_search(src, dst)
+    assert callable(found.offers)  # nothing made yet
+    copy = replace(found)
+    first = [c.transform.matrix() for c in found.offered]
+    again = [c.transform.matrix() for c in copy.offered]  # the copy makes its own, from the same state
+    assert len(first) == len(again) >= 3 and all(np.array_equal(a, b) for a, b in zip(first, again, strict=True))
+    assert found.offered is found.offered  # made once
+
+
 def test_unrelated_shapes_are_flagged():
     truth = random_sim3(np.random.default_rng(12))
     source = make_object("chair", seed=1, n_gaussians=6000)
@@ -421,7 +450,7 @@ def test_criteria_passed_in_take_effect():
     assert robust.verdict(best, clear, criteria=robust.VerdictCriteria(confidence_threshold=0.99))["doubtful"]
     # alternatives follow the search's distinct_deg: at 100° apart, the 90° pose is one with the best.
     wider = robust.decide([best, second], w_colour=0.0, criteria=robust.PoseCriteria(distinct_deg=100.0))
-    wider.offered = [second]
+    wider.offers = [second]
     assert robust.verdict(best, wider)["alternatives"] == []
 
 
@@ -448,7 +477,7 @@ def test_snapped_offers_turn_a_drifted_pose_onto_the_principal_frames():
     assert np.allclose(pose.transform.apply(src.center), drifted.apply(src.center))
     assert pose.transform.scale == drifted.scale
     # Offered beside the drifted pose although it is 8° away; another pose 8° away is not.
-    search = SearchResult([poses[0]], 0.0, 10.0, [], offered=[Candidate(aligned, "grid"), pose])
+    search = SearchResult([poses[0]], 0.0, 10.0, [], offers=[Candidate(aligned, "grid"), pose])
     assert alternatives(poses[0], search) == [pose]
 
 

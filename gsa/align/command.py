@@ -61,6 +61,7 @@ def _align_options(args: argparse.Namespace):
         "photo_matches": getattr(args, "photo_matches", None) or "auto",
         "frame_snap": getattr(args, "frame_snap", None) or "auto",
         "learned": getattr(args, "learned", None) or "auto",
+        "alternatives": getattr(args, "alternatives", None) or "doubtful",
     }
     for name in ("fine_iterations", "fine_views", "fine_lr", "fine_image_size", "fine_on"):
         value = getattr(args, name, None)
@@ -280,6 +281,13 @@ def add_align_arguments(p: argparse.ArgumentParser) -> None:
         default="auto",
         help="a doubtful answer between other instances: turned onto the relabellings of the two "
         "models' dominant surface-normal frames and checked among them (auto), or left as refined (off)",
+    )
+    g.add_argument(
+        "--alternatives",
+        choices=("doubtful", "always"),
+        default="doubtful",
+        help="list the poses worth picking (metrics alternatives) for doubtful and guided answers "
+        "(doubtful), or for every answer (always)",
     )
     g.add_argument(
         "--photo-matches",

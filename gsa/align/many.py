@@ -29,7 +29,7 @@ from __future__ import annotations
 import itertools
 import time
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -795,7 +795,8 @@ def pairwise_edges(
     (either may raise to stop: the service cancels jobs so)."""
     from gsa.align.pipeline import AlignOptions, align  # lazy: numba and scipy
 
-    options = options or AlignOptions()
+    # The consensus corrects an edge from its alternatives, a confident one's too.
+    options = replace(options or AlignOptions(), alternatives="always")
     out = []
     for done, (i, j) in enumerate(pairs, 1):
         t0 = time.perf_counter()

@@ -822,7 +822,10 @@ class _Pair:
         else:
             w_colour = robust.colour_trust(src, dst, 0.5 * (robust.colour_noise(src) + robust.colour_noise(dst)))
         coincide = self._coincidence(transform)
-        out = robust.verdict(robust.score_pose(src, dst, transform, "final", w_colour), search, coincide)
+        offer_always = self.opts.alternatives == "always" or guided.is_guided(self.opts)
+        out = robust.verdict(
+            robust.score_pose(src, dst, transform, "final", w_colour), search, coincide, offer_always=offer_always
+        )
         out["colour_gain"] = list(src.colour_gain)  # exposure/white balance matched onto the target's
         return out
 

@@ -674,7 +674,8 @@ def align_scene(
     t = time.perf_counter()
     metrics = _inliers(transform, p, q, p_tree, q_tree, opts.inlier_threshold * dst.radius)
     final = robust.score_pose(src, dst, transform, "final", search.colour_weight)
-    metrics.update(robust.verdict(final, search, robust.coincidence(p, q, p_tree, q_tree, transform)))
+    coincide = robust.coincidence(p, q, p_tree, q_tree, transform)
+    metrics.update(robust.verdict(final, search, coincide, offer_always=opts.alternatives == "always"))
     metrics["hypothesis"] = search.best.origin
     metrics["scene"] = choice.to_dict() | {
         "kind": "room" if sites is None else "site",

@@ -129,6 +129,10 @@ class AlignOptions:
         nearest of the 24 relabellings of the two models' dominant surface-normal frames where
         that turn is at most 20 degrees (gsa.manhattan): across instances the refinement drifts
         off the frame both objects are built along; "off" leaves the poses as refined.
+    alternatives: "doubtful" lists the poses worth picking (metrics["alternatives"]) where the
+        answer is doubtful or guided, an empty list where it is confident (the half turns
+        offered cost three ICPs a job); "always" lists them for every answer (gsa.align.many
+        weighs every edge's alternatives).
     """
 
     stages: tuple[StageName, ...] = ("auto",)
@@ -168,6 +172,7 @@ class AlignOptions:
     photo_matches: Literal["auto", "off"] = "auto"
     frame_snap: Literal["auto", "off"] = "auto"
     learned: Literal["auto", "off"] = "auto"
+    alternatives: Literal["doubtful", "always"] = "doubtful"
 
     def __post_init__(self) -> None:
         from gsa.align.guided import check_guidance  # one place checks every hint's shape
@@ -193,14 +198,15 @@ class AlignOptions:
             raise ValueError("coarse_iterations and max_candidates must be at least 1")
         if not self.hypothesis_truncation > 0 or not self.inlier_threshold > 0:
             raise ValueError("hypothesis_truncation and inlier_threshold must be positive")
-        if self.semantic not in ("auto", "off"):
-            raise ValueError(f"semantic must be auto or off, got {self.semantic!r}")
-        if self.photo_matches not in ("auto", "off"):
-            raise ValueError(f"photo_matches must be auto or off, got {self.photo_matches!r}")
-        if self.frame_snap not in ("auto", "off"):
-            raise ValueError(f"frame_snap must be auto or off, got {self.frame_snap!r}")
-        if self.learned not in ("auto", "off"):
-            raise ValueError(f"learned must be auto or off, got {self.learned!r}")
+        for name, choices in (
+            ("semantic", ("auto", "off")),
+            ("photo_matches", ("auto", "off")),
+            ("frame_snap", ("auto", "off")),
+            ("learned", ("auto", "off")),
+            ("alternatives", ("doubtful", "always")),
+        ):
+            if getattr(self, name) not in choices:
+                raise ValueError(f"{name} must be {' or '.join(choices)}, got {getattr(self, name)!r}")
         if not isinstance(self.rigid, bool):
             raise ValueError(f"rigid must be true or false, got {self.rigid!r}")
 

@@ -130,6 +130,7 @@ OPTION_CHOICES: dict[str, tuple[str, ...]] = {
     "photo_matches": ("auto", "off"),
     "frame_snap": ("auto", "off"),
     "learned": ("auto", "off"),
+    "alternatives": ("doubtful", "always"),
 }
 STAGE_NAMES = ("auto", "coarse", "fine")
 BOOL_OPTIONS = {"renders", "weight_by_opacity", "rigid"}
@@ -394,6 +395,12 @@ class AlignOptionsIn(BaseModel):
         description="auto | off: a doubtful answer between other instances is turned onto the nearest "
         "relabelling of the models' dominant surface-normal frames and checked against the others; off "
         "keeps the poses as refined (default auto)",
+    )
+    alternatives: str | None = Field(
+        None,
+        description="doubtful | always: metrics.alternatives lists the poses worth picking for a doubtful "
+        "or guided answer and is empty for a confident one (default doubtful); always lists them for "
+        "every answer",
     )
 
     @model_validator(mode="after")

@@ -7,6 +7,7 @@ defaults), and a SearchResult keeps the criteria it was decided under."""
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 
 import numpy as np
@@ -129,13 +130,22 @@ class SearchResult:
     ranked_by: str = "score"
     # The distinct poses to offer beside the best, in order (search._with_offers): the first
     # rival, the best turned half-way about the target's principal axes, the other candidates.
-    # Offered to a person (alternatives), never ranked against the others.
-    offered: list[Candidate] = field(default_factory=list)
+    # Offered to a person (alternatives), never ranked against the others. A list, or a
+    # function that makes it on first use (`offered`): the half turns cost three ICPs, which
+    # a confident answer nobody asks alternatives of need not pay.
+    offers: list[Candidate] | Callable[[], list[Candidate]] = field(default_factory=list, repr=False)
     criteria: PoseCriteria = field(default=_DEFAULT, repr=False)  # what the poses were scored and decided by
 
     @property
     def best(self) -> Candidate:
         return self.candidates[0]
+
+    @property
+    def offered(self) -> list[Candidate]:
+        """The poses to offer beside the best (made on first use where `offers` is a function)."""
+        if callable(self.offers):
+            self.offers = self.offers()
+        return self.offers
 
     @property
     def ambiguous(self) -> bool:
@@ -360,7 +370,11 @@ def with_given_pose(given: Candidate, found: SearchResult) -> SearchResult:
         rivals,
         found.colour_noise,
         found.ranked_by,
-        [c for c in [found.best, *found.offered] if rotation_offset_deg(c.transform, given.transform) > k.distinct_deg],
+        lambda: [
+            c
+            for c in [found.best, *found.offered]
+            if rotation_offset_deg(c.transform, given.transform) > k.distinct_deg
+        ],
         k,
     )
 

@@ -112,11 +112,13 @@ def verdict(
     search: SearchResult | None,
     coincide: tuple[float, float] | None = None,
     criteria: VerdictCriteria | None = None,
+    offer_always: bool = False,
 ) -> dict:
     """GT-free judgement of a final pose: `confidence` in [0, 1] combines how well the
     two models overlap there with how clearly the pose beat the best distinct
     alternative of the search; `ambiguous` marks a tie nothing could break
-    (a colourless symmetric object), with the tied poses as `alternatives`.
+    (a colourless symmetric object), with the tied poses as `alternatives`. Those are
+    listed for a doubtful answer, and for a confident one where `offer_always`.
 
     coincide: (ξ, share) of `coincidence` at full resolution. How well the models overlap
     is the larger of the overlap score (how much of both models lies close) and how much
@@ -160,9 +162,10 @@ def verdict(
         out["colour_weight"] = search.colour_weight
         out["ranked_by"] = search.ranked_by
         # `tied`: a rival (within score_tie of the chosen pose, what makes a result ambiguous).
+        offer = offer_always or out["doubtful"]
         out["alternatives"] = [
             c.to_dict(final.transform) | {"tied": any(c is r for r in search.rivals)}
-            for c in alternatives(final, search, v.max_alternatives)
+            for c in (alternatives(final, search, v.max_alternatives) if offer else [])
         ]
     return out
 

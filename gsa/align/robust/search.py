@@ -163,7 +163,22 @@ def global_search(
 def _with_offers(
     src: Anchors, dst: Anchors, result: SearchResult, w_colour: float, rng: np.random.Generator, opts: SearchOptions
 ) -> SearchResult:
-    """The result with the poses to offer beside its best (`offered`): the first rival, the best
+    """The result with its offers made on first use (SearchResult.offered, _offers), from the
+    random state `rng` has now: the same poses whenever, and however often, they are made."""
+    state = rng.bit_generator.state
+
+    def make() -> list[Candidate]:
+        replay = np.random.Generator(type(rng.bit_generator)())
+        replay.bit_generator.state = state
+        return _offers(src, dst, result, w_colour, replay, opts)
+
+    return replace(result, offers=make)
+
+
+def _offers(
+    src: Anchors, dst: Anchors, result: SearchResult, w_colour: float, rng: np.random.Generator, opts: SearchOptions
+) -> list[Candidate]:
+    """The poses to offer beside the result's best: the first rival, the best
     turned by 180° about each of opts.offer_turn_axes (default: the target's principal axes),
     through the target's centre, and refined by the anchors' ICP, then the other candidates by
     score (the other rivals among them). Each after the first rival is kept only where it puts
@@ -208,7 +223,7 @@ def _with_offers(
         # The best's snapped twin right after the first rival, the others' after every offer.
         first = [c for i, c in snapped if i == 0]
         offered = [*offered[:1], *first, *offered[1:], *[c for i, c in snapped if i > 0]]
-    return replace(result, offered=offered)
+    return offered
 
 
 def _snapped(
