@@ -176,6 +176,12 @@ def test_colourless_symmetric_shape_is_reported_ambiguous_with_the_symmetric_pos
     sym = [truth.rotation @ r for r in symmetry_rotations(source)]
     for pose in poses:
         assert min(rre_deg(pose.rotation, r) for r in sym) < 5.0
+    # The typed verdict says the same, and why.
+    v = result.verdict
+    assert v.doubtful and v.ambiguous and v.confidence == m["confidence"] and "as well as this one" in v.reason
+    assert len(v.alternatives) == len(m["alternatives"]) and v.alternatives[0].tied
+    assert np.allclose(v.alternatives[0].transform.matrix(), m["alternatives"][0]["transform"])
+    assert [a.origin for a in v.alternatives] == [a["origin"] for a in m["alternatives"]]
 
 
 def test_partial_captures_align_with_scale_from_the_overlap():
@@ -241,6 +247,7 @@ def test_a_confident_answer_lists_alternatives_only_when_asked_and_they_are_made
     target = model.transformed(truth)
     quiet = align(model, target)
     assert not quiet.metrics["doubtful"] and quiet.metrics["alternatives"] == []
+    assert quiet.verdict.reason is None and quiet.verdict.alternatives == () and not quiet.verdict.doubtful
     listed = align(model, target, AlignOptions(alternatives="always"))
     assert np.allclose(listed.transform.matrix(), quiet.transform.matrix())
     assert len(listed.metrics["alternatives"]) >= 3  # the half turns at least, each a distinct pose

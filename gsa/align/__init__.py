@@ -12,5 +12,6 @@ from __future__ import annotations
 from gsa.lazy import lazy_exports
 
 _HOMES = dict.fromkeys(("align", "AlignOptions", "AlignmentResult", "AlignmentError"), "gsa.align.pipeline")
+_HOMES |= dict.fromkeys(("Verdict", "Alternative"), "gsa.align.verdict")
 __all__ = list(_HOMES)
 __getattr__, __dir__ = lazy_exports(__name__, _HOMES)

@@ -21,6 +21,7 @@ from gsa.align.choices import (
     StageName,
 )
 from gsa.align.coarse import CoarseOptions, CoarseResult
+from gsa.align.verdict import Verdict
 from gsa.canonical import CanonicalFrame
 from gsa.features.settings import FeatureSettings  # torch-free, so typing.get_type_hints(AlignOptions) resolves
 from gsa.sim3 import Sim3
@@ -249,6 +250,12 @@ class AlignmentResult:
     lifting: list[dict] = field(default_factory=list)  # gsa.features LiftReports when features were lifted
     source_frame: CanonicalFrame | None = None
     target_frame: CanonicalFrame | None = None
+
+    @property
+    def verdict(self) -> Verdict:
+        """How sure align() is, why not, and the poses worth picking instead (typed; read from
+        `metrics`, whose layout result.json keeps)."""
+        return Verdict.from_metrics(self.metrics)
 
     def to_dict(self) -> dict:
         out = self.transform.to_dict()
