@@ -242,16 +242,19 @@ def _render(model: GaussianModel, criteria: SemanticCriteria, seed: int, tick=No
     only (the shaded views are drawn from the depth: colours from the SH would be C x N x 3
     floats for nothing), a few views per call for a large model (VIEW_GAUSSIANS_PER_CALL);
     each view composites alone, so the images are those of one call. `tick(fraction)` after
-    each call."""
+    each call, and within it between the renderer's steps (gsa.render.steps: one view of a
+    3M-Gaussian model takes ~1-3 s)."""
     import torch
 
     from gsa.render import cameras_around, rasterize
+    from gsa.render.steps import between_steps
 
     cams = cameras_around(model.means, criteria.views, width=criteria.image_size, seed=seed)
     depth, alpha = [], []
     step = _views_per_call(len(model))
     for start in range(0, len(cams), step):
-        with torch.no_grad():
+        within = None if tick is None else functools.partial(tick, start / len(cams))
+        with torch.no_grad(), between_steps(within):
             out = rasterize(
                 model.means,
                 model.quats,
@@ -273,7 +276,8 @@ def _render(model: GaussianModel, criteria: SemanticCriteria, seed: int, tick=No
 
 def _lift(model: GaussianModel, cams, maps, tick=None):
     """Blend-weighted mean of the (C,H,W,k) maps per Gaussian -> (N,k) features, (N,) weight.
-    4 views a backward pass (fewer past LIFT_VIEW_GAUSSIANS_PER_CALL); `tick` after each.
+    4 views a backward pass (fewer past LIFT_VIEW_GAUSSIANS_PER_CALL); `tick` after each, and
+    between the renderer's steps within it.
     The features are divided in place (views of the sums: no second N x k float64 array)."""
     from gsa.features.lift import back_project
 

@@ -9,6 +9,7 @@ renderer backward pass gives both sums) and let Adam remove the blur that averag
 
 from __future__ import annotations
 
+import functools
 import time
 from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
@@ -20,6 +21,7 @@ from scipy.spatial import cKDTree
 from gsa.features.extractors import FeatureExtractor
 from gsa.model import GaussianModel, ModelError
 from gsa.render import cameras_around, rasterize, render_model
+from gsa.render.steps import between_steps
 
 Progress = Callable[[str, float], None]
 
@@ -94,21 +96,25 @@ def back_project(
     `channels_per_pass` of the k+1 columns a pass (None: all): the renderer materialises every
     channel per view and Gaussian, and each channel's gradient is computed alone (the same
     bits), so a large model is lifted in column groups at a fraction of the memory.
-    `tick(fraction of the views done)` after each pass (where a cancelled job stops)."""
+    `tick(fraction of the views done)` after each pass, and within it between the renderer's
+    steps (gsa.render.steps: a pass of a 3M-Gaussian model takes seconds), where a cancelled job
+    stops."""
     n, k = len(model), maps.shape[-1]
     acc = torch.zeros(n, k + 1, dtype=torch.float64)
     group = max(1, channels_per_pass or k + 1)
+    done = lambda sl, cols: (sl.start + (sl.stop - sl.start) * cols / (k + 1)) / len(maps)  # noqa: E731
     for sl in _chunks(len(maps), batch_views):
         weights = torch.cat([maps[sl], torch.ones_like(maps[sl][..., :1])], -1)
         for cols in _chunks(k + 1, group):
-            probe = torch.zeros(n, cols.stop - cols.start, requires_grad=True)
-            rendered = _render_features(model, probe, cameras[sl], backend)
-            (grad,) = torch.autograd.grad(rendered, probe, grad_outputs=weights[..., cols].contiguous())
+            with between_steps(None if tick is None else functools.partial(tick, done(sl, cols.start))):
+                probe = torch.zeros(n, cols.stop - cols.start, requires_grad=True)
+                rendered = _render_features(model, probe, cameras[sl], backend)
+                (grad,) = torch.autograd.grad(rendered, probe, grad_outputs=weights[..., cols].contiguous())
             del rendered, probe  # the graph's saved projections go before the next pass builds its own
             acc[:, cols] += grad
             del grad
             if tick is not None:
-                tick((sl.start + (sl.stop - sl.start) * cols.stop / (k + 1)) / len(maps))
+                tick(done(sl, cols.stop))
     return acc
 
 

@@ -20,6 +20,7 @@ from gsa.render.cuda import render_gsplat
 from gsa.render.output import RenderOutput, split_channels
 from gsa.render.projection import colors_from_sh, covariance_3d, project
 from gsa.render.reference import composite_reference
+from gsa.render.steps import step
 
 __all__ = [
     "Cameras",
@@ -138,6 +139,7 @@ def render_gaussians(
         means2d, conics, z, cov_diag, valid = project_cpu(means, cov3d, viewmats, intrinsics, width, height)
     else:
         means2d, conics, z, cov_diag, valid = project(means, cov3d, viewmats, intrinsics, width, height)
+    step()  # a caller's callback between the steps of a CPU render (gsa.render.steps)
     chans, bgs = [], []
     if sh is not None:
         if sh.ndim != 3 or sh.shape[0] != n or sh.shape[2] != 3 or sh.shape[1] not in (1, 4, 9, 16):
@@ -216,6 +218,8 @@ def rasterize(
     quats, log_scales, opacity_logits = (_as_tensor(a, dtype) for a in (quats, log_scales, opacity_logits))
     backend = resolve_backend(backend)
     cov3d = covariance(quats, log_scales, backend)
+    if backend != "cuda":
+        step()  # gsa.render.steps
     vm, intr = camera_tensors(cameras, dtype)
     if viewmats is not None:
         vm = _as_tensor(viewmats, dtype)

@@ -12,6 +12,7 @@ from numba import njit, prange
 from gsa.render.constants import ALPHA_MAX, ALPHA_MIN, MAHA_CUTOFF, T_MIN
 from gsa.render.cpu.binning import _bin, _depth_order, _footprints, _pack, _pixel_box, _record
 from gsa.render.cpu.common import _KERNEL_LOCK, TILE, _np
+from gsa.render.steps import step
 
 
 @njit(parallel=True, cache=True, error_model="numpy")
@@ -236,14 +237,21 @@ class _CompositeCPU(torch.autograd.Function):
         dt = np.float64 if chans.dtype == torch.float64 else np.float32
         m2d, con, op, ch = _np(means2d, dt), _np(conics, dt), _np(opacities, dt), _np(chans, dt)
         bg = _np(background, dt)
+        # step(): between the kernels, a caller's callback (gsa.render.steps; it may raise)
+        step()
         grec, rects = _footprints(m2d, con, _np(cov_diag, dt), op, _np(valid, np.bool_), width, height, tile)
+        step()
         depth_bits = _np(depths, dt).view(np.uint64 if dt == np.float64 else np.uint32)
         order, m_count = _depth_order(rects, depth_bits)
+        step()
         offsets, ids = _bin(rects, order, m_count, width, height, tile)
+        step()
         c_count, n, _ = ch.shape
         nt = ((width + tile - 1) // tile) * ((height + tile - 1) // tile)
         recs = _pack(grec, offsets, ids, nt)
+        step()
         out, t_final, n_contrib = _forward(recs, ids, ch, bg, offsets, width, height, tile)
+        step()
         ctx.saved = (recs, ch, bg, offsets, ids, t_final, n_contrib, n, width, height, tile)
         ctx.torch_dtype = chans.dtype
         alpha = 1.0 - t_final[..., None]
@@ -258,11 +266,14 @@ class _CompositeCPU(torch.autograd.Function):
         g_out = _np(g_out, dt) if g_out is not None else np.zeros((c_count, height, width, f), dt)
         g_alpha = _np(g_alpha[..., 0], dt) if g_alpha is not None else np.zeros((c_count, height, width), dt)
         want_chans = bool(ctx.needs_input_grad[3])
+        step()  # gsa.render.steps, as in the forward
         g_pair, g_ch = _backward(
             recs, ids, ch, bg, offsets, t_final, n_contrib, g_out, g_alpha, width, height, tile, want_chans
         )
+        step()
         nt = ((width + tile - 1) // tile) * ((height + tile - 1) // tile)
         r_xy, r_con, r_op, r_ch = _reduce(g_pair, g_ch, offsets, ids, c_count, n, nt, max(1, numba.get_num_threads()))
+        step()
         # background gradient: d out / d bg = T_final
         g_bg = np.einsum("chw,chwf->f", t_final, g_out)
         as_t = lambda a: torch.from_numpy(a).to(ctx.torch_dtype)  # noqa: E731

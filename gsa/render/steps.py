@@ -1,0 +1,42 @@
+"""A callback that a CPU render calls between its steps, on the thread that renders.
+
+One view of a 3M-Gaussian model is a single renderer call of ~0.7 s on two idle cores (a lifting
+pass, forward and backward, ~1.6 s; twice that on a busy box), too long between two progress
+reports for a cancelled service job, which stops at a report. The CPU backend calls `step()`
+between its kernels (covariances, projection, footprints, depth order, binning, packing,
+compositing, and the compositing's backward and reduction, each a fraction of that call), and a
+caller that must be able to stop within a render (gsa.align.semantic, gsa.features.lift's
+back-projection) installs its callback for the calls it makes with `between_steps(call)`; the
+callback may raise, which unwinds the render (the kernel lock is released on the way out).
+Nothing else changes: the same kernels run on the same data, so the images are the same.
+
+Thread-local, like the backbone's block hooks (gsa.align.semantic): the service's embedded workers
+are threads, and one job's callback must not run in another job's render.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import threading
+from collections.abc import Callable, Iterator
+
+_LOCAL = threading.local()
+
+
+def step() -> None:
+    """Call this thread's callback (between_steps), if one is installed."""
+    call = getattr(_LOCAL, "call", None)
+    if call is not None:
+        call()
+
+
+@contextlib.contextmanager
+def between_steps(call: Callable[[], None] | None) -> Iterator[None]:
+    """`call()` between the steps of every CPU render this thread makes inside the block (None:
+    the callback already installed, if any, stays); the one installed before is back afterwards."""
+    previous = getattr(_LOCAL, "call", None)
+    _LOCAL.call = call if call is not None else previous
+    try:
+        yield
+    finally:
+        _LOCAL.call = previous
