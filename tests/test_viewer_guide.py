@@ -56,7 +56,8 @@ def spz_pair(tmp_path_factory):
     source = read_model(d / "source.spz")
     write_ply(source.transformed(TRUTH), d / "target.ply")
     target = read_model(d / "target.ply")  # as gsa align reads it: a PLY (metadata "format")
-    result = align(source, target, AlignOptions(stages=("coarse",), coarse_iterations=30, seed=0))
+    options = AlignOptions(stages=("coarse",), coarse_iterations=30, seed=0, alternatives="always")
+    result = align(source, target, options)
     paths = write_outputs(result, source, target, d / "out", outputs={"result", "preview"})
     data = json.loads(paths["result.json"].read_text())
     data["inputs"] = {"source": str(d / "source.spz"), "target": str(d / "target.ply")}

@@ -22,7 +22,8 @@ from tests.browser import browser_page, click_pairs, errors, spread_points, visi
 from tests.service.conftest import ALICE, BOB, assert_problem, service_env, start_api, wait_job
 
 SECRET = "test-view-secret"
-ALIGN = {"stages": ["coarse"], "coarse_iterations": 30, "seed": 0, "renders": False}
+# A confident answer lists its alternatives only when asked: the page steps through them.
+ALIGN = {"stages": ["coarse"], "coarse_iterations": 30, "seed": 0, "renders": False, "alternatives": "always"}
 # The chair's up (-y) onto the target's +z, then 130° about it (tests/test_viewer_guide.py).
 TRUTH = Sim3(
     1.7, axis_rotation([0, 0, 1.0], np.radians(130)) @ axis_rotation([1.0, 0, 0], np.radians(-90)), [0.3, -0.2, 0.5]
