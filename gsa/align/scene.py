@@ -641,8 +641,8 @@ def align_scene(
     p_cloud, q_cloud = source.means[p_idx].astype(np.float64), target.means[q_idx].astype(np.float64)
     p_tree, q_tree = cKDTree(p_cloud), cKDTree(q_cloud)
     half = opts.refine_points // 2
-    p = p_cloud[_rows(rng, len(p_cloud), half)]
-    q_rows = _rows(rng, len(q_cloud), half)
+    p = p_cloud[robust.subsample(rng, len(p_cloud), half)]
+    q_rows = robust.subsample(rng, len(q_cloud), half)
     q = q_cloud[q_rows]
     normals, flatness = target.surface_normals(q_idx)
     start = search.best if sites is None else _site_polish(src, dst, search, rng)
@@ -851,7 +851,7 @@ def _placed(
         # In the target site's own frame its box is flat: a fraction of the world box's positions.
         centres=robust.box_lattice(dst.points, _site_frame(dst_site.up), o.site_place_step * dst.radius),
     )
-    rows = _rows(rng, len(src), 2000), _rows(rng, len(dst), 2000)
+    rows = robust.subsample(rng, len(src), 2000), robust.subsample(rng, len(dst), 2000)
     starts, refined = [], []
     for r, s_, t_ in placements:
         init = Sim3(s_, r, t_ - s_ * r @ src.center)
@@ -953,7 +953,7 @@ def _site_polish(
 ) -> robust.Candidate:
     """The search's best pose run on to convergence by the anchor ICP on all anchors (the
     search's ICP ran on the ground-thinned ones), kept if it scores better."""
-    rows = _rows(rng, len(src), 2000), _rows(rng, len(dst), 2000)
+    rows = robust.subsample(rng, len(src), 2000), robust.subsample(rng, len(dst), 2000)
     k = search.criteria
     pose = robust.bidirectional_icp(src, dst, search.best.transform, *rows, 100, search.colour_weight, k)
     polished = robust.score_pose(src, dst, pose, search.best.origin, search.colour_weight, k)
@@ -1038,13 +1038,13 @@ def translation_sweep(
     w_colour = search.colour_weight
     tau = o.sweep_truncation * dst.radius
     grid = robust.NearestGrid(dst.points, 0.25 * tau, tau)
-    rows = _rows(rng, len(src), o.sweep_points)
+    rows = robust.subsample(rng, len(src), o.sweep_points)
     p, p_lab = src.points[rows] - src.center, src.lab[rows]
     step = o.sweep_step * dst.radius
     lo, hi = dst.points.min(0) - 0.5 * dst.radius, dst.points.max(0) + 0.5 * dst.radius
     axes = [np.arange(a, b + step, step) for a, b in zip(lo, hi)]
     centres = np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3)
-    src_rows, dst_rows = _rows(rng, len(src), 800), _rows(rng, len(dst), 800)
+    src_rows, dst_rows = robust.subsample(rng, len(src), 800), robust.subsample(rng, len(dst), 800)
     found = list(search.candidates)
     for cand in search.candidates[: o.sweep_top]:
         u = cand.transform.scale * p @ cand.transform.rotation.T
@@ -1075,10 +1075,6 @@ def translation_sweep(
 def _report(progress: Progress | None, stage: str, fraction: float) -> None:
     if progress is not None:
         progress(stage, fraction)
-
-
-def _rows(rng: np.random.Generator, n: int, k: int) -> np.ndarray:
-    return np.arange(n) if k >= n else np.sort(rng.choice(n, k, replace=False))
 
 
 def _thinned(kept: np.ndarray, limit: int, rng: np.random.Generator) -> np.ndarray:
