@@ -12,7 +12,7 @@ from scipy.spatial import cKDTree
 
 from gsa.align import robust
 from gsa.align.pipeline import align
-from gsa.align.robust.refinement import _plane_step
+from gsa.align.robust.refinement import _plane_step, _smallest
 from gsa.bench.pairs import exposure_pairs
 from gsa.geometry import axis_rotation, quat_to_rotation, super_fibonacci_rotations
 from gsa.metrics import accuracy, rre_deg
@@ -138,10 +138,15 @@ def test_a_symmetric_pose_the_coloured_icp_left_off_is_found_by_the_sweep():
 def test_overlap_trim_stops_at_the_overlap_and_keeps_smooth_residuals():
     rng = np.random.default_rng(4)
     partial = np.concatenate([rng.rayleigh(0.01, 6000), rng.uniform(0.3, 1.0, 4000)])
-    keep = robust.overlap_trim(partial)
+    keep = _overlap_trim(partial)
     assert 0.5 <= keep.mean() <= 0.65 and keep[:6000].mean() > 0.8
     smooth = rng.rayleigh(0.05, 10_000)
-    assert robust.overlap_trim(smooth).mean() > 0.85
+    assert _overlap_trim(smooth).mean() > 0.85
+
+
+def _overlap_trim(d: np.ndarray) -> np.ndarray:
+    """The pairs that robust.overlap_fraction keeps (a boolean mask over d)."""
+    return _smallest(d, robust.overlap_fraction(d))
 
 
 def _pair(make, truth):

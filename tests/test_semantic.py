@@ -148,7 +148,8 @@ def test_a_copy_scores_its_true_pose_above_its_half_turns():
     target = make_object("chair", seed=2, n_gaussians=4000, sample_seed=9).transformed(truth)
     turns = [truth @ Sim3(1.0, axis_rotation(np.eye(3)[a], np.pi), np.zeros(3)) for a in range(3)]
     fast = semantic.SemanticCriteria(views=8, rolls=2)
-    scores = semantic.pose_scores(source, target, [truth, *turns], semantic.available_backbone(), fast)
+    lifted = semantic.LiftedPair.lift(source, target, semantic.available_backbone(), fast, 0)
+    scores = lifted.scores([truth, *turns])
     assert scores[0] > 0.3, scores  # two samplings of one chair agree, unlike parts do not
     assert scores[0] > semantic.SemanticCriteria().switch_ratio * max(scores[1:]), scores
 

@@ -105,7 +105,10 @@ def guided_snap(pair, best, transform: Sim3, metrics: dict, start: dict, symmetr
         return transform, unsupported(metrics, pair)
     # the leash reads the rotation alone: the nearest relabelling is judged before any refit
     nearest, gap = manhattan.snapped(transform, *pair.normal_frames, pair.anchors()[0].center)
-    if 1e-6 < gap <= FRAME_SNAP_DEG and guided.near_start(nearest, best.init, opts, dict(start), symmetries=symmetries):
+    guidance = pair.criteria.guidance
+    if 1e-6 < gap <= FRAME_SNAP_DEG and guided.near_start(
+        nearest, best.init, opts, dict(start), criteria=guidance, symmetries=symmetries
+    ):
         return snap_to_frames(pair, best, transform, metrics)
     rotation = guided_relabelling(pair, best.init, start, symmetries)
     if rotation is None:
@@ -129,7 +132,7 @@ def up_snap(pair, best, transform: Sim3, metrics: dict) -> tuple[Sim3, dict]:
     rotations = manhattan.relabellings(*pair.normal_frames)
     keeps = np.array([(r @ src_up) @ dst_up >= np.cos(np.radians(UP_KEPT_DEG)) for r in rotations])
     if opts.front_axes is not None:
-        keeps &= np.array([guided.keeps_front(r, opts.front_axes) for r in rotations])
+        keeps &= np.array([guided.keeps_front(r, opts.front_axes, pair.criteria.guidance) for r in rotations])
     if not keeps.any():  # no relabelling keeps the given up axes (a wrong hint): nothing for the frames to say
         return transform, metrics
     candidates = np.flatnonzero(keeps)
@@ -155,7 +158,14 @@ def guided_relabelling(pair, start_pose: Sim3, start: dict, symmetries) -> np.nd
     on_leash = [
         rotation
         for rotation in manhattan.relabellings(*pair.normal_frames)
-        if guided.near_start(Sim3(1.0, rotation, np.zeros(3)), start_pose, opts, dict(start), symmetries=symmetries)
+        if guided.near_start(
+            Sim3(1.0, rotation, np.zeros(3)),
+            start_pose,
+            opts,
+            dict(start),
+            criteria=pair.criteria.guidance,
+            symmetries=symmetries,
+        )
     ]
     if not on_leash:
         return None
@@ -174,25 +184,26 @@ def surfaces_apart(metrics: dict) -> bool:
     return share is not None and share < SAME_SURFACE_SHARE
 
 
-def other_instances(metrics: dict) -> bool:
+def other_instances(metrics: dict, criteria: robust.RefineCriteria | None = None) -> bool:
     """Whether the answer's models differ everywhere (robust.refinement's test: the overlap
     estimate keeps nearly every pair yet fewer than half coincide at the sampling): another
     instance or a deformed copy, where the refinement's fit is not exact. Two captures of one
-    object coincide where they overlap: their fit stands."""
+    object coincide where they overlap: their fit stands. criteria: the refinement's in force
+    (AlignOptions.criteria.refine; None: the defaults)."""
     fraction, share = metrics.get("overlap_estimate"), metrics.get("coincident_share")
-    k = robust.RefineCriteria()
+    k = criteria or robust.RefineCriteria()
     return fraction is not None and share is not None and fraction >= k.whole_overlap and share < k.coincident_share
 
 
-def whole_models(metrics: dict) -> bool:
+def whole_models(metrics: dict, criteria: robust.RefineCriteria | None = None) -> bool:
     """Whether the answer's models overlap wholly (robust.refinement's overlap estimate keeps
     nearly every pair, or INSTANCES_OVERLAP of them where the surfaces are apart): two
     instances, or two full captures, not a part of one in the other (whose mass and spread
-    differ by what is missing)."""
+    differ by what is missing). criteria: the refinement's in force (None: the defaults)."""
     fraction = metrics.get("overlap_estimate")
     if fraction is None:
         return False
-    return fraction >= robust.RefineCriteria().whole_overlap or (
+    return fraction >= (criteria or robust.RefineCriteria()).whole_overlap or (
         surfaces_apart(metrics) and fraction >= INSTANCES_OVERLAP
     )
 
@@ -215,6 +226,7 @@ def snap_to_frames(
     right is the question the snap does not answer."""
     frames = pair.normal_frames
     src, dst = pair.anchors()
+    reach = pair.criteria.pose.truncation * dst.radius
     report = {"support": [frames[0].support, frames[1].support], "max_deg": FRAME_SNAP_DEG}
     hold = hold or (lambda pose: pose)
 
@@ -235,7 +247,7 @@ def snap_to_frames(
         report["onto"] = why
     snapping = 1e-6 < gap <= (FRAME_SNAP_DEG if onto is None else 180.0)
     if snapping:
-        chosen = manhattan.fit_shift(chosen, src.points, dst.points, robust.PoseCriteria().truncation * dst.radius)
+        chosen = manhattan.fit_shift(chosen, src.points, dst.points, reach)
         kept.append(chosen)
         alternatives.append(replaced_pose(transform, metrics, "before the frame snap"))
     else:
@@ -244,7 +256,7 @@ def snap_to_frames(
         pose = Sim3.from_matrix(np.asarray(alt["transform"], np.float64))
         turned, alt_gap = snap(pose)
         if 1e-6 < alt_gap <= FRAME_SNAP_DEG:
-            pose = manhattan.fit_shift(turned, src.points, dst.points, robust.PoseCriteria().truncation * dst.radius)
+            pose = manhattan.fit_shift(turned, src.points, dst.points, reach)
             alt = alt | {"transform": pose.matrix().tolist(), "snapped_deg": alt_gap}
         if all(robust.rotation_offset_deg(pose, k) > FRAME_SNAP_SAME_DEG for k in kept):
             kept.append(pose)
@@ -276,7 +288,7 @@ def choose_relabelling(
     brings every relabelled pose back onto the user's hints."""
     frames = pair.normal_frames
     src, dst = pair.anchors()
-    reach = robust.PoseCriteria().truncation * dst.radius
+    reach = pair.criteria.pose.truncation * dst.radius
     hold = hold or (lambda pose: pose)
     poses = [
         manhattan.fit_shift(
@@ -367,9 +379,9 @@ def geometry_prefers(pair, answer: Sim3, turned: Sim3, metrics: dict) -> dict:
     copy whose frames moved with the bend) no rule made for other instances may turn it off."""
     src, dst = pair.anchors()
     weight = float(metrics.get("colour_weight") or 0.0)
-    k = robust.PoseCriteria()
-    kept = robust.score_pose(src, dst, answer, "answer", weight)
-    rival = robust.score_pose(src, dst, pair.constrain(pair.approach(turned)), "turned", weight)
+    k = pair.criteria.pose
+    kept = robust.score_pose(src, dst, answer, "answer", weight, k)
+    rival = robust.score_pose(src, dst, pair.constrain(pair.approach(turned)), "turned", weight, k)
     measure = (lambda c: c.geometry) if metrics.get("ranked_by") == "geometry" else (lambda c: c.score)
     lead = measure(kept) - measure(rival)
     return {

@@ -96,7 +96,8 @@ def _finite(values, name: str, shape: tuple[int, ...] | None = None) -> np.ndarr
 
 
 def check_guidance(opts) -> None:
-    """Validate the hints and store them normalised (tuples of floats, up vectors unit length)."""
+    """Validate the hints and store them normalised (tuples of floats, up vectors unit length),
+    by the guidance criteria of opts.criteria where it holds them (else the defaults)."""
     if opts.init_transform is not None and opts.point_pairs is not None:
         raise ValueError("give init_transform or point_pairs, not both")
     if opts.init_transform is not None:
@@ -117,7 +118,8 @@ def check_guidance(opts) -> None:
             ups.append(v / np.linalg.norm(v))
         opts.up_axes = (_tuple(ups[0]), _tuple(ups[1]))
     if opts.front_axes is not None:
-        opts.front_axes = _checked_fronts(opts.front_axes, opts.up_axes)
+        criteria = getattr(opts, "criteria", None)
+        opts.front_axes = _checked_fronts(opts.front_axes, opts.up_axes, criteria.guidance if criteria else None)
     if opts.fixed_scale is not None:
         scale = float(_finite(opts.fixed_scale, "fixed_scale", ()))
         if not 1e-6 <= scale <= 1e6:
@@ -125,7 +127,7 @@ def check_guidance(opts) -> None:
         opts.fixed_scale = scale
 
 
-def _checked_fronts(front_axes, up_axes) -> tuple:
+def _checked_fronts(front_axes, up_axes, criteria: GuidanceCriteria | None = None) -> tuple:
     """The fronts across their models' up axes, unit length; up_axes must be given, and each
     front must lean at least front_tilt_min_deg off its up."""
     if up_axes is None:
@@ -134,16 +136,15 @@ def _checked_fronts(front_axes, up_axes) -> tuple:
         src_front, dst_front = front_axes
     except (TypeError, ValueError):
         raise ValueError("front_axes must be two vectors: the source's front and the target's front") from None
+    tilt_min = (criteria or _DEFAULT).front_tilt_min_deg
     fronts = []
     for name, v, up in (("source front axis", src_front, up_axes[0]), ("target front axis", dst_front, up_axes[1])):
         v = _finite(v, name, (3,))
         up = np.asarray(up, np.float64)
         across = v - (v @ up) * up
         norm = float(np.linalg.norm(v))
-        if not norm > 1e-12 or np.linalg.norm(across) < np.sin(np.radians(_DEFAULT.front_tilt_min_deg)) * norm:
-            raise ValueError(
-                f"{name} must not be zero or within {_DEFAULT.front_tilt_min_deg:g} deg of that model's up axis"
-            )
+        if not norm > 1e-12 or np.linalg.norm(across) < np.sin(np.radians(tilt_min)) * norm:
+            raise ValueError(f"{name} must not be zero or within {tilt_min:g} deg of that model's up axis")
         fronts.append(across / np.linalg.norm(across))
     return (_tuple(fronts[0]), _tuple(fronts[1]))
 
@@ -285,7 +286,7 @@ def constrain(transform: Sim3, opts, pivot: np.ndarray) -> Sim3:
         src_up, dst_up = (np.asarray(v, np.float64) for v in opts.up_axes)
         rotation = _min_rotation(rotation @ src_up, dst_up) @ rotation
         if opts.front_axes is not None:
-            rotation = _front_held(rotation, dst_up, opts.front_axes)
+            rotation = _front_held(rotation, dst_up, opts.front_axes, opts.criteria.guidance)
     if opts.fixed_scale is not None:
         scale = opts.fixed_scale
     if rotation is transform.rotation and scale == transform.scale:

@@ -94,8 +94,9 @@ def turn_open_ends(pair, best, transform: Sim3, metrics: dict) -> tuple[Sim3, di
     src, dst = pair.anchors()
     source_points, target_points = pair.src_pts[src.kept], pair.dst_pts[dst.kept]
     source_axis = axis_of(source_turns[0])
-    source_open = open_direction(source_points, source_axis)
-    target_open = open_direction(target_points, axis_of(target_turns[0]))
+    k = pair.criteria.open_ends
+    source_open = open_direction(source_points, source_axis, k)
+    target_open = open_direction(target_points, axis_of(target_turns[0]), k)
     report: dict = {
         "source_open": None if source_open is None else source_open.round(4).tolist(),
         "target_open": None if target_open is None else target_open.round(4).tolist(),
@@ -107,7 +108,7 @@ def turn_open_ends(pair, best, transform: Sim3, metrics: dict) -> tuple[Sim3, di
     if report["agreement"] >= 0.0:
         return transform, metrics | {"open_ends": report}
     turned = turned_end_for_end(transform, source_axis, source_points.mean(axis=0))
-    turned = manhattan.fit_shift(turned, src.points, dst.points, robust.PoseCriteria().truncation * dst.radius)
+    turned = manhattan.fit_shift(turned, src.points, dst.points, pair.criteria.pose.truncation * dst.radius)
     others = [
         alt
         for alt in metrics.get("alternatives") or []

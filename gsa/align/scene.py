@@ -46,8 +46,10 @@ objects:
 - no canonical features (and no feature metrics) and no fine stage, which renders
   every Gaussian per view.
 
-The tunables named above in lower case are the fields of `SceneOptions`; `choose` and
-`align_scene` (and the functions they call) take one, None meaning the defaults.
+The tunables named above in lower case are the fields of `SceneOptions`; `choose` (and the
+functions it and the scene path call) take one, None meaning the defaults; `align_scene`
+reads every criterion from AlignOptions.criteria (its `scene`, and the search's, pose,
+refinement and verdict criteria, as the object path does).
 """
 
 from __future__ import annotations
@@ -62,7 +64,6 @@ from scipy.spatial import cKDTree
 from gsa.align import robust
 from gsa.align.choices import Progress
 from gsa.align.coarse import AlignmentError, CoarseResult
-from gsa.align.types import AlignmentResult
 from gsa.colour import linear_to_lab, srgb_to_linear
 from gsa.geometry import axis_rotation
 from gsa.model import GaussianModel, ModelError
@@ -597,11 +598,14 @@ def align_scene(
     opts,
     choice: SceneChoice,
     progress: Progress | None = None,
-    options: SceneOptions | None = None,
 ):
     """The scene path (module docstring): anchors, global search without frame
-    relabellings, trimmed refinement on thinned full-resolution clouds, verdict."""
-    o = options or SceneOptions()
+    relabellings, trimmed refinement on thinned full-resolution clouds, verdict; by the
+    criteria in force (opts.criteria)."""
+    from gsa.align.types import AlignmentResult  # lazy: gsa.align.types imports this module (criteria)
+
+    k = opts.criteria
+    o = k.scene
     t_start = time.perf_counter()
     timings: dict[str, float] = {}
     check_models(source, target)
@@ -609,7 +613,7 @@ def align_scene(
     t = time.perf_counter()
     count = max(opts.anchor_count, o.scene_anchors)
     dst = scene_anchors(target, count, opts.seed, o)
-    src = robust.match_exposure(scene_anchors(source, count, opts.seed, o), dst)
+    src = robust.match_exposure(scene_anchors(source, count, opts.seed, o), dst, k.pose.palette)
     timings["anchors"] = time.perf_counter() - t
     _report(progress, "features", 1.0)
 
@@ -621,12 +625,12 @@ def align_scene(
             src,
             dst,
             None,
-            robust.SearchOptions(rotations=opts.search_rotations, seed=opts.seed),
-            widen_if=lambda first: robust.verdict(first.best, first)["doubtful"],
+            k.search_options(opts.search_rotations, opts.seed),
+            widen_if=lambda first: robust.verdict(first.best, first, criteria=k.verdict)["doubtful"],
         )
         search = translation_sweep(src, dst, search, opts.seed, o)
     else:
-        search = site_search(src, dst, *sites, opts.seed, o)
+        search = site_search(src, dst, *sites, opts.seed, o, k.search_options(0, opts.seed), k.verdict)
     timings["hypotheses"] = time.perf_counter() - t
     _report(progress, "hypotheses", 1.0)
     scored = [c.to_dict(search.best.transform) | {"chosen": c is search.best} for c in search.candidates]
@@ -637,8 +641,8 @@ def align_scene(
     p_cloud, q_cloud = source.means[p_idx].astype(np.float64), target.means[q_idx].astype(np.float64)
     p_tree, q_tree = cKDTree(p_cloud), cKDTree(q_cloud)
     half = opts.refine_points // 2
-    p = p_cloud[_rows(rng, len(p_cloud), half)]
-    q_rows = _rows(rng, len(q_cloud), half)
+    p = p_cloud[robust.subsample(rng, len(p_cloud), half)]
+    q_rows = robust.subsample(rng, len(q_cloud), half)
     q = q_cloud[q_rows]
     normals, flatness = target.surface_normals(q_idx)
     start = search.best if sites is None else _site_polish(src, dst, search, rng)
@@ -650,14 +654,14 @@ def align_scene(
         start.transform,
         opts.refine_iterations,
         target_normals=(normals, flatness, normals[q_rows], flatness[q_rows]),
-        criteria=robust.RIGID_REFINE,  # two captures of one place are never deformed copies
+        criteria=k.refinement(rigid=True),  # two captures of one place are never deformed copies
     )
     refine_kept = True
     if sites is not None:
         # On a site whose Gaussians are far denser in one part (an SfM garden's table) the
         # full-resolution refinement can slide to a pose that the anchors - the whole
         # site, in colour - score clearly lower: the start is kept then.
-        refined = robust.score_pose(src, dst, transform, "refined", search.colour_weight)
+        refined = robust.score_pose(src, dst, transform, "refined", search.colour_weight, search.criteria)
         if refined.score < start.score - search.criteria.score_tie:
             transform, refine_kept = start.transform, False
     coarse = CoarseResult(
@@ -673,9 +677,9 @@ def align_scene(
 
     t = time.perf_counter()
     metrics = _inliers(transform, p, q, p_tree, q_tree, opts.inlier_threshold * dst.radius)
-    final = robust.score_pose(src, dst, transform, "final", search.colour_weight)
-    coincide = robust.coincidence(p, q, p_tree, q_tree, transform)
-    metrics.update(robust.verdict(final, search, coincide, offer_always=opts.alternatives == "always"))
+    final = robust.score_pose(src, dst, transform, "final", search.colour_weight, search.criteria)
+    coincide = robust.coincidence(p, q, p_tree, q_tree, transform, criteria=k.refine)
+    metrics.update(robust.verdict(final, search, coincide, k.verdict, offer_always=opts.alternatives == "always"))
     metrics["hypothesis"] = search.best.origin
     metrics["scene"] = choice.to_dict() | {
         "kind": "room" if sites is None else "site",
@@ -762,6 +766,8 @@ def site_search(
     dst_site: Site,
     seed: int = 0,
     options: SceneOptions | None = None,
+    search_options: robust.SearchOptions | None = None,
+    verdict: robust.VerdictCriteria | None = None,
 ) -> robust.SearchResult:
     """The scene path's search for sites. Two things differ from a room's:
     - the ground fixes two of the three rotation angles: only rotations taking the
@@ -773,13 +779,18 @@ def site_search(
       itself within the search's truncation, is thinned to site_ground_keep of the
       anchors the search scores on, so the things standing on it decide.
     The translation sweep follows, as for rooms; the verdict scores on all anchors. Where
-    that answer is doubtful, placed starts and climbs join (below)."""
+    that answer is doubtful, placed starts and climbs join (below). search_options: the
+    search's (its rotations are these, its seed `seed`), verdict: what makes an answer
+    doubtful (None: the defaults)."""
     o = options or SceneOptions()
     rng = np.random.default_rng(seed)
     s_thin, d_thin = (_ground_thinned(a, site.ground, rng, o) for a, site in ((src, src_site), (dst, dst_site)))
     rotations = _site_rotations(src_site.up, dst_site.up, o)
     search = robust.global_search(
-        s_thin, d_thin, [("site", r) for r in rotations], robust.SearchOptions(rotations=0, seed=seed)
+        s_thin,
+        d_thin,
+        [("site", r) for r in rotations],
+        replace(search_options or robust.SearchOptions(), rotations=0, seed=seed),
     )
     search = translation_sweep(s_thin, d_thin, search, seed, o)
     # Re-scored on all anchors, so the verdict and the alternatives read what rooms' do,
@@ -788,7 +799,7 @@ def site_search(
     result = robust.decide(
         robust.dedupe([_pose_gain_score(src, dst, c, w, k) for c in search.candidates], k), w, None, k
     )
-    if not robust.verdict(result.best, result)["doubtful"]:
+    if not robust.verdict(result.best, result, criteria=verdict)["doubtful"]:
         return result
     # A doubtful answer: starts that trust no centroid join (_placed), and the best placed
     # starts - before the anchors' ICP moves them and the dedup merges them into a pose
@@ -840,7 +851,7 @@ def _placed(
         # In the target site's own frame its box is flat: a fraction of the world box's positions.
         centres=robust.box_lattice(dst.points, _site_frame(dst_site.up), o.site_place_step * dst.radius),
     )
-    rows = _rows(rng, len(src), 2000), _rows(rng, len(dst), 2000)
+    rows = robust.subsample(rng, len(src), 2000), robust.subsample(rng, len(dst), 2000)
     starts, refined = [], []
     for r, s_, t_ in placements:
         init = Sim3(s_, r, t_ - s_ * r @ src.center)
@@ -942,9 +953,10 @@ def _site_polish(
 ) -> robust.Candidate:
     """The search's best pose run on to convergence by the anchor ICP on all anchors (the
     search's ICP ran on the ground-thinned ones), kept if it scores better."""
-    rows = _rows(rng, len(src), 2000), _rows(rng, len(dst), 2000)
-    pose = robust.bidirectional_icp(src, dst, search.best.transform, *rows, 100, search.colour_weight)
-    polished = robust.score_pose(src, dst, pose, search.best.origin, search.colour_weight)
+    rows = robust.subsample(rng, len(src), 2000), robust.subsample(rng, len(dst), 2000)
+    k = search.criteria
+    pose = robust.bidirectional_icp(src, dst, search.best.transform, *rows, 100, search.colour_weight, k)
+    polished = robust.score_pose(src, dst, pose, search.best.origin, search.colour_weight, k)
     return polished if polished.score > search.best.score else search.best
 
 
@@ -1026,13 +1038,13 @@ def translation_sweep(
     w_colour = search.colour_weight
     tau = o.sweep_truncation * dst.radius
     grid = robust.NearestGrid(dst.points, 0.25 * tau, tau)
-    rows = _rows(rng, len(src), o.sweep_points)
+    rows = robust.subsample(rng, len(src), o.sweep_points)
     p, p_lab = src.points[rows] - src.center, src.lab[rows]
     step = o.sweep_step * dst.radius
     lo, hi = dst.points.min(0) - 0.5 * dst.radius, dst.points.max(0) + 0.5 * dst.radius
     axes = [np.arange(a, b + step, step) for a, b in zip(lo, hi)]
     centres = np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3)
-    src_rows, dst_rows = _rows(rng, len(src), 800), _rows(rng, len(dst), 800)
+    src_rows, dst_rows = robust.subsample(rng, len(src), 800), robust.subsample(rng, len(dst), 800)
     found = list(search.candidates)
     for cand in search.candidates[: o.sweep_top]:
         u = cand.transform.scale * p @ cand.transform.rotation.T
@@ -1063,10 +1075,6 @@ def translation_sweep(
 def _report(progress: Progress | None, stage: str, fraction: float) -> None:
     if progress is not None:
         progress(stage, fraction)
-
-
-def _rows(rng: np.random.Generator, n: int, k: int) -> np.ndarray:
-    return np.arange(n) if k >= n else np.sort(rng.choice(n, k, replace=False))
 
 
 def _thinned(kept: np.ndarray, limit: int, rng: np.random.Generator) -> np.ndarray:

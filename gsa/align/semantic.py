@@ -500,18 +500,6 @@ class LiftedPair:
         return [Sim3(scale, rotations[r], dst_centre - scale * rotations[r] @ src_centre) for r in kept]
 
 
-def pose_scores(
-    source: GaussianModel,
-    target: GaussianModel,
-    poses: list[Sim3],
-    backbone,
-    criteria: SemanticCriteria | None = None,
-    seed: int = 0,
-) -> list[float]:
-    """Semantic agreement of each source -> target pose, in [-1, 1] (module docstring)."""
-    return LiftedPair.lift(source, target, backbone, criteria or SemanticCriteria(), seed).scores(poses)
-
-
 def _unit(x: np.ndarray) -> np.ndarray:
     return x / (np.linalg.norm(x, axis=1, keepdims=True) + 1e-12)
 

@@ -21,6 +21,7 @@ from gsa.align.choices import (
     StageName,
 )
 from gsa.align.coarse import CoarseOptions, CoarseResult
+from gsa.align.criteria import Criteria
 from gsa.align.verdict import Verdict
 from gsa.canonical import CanonicalFrame
 from gsa.features.settings import FeatureSettings  # torch-free, so typing.get_type_hints(AlignOptions) resolves
@@ -134,6 +135,10 @@ class AlignOptions:
         answer is doubtful or guided, an empty list where it is confident (the half turns
         offered cost three ICPs a job); "always" lists them for every answer (gsa.align.many
         weighs every edge's alternatives).
+    criteria: the thresholds every stage decides by (gsa.align.criteria.Criteria: the search's
+        pose criteria and counts, the refinement's, the verdict's, the guidance's, the scene
+        test's and path's, the open ends', the semantic tie-break's and the learned route's);
+        None: the defaults. A library setting, not a job option.
     """
 
     stages: tuple[StageName, ...] = ("auto",)
@@ -174,10 +179,15 @@ class AlignOptions:
     frame_snap: Literal["auto", "off"] = "auto"
     learned: Literal["auto", "off"] = "auto"
     alternatives: Literal["doubtful", "always"] = "doubtful"
+    criteria: Criteria | None = None
 
     def __post_init__(self) -> None:
         from gsa.align.guided import check_guidance  # one place checks every hint's shape
 
+        if self.criteria is None:
+            self.criteria = Criteria()
+        elif not isinstance(self.criteria, Criteria):
+            raise ValueError(f"criteria must be a gsa.align.criteria.Criteria, got {type(self.criteria).__name__}")
         check_guidance(self)
         self.stages = tuple(self.stages)
         if self.stages not in STAGE_CHOICES:

@@ -233,7 +233,7 @@ def match_exposure(src: Anchors, dst: Anchors, options: PaletteOptions | None = 
     lum = np.array([0.2126, 0.7152, 0.0722])
     grey = float(np.median((qd @ lum) / np.maximum(qs @ lum, 1e-4)))
     best_gain, best_distance = None, (1.0 - o.exposure_closer) * base_distance
-    rows = _sample(np.random.default_rng(0), len(src), o.exposure_sample)  # the gains' fit needs few colours
+    rows = subsample(np.random.default_rng(0), len(src), o.exposure_sample)  # the gains' fit needs few colours
     limit = o.max_exposure_gain
     for start in (np.ones(3), ratio, np.full(3, grey)):
         gain = np.clip(start, 1 / limit, limit)
@@ -282,5 +282,7 @@ def grid_index(x0, x1, x2, lo, inv_cell, shape):  # pragma: no cover - compiled
     return (int(f0) * shape[1] + int(f1)) * shape[2] + int(f2)
 
 
-def _sample(rng: np.random.Generator, n: int, k: int) -> np.ndarray:
+def subsample(rng: np.random.Generator, n: int, k: int) -> np.ndarray:
+    """k sorted rows of n drawn without replacement (all n where k >= n): the one sampling
+    helper of the aligner (robust, the pipeline, the scene path)."""
     return np.arange(n) if k >= n else np.sort(rng.choice(n, k, replace=False))

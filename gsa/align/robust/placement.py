@@ -18,7 +18,7 @@ from collections.abc import Callable
 import numba
 import numpy as np
 
-from gsa.align.robust.anchoring import Anchors, NearestGrid, _sample, grid_index
+from gsa.align.robust.anchoring import Anchors, NearestGrid, grid_index, subsample
 from gsa.geometry import super_fibonacci_rotations
 from gsa.kernels import KERNEL_LOCK
 
@@ -56,7 +56,7 @@ def placed_starts(
     if centres is None:
         centres = box_lattice(dst.points, np.eye(3), step * dst.radius)
     scale_trials = (dst.radius / src.radius) * np.asarray(scales)
-    p_rows, q_rows = _sample(rng, len(src), points), _sample(rng, len(dst), points)
+    p_rows, q_rows = subsample(rng, len(src), points), subsample(rng, len(dst), points)
     p, q = src.points[p_rows] - src.center, dst.points[q_rows]
     # Grids of their own at the loose truncation: 8× fewer cells than the scorer's
     # stay in cache through this many lookups, and the loose score needs no more.

@@ -433,11 +433,6 @@ def sampling_spacing(points: np.ndarray | cKDTree, probes: int = 2000) -> float:
     return float(np.median(d[:, 1]))
 
 
-def overlap_trim(d: np.ndarray, lam: float = RefineCriteria.overlap_lambda) -> np.ndarray:
-    """The pairs that overlap_fraction keeps (a boolean mask over d)."""
-    return _smallest(d, overlap_fraction(d, lam))
-
-
 def _smallest(d: np.ndarray, fraction: float) -> np.ndarray:
     keep = np.zeros(len(d), bool)
     keep[np.argsort(d)[: max(int(fraction * len(d)), 3)]] = True

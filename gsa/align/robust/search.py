@@ -11,7 +11,7 @@ import numba
 import numpy as np
 from scipy.spatial import cKDTree
 
-from gsa.align.robust.anchoring import Anchors, NearestGrid, _sample, grid_index
+from gsa.align.robust.anchoring import Anchors, NearestGrid, grid_index, subsample
 from gsa.align.robust.placement import placed_starts
 from gsa.align.robust.poses import (
     Candidate,
@@ -136,8 +136,8 @@ def global_search(
         return _with_offers(src, dst, result, w_colour, rng, opts)
     # Placed starts begin up to ~20° off and look poor after a few iterations (a partial
     # overlap converges slowly), so each runs to convergence rather than being halved.
-    src_rows = _sample(rng, len(src), opts.refine_points)
-    dst_rows = _sample(rng, len(dst), opts.refine_points)
+    src_rows = subsample(rng, len(src), opts.refine_points)
+    dst_rows = subsample(rng, len(dst), opts.refine_points)
     for r, s_, t_ in placed_starts(
         src,
         dst,
@@ -190,8 +190,8 @@ def _offers(
     (_snapped): the best's right after the first rival, the others' after all the rest."""
     best = result.best.transform
     k = opts.criteria
-    src_rows = _sample(rng, len(src), opts.refine_points)
-    dst_rows = _sample(rng, len(dst), opts.refine_points)
+    src_rows = subsample(rng, len(src), opts.refine_points)
+    dst_rows = subsample(rng, len(dst), opts.refine_points)
     if opts.offer_turn_axes is not None:
         axes = np.asarray(opts.offer_turn_axes, np.float64).reshape(-1, 3)
         axes = axes / np.linalg.norm(axes, axis=1, keepdims=True)
@@ -308,8 +308,8 @@ def _refine_starts(
 ) -> list[Candidate]:
     """Successive halving: every start gets a few ICP iterations, the leaders the rest."""
     crit = opts.criteria
-    src_rows = _sample(rng, len(src), opts.refine_points)
-    dst_rows = _sample(rng, len(dst), opts.refine_points)
+    src_rows = subsample(rng, len(src), opts.refine_points)
+    dst_rows = subsample(rng, len(dst), opts.refine_points)
     early = [
         score_pose(
             src,
@@ -351,8 +351,8 @@ def _sweep_twins(
     top = max(c.geometry for c in distinct)
     if sum(c.geometry >= top - k.score_tie for c in distinct) < 2:
         return refined
-    src_rows = _sample(rng, len(src), opts.refine_points)
-    dst_rows = _sample(rng, len(dst), opts.refine_points)
+    src_rows = subsample(rng, len(src), opts.refine_points)
+    dst_rows = subsample(rng, len(dst), opts.refine_points)
     out = list(refined)
     turns = _sweep_turns(opts.sweep_degrees)
     for c in distinct[: opts.finalists]:
@@ -404,7 +404,7 @@ class _GridScorer:
         sigma: float,
     ):
         self.src, self.dst, self.dst_grid, self.src_grid = src, dst, dst_grid, src_grid
-        p_rows, q_rows = _sample(rng, len(src), points), _sample(rng, len(dst), points)
+        p_rows, q_rows = subsample(rng, len(src), points), subsample(rng, len(dst), points)
         self.ps, self.qs = src.points[p_rows], dst.points[q_rows]
         self.p_lab, self.q_lab = src.lab[p_rows], dst.lab[q_rows]
         self.src_mean = self.ps.mean(0)
