@@ -2,7 +2,7 @@
 
 Verbs that belong to a subpackage live beside it (align: gsa.align.command; align-many, render,
 lift, reconstruct, view, and the service's through the "gsa.commands" entry points); what they
-share is gsa.cli_base. The entry point's start-up is measured (python -m gsa.bench.cli_speed).
+share is gsa.cli_base. The entry point's start-up is measured (python -m benchmarks.cli_speed).
 
 Every failure the user can cause ends as one line on stderr and a non-zero
 exit code, never a traceback.
@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import argparse
 import gc
+import importlib
 import json
 import os
 import sys
@@ -115,11 +116,28 @@ def cmd_convert(args: argparse.Namespace) -> int:
     return 0
 
 
-def cmd_bench(args: argparse.Namespace) -> int:
-    from gsa.bench.peers import PEERS
-    from gsa.bench.protocols import run_protocols
+def _benchmarks(module: str):
+    """benchmarks.<module>: the benchmarks live beside gsa/ in a checkout of the repository and are
+    not part of the installed package. Looked up by name (the library never imports them:
+    tests/test_import_graph.py); an editable install maps only gsa and service, so the checkout
+    gsa was imported from is put on the path."""
+    checkout = Path(__file__).resolve().parents[1]
+    if (checkout / "benchmarks" / "__init__.py").is_file() and str(checkout) not in sys.path:
+        sys.path.insert(0, str(checkout))
+    try:
+        return importlib.import_module(f"benchmarks.{module}")
+    except ModuleNotFoundError as exc:
+        if exc.name != "benchmarks":
+            raise
+        raise CliError(
+            "gsa bench runs from a checkout of the repository (its benchmarks/ folder is not part of the "
+            "installed package): clone it, install it with pip install -e ., and run gsa bench there"
+        ) from None
 
-    names = {"all": list(PEERS), "default": None, "none": []}
+
+def cmd_bench(args: argparse.Namespace) -> int:
+    run_protocols = _benchmarks("protocols").run_protocols
+    names = {"all": list(_benchmarks("peers").PEERS), "default": None, "none": []}
     peers = names[args.peers] if args.peers in names else [p for p in args.peers.split(",") if p]
     return run_protocols(args.protocols, quick=args.quick, out=args.out, seed=args.seed, peers=peers, data=args.data)
 

@@ -9,7 +9,7 @@ from gsa.synth import make_object
 # The same generated cases on every run, with or without CI=true (Hypothesis' own `ci`
 # profile is only loaded under CI): a newcomer's first `./dev.sh test` must not draw a case
 # nobody has seen. Each property test also says derandomize=True itself; this covers any new
-# one. The random search lives in scripts/ (fuzz_service.py); what it finds joins
+# one. The random search lives in benchmarks/service/ (fuzz_service.py); what it finds joins
 # tests/service/corpus/. `pytest --hypothesis-profile=...` still overrides this.
 settings.register_profile("gsa-deterministic", derandomize=True, database=None, deadline=None, print_blob=True)
 settings.load_profile("gsa-deterministic")

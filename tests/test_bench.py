@@ -12,8 +12,8 @@ import json
 import numpy as np
 import pytest
 
-from gsa.bench import peers as peers_mod
-from gsa.bench import protocols as P
+from benchmarks import peers as peers_mod
+from benchmarks import protocols as P
 from gsa.geometry import euler_xyz
 from gsa.metrics import accuracy
 from gsa.sim3 import Sim3

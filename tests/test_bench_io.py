@@ -7,14 +7,14 @@ import json
 import subprocess
 import sys
 
-from gsa.bench.formats_io import MEASURED_ENV, format_tables
-from gsa.bench.tables import format_table
+from benchmarks.formats_io import MEASURED_ENV, format_tables
+from benchmarks.tables import format_table
 from gsa.io.formats import ROUNDTRIP_BOUNDS
 
 
 def test_roundtrip_child_reports_errors_within_bounds_and_tables_render():
     proc = subprocess.run(
-        [sys.executable, "-m", "gsa.bench.formats_io", "spz", "3000"],
+        [sys.executable, "-m", "benchmarks.formats_io", "spz", "3000"],
         capture_output=True,
         text=True,
         timeout=300,

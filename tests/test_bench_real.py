@@ -4,8 +4,8 @@ random Sim(3), optional exposure shift), and the protocol end to end on a small 
 import numpy as np
 import pytest
 
-from gsa.bench import protocols
-from gsa.bench.real_captures import find_captures, real_split_pairs, split_pair
+from benchmarks import protocols
+from benchmarks.real_captures import find_captures, real_split_pairs, split_pair
 from gsa.io.formats import write_model
 from gsa.synth import make_object
 

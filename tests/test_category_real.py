@@ -5,7 +5,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from gsa.bench.category_real import (
+from benchmarks.category_real import (
     category_real_judge,
     category_real_pairs,
     format_category_real,

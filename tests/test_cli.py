@@ -237,12 +237,47 @@ def test_parser_does_not_import_other_verbs_modules():
     torch (features, renderer), the generator or the service."""
     code = (
         "import sys; from gsa.cli import build_parser; build_parser()\n"
-        "heavy = [m for m in ('cv2', 'torch', 'transformers', 'gsa.synth', 'gsa.recon.images', 'fastapi', 'grpc')"
+        "heavy = [m for m in ('cv2', 'torch', 'transformers', 'gsa.synth', 'gsa.recon.images', 'fastapi', 'grpc',"
+        " 'benchmarks')"
         " if m in sys.modules]\n"
         "assert not heavy, heavy"
     )
     r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
     assert r.returncode == 0, r.stderr
+
+
+def _forget_benchmarks(monkeypatch):
+    for name in [m for m in sys.modules if m == "benchmarks" or m.startswith("benchmarks.")]:
+        monkeypatch.delitem(sys.modules, name)
+
+
+def test_bench_finds_the_checkouts_benchmarks(monkeypatch):
+    """`gsa bench` from a checkout: benchmarks/ is found beside the gsa/ the command runs from,
+    with the repository on no path (an editable install maps only gsa and service)."""
+    import gsa.cli
+
+    root = Path(gsa.cli.__file__).resolve().parents[1]
+    if not (root / "benchmarks" / "__init__.py").is_file():
+        pytest.skip("gsa is not imported from a checkout")
+    monkeypatch.setattr(sys, "path", [p for p in sys.path if Path(p or ".").resolve() != root])
+    _forget_benchmarks(monkeypatch)
+    peers = gsa.cli._benchmarks("peers")
+    assert Path(peers.__file__).resolve() == root / "benchmarks" / "peers.py"
+
+
+def test_bench_outside_a_checkout_is_one_line(monkeypatch, tmp_path, capsys):
+    """An installed wheel has no benchmarks/: `gsa bench` says they run from a checkout."""
+    import gsa.cli
+    from gsa.cli_base import EXIT_FAILED
+
+    root = Path(gsa.cli.__file__).resolve().parents[1]
+    monkeypatch.setattr(gsa.cli, "__file__", str(tmp_path / "site-packages" / "gsa" / "cli.py"))
+    monkeypatch.setattr(sys, "path", [p for p in sys.path if Path(p or ".").resolve() != root])
+    _forget_benchmarks(monkeypatch)
+    assert gsa.cli.main(["bench", "dup", "--quick", "--out", str(tmp_path / "out")]) == EXIT_FAILED
+    err = capsys.readouterr().err
+    assert err.startswith("gsa: error: gsa bench runs from a checkout") and err.count("\n") == 1, err
+    assert not (tmp_path / "out").exists()
 
 
 def test_category_choices_are_checked_and_listed(capsys):

@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import pytest
 
-from gsa.bench.formats_io import PAIR_FORMATS, align_pair
+from benchmarks.formats_io import PAIR_FORMATS, align_pair
 
 N = 4000
 PAIRS = [(a, b) for i, a in enumerate(PAIR_FORMATS) for b in PAIR_FORMATS[i:] if (a, b) != ("ply", "ply")]

@@ -10,7 +10,7 @@ import struct
 import numpy as np
 import pytest
 
-from gsa.bench.formats_io import attribute_errors
+from benchmarks.formats_io import attribute_errors
 from gsa.cli import FORMAT_CHOICES, main
 from gsa.geometry import quat_multiply
 from gsa.io.formats import EXTENSIONS, FORMATS, MAX_SH_DEGREE, ROUNDTRIP_BOUNDS, FormatError, read_model, write_model

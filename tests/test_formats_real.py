@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 from scipy.spatial import cKDTree
 
-from gsa.bench.formats_io import REORDERING
+from benchmarks.formats_io import REORDERING
 from gsa.cli import main
 from gsa.io.formats import EXTENSIONS, FORMATS, read_model, write_model
 from gsa.io.ply import ALPHA_EPS, LOG_SCALE_BOUND, PlyError, ReaderWarning, ply_property_names, read_ply

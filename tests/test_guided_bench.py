@@ -1,10 +1,9 @@
-"""`gsa bench guided` (gsa.bench.guided): the hints it simulates are what they claim to be, and
+"""`gsa bench guided` (benchmarks.guided): the hints it simulates are what they claim to be, and
 its table judges each row by the issue's rule."""
 
 import numpy as np
 
-from gsa.align.guided import pairs_transform
-from gsa.bench.guided import (
+from benchmarks.guided import (
     BARS,
     PICKED,
     ROWS,
@@ -14,6 +13,7 @@ from gsa.bench.guided import (
     format_guided,
     with_guidance,
 )
+from gsa.align.guided import pairs_transform
 from gsa.metrics import rre_deg
 from gsa.sim3 import Sim3
 from gsa.synth import make_object, random_sim3

@@ -1,4 +1,5 @@
-"""The import graph of gsa/ and service/ has no cycles, and the library never imports the service.
+"""The import graph of gsa/, service/ and benchmarks/ has no cycles, the library never imports
+the service, and neither imports the benchmarks (a checkout's folder, not in the wheel).
 
 Every module is parsed with `ast` (nothing is imported), including imports inside
 functions and under `if TYPE_CHECKING:`: an import hidden in a function to dodge a
@@ -17,7 +18,7 @@ from pathlib import Path
 import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
-PACKAGES = ("gsa", "service")
+PACKAGES = ("gsa", "service", "benchmarks")
 
 # Cycles tolerated, each the set of modules of one strongly connected component (a
 # component passes when it lies inside an allowed set). None today: keep it that way.
@@ -222,3 +223,38 @@ def test_service_import_check_can_fail():
 def test_library_does_not_import_the_service(graph):
     bad = service_imports(graph)
     assert not bad, "gsa imports service: " + ", ".join(bad)
+
+
+def benchmark_imports(graph: dict[str, set[str]]) -> list[str]:
+    """Edges from the installed packages (gsa, service) into benchmarks/, which the wheel leaves out."""
+    return sorted(
+        f"{m} -> {t}"
+        for m, targets in graph.items()
+        if m.split(".")[0] in ("gsa", "service")
+        for t in targets
+        if t.split(".")[0] == "benchmarks"
+    )
+
+
+def test_benchmark_import_check_can_fail():
+    graph = {"gsa.cli": {"benchmarks.protocols"}, "service.x": {"benchmarks"}, "benchmarks.pairs": {"gsa.synth"}}
+    assert benchmark_imports(graph) == ["gsa.cli -> benchmarks.protocols", "service.x -> benchmarks"]
+
+
+def test_library_and_service_do_not_import_the_benchmarks(graph):
+    """`gsa bench` looks its protocols up by name (gsa.cli._benchmarks); nothing else reaches them."""
+    assert "benchmarks.protocols" in graph and "benchmarks.service.bench_workers" in graph
+    bad = benchmark_imports(graph)
+    assert not bad, "imports of benchmarks/ from the installed packages: " + ", ".join(bad)
+
+
+def test_wheel_leaves_the_benchmarks_out():
+    """pyproject.toml's package discovery takes gsa and service, not benchmarks (nor tests)."""
+    import tomllib
+
+    from setuptools import find_packages
+
+    find = tomllib.loads((ROOT / "pyproject.toml").read_text())["tool"]["setuptools"]["packages"]["find"]
+    found = find_packages(str(ROOT), include=find["include"], exclude=find.get("exclude", ()))
+    assert "gsa" in found and "service.worker" in found
+    assert not [p for p in found if p.split(".")[0] not in ("gsa", "service")], found

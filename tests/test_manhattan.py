@@ -4,7 +4,7 @@ proportions the true rotation is one of their 24 relabellings."""
 import numpy as np
 import pytest
 
-from gsa.bench.frames import frame_coverage, summary
+from benchmarks.frames import frame_coverage, summary
 from gsa.geometry import rotation_distance_deg
 from gsa.manhattan import frame_of_normals, manhattan_frame, relabellings
 from gsa.sim3 import Sim3

@@ -327,7 +327,7 @@ def test_cli_bad_input_is_one_error_line(tmp_path, capsys, args, message):
 def test_bench_n_way_names_the_wrong_edge(monkeypatch, tmp_path, capsys):
     # The protocol's bookkeeping on exact edges (the pairwise alignments are what the real run
     # measures; here they are built from the truth so the test stays fast).
-    from gsa.bench import nway
+    from benchmarks import nway
 
     _, truth = nway.captures(True, 0)
 
@@ -376,7 +376,7 @@ def test_bench_n_way_cross_instance_sets(monkeypatch, tmp_path):
     # reference turned 90° and the right pose among its alternatives: the pairwise-to-reference
     # row counts that member wrong, the global step corrects it; a category with too few
     # instances is left out.
-    from gsa.bench import nway
+    from benchmarks import nway
 
     _tetra_meshes(tmp_path, "tetra", nway.MEMBERS)
     _tetra_meshes(tmp_path, "few", nway.MEMBERS - 1)
@@ -407,7 +407,7 @@ def test_bench_n_way_cross_instance_sets(monkeypatch, tmp_path):
 
 
 def test_write_captures_gives_exactly_the_count_asked(tmp_path):
-    from gsa.bench import nway
+    from benchmarks import nway
 
     paths = nway.write_captures(tmp_path, 3, 1500)
     assert [p.name for p in paths] == ["capture_0.ply", "capture_1.ply", "capture_2.ply"]

@@ -1,11 +1,11 @@
-"""gsa.bench.photo_halves: the pieces around the reconstructions (photo scaling, interleaved halves,
+"""benchmarks.photo_halves: the pieces around the reconstructions (photo scaling, interleaved halves,
 the truth from a joint SfM), on tiny generated images and cameras. The protocol itself runs
-minutes per half and is measured by `python -m gsa.bench.photo_halves`, not here."""
+minutes per half and is measured by `python -m benchmarks.photo_halves`, not here."""
 
 import cv2
 import numpy as np
 
-from gsa.bench.photo_halves import halves, looked_at, scaled_photos, to_joint, within
+from benchmarks.photo_halves import halves, looked_at, scaled_photos, to_joint, within
 from gsa.metrics import rre_deg, scale_error_pct
 from gsa.render.cameras import orbit_cameras
 from gsa.synth.perturb import random_sim3

@@ -1,7 +1,7 @@
 """Two reconstructions of one object (issue 26): the robust search must not take the 180° flip.
 
 tests/data/recon_chair256.npz holds two `gsa reconstruct` models of the generated textured chair
-(python -m gsa.bench.recon --size 256 --category chair --seed 1: 30 views from each of two rigs,
+(python -m benchmarks.recon --size 256 --category chair --seed 1: 30 views from each of two rigs,
 20 and 19 registered), reduced to what the search reads (positions, colours, opacities), and the
 true A -> B Sim(3) from the cameras. Their printed texture varies at the anchors' spacing, so
 neighbouring anchors disagree in colour (colour_noise 0.85); with full colour trust every pose

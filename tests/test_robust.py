@@ -10,10 +10,10 @@ import numpy as np
 import pytest
 from scipy.spatial import cKDTree
 
+from benchmarks.pairs import exposure_pairs
 from gsa.align import robust
 from gsa.align.pipeline import align
 from gsa.align.robust.refinement import _plane_step, _smallest
-from gsa.bench.pairs import exposure_pairs
 from gsa.geometry import axis_rotation, quat_to_rotation, super_fibonacci_rotations
 from gsa.metrics import accuracy, rre_deg
 from gsa.sim3 import Sim3
@@ -425,7 +425,7 @@ def test_refinement_holds_two_halves_of_a_real_capture():
     19°; the fit on the closest pairs ends where the halves coincide."""
     if not (REAL_DEV / "biker.spz").exists():
         pytest.skip(f"the shared real-capture folder {REAL_DEV} is absent (CI has it at ../shared/data)")
-    from gsa.bench.real_captures import split_pair
+    from benchmarks.real_captures import split_pair
     from gsa.io.formats import read_model
 
     with pytest.warns(UserWarning, match="opacity 0 or 1"):

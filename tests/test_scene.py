@@ -11,11 +11,11 @@ import sys
 import numpy as np
 import pytest
 
+from benchmarks.pairs import SCENE_HARD
+from benchmarks.scene import scene_judge
 from gsa.align import robust
 from gsa.align import scene as S
 from gsa.align.pipeline import AlignOptions, align
-from gsa.bench.pairs import SCENE_HARD
-from gsa.bench.scene import scene_judge
 from gsa.geometry import axis_rotation
 from gsa.io.ply import write_ply
 from gsa.metrics import rre_deg, scale_error_pct

@@ -383,9 +383,9 @@ def test_a_model_met_again_reuses_its_views_and_lifts_the_same_features(monkeypa
 
 
 def test_every_bench_run_is_timed_without_the_views_of_the_run_before():
-    """gsa.bench.records.evaluate empties the view cache before each run: a bench's source met
+    """benchmarks.records.evaluate empties the view cache before each run: a bench's source met
     in several pairs, or one pair under several runners, is timed as a lone alignment."""
-    from gsa.bench.records import evaluate
+    from benchmarks.records import evaluate
 
     seen = []
 

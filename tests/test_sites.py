@@ -8,10 +8,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from benchmarks.scene import scene_judge
+from benchmarks.site import SITE_HARD, point_files, site_pairs
 from gsa.align import scene as S
 from gsa.align.pipeline import AlignOptions, align
-from gsa.bench.scene import scene_judge
-from gsa.bench.site import SITE_HARD, point_files, site_pairs
 from gsa.metrics import rre_deg, scale_error_pct
 from gsa.synth import make_object, scene_captures
 from gsa.synth.sites import PointSite, make_site, resample_site, robust_extent

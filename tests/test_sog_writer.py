@@ -10,7 +10,7 @@ import zipfile
 import numpy as np
 import pytest
 
-from gsa.bench.formats_io import attribute_errors
+from benchmarks.formats_io import attribute_errors
 from gsa.io import packed, sog
 from gsa.io.formats import ROUNDTRIP_BOUNDS
 from gsa.synth import make_object

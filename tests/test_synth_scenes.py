@@ -10,10 +10,10 @@ import numpy as np
 import pytest
 from scipy.spatial import cKDTree
 
-from gsa.bench import pairs as pairs_mod
-from gsa.bench import peers as peers_mod
-from gsa.bench import protocols as P
-from gsa.bench.scene import scene_judge
+from benchmarks import pairs as pairs_mod
+from benchmarks import peers as peers_mod
+from benchmarks import protocols as P
+from benchmarks.scene import scene_judge
 from gsa.geometry import euler_xyz
 from gsa.sim3 import Sim3
 from gsa.synth import make_scene, scene_captures

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 from scipy.spatial import cKDTree
 
-from gsa.bench import protocols as P
+from benchmarks import protocols as P
 from gsa.geometry import axis_rotation, euler_xyz, rotation_distance_deg
 from gsa.sim3 import Sim3, solve_sim3
 from gsa.synth import (

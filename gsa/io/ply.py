@@ -2,7 +2,7 @@
 
 Reading fills the model's arrays from the binary body in chunks of rows (one reused buffer of
 CHUNK_BYTES), and writing builds the file's rows chunk by chunk, so a 5M-Gaussian file is held
-once in memory (the model's arrays), never twice (python -m gsa.bench.ply_memory). ASCII and big-endian bodies
+once in memory (the model's arrays), never twice (python -m benchmarks.ply_memory). ASCII and big-endian bodies
 are read too, extra properties (normals, colours, ...) are ignored, and Mip-Splatting's `filter_3D`
 is folded into the scales and opacities. Every problem is raised as one `PlyError` naming the file.
 

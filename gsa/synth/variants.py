@@ -1,5 +1,5 @@
 """Harder variants of generated 3DGS data, for the robustness benchmarks
-(gsa.bench.protocols: partial, noisy, symmetric, deform).
+(benchmarks.protocols: partial, noisy, symmetric, deform).
 
 cut_by_plane           a capture that missed one side: a half-space removed
 add_floaters           faint, brightly coloured floaters around the object

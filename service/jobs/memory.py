@@ -7,7 +7,7 @@ therefore predicts a job's peak before it accepts it, and refuses (422, with the
 predicted above the workers' budget (`GSA_WORKER_MEMORY_MB`).
 
 The model is an upper bound fitted to peaks measured in a fresh child process that reads both
-models, runs `align()` and writes the outputs, as a worker does (`scripts/measure_job_memory.py`;
+models, runs `align()` and writes the outputs, as a worker does (`benchmarks/service/measure_job_memory.py`;
 docs/service.md, "Worker memory budget"):
 
     peak = MARGIN × ( BASE
@@ -56,7 +56,7 @@ MARGIN = 1.15
 
 FINE_DEFAULTS = {"fine_views": 5, "fine_image_size": 128, "fine_iterations": 60}
 
-# The semantic stage (fitted to scripts/bench_job_memory.py's peaks at 50k, 300k and 3M).
+# The semantic stage (fitted to benchmarks/service/bench_job_memory.py's peaks at 50k, 300k and 3M).
 SEMANTIC_BASE = 200 * MB  # the backbone (and its ONNX file while read), views, tokens, the upsampled maps
 LIFTED = 33 * 8  # a Gaussian's float64 sums of the 32 lifted channels and its visibility
 LIFT_VALUE = 16  # a channel of a Gaussian in a view of a pass: rendered, its gradient, the probe's

@@ -9,7 +9,7 @@ final state (state, finished_at, attempts) changes once seen; a webhook
 receiver flags a job reported final twice with different contents; the job
 list must hold one job per logical submission (client retries carry an
 Idempotency-Key). Used by tests/service/test_chaos_service.py and
-scripts/chaos_service.py."""
+benchmarks/service/chaos_service.py."""
 
 from __future__ import annotations
 

@@ -87,7 +87,7 @@ def send(host: str, port: int, req: Req, timeout: float) -> Resp:
 # One request per file, as it goes on the wire minus what `send` adds (Host, Connection and,
 # when the request has none, Content-Length): "METHOD TARGET", header lines, an empty line,
 # the body bytes. Leading "# key: value" lines are notes; "# expect: 4xx" (the default) is
-# what the server must answer. scripts/fuzz_service.py --save writes what it finds this way.
+# what the server must answer. benchmarks/service/fuzz_service.py --save writes what it finds this way.
 
 
 def dump_http(req: Req, notes: dict[str, str] | None = None) -> bytes:

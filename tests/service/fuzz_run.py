@@ -3,7 +3,7 @@ optional `gsa worker`): the baseline it stores first, the generated requests,
 the checks on every answer and the integrity check at the end.
 
 Used by tests/service/test_fuzz_service.py (a few hundred requests) and
-scripts/fuzz_service.py (thousands, with numbers)."""
+benchmarks/service/fuzz_service.py (thousands, with numbers)."""
 
 from __future__ import annotations
 
@@ -175,7 +175,7 @@ class FuzzSession:
         digest = hashlib.sha256(req.method.encode() + req.target + req.body).hexdigest()[:12]
         path = self.save_dir / f"{req.kind}-{digest}.http"
         why = "; ".join(problems).replace("\r", " ").replace("\n", " ")[:300]
-        note = {"found": f"scripts/fuzz_service.py {time.strftime('%Y-%m-%d')}: {why}", "expect": "4xx"}
+        note = {"found": f"benchmarks/service/fuzz_service.py {time.strftime('%Y-%m-%d')}: {why}", "expect": "4xx"}
         path.write_bytes(dump_http(req, note))
         return path
 

@@ -1,6 +1,6 @@
 """A whole service deployment from real processes, for the fuzzing and chaos
 runs (tests/service/test_fuzz_service.py, test_chaos_service.py and the
-scripts/fuzz_service.py, scripts/chaos_service.py that print their numbers):
+benchmarks/service/fuzz_service.py, benchmarks/service/chaos_service.py that print their numbers):
 a private redis-server that can be stopped and started again on its port and
 data folder, `gsa serve` processes and `gsa worker` processes.
 

@@ -1,13 +1,11 @@
-"""scripts/bench_workers.py polls within the tenant's rate limit: it waited for jobs with 50
+"""benchmarks/service/bench_workers.py polls within the tenant's rate limit: it waited for jobs with 50
 requests a second per job and stopped with KeyError 'state' on the first 429. Real API
 (embedded mode: its own worker thread runs the jobs) with a rate limit the old polling passed
 at once."""
 
 from __future__ import annotations
 
-import importlib.util
 import time
-from pathlib import Path
 
 import httpx
 import pytest
@@ -16,14 +14,11 @@ from tests.service.conftest import ALICE, service_env, start_api, submit_pair
 
 pytestmark = pytest.mark.slow  # starts an API process
 
-ROOT = Path(__file__).resolve().parents[2]
-
 
 def _bench():
-    spec = importlib.util.spec_from_file_location("bench_workers", ROOT / "scripts" / "bench_workers.py")
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
+    from benchmarks.service import bench_workers
+
+    return bench_workers
 
 
 def test_the_workers_benchmark_waits_for_jobs_within_the_rate_limit(tmp_path, pair):

@@ -2,7 +2,7 @@
 moments (with their work horses), Redis is restarted (SIGKILL and SIGTERM), the
 API is SIGKILLed and restarted, and the storage is filled to its quota. Every job
 must end exactly once in a final state: none lost, none finished twice, one job
-per logical submission. scripts/chaos_service.py runs more and prints the numbers."""
+per logical submission. benchmarks/service/chaos_service.py runs more and prints the numbers."""
 
 from __future__ import annotations
 

@@ -4,7 +4,7 @@ run against a real deployment (uvicorn API, redis-server, a worker).
 
 Each must get the answer its file names ("# expect: 4xx" by default: a problem+json
 refusal, never a 5xx), with an X-Request-Id, in time. The long random runs
-(scripts/fuzz_service.py --save DIR) write what they find in this format: copy it
+(benchmarks/service/fuzz_service.py --save DIR) write what they find in this format: copy it
 here, fix the defect, and the case is replayed from then on."""
 
 from __future__ import annotations

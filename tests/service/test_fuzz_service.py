@@ -5,10 +5,10 @@ bodies, headers, ids, Range/If-Range, job options, corrupted PLY/zip/image bytes
 For every answer: no 5xx (503 only while Redis is down), no request beyond the
 time bound, problem+json for errors, an X-Request-Id; the server's memory stays
 bounded; and the jobs, assets and artifacts stored before are byte-identical
-after. scripts/fuzz_service.py runs the same with thousands of requests.
+after. benchmarks/service/fuzz_service.py runs the same with thousands of requests.
 
 Derandomized: every run (with or without CI) sends the same sequence, so a test run
-never fails on a case nobody has seen. The random search is scripts/fuzz_service.py
+never fails on a case nobody has seen. The random search is benchmarks/service/fuzz_service.py
 (before a release); what it finds joins tests/service/corpus/, which
 test_fuzz_corpus.py replays."""
 

@@ -7,7 +7,6 @@ an upper bound of the real peak of small jobs run in child processes."""
 
 from __future__ import annotations
 
-import importlib.util
 import json
 from pathlib import Path
 
@@ -27,10 +26,9 @@ AUTH = (("authorization", "Bearer key-alice"),)
 
 
 def _measure_script():
-    spec = importlib.util.spec_from_file_location("measure_job_memory", ROOT / "scripts" / "measure_job_memory.py")
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
+    from benchmarks.service import measure_job_memory
+
+    return measure_job_memory
 
 
 # ------------------------------------------------------------------ the model against real peaks

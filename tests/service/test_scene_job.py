@@ -1,7 +1,7 @@
 """A scene pair (issue 18) through the real service end to end, at CI size: two partial
 captures of a generated room (~100k Gaussians each, their own Sim(3)) uploaded over HTTP,
 one job asking for the aligned and merged models, the transform checked against the truth
-and both artifacts read back. scripts/bench_service_scene.py runs the same at 2M."""
+and both artifacts read back. benchmarks/service/bench_service_scene.py runs the same at 2M."""
 
 from __future__ import annotations
 
