@@ -13,6 +13,7 @@ import sys
 import threading
 import time
 import uuid
+from contextlib import nullcontext
 
 from gsa.recon.calibration import Calibration
 from service.backend import Backend, notify_webhook
@@ -22,6 +23,7 @@ from service.jobs.options import DEFAULT_OUTPUTS, align_option_names, server_opt
 from service.models import Job, JobState
 from service.problems import Problem, infrastructure_problem, invalid_input, store_errors
 from service.worker.artifacts import collect_outputs, store_artifacts, synchronized_renders
+from service.worker.interrupt import Interrupter
 from service.worker.leases import (
     JobCancelled,
     JobProgress,
@@ -38,7 +40,7 @@ from service.worker.many import run_many
 log = logging.getLogger("gsa.worker")
 
 
-def execute(job_id: str, backend: Backend) -> JobState | None:
+def execute(job_id: str, backend: Backend, interrupt: bool = False) -> JobState | None:
     """Run one attempt of a job. Returns the state it left the job in (None: not ours)."""
     store, s = backend.store, backend.settings
     job = store.get(job_id)
@@ -84,13 +86,27 @@ def execute(job_id: str, backend: Backend) -> JobState | None:
     ):
         return None  # another worker claimed it, or it was cancelled meanwhile
     lost, stop = threading.Event(), threading.Event()
-    hb = threading.Thread(target=heartbeat, args=(backend, job_id, token, lost, stop), daemon=True)
+    # Only a work horse, which exits after its job, is stopped where the library reports nothing:
+    # an exception raised in it may surface through a native call and leave that call's state
+    # half-updated (numba's dispatcher answers SystemError), which a long-lived process keeps.
+    interrupter = Interrupter() if interrupt else None
+    deadline = time.monotonic() + s.job_timeout_s
+    hb = threading.Thread(
+        target=heartbeat, args=(backend, job_id, token, lost, stop, interrupter, deadline), daemon=True
+    )
     hb.start()
     prog = JobProgress(backend, job, token, lost, max(len(job.sources), 1))
+    prog.interrupter = interrupter
     art_prefix = attempt_artifacts(job_id, token)
     final: JobState | None = None
     try:
-        final = _run(backend, job, token, prog, art_prefix)
+        try:
+            final = _run(backend, job, token, prog, art_prefix)
+        except Exception as exc:
+            stop_asked = interrupter.requested if interrupter is not None else None
+            if stop_asked is None or isinstance(exc, (JobCancelled, LeaseLost, JobTimeout)):
+                raise
+            raise stop_asked() from exc  # the stop, wrapped by the native call it went through
     except JobCancelled:
         final = JobState.cancelled if finish_attempt(backend, job_id, token, JobState.cancelled) else None
     except (LeaseLost, JobTimeout) as exc:
@@ -276,7 +292,8 @@ def _run(backend: Backend, job: Job, token: str, prog: JobProgress, art_prefix: 
             prog.check(force=True)
             # Guidance comes in the files' own coordinates (as results state transforms).
             formats = (source.metadata.get("format", "ply"), target.metadata.get("format", "ply"))
-            res = align(source, target, hints_from_files(opts, *formats), progress=prog)
+            with _interruptible(prog):
+                res = align(source, target, hints_from_files(opts, *formats), progress=prog)
             prog("writing", 0.99)
             out_dir = work / f"out{i}"
             extra = {
@@ -286,7 +303,8 @@ def _run(backend: Backend, job: Job, token: str, prog: JobProgress, art_prefix: 
             }
             if job.parent_job:
                 extra["parent_job"] = job.parent_job
-            paths = write_outputs(res, source, target, out_dir, outputs=outputs, extra=extra)
+            with _interruptible(prog):
+                paths = write_outputs(res, source, target, out_dir, outputs=outputs, extra=extra)
             d = result_dict(res, source, target)  # + the transform contract (docs/formats.md)
             d["source_asset_id"] = ref.asset_id
             results.append(d)
@@ -320,6 +338,11 @@ def _run(backend: Backend, job: Job, token: str, prog: JobProgress, art_prefix: 
         stage="done",
     )
     return JobState.succeeded if ok else None
+
+
+def _interruptible(prog: JobProgress):
+    """Where the heartbeat may stop the job's thread (service.worker.interrupt)."""
+    return prog.interrupter.interruptible() if prog.interrupter is not None else nullcontext()
 
 
 def _release_memory() -> None:

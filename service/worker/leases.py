@@ -21,13 +21,14 @@ import tempfile
 import threading
 import time
 from collections.abc import Iterator
-from contextlib import contextmanager
+from contextlib import contextmanager, nullcontext
 from pathlib import Path
 
 from service.backend import Backend, notify_webhook
 from service.jobs import quotas
 from service.models import Job, JobState
 from service.problems import Problem, infrastructure_problem, store_errors
+from service.worker.interrupt import Interrupter
 
 log = logging.getLogger("gsa.worker")
 
@@ -90,8 +91,18 @@ class JobProgress:
         self.overall = 0.0
         # Shown before the stage while set: a many job's "edge 2/3" (service.jobs.many).
         self.label: str | None = None
+        # The heartbeat's stop of the job's thread (service.worker.interrupt), kept out of this
+        # callback's store I/O.
+        self.interrupter: Interrupter | None = None
+
+    def _shielded(self):
+        return self.interrupter.shielded() if self.interrupter is not None else nullcontext()
 
     def check(self, force: bool = False) -> None:
+        with self._shielded():
+            self._check(force)
+
+    def _check(self, force: bool) -> None:
         if self.lost.is_set():
             raise LeaseLost()
         if time.monotonic() - self.started > self.b.settings.job_timeout_s:
@@ -113,6 +124,10 @@ class JobProgress:
             self.stage, self.stage_t0 = stage, now
 
     def __call__(self, stage: str, fraction: float) -> None:
+        with self._shielded():
+            self._report(stage, fraction)
+
+    def _report(self, stage: str, fraction: float) -> None:
         changed = stage != self.stage
         self.set_stage(stage)
         self.check(force=changed)
@@ -140,19 +155,36 @@ class JobProgress:
         self.set_stage("__end__")
 
 
+# How often the heartbeat reads a running job's record for a cancel (the lease renews less often).
+CANCEL_POLL_S = 0.5
+
+
 def heartbeat(
     backend: Backend,
     job_id: str,
     token: str,
     lost: threading.Event,
     stop: threading.Event,
+    interrupter: Interrupter | None = None,
+    deadline: float | None = None,
 ) -> None:
     """Thread body: renew the lease every lease_s/3 until `stop`; set `lost` once
     the store refuses (another attempt owns the job now). A failed renewal (store
-    unreachable for a moment) is retried after a tenth of the lease, not a third."""
+    unreachable for a moment) is retried after a tenth of the lease, not a third.
+    With an `interrupter`, also read the job every CANCEL_POLL_S and stop the job's
+    thread on a cancel, a lost lease, or past `deadline` (time.monotonic()): where the
+    library reports no progress for seconds, the progress callback cannot (service.worker.interrupt)."""
     lease = backend.settings.lease_s
-    wait = lease / 3
-    while not stop.wait(wait):
+    renew_every = lease / 3
+    next_renewal = time.monotonic() + renew_every
+    tick = CANCEL_POLL_S if interrupter is not None else renew_every
+    while not stop.wait(min(tick, max(0.0, next_renewal - time.monotonic()))):
+        if interrupter is not None and interrupter.requested is None:
+            reason = _stop_reason(backend, job_id, token, deadline)
+            if reason is not None:
+                interrupter.interrupt(reason)
+        if time.monotonic() < next_renewal:
+            continue
         try:
             ok = backend.store.update(
                 job_id,
@@ -162,12 +194,30 @@ def heartbeat(
             )
         except store_errors() as exc:  # transient store error: the lease has slack for a few quick retries
             log.warning("lease renewal failed for %s: %s: %s", job_id, type(exc).__name__, exc)
-            wait = lease / 10
+            next_renewal = time.monotonic() + lease / 10
             continue
-        wait = lease / 3
+        next_renewal = time.monotonic() + renew_every
         if not ok:
             lost.set()
+            if interrupter is not None:
+                interrupter.interrupt(LeaseLost)
             return
+
+
+def _stop_reason(backend: Backend, job_id: str, token: str, deadline: float | None) -> type[Exception] | None:
+    """Why the attempt must stop now (JobTimeout, LeaseLost, JobCancelled), or None; a store
+    that cannot answer is no reason (the lease renewal copes with that)."""
+    if deadline is not None and time.monotonic() > deadline:
+        return JobTimeout
+    try:
+        job = backend.store.get(job_id)
+    except store_errors():
+        return None
+    if job is None or job.run_token != token:
+        return LeaseLost
+    if job.cancel_requested or job.state == JobState.cancelled:
+        return JobCancelled
+    return None
 
 
 def finish_attempt(backend: Backend, job_id: str, token: str, state: JobState, **fields) -> bool:

@@ -116,7 +116,7 @@ def run_job(job_id: str) -> str | None:
     previous = signal.signal(signal.SIGTERM, _terminated) if main else None
     restore_torch_threads()
     try:
-        state = execute(job_id, process_backend())
+        state = execute(job_id, process_backend(), interrupt=True)  # the horse exits after the job
     finally:
         if main:
             signal.signal(signal.SIGTERM, previous if previous is not None else signal.SIG_DFL)
