@@ -159,7 +159,7 @@ OPTIONS: dict[str, OptionSpec] = {
     "weight_by_opacity": OptionSpec("bool", "weight correspondences by opacity", cli=Cli()),
     "trim": OptionSpec(
         "float",
-        "the feature-guided ICP drops matches beyond trim × the median residual (null: keeps all)",
+        "the feature-guided ICP drops matches beyond trim × the median residual (None: keeps all)",
         limits=Bound(float, 0, None, lo_open=True),
         none_ok=True,
     ),
