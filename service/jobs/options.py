@@ -82,8 +82,8 @@ OPTION_BOUNDS: dict[str, Bound] = {
     **{name: spec.job_bounds for name, spec in OPTIONS.items() if spec.job_bounds is not None},
     "recon_iterations": Bound(int, 10, 100_000),
 }
-# The choices of every choice option, from its spec (the fine stage's are checked by the library
-# only when the options are made, too: refused at submission all the same).
+# The choices of every choice option, from its spec (AlignOptions checks them too; here a bad
+# one is a 422 naming the option and its choices).
 OPTION_CHOICES: dict[str, tuple[str, ...]] = {
     name: spec.choices for name, spec in OPTIONS.items() if spec.kind == "choice"
 }
