@@ -42,31 +42,21 @@ def _load_model(path: str, role: str = "model", args: argparse.Namespace | None 
 
 
 def _align_options(args: argparse.Namespace):
+    """AlignOptions from the arguments: the flags made from gsa.align.spec (those left unset
+    take the library's defaults), --stages' comma list, the extractor's settings and the guidance."""
     from gsa.align.pipeline import AlignOptions
+    from gsa.align.spec import OPTIONS
 
     fields = {
         "stages": tuple(s.strip() for s in args.stages.split(",") if s.strip()),
-        "features": args.features,
         "feature_settings": _feature_settings(args),
-        "tau_f": args.tau_f,
-        "coarse_iterations": args.iterations,
-        "max_candidates": args.max_candidates,
-        "weight_by_opacity": args.weight_by_opacity,
-        "seed": args.seed,
-        "refine": args.refine,
-        "search": args.search,
-        "scene": args.scene,
-        "rigid": args.rigid,
-        "semantic": getattr(args, "semantic", None) or _semantic_default(),
-        "photo_matches": getattr(args, "photo_matches", None) or "auto",
-        "frame_snap": getattr(args, "frame_snap", None) or "auto",
-        "learned": getattr(args, "learned", None) or "auto",
-        "alternatives": getattr(args, "alternatives", None) or "doubtful",
     }
-    for name in ("fine_iterations", "fine_views", "fine_lr", "fine_image_size", "fine_on"):
-        value = getattr(args, name, None)
+    for name in (*CLI_OPTIONS, *CLI_GUIDANCE_OPTIONS):
+        value = getattr(args, _dest(OPTIONS[name].flag or _flag(name)), None)
         if value is not None:
             fields[name] = value
+    if "semantic" not in fields:
+        fields["semantic"] = _semantic_default()
     fields.update(_guidance_fields(args))
     try:
         return AlignOptions(**fields)
@@ -82,8 +72,9 @@ def _read_json_arg(path: str, flag: str):
 
 
 def _guidance_fields(args: argparse.Namespace) -> dict:
-    """--pairs / --up / --front / --scale in each file's own coordinates (converted once the files are
-    read, gsa.align.contract.hints_from_files); --init is resolved in `_init_transform`."""
+    """--pairs / --up / --front in each file's own coordinates (converted once the files are
+    read, gsa.align.contract.hints_from_files); --init is resolved in `_init_transform`; --scale
+    is an option of gsa.align.spec."""
     fields: dict = {}
     if getattr(args, "pairs", None):
         data = _read_json_arg(args.pairs, "--pairs")
@@ -94,8 +85,6 @@ def _guidance_fields(args: argparse.Namespace) -> dict:
         fields["up_axes"] = _axis_pair(args.up, "--up", "up")
     if getattr(args, "front", None):
         fields["front_axes"] = _axis_pair(args.front, "--front", "front")
-    if getattr(args, "scale", None) is not None:
-        fields["fixed_scale"] = args.scale
     return fields
 
 
@@ -172,16 +161,61 @@ def _feature_settings(args: argparse.Namespace):
     return FeatureSettings(**feature_settings_env(backbone=args.backbone, head=args.head))
 
 
+# The AlignOptions fields with a flag (gsa.align.spec.OPTIONS[name].cli), in the order --help
+# lists them: after --stages, --features and the extractor's weights; then the guidance group's.
+CLI_OPTIONS = (
+    "tau_f",
+    "coarse_iterations",
+    "max_candidates",
+    "weight_by_opacity",
+    "refine",
+    "search",
+    "scene",
+    "seed",
+    "fine_iterations",
+    "fine_views",
+    "fine_lr",
+    "fine_image_size",
+    "fine_on",
+)
+CLI_GUIDANCE_OPTIONS = ("fixed_scale", "rigid", "semantic", "learned", "frame_snap", "alternatives", "photo_matches")
+
+
+def _flag(name: str) -> str:
+    return "--" + name.replace("_", "-")
+
+
+def _dest(flag: str) -> str:
+    return flag.lstrip("-").replace("-", "_")
+
+
+def add_option_argument(p, name: str, defaults) -> None:
+    """The flag of option `name` as gsa.align.spec describes it: type, choices, default
+    (`defaults`: an AlignOptions), help; a true/false option is a store_true flag."""
+    from gsa.align.spec import LIBRARY_DEFAULT, OPTIONS
+
+    spec = OPTIONS[name]
+    cli = spec.cli
+    kw: dict = {}
+    if spec.kind == "bool":
+        kw["action"] = "store_true"
+    else:
+        if spec.kind in ("int", "float"):
+            kw["type"] = int if spec.kind == "int" else float
+        if spec.choices:
+            kw["choices"] = spec.choices
+        kw["default"] = getattr(defaults, name) if cli.default is LIBRARY_DEFAULT else cli.default
+    if cli.metavar:
+        kw["metavar"] = cli.metavar
+    p.add_argument(cli.flag or _flag(name), help=cli.help or spec.help, **kw)
+
+
 def add_align_arguments(p: argparse.ArgumentParser) -> None:
-    from gsa.align.pipeline import FEATURE_MODES, AlignOptions
+    from gsa.align.pipeline import AlignOptions
+    from gsa.align.spec import OPTIONS
 
     d = AlignOptions()
-    p.add_argument(
-        "--stages",
-        default=",".join(d.stages),
-        help="auto, coarse or coarse,fine (default: %(default)s = coarse,fine unless the "
-        "nearest-neighbour refinement ran, see README)",
-    )
+    p.add_argument("--stages", default=",".join(d.stages), help=OPTIONS["stages"].cli.help)  # a comma list
     p.add_argument(
         "--target-cameras",
         default=None,
@@ -189,13 +223,7 @@ def add_align_arguments(p: argparse.ArgumentParser) -> None:
         help="the target's training cameras (a reconstruction's cameras.json): the fine stage "
         "renders from them instead of orbit cameras",
     )
-    p.add_argument(
-        "--features",
-        default=d.features,
-        choices=list(FEATURE_MODES),
-        help="auto: the files' own features when both have them, else the configured extractor "
-        "(GSA_FEATURES_EXTRACTOR + weights), else canonical; spheremap/dinov2 lift 2D features first",
-    )
+    add_option_argument(p, "features", d)
     p.add_argument(
         "--backbone",
         "--weights",
@@ -204,40 +232,8 @@ def add_align_arguments(p: argparse.ArgumentParser) -> None:
         help="DINOv2 weights: Hugging Face folder or torch.hub .pth (env GSA_FEATURES_BACKBONE)",
     )
     p.add_argument("--head", default=None, help="sphere_mapper head checkpoint (env GSA_FEATURES_HEAD)")
-    p.add_argument("--tau-f", type=float, default=d.tau_f, help="feature distance threshold τ_f")
-    p.add_argument("--iterations", type=int, default=d.coarse_iterations, help="coarse iteration limit")
-    p.add_argument(
-        "--max-candidates", type=int, default=d.max_candidates, help="feature candidates kept per source Gaussian"
-    )
-    p.add_argument("--weight-by-opacity", action="store_true", help="weight correspondences by opacity")
-    p.add_argument(
-        "--refine",
-        default=d.refine,
-        choices=["auto", "on", "off"],
-        help="nearest-neighbour ICP after the feature stage (auto: with canonical features)",
-    )
-    p.add_argument(
-        "--search",
-        default=d.search,
-        choices=["auto", "global", "frames"],
-        help="coarse initialisation without learned features: global (robust SO(3) search on "
-        "floater-free anchors, overlap and colour scored), frames (one canonical frame per "
-        "model, the earlier default); auto: global unless --refine off",
-    )
-    p.add_argument(
-        "--scene",
-        default=d.scene,
-        choices=["auto", "on", "off"],
-        help="the scene path for rooms and sites (more anchors, no frame relabellings, "
-        "exposure-normalised colours, bounded refinement clouds); auto: when both models "
-        "pass the scene test (README, 'Scenes'); result metrics.scene says whether it ran and why",
-    )
-    p.add_argument("--seed", type=int, default=d.seed)
-    p.add_argument("--fine-iterations", type=int, default=None)
-    p.add_argument("--fine-views", type=int, default=None)
-    p.add_argument("--fine-lr", type=float, default=None)
-    p.add_argument("--fine-image-size", type=int, default=None)
-    p.add_argument("--fine-on", choices=["features", "colors"], default=None)
+    for name in CLI_OPTIONS:
+        add_option_argument(p, name, d)
     g = p.add_argument_group("guidance (when the automatic answer is doubtful; README 'Guided alignment')")
     g.add_argument(
         "--init", metavar="JSON", help="start from this pose (a result.json or a JSON with a 4×4 `transform`)"
@@ -253,50 +249,8 @@ def add_align_arguments(p: argparse.ArgumentParser) -> None:
         help="with --up: the way each model faces, in the source's and in the target's coordinates "
         "(the turns about up kept within 45° of the fronts agreeing)",
     )
-    g.add_argument("--scale", type=float, metavar="S", help="fix the scale of the answer")
-    g.add_argument(
-        "--rigid",
-        action="store_true",
-        help="the two models are captures of one rigid object (two reconstructions, two scans), "
-        "never another instance or a deformed copy",
-    )
-    g.add_argument(
-        "--semantic",
-        choices=("auto", "off"),
-        default=None,
-        help="a doubtful answer: pretrained DINOv2 features pick among the chosen pose and its "
-        "alternatives (auto: when a backbone is installed or --backbone given; off: never; "
-        "default: env GSA_SEMANTIC, else auto)",
-    )
-    g.add_argument(
-        "--learned",
-        choices=("auto", "off"),
-        default="auto",
-        help="a doubtful answer: decided by the learned canonical head (each model's pose in its "
-        "category's canonical frame, `gsa orient`) where both models' poses are sure (auto), or never (off)",
-    )
-    g.add_argument(
-        "--frame-snap",
-        choices=("auto", "off"),
-        default="auto",
-        help="a doubtful answer between other instances: turned onto the relabellings of the two "
-        "models' dominant surface-normal frames and checked among them (auto), or left as refined (off)",
-    )
-    g.add_argument(
-        "--alternatives",
-        choices=("doubtful", "always"),
-        default="doubtful",
-        help="list the poses worth picking (metrics alternatives) for doubtful and guided answers "
-        "(doubtful), or for every answer (always)",
-    )
-    g.add_argument(
-        "--photo-matches",
-        choices=("auto", "off"),
-        default="auto",
-        help="two reconstructions (image sets, or folders `gsa reconstruct` wrote): register them "
-        "by their photos' shared texture where enough matched SfM points agree (auto), or by "
-        "their Gaussians alone (off)",
-    )
+    for name in CLI_GUIDANCE_OPTIONS:
+        add_option_argument(g, name, d)
     g.add_argument(
         "--own-intrinsics",
         action="store_true",

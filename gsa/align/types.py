@@ -22,6 +22,7 @@ from gsa.align.choices import (
 )
 from gsa.align.coarse import CoarseOptions, CoarseResult
 from gsa.align.criteria import Criteria
+from gsa.align.spec import check_option_values
 from gsa.align.verdict import Verdict
 from gsa.canonical import CanonicalFrame
 from gsa.features.settings import FeatureSettings  # torch-free, so typing.get_type_hints(AlignOptions) resolves
@@ -50,7 +51,8 @@ if TYPE_CHECKING:
 
 @dataclass
 class AlignOptions:
-    """How `align()` runs. Every choice is checked when the options are made.
+    """How `align()` runs. Every choice is checked when the options are made, against each
+    option's one description in gsa.align.spec.OPTIONS (its help, choices, bounds, CLI flag).
 
     Args:
         stages: ("auto",), ("coarse",) or ("coarse", "fine"). auto: coarse+fine when the
@@ -192,34 +194,7 @@ class AlignOptions:
         self.stages = tuple(self.stages)
         if self.stages not in STAGE_CHOICES:
             raise ValueError(f"stages must be auto, coarse or coarse,fine, got {','.join(self.stages) or 'nothing'}")
-        if self.features not in FEATURE_MODES:
-            raise ValueError(f"features must be one of {', '.join(FEATURE_MODES)}, got {self.features!r}")
-        if not self.tau_f > 0:
-            raise ValueError("tau_f must be positive")
-        if self.search not in ("auto", "global", "frames"):
-            raise ValueError(f"search must be auto, global or frames, got {self.search!r}")
-        # Bounded: both set the size of arrays the search holds at once.
-        if not (100 <= self.anchor_count <= 20_000 and 64 <= self.search_rotations <= 20_000):
-            raise ValueError("anchor_count must be in 100..20000 and search_rotations in 64..20000")
-        if self.scene not in ("auto", "on", "off"):
-            raise ValueError(f"scene must be auto, on or off, got {self.scene!r}")
-        if self.refine not in ("auto", "on", "off"):
-            raise ValueError(f"refine must be auto, on or off, got {self.refine!r}")
-        if self.coarse_iterations < 1 or self.max_candidates < 1:
-            raise ValueError("coarse_iterations and max_candidates must be at least 1")
-        if not self.hypothesis_truncation > 0 or not self.inlier_threshold > 0:
-            raise ValueError("hypothesis_truncation and inlier_threshold must be positive")
-        for name, choices in (
-            ("semantic", ("auto", "off")),
-            ("photo_matches", ("auto", "off")),
-            ("frame_snap", ("auto", "off")),
-            ("learned", ("auto", "off")),
-            ("alternatives", ("doubtful", "always")),
-        ):
-            if getattr(self, name) not in choices:
-                raise ValueError(f"{name} must be {' or '.join(choices)}, got {getattr(self, name)!r}")
-        if not isinstance(self.rigid, bool):
-            raise ValueError(f"rigid must be true or false, got {self.rigid!r}")
+        check_option_values(self)  # the choices, bounds and true/false of gsa.align.spec.OPTIONS
 
     def coarse_options(self, iterations: int | None = None) -> CoarseOptions:
         return CoarseOptions(

@@ -42,6 +42,8 @@ from __future__ import annotations
 
 from typing import Any
 
+from service.jobs.options import library_defaults
+
 MB = 1 << 20
 
 BASE = 480 * MB  # interpreter, numpy, numba kernels, torch and the renderer (a cold process)
@@ -54,7 +56,7 @@ PER_PIXEL = 105  # fine stage: images, alphas and the compositing's saved state 
 PER_PIXEL_TRAINING = 130  # ... once more than one iteration has run (allocator growth)
 MARGIN = 1.15
 
-FINE_DEFAULTS = {"fine_views": 5, "fine_image_size": 128, "fine_iterations": 60}
+FINE_OPTIONS = ("fine_views", "fine_image_size", "fine_iterations")  # defaults: the library's
 
 # The semantic stage (fitted to benchmarks/service/bench_job_memory.py's peaks at 50k, 300k and 3M).
 SEMANTIC_BASE = 200 * MB  # the backbone (and its ONNX file while read), views, tokens, the upsampled maps
@@ -109,7 +111,7 @@ def renders_memory(options: dict[str, Any], n_largest: int, fine: bool) -> float
     outputs = options.get("outputs") or ("renders",)  # no outputs named: all of them
     if "renders" not in outputs or options.get("renders", True) is False:
         return 0.0
-    views = RENDER_NOVEL_VIEWS + (int(options.get("fine_views", FINE_DEFAULTS["fine_views"])) if fine else 0)
+    views = RENDER_NOVEL_VIEWS + (int(options.get("fine_views", library_defaults()["fine_views"])) if fine else 0)
     per_call = max(1, min(views, RENDER_CALL_BUDGET // max(n_largest, 1)))
     return RENDER_VIEW_GAUSSIAN * per_call * n_largest
 
@@ -141,7 +143,8 @@ def predict_job_memory(
     source_bytes = source_bytes or [MAX_GAUSSIAN_BYTES] * len(source_gaussians)
     fine = fine_may_run(options)
     semantic = semantic_may_run(options)
-    v = {k: int(options.get(k, d)) for k, d in FINE_DEFAULTS.items()}
+    d = library_defaults()
+    v = {k: int(options.get(k, d[k])) for k in FINE_OPTIONS}
     worst = 0.0
     for n_s, b_s in zip(source_gaussians or [0], source_bytes or [MAX_GAUSSIAN_BYTES], strict=False):
         n = n_s + target_gaussians

@@ -3,11 +3,14 @@
 from __future__ import annotations
 
 import dataclasses
+import functools
 import math
-from typing import Any, Literal, NamedTuple, get_args
+from typing import Annotated, Any, Literal, get_args
 
-from pydantic import BaseModel, ConfigDict, Field, model_validator
+from pydantic import BaseModel, ConfigDict, Field, WithJsonSchema, create_model, model_validator
 
+from gsa.align.choices import StageName
+from gsa.align.spec import OPTIONS, Bound  # a leaf module: safe at API start-up
 from gsa.features.settings import FeatureSettings  # torch-free: safe at API start-up
 from gsa.settings_env import feature_settings_env
 from service.problems import invalid_input
@@ -24,7 +27,8 @@ DEFAULT_OUTPUTS = OUTPUT_NAMES  # a job that names no outputs gets all of them
 
 
 def server_only_option(name: str) -> bool:
-    return name in ("device", "feature_settings") or name.endswith(("_weights", "_path", "_dir", "_device"))
+    # criteria: the library caller's decision thresholds (gsa.align.criteria), never a client's
+    return name in ("device", "feature_settings", "criteria") or name.endswith(("_weights", "_path", "_dir", "_device"))
 
 
 def server_options(settings, known: set[str]) -> dict:
@@ -45,15 +49,17 @@ def server_options(settings, known: set[str]) -> dict:
     return out
 
 
-def align_options(settings, options: dict[str, Any]):
+def align_options(settings, options: dict[str, Any], *, only_known: bool = False):
     """The AlignOptions of a job's options (the names this library build knows; the rest, such
-    as a many job's own fields, are not align()'s), with the deployment's server options."""
+    as a many job's own fields, are not align()'s: with `only_known`, a 422 naming them), with
+    the deployment's server options."""
     from gsa.align.pipeline import AlignOptions  # lazy: see align_option_names
 
     known = align_option_names()
-    opts = {k: v for k, v in options.items() if k in known}
-    if isinstance(opts.get("stages"), list):
-        opts["stages"] = tuple(opts["stages"])
+    unknown = sorted(set(options) - known)
+    if only_known and unknown:  # a job stored by a library build that knew them
+        raise invalid_input(f"unknown alignment options: {', '.join(unknown)}")
+    opts = {k: v for k, v in options.items() if k in known}  # AlignOptions makes stages a tuple
     opts.update(server_options(settings, known))
     try:
         return AlignOptions(**opts)
@@ -68,72 +74,22 @@ def align_option_names() -> set[str]:
     return {f.name for f in dataclasses.fields(AlignOptions)}
 
 
-class Bound(NamedTuple):
-    """The values one numeric option may take: `kind` int or float, lo..hi
-    inclusive (None: open), `lo_open`: lo itself excluded (a positive float)."""
-
-    kind: type
-    lo: float | None
-    hi: float | None
-    lo_open: bool = False
-
-    def describe(self) -> str:
-        kind = "an integer" if self.kind is int else "a number"
-        if self.lo is not None and self.hi is not None:
-            return f"{kind} in {'(' if self.lo_open else '['}{self.lo}, {self.hi}]"
-        if self.lo is not None:
-            return f"{kind} {'>' if self.lo_open else '≥'} {self.lo}"
-        return f"{kind} ≤ {self.hi}"
-
-    def json_schema(self) -> dict[str, Any]:
-        """The bound in OpenAPI terms (documentation only: enforcement is check_option_values)."""
-        out: dict[str, Any] = {}
-        if self.lo is not None:
-            out["exclusiveMinimum" if self.lo_open else "minimum"] = self.lo
-        if self.hi is not None:
-            out["maximum"] = self.hi
-        return out
-
-
-# Bounds on every numeric option a client may set: the one place they live (the HTTP
-# schema documents them from here, HTTP and gRPC submissions are checked against them).
-# The upper bounds cap the work and memory one job can ask for; the lower ones are the
-# library's own minimums, checked here so a bad value is a 422 at submission, not a failed job.
+# Bounds on every numeric option a client may set, from each option's spec (gsa.align.spec:
+# a job's `limits`, else the library's own `bounds`), and the service's own: the HTTP schema
+# documents them from here, HTTP and gRPC submissions are checked against them. The upper bounds
+# cap the work and memory one job can ask for; the lower ones are the library's own minimums,
+# checked here so a bad value is a 422 at submission, not a failed job.
 OPTION_BOUNDS: dict[str, Bound] = {
-    "tau_f": Bound(float, 0, None, lo_open=True),
-    "coarse_iterations": Bound(int, 1, 1000),
-    "max_candidates": Bound(int, 1, 256),
-    "trim": Bound(float, 0, None, lo_open=True),
-    "hypothesis_points": Bound(int, 10, 100_000),
-    "hypothesis_iterations": Bound(int, 1, 200),
-    "refine_points": Bound(int, 10, 200_000),
-    "refine_iterations": Bound(int, 1, 1000),
-    "max_points": Bound(int, 10, 200_000),
-    "inlier_threshold": Bound(float, 0, 10, lo_open=True),
-    "hypothesis_truncation": Bound(float, 0, 10, lo_open=True),
-    "anchor_count": Bound(int, 100, 20_000),
-    "search_rotations": Bound(int, 64, 20_000),
-    "seed": Bound(int, 0, 2**63 - 1),
-    "fine_iterations": Bound(int, 0, 5000),
-    "fine_views": Bound(int, 1, 64),
-    "fine_lr": Bound(float, 0, 1, lo_open=True),
-    "fine_image_size": Bound(int, 8, 1024),
+    **{name: spec.job_bounds for name, spec in OPTIONS.items() if spec.job_bounds is not None},
     "recon_iterations": Bound(int, 10, 100_000),
-    "fixed_scale": Bound(float, 1e-6, 1e6),
 }
-# Choices the library checks only when the fine stage starts (gsa.align.fine.FineOptions,
-# whose module loads torch): repeated here so a typo is refused at submission.
+# The choices of every choice option, from its spec (AlignOptions checks them too; here a bad
+# one is a 422 naming the option and its choices).
 OPTION_CHOICES: dict[str, tuple[str, ...]] = {
-    "fine_loss": ("smooth_l1", "l1", "l2"),
-    "fine_on": ("features", "colors"),
-    "semantic": ("auto", "off"),
-    "photo_matches": ("auto", "off"),
-    "frame_snap": ("auto", "off"),
-    "learned": ("auto", "off"),
-    "alternatives": ("doubtful", "always"),
+    name: spec.choices for name, spec in OPTIONS.items() if spec.kind == "choice"
 }
-STAGE_NAMES = ("auto", "coarse", "fine")
-BOOL_OPTIONS = {"renders", "weight_by_opacity", "rigid"}
+STAGE_NAMES: tuple[str, ...] = get_args(StageName)
+BOOL_OPTIONS = {"renders"} | {name for name, spec in OPTIONS.items() if spec.kind == "bool"}
 # Guidance (gsa.align.guided, docs/service.md "Guided alignment"): what a person knows about the
 # pose, each in the input FILES' own coordinates (as the result states its transform). Their
 # shapes are checked by the library's own check_guidance, one hint at a time so a 422 names it.
@@ -145,9 +101,17 @@ GUIDANCE_SHAPES = {
     "front_axes": "[[x, y, z], [x, y, z]]: the way the source faces, the way the target faces",
     "fixed_scale": "the answer's scale s",
 }
-# The fine stage's work, fine_views × fine_image_size² × fine_iterations, with the
-# library's defaults for the ones a job leaves out.
-FINE_DEFAULTS = {"fine_views": 5, "fine_image_size": 128, "fine_iterations": 60}
+# The fine stage's work, fine_views × fine_image_size² × fine_iterations, with the library's
+# defaults for the ones a job leaves out.
+FINE_OPTIONS = ("fine_views", "fine_image_size", "fine_iterations")
+
+
+@functools.cache
+def library_defaults() -> dict[str, Any]:
+    """The AlignOptions fields' defaults (for the options a job leaves out)."""
+    from gsa.align.pipeline import AlignOptions  # lazy: see align_option_names
+
+    return {f.name: f.default for f in dataclasses.fields(AlignOptions) if f.default is not dataclasses.MISSING}
 
 
 def _out_of_range(name: str, bound: Bound) -> Exception:
@@ -165,14 +129,12 @@ def check_option_values(options: dict[str, Any]) -> None:
     for name, v in options.items():
         bound = OPTION_BOUNDS.get(name)
         if bound is not None:
-            if name == "trim" and v is None:
+            if v is None and name in OPTIONS and OPTIONS[name].none_ok:  # trim: keep all
                 continue
             number = isinstance(v, int | float) and not isinstance(v, bool)
             if not number or (bound.kind is int and not isinstance(v, int)):
                 raise _out_of_range(name, bound)
-            too_low = bound.lo is not None and not (v > bound.lo if bound.lo_open else v >= bound.lo)
-            too_high = bound.hi is not None and not v <= bound.hi
-            if too_low or too_high or not math.isfinite(v):
+            if not bound.contains(v) or not math.isfinite(v):
                 raise _out_of_range(name, bound)
         elif name in OPTION_CHOICES and v not in OPTION_CHOICES[name]:
             choices = OPTION_CHOICES[name]
@@ -231,7 +193,8 @@ def _check_stages(stages: Any) -> None:
 
 def fine_work(options: dict[str, Any]) -> int:
     """fine_views × fine_image_size² × fine_iterations for these options (defaults filled in)."""
-    v = {k: options.get(k, d) for k, d in FINE_DEFAULTS.items()}
+    d = library_defaults()
+    v = {k: options.get(k, d[k]) for k in FINE_OPTIONS}
     return int(v["fine_views"]) * int(v["fine_image_size"]) ** 2 * int(v["fine_iterations"])
 
 
@@ -308,11 +271,6 @@ def validate_options(options: dict[str, Any], settings=None) -> dict[str, Any]:
     return options
 
 
-def bounded_field(name: str, description: str | None = None, **kw):
-    """A field whose documented bounds come from OPTION_BOUNDS (which check_option_values enforces)."""
-    return Field(None, description=description, json_schema_extra=OPTION_BOUNDS[name].json_schema(), **kw)
-
-
 _HINT_SCHEMAS: dict[str, dict[str, Any]] = {
     "init_transform": {
         "type": "array",
@@ -348,60 +306,52 @@ def hint_field(name: str, description: str):
     return Field(None, description=f"{description}; {GUIDANCE_SHAPES[name]}", json_schema_extra=_HINT_SCHEMAS[name])
 
 
-class AlignOptionsIn(BaseModel):
-    """Alignment options; fields not listed (e.g. fine_*) pass through to the
-    library's AlignOptions and are rejected with 422 if it does not know them.
-    Types, bounds and choices are checked here (422 invalid-input naming the
-    option and its bound). The HTTP schema (service.api.schemas) and gRPC's
-    options_json both parse with it."""
+# The JSON types of the options' kinds (gsa.align.spec.OptionSpec.kind).
+_JSON_TYPES = {"int": "integer", "float": "number", "bool": "boolean", "choice": "string"}
+_PYTHON_TYPES = {"int": int, "float": float, "bool": bool, "choice": str}
+# The options API 1.0 declared with pydantic types, which also take "5" or 5.0 for 5 (and answer a
+# value of another type with a validation-error problem): kept so. The others are checked as sent,
+# by check_option_values (an invalid-input problem naming the option).
+_COERCED = frozenset(
+    {"features", "tau_f", "coarse_iterations", "seed", "fine_views", "fine_image_size", "fine_iterations"}
+    | {"fixed_scale", "semantic", "learned", "frame_snap", "alternatives"}
+)
+# What the service adds to an option's description.
+_SERVICE_NOTES = {
+    "fine_iterations": "fine_views × fine_image_size² × fine_iterations is also capped per job (GSA_MAX_FINE_WORK)",
+}
 
+
+def option_field(name: str) -> tuple[Any, Any]:
+    """(type, Field) of the client option `name` in AlignOptionsIn, from its spec (gsa.align.spec):
+    its help as the description, its job bounds (OPTION_BOUNDS) and choices in the schema."""
+    spec = OPTIONS[name]
+    description = "; ".join(filter(None, [spec.help, _SERVICE_NOTES.get(name)]))
+    if spec.kind == "stages":
+        return list[str] | None, Field(None, examples=[["coarse", "fine"]], description=description)
+    if spec.kind == "hint":
+        return Any, hint_field(name, description)
+    schema: dict[str, Any] = {"type": _JSON_TYPES[spec.kind]}
+    if spec.choices:
+        schema["enum"] = list(spec.choices)
+    if name in _COERCED:
+        kind: Any = (
+            Annotated[_PYTHON_TYPES[spec.kind], WithJsonSchema(schema)] if spec.choices else _PYTHON_TYPES[spec.kind]
+        )
+        kind = kind | None
+    else:
+        kind = Annotated[Any, WithJsonSchema({"anyOf": [schema, {"type": "null"}]})]
+    bound = OPTION_BOUNDS.get(name)
+    return kind, Field(None, description=description, json_schema_extra=bound.json_schema() if bound else None)
+
+
+def client_option_names() -> tuple[str, ...]:
+    """The options of gsa.align.spec a client may set (not the deployment's)."""
+    return tuple(name for name, spec in OPTIONS.items() if spec.kind != "settings" and not server_only_option(name))
+
+
+class _AlignOptionsModel(BaseModel):
     model_config = ConfigDict(extra="allow")
-    stages: list[str] | None = Field(None, examples=[["coarse", "fine"]], description="auto | coarse | coarse,fine")
-    features: str | None = Field(None, description="feature backend: auto | canonical | spheremap | dinov2")
-    tau_f: float | None = bounded_field("tau_f", "feature-match threshold τ_f")
-    coarse_iterations: int | None = bounded_field("coarse_iterations")
-    seed: int | None = bounded_field("seed")
-    fine_views: int | None = bounded_field("fine_views", "fine stage: rendered views")
-    fine_image_size: int | None = bounded_field("fine_image_size", "fine stage: render size in pixels (square)")
-    fine_iterations: int | None = bounded_field(
-        "fine_iterations",
-        "fine stage: optimiser steps; fine_views × fine_image_size² × fine_iterations is also capped "
-        "per job (GSA_MAX_FINE_WORK)",
-    )
-    renders: bool | None = Field(None, description="produce before/after renders (default true)")
-    outputs: list[OutputName] | None = Field(None, description="artifacts wanted (default: all)")
-    recon_iterations: int | None = bounded_field("recon_iterations", "3DGS training iterations for image-set inputs")
-    # Guidance (docs/service.md "Guided alignment"), in the input files' own coordinates. Typed
-    # loosely here: their shapes are checked by the library's check_guidance (422 naming the option).
-    init_transform: Any = hint_field("init_transform", "start from this pose; only a local refinement runs")
-    point_pairs: Any = hint_field("point_pairs", "picked point pairs: their Sim(3), then a local refinement")
-    up_axes: Any = hint_field("up_axes", "every pose keeps these up axes aligned")
-    front_axes: Any = hint_field(
-        "front_axes", "with up_axes: the turns about up are kept within 45° of these fronts agreeing"
-    )
-    fixed_scale: float | None = bounded_field("fixed_scale", "the answer's scale, kept through every stage")
-    semantic: str | None = Field(
-        None,
-        description="auto | off: a doubtful answer's pose is picked among its alternatives by pretrained "
-        "DINOv2 features when the deployment has a backbone (default auto)",
-    )
-    learned: str | None = Field(
-        None,
-        description="auto | off: a doubtful answer is decided by the learned canonical head (each model's "
-        "pose in its category's canonical frame) where both models' poses are sure (default auto)",
-    )
-    frame_snap: str | None = Field(
-        None,
-        description="auto | off: a doubtful answer between other instances is turned onto the nearest "
-        "relabelling of the models' dominant surface-normal frames and checked against the others; off "
-        "keeps the poses as refined (default auto)",
-    )
-    alternatives: str | None = Field(
-        None,
-        description="doubtful | always: metrics.alternatives lists the poses worth picking for a doubtful "
-        "or guided answer and is empty for a confident one (default doubtful); always lists them for "
-        "every answer",
-    )
 
     @model_validator(mode="after")
     def _check(self):
@@ -410,6 +360,29 @@ class AlignOptionsIn(BaseModel):
 
     def to_dict(self) -> dict[str, Any]:
         return self.model_dump(exclude_none=True)
+
+
+AlignOptionsIn = create_model(
+    "AlignOptionsIn",
+    __base__=_AlignOptionsModel,
+    __doc__="""Alignment options: each of the library's (gsa.align.spec.OPTIONS, made into these
+    fields), and the service's own (outputs, renders, recon_iterations). Options this library
+    build does not know are rejected with 422. Types, bounds and choices are checked here (422
+    invalid-input naming the option and its bound). The HTTP schema (service.api.schemas) and
+    gRPC's options_json both parse with it.""",
+    __module__=__name__,
+    **{name: option_field(name) for name in client_option_names()},
+    renders=(bool | None, Field(None, description="produce before/after renders (default true)")),
+    outputs=(list[OutputName] | None, Field(None, description="artifacts wanted (default: all)")),
+    recon_iterations=(
+        int | None,
+        Field(
+            None,
+            description="3DGS training iterations for image-set inputs",
+            json_schema_extra=OPTION_BOUNDS["recon_iterations"].json_schema(),
+        ),
+    ),
+)
 
 
 def parse_options(raw: str | dict[str, Any], error: str) -> dict[str, Any]:

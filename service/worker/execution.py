@@ -19,7 +19,7 @@ from gsa.recon.calibration import Calibration
 from service.backend import Backend, notify_webhook
 from service.jobs.inputs import load_input
 from service.jobs.many import is_many
-from service.jobs.options import DEFAULT_OUTPUTS, align_option_names, server_options
+from service.jobs.options import DEFAULT_OUTPUTS, align_options
 from service.models import Job, JobState
 from service.problems import Problem, infrastructure_problem, invalid_input, store_errors
 from service.worker.artifacts import collect_outputs, store_artifacts, synchronized_renders
@@ -243,7 +243,7 @@ def _run(backend: Backend, job: Job, token: str, prog: JobProgress, art_prefix: 
     # lazy: the aligner (numba kernels, ~1 s of imports) loads in the processes that run jobs
     from gsa.align.contract import hints_from_files
     from gsa.align.outputs import result_dict, write_outputs
-    from gsa.align.pipeline import AlignOptions, align
+    from gsa.align.pipeline import align
 
     opts_in = dict(job.options)
     outputs = set(opts_in.pop("outputs", None) or DEFAULT_OUTPUTS)
@@ -252,22 +252,7 @@ def _run(backend: Backend, job: Job, token: str, prog: JobProgress, art_prefix: 
     if opts_in.pop("renders", True) is False:
         outputs.discard("renders")
     notes = []
-    known = align_option_names()
-    unknown = sorted(set(opts_in) - known)
-    if unknown:
-        raise Problem(
-            422,
-            "invalid-input",
-            "Invalid options",
-            f"unknown alignment options: {', '.join(unknown)}",
-        )
-    if "stages" in opts_in and isinstance(opts_in["stages"], list):
-        opts_in["stages"] = tuple(opts_in["stages"])
-    opts_in.update(server_options(backend.settings, known))
-    try:
-        opts = AlignOptions(**opts_in)
-    except (TypeError, ValueError) as exc:
-        raise Problem(422, "invalid-input", "Invalid options", str(exc)) from None
+    opts = align_options(backend.settings, opts_in, only_known=True)
 
     with job_workspace(job.id, token) as work:
         prog("loading", 0.0)
