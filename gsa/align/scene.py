@@ -602,7 +602,7 @@ def align_scene(
     """The scene path (module docstring): anchors, global search without frame
     relabellings, trimmed refinement on thinned full-resolution clouds, verdict; by the
     criteria in force (opts.criteria)."""
-    from gsa.align.types import AlignmentResult  # lazy: gsa.align.types imports this module (criteria)
+    from gsa.align.result import AlignmentResult
 
     k = opts.criteria
     o = k.scene

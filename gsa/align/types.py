@@ -3,7 +3,7 @@ AlignOptions, checked against the choices of gsa.align.choices, and AlignmentRes
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import TYPE_CHECKING, Literal
 
 from gsa.align.choices import (
@@ -20,13 +20,11 @@ from gsa.align.choices import (
     SearchMode,
     StageName,
 )
-from gsa.align.coarse import CoarseOptions, CoarseResult
+from gsa.align.coarse import CoarseOptions
 from gsa.align.criteria import Criteria
+from gsa.align.result import AlignmentResult
 from gsa.align.spec import check_option_values
-from gsa.align.verdict import Verdict
-from gsa.canonical import CanonicalFrame
 from gsa.features.settings import FeatureSettings  # torch-free, so typing.get_type_hints(AlignOptions) resolves
-from gsa.sim3 import Sim3
 
 __all__ = [
     "EXTRACTOR_MODES",
@@ -46,7 +44,7 @@ __all__ = [
 ]
 
 if TYPE_CHECKING:
-    from gsa.align.fine import FineResult
+    pass
 
 
 @dataclass
@@ -203,73 +201,3 @@ class AlignOptions:
             max_candidates=self.max_candidates,
             trim=self.trim,
         )
-
-
-@dataclass
-class AlignmentResult:
-    """What `align()` found; `to_dict()` is the result.json layout.
-
-    Attributes:
-        transform: maps source coordinates into the target frame.
-        coarse: the coarse stage's result (its transform is `transform` when no fine stage ran).
-        features: which features guided the alignment.
-        stages: the stages that ran (AlignOptions.stages resolved; ("photo",) when the
-            photos' matched texture gave the pose, gsa.align.photo).
-        metrics: GT-free quality numbers and the verdict (confidence, doubtful, ...).
-        timings: seconds per step ("features", "hypotheses", "coarse", "fine", "metrics", "total", ...).
-        hypotheses: the scored initialisations.
-        fine: the fine stage's result when it ran.
-        lifting: gsa.features LiftReports (as dicts) when features were lifted.
-        source_frame: the source's canonical frame as chosen (axes re-labelled).
-        target_frame: the target's canonical frame.
-    """
-
-    transform: Sim3  # maps source coordinates into the target frame
-    coarse: CoarseResult
-    features: str  # which features guided the alignment
-    stages: tuple[str, ...] = ("coarse",)  # the stages that ran (AlignOptions.stages resolved)
-    metrics: dict = field(default_factory=dict)
-    timings: dict = field(default_factory=dict)
-    hypotheses: list[dict] = field(default_factory=list)
-    fine: FineResult | None = None  # when the fine stage ran
-    lifting: list[dict] = field(default_factory=list)  # gsa.features LiftReports when features were lifted
-    source_frame: CanonicalFrame | None = None
-    target_frame: CanonicalFrame | None = None
-
-    @property
-    def verdict(self) -> Verdict:
-        """How sure align() is, why not, and the poses worth picking instead (typed; read from
-        `metrics`, whose layout result.json keeps)."""
-        return Verdict.from_metrics(self.metrics)
-
-    def to_dict(self) -> dict:
-        out = self.transform.to_dict()
-        stages = {
-            "coarse": {
-                **self.coarse.transform.to_dict(),
-                "iterations": self.coarse.iterations,
-                "converged": self.coarse.converged,
-                "matched": self.coarse.matched,
-                "candidate_pairs": self.coarse.candidates,
-                "history": self.coarse.history,
-            }
-        }
-        if self.fine is not None:
-            fine = self.fine
-            stages["fine"] = {
-                **fine.transform.to_dict(),
-                "loss_history": [float(v) for v in fine.loss_history],
-                "best_loss": float(fine.best_loss),
-                "best_iteration": int(fine.best_iteration),
-            }
-        out.update(
-            metrics=self.metrics,
-            timings=self.timings,
-            features=self.features,
-            stages_run=list(self.stages),
-            hypotheses=self.hypotheses,
-            stages=stages,
-        )
-        if self.lifting:
-            out["lifting"] = self.lifting
-        return out
