@@ -93,7 +93,8 @@ def test_the_service_model_is_made_from_the_spec():
     from service.jobs.options import OPTION_BOUNDS, OPTION_CHOICES, AlignOptionsIn, client_option_names
 
     props = AlignOptionsIn.model_json_schema()["properties"]
-    assert set(client_option_names()) == set(OPTIONS) - {"feature_settings", "criteria"}  # the deployment's, the caller's
+    # feature_settings: the deployment's; criteria: the library caller's
+    assert set(client_option_names()) == set(OPTIONS) - {"feature_settings", "criteria"}
     for name in client_option_names():
         spec = OPTIONS[name]
         assert props[name]["description"].startswith(spec.help), name
