@@ -166,7 +166,7 @@ def _warm_up(settings: Settings | None = None, *, fork: bool = True) -> None:
             # a horse, it went with the horse, and every doubtful job read it again.
             from gsa.align.semantic import available_backbone
 
-            if available_backbone(str(settings.dinov2_weights) if settings.dinov2_weights else None) is not None:
+            if available_backbone(str(settings.features_backbone) if settings.features_backbone else None) is not None:
                 log.info("worker warm-up: semantic backbone loaded")
     except Exception:  # a broken library shows up in the jobs' errors; keep serving
         log.exception("worker warm-up failed")

@@ -55,7 +55,7 @@ def test_configured_weights_make_them_available():
 
     from service.jobs.options import check_feature_weights
 
-    s = SimpleNamespace(dinov2_weights="/w/dinov2", spheremap_weights=None)
+    s = SimpleNamespace(features_backbone="/w/dinov2", features_head=None)
     check_feature_weights({"features": "dinov2"}, s)
     with pytest.raises(Exception) as e:
         check_feature_weights({"features": "spheremap"}, s)
