@@ -136,8 +136,10 @@ def _warm_up(settings: Settings | None = None, *, fork: bool = True) -> None:
 
     `fork=False`, the embedded workers (`gsa serve` without Redis): jobs run in threads of this
     process, nothing forks, so none of that applies; torch keeps its thread count."""
-    if fork and "numba" not in sys.modules:
-        os.environ.setdefault("NUMBA_THREADING_LAYER", "workqueue")
+    if fork:
+        from gsa.kernels import use_workqueue_layer
+
+        use_workqueue_layer()
     t = time.perf_counter()
     try:
         import numba
