@@ -64,7 +64,7 @@ class Settings(BaseSettings):
     max_body_bytes: int = 1024 * 1024
     max_gaussians: int = 5_000_000
     max_sources: int = 16  # N in "N models to one reference"
-    # N of a many job (POST /v1/many-jobs; issue 30): all pairs up to 8 models, sparse edges beyond.
+    # N of a many job (POST /v1/many-jobs): all pairs up to 8 models, sparse edges beyond.
     max_many_models: int = 64
     # Pairwise alignments one many job may ask for: `edges: all` grows as N(N-1)/2 (20 models: 190).
     max_many_edges: int = 200

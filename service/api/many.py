@@ -1,4 +1,4 @@
-"""Many jobs (issue 30): N previously uploaded models into one reference frame
+"""Many jobs (N-way registration): N previously uploaded models into one reference frame
 (service.jobs.many; the job is then read, cancelled, deleted and its artifacts fetched as any job's
 under /v1/jobs/{id})."""
 

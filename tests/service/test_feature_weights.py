@@ -1,6 +1,6 @@
 """`options.features: dinov2 | spheremap` on a deployment without those weights (the test
 stack has none) is a 422 at submission over REST JSON, multipart and gRPC — it used to be
-a 202 and then a job failing 500 with a message naming server settings (issue 28)."""
+a 202 and then a job failing 500 with a message naming server settings."""
 
 from __future__ import annotations
 
