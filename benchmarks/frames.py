@@ -1,4 +1,4 @@
-"""Dominant-normal frames across instances (a diagnostic for issues 25 and 27): on category-real's
+"""Dominant-normal frames across instances (a diagnostic for the relabelling choice and the guided path's up axes): on category-real's
 pairs, is the true rotation one of the 24 relabellings between the two models' Manhattan frames
 (gsa.manhattan), and how near?
 

@@ -1,4 +1,4 @@
-"""`gsa bench guided [--data DIR]`: what each hint of the guided path achieves (issue 27).
+"""`gsa bench guided [--data DIR]`: what each hint of the guided path achieves.
 
 Pairs: one per generated category of the `partial` and `deform` protocols (two captures of one
 object) and of the procedural `category` protocol (two instances), plus, with --data, the
@@ -14,7 +14,7 @@ guided path, made from the truth:
 - the true up and front axes of each model: `up_axes` and `front_axes`;
 - a WRONG up axis (the target's turned 90°): guidance that contradicts the models.
 
-Rows and what counts as success (the issue's bars beside them in the table):
+Rows and what counts as success (the required shares beside them in the table):
 - default `align`: the truth within SUCCESS_DEG of the chosen pose or one of its `alternatives`;
 - start 20° off, 3 picked pairs: RRE < FINE_SUCCESS_DEG;
 - up axes given, up and front axes given: RRE < SUCCESS_DEG;
@@ -44,7 +44,7 @@ PICK_NOISE = 0.02
 WRONG_UP_DEG = 90.0
 SUCCESS_DEG = 5.0
 FINE_SUCCESS_DEG = 3.0
-# The issue's bars, printed beside the measured shares.
+# The required shares (the guided path's bars), printed beside the measured shares.
 BARS = {
     "default": 0.95,
     "init": 0.95,
@@ -231,7 +231,7 @@ def protocol_guided(
 def format_guided(rows: list[dict]) -> str:
     groups = list(dict.fromkeys(g for r in rows for g in r["passed_by_group"]))
     lines = [
-        "| row | passes when | " + " | ".join(groups) + " | all | issue 27's bar |",
+        "| row | passes when | " + " | ".join(groups) + " | all | required |",
         "|---|---|" + "---:|" * (len(groups) + 2),
     ]
     rule = {

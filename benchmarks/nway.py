@@ -1,4 +1,4 @@
-"""`gsa bench n-way` (issue 30): N partial captures of one generated object (random plane cuts,
+"""`gsa bench n-way` (N-way registration): N partial captures of one generated object (random plane cuts,
 floaters, exposure shifts), each in its own random Sim(3); every pair aligned (coarse), then
 the global step (gsa.align.many). Measured per model against the truth in the reference
 frame (model 0): RRE, scale error, translation error (centroid displacement over the
@@ -11,7 +11,7 @@ Full: N = 6, 5k Gaussians; --quick: N = 4, 3k. The rows print in the generic pai
 (one "pair" per non-reference model); the per-model table, the cycles and the named edge
 print above it.
 
-Then cross-instance sets (issue 30's "N = 5 cross-instance members of one category"): per
+Then cross-instance sets ("N = 5 cross-instance members of one category"): per
 category of the real meshes in DEFAULT_DATA (../shared/data/category-dev; skipped, and said
 so, when missing), its first MEMBERS instances sampled as 3DGS models as benchmarks.category_real
 does, each in its own random Sim(3) (≤ 180° per axis, scale 0.2–5); every pair aligned with

@@ -1,7 +1,7 @@
 """Benchmark pairs, each deterministic by seed: (label, make() -> (source, target, truth)).
 
 dup, same and category (the paper's protocols), the robustness captures (partial,
-noisy, deform, symmetric; gsa.synth.variants) and the scene pairs (issue 18;
+noisy, deform, symmetric; gsa.synth.variants) and the scene pairs (scene-scale registration;
 gsa.synth.scenes), with the fields their labels add to a record and the symmetric
 protocol's judge.
 """
@@ -200,7 +200,7 @@ def symmetric_judge(est: Sim3, truth: Sim3, source, target) -> dict:
     return {"rre_any_symmetric_deg": float(errors[j]), "symmetric_pose": j}
 
 
-# Scene pairs (issue 18): (pairs, scene Gaussians, capture size range) for quick and full.
+# Scene pairs (scene-scale registration): (pairs, scene Gaussians, capture size range) for quick and full.
 SCENE_QUICK = (3, 250_000, (80_000, 120_000))
 SCENE_FULL = (20, 3_200_000, (1_000_000, 2_000_000))
 # What makes the captures honest (gsa.synth.scene_captures' harder options): each capture

@@ -13,7 +13,7 @@
 4. gsa.align.pipeline.align(A, B), and Open3D beside it where installed (benchmarks.peers), are
    scored against T_gt: RRE (°), scale error (%), confidence, doubtful, wall time.
 
-The issue's bar for a real photo set: RRE <= 0.2° and scale error <= 0.5 %. Met since the
+The bar for a real photo set: RRE <= 0.2° and scale error <= 0.5 %. Met since the
 halves share A's lens (2026-11-27): 512 px 0.177° / 0.106 %, 256 px 0.480° / 0.124 % (each its
 own focal: 0.205° / 0.719 %, 0.455° / 0.980 %); docs/benchmarks.md, "One camera, one lens".
 The history below is of the Gaussians-only path, before the photos registered the halves. Everything is kept

@@ -1,4 +1,4 @@
-"""Time and peak memory of reading and writing large INRIA PLY files (issue 18).
+"""Time and peak memory of reading and writing large INRIA PLY files (scene-size models).
 
 Each (size, SH degree) runs in its own child process, which generates a model of random
 Gaussians, writes it as PLY, drops it, and reads the file back. Peak memory is the kernel's

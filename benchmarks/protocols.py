@@ -29,15 +29,15 @@ exposure  the symmetric pairs, each capture under its own exposure (±1 stop) an
           white balance (gsa.synth.shift_exposure): colour must be compared through
           the gains between the captures (strict success, as symmetric)
 
-scene     issue 18: two partial captures of a generated furnished room (gsa.synth.scenes;
+scene     scene-scale: two partial captures of a generated furnished room (gsa.synth.scenes;
           50–80 % overlap, floaters, each capture under its own Sim(3), scale 0.2–5).
           Full: 20 pairs of 1–2M Gaussians per capture; --quick: 3 pairs of ~100k.
           Success: RRE < 2° and translation error < 2 % of the room's extent; peak
           memory per method (benchmarks.scene). GSA rows are align()'s coarse stage.
-guided    issue 27: each hint of the guided path (a start 20° off, 3 picked pairs, the up
+guided    each hint of the guided path (a start 20° off, 3 picked pairs, the up
           axes, a wrong up axis) on partial, deform and category pairs, and with --data on
           category-real's (benchmarks.guided)
-site      issue 26: the same on outdoor sites without walls (benchmarks.site): generated
+site      the same on outdoor sites without walls (benchmarks.site): generated
           terrain with things on it, and SfM point files (--data, default
           ../shared/data/real-dev) made into Gaussians. Full: 12 + 4 per file pairs of
           1–2M Gaussians per capture; --quick: 3 pairs of ~100k. Judged as scene.

@@ -1,4 +1,4 @@
-"""The `scene` protocol's judge, per-call peak memory and table (issue 18).
+"""The `scene` protocol's judge, per-call peak memory and table.
 
 Success on a scene pair: RRE < 2° and translation error < 2 % of the room's extent.
 The translation error is measured where it matters, at the source capture's centroid:

@@ -1,4 +1,4 @@
-"""Time and peak memory per scene pair vs capture size (issue 18 baseline).
+"""Time and peak memory per scene pair vs capture size (the scene path's baseline).
 
 Each size: `--pairs` scene pairs (benchmarks.pairs.scene_pairs, every capture of exactly
 that many Gaussians before floaters), GSA's current align() coarse stage and, with
@@ -7,7 +7,7 @@ medians. Peak RSS per call: benchmarks.scene.with_peak_memory.
 
     .venv/bin/python -m benchmarks.scene_sizes --sizes 250000 500000 1000000 --pairs 2
 
-The captures are benchmarks.pairs.SCENE_HARD's unless --easy (the issue-18 baseline's).
+The captures are benchmarks.pairs.SCENE_HARD's unless --easy (the first baseline's, without SCENE_HARD).
 """
 
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""The `site` protocol (issue 26, "scenes that are not rooms"): two partial captures of an
+"""The `site` protocol (scenes that are not rooms): two partial captures of an
 outdoor site - generated (gsa.synth.sites.make_site: hilly terrain, trees, rocks,
 benches, a shed, vehicles) and, where SfM point files are found, real geometry
 (gsa.synth.sites.PointSite: Gaussians around the points, e.g. the Mip-NeRF 360 garden's).

@@ -14,7 +14,6 @@ import argparse
 import gc
 import importlib
 import json
-import os
 import sys
 import warnings
 from importlib.metadata import entry_points
@@ -224,24 +223,6 @@ def _add_module_commands(sub) -> None:
         add_parsers(sub)
 
 
-def _use_workqueue_threads() -> None:
-    """numba's workqueue threading layer unless NUMBA_THREADING_LAYER says otherwise, as
-    gsa.render.cpu and the service worker already choose. The default GNU OpenMP layer
-    spin-waits in its barriers, which makes alignments markedly slower and erratic when other
-    work shares the cores.
-    Must be set before the first kernel launches the threads; later it has no effect
-    (gsa.render.cpu's own setting came too late after the coarse kernels), and after
-    numba's import the environment variable is no longer read (the service worker's
-    setdefault came too late under `gsa worker`, which then skipped its warm-up)."""
-    if "NUMBA_THREADING_LAYER" in os.environ:
-        return
-    numba = sys.modules.get("numba")
-    if numba is not None:
-        numba.config.THREADING_LAYER = "workqueue"
-    else:
-        os.environ["NUMBA_THREADING_LAYER"] = "workqueue"
-
-
 def _show_warning(message, category, filename, lineno, file=None, line=None) -> None:
     """A reader's warning (gsa.io.ply.ReaderWarning: what it changed to read a file) as one
     `gsa: warning:` line; any other warning as Python shows it."""
@@ -259,7 +240,13 @@ def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
     if program:  # process-wide settings: not for a caller's process (tests call main(argv))
-        _use_workqueue_threads()
+        # numba's workqueue threading layer (gsa.kernels): the default GNU OpenMP layer
+        # spin-waits in its barriers, which makes alignments markedly slower and erratic when
+        # other work shares the cores. Before any command imports numba: the environment
+        # variable is read at numba's import.
+        from gsa.kernels import use_workqueue_layer
+
+        use_workqueue_layer()
         # The imported modules (numpy, scipy, numba: ~70k objects) live until exit: keep
         # the garbage collector from walking them again in every full collection.
         gc.freeze()

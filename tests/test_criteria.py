@@ -1,4 +1,4 @@
-"""The criteria in force reach every stage (issue 64): a criterion changed through
+"""The criteria in force reach every stage: a criterion changed through
 AlignOptions.criteria is the one the search, the refinement, the verdict, the frame snap, the
 relabelling choice, the open ends, the guidance and the scene path decide by. Each stage is
 stopped at the call that reads it (a recording stand-in raises Seen), so no stage runs whole."""

@@ -1,4 +1,4 @@
-"""Feature extractors, lifting and background pruning (issue 4).
+"""Feature extractors, lifting and background pruning.
 
 Tiny randomly initialised DINOv2 backbones and sphere_mapper heads are written to disk in
 the published formats (torch.hub state dict; HF folder via transformers.save_pretrained

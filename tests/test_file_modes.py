@@ -1,5 +1,5 @@
 """Files the CLI writes get the permissions of a normal file (0666 & ~umask), not the 0600
-of the temp file they are renamed from (issue 28 item 10)."""
+of the temp file they are renamed from."""
 
 import os
 import stat

@@ -1,5 +1,5 @@
 """`gsa bench guided` (benchmarks.guided): the hints it simulates are what they claim to be, and
-its table judges each row by the issue's rule."""
+its table judges each row by its required share."""
 
 import numpy as np
 

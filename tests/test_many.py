@@ -1,4 +1,4 @@
-"""N-way registration (issue 30): the global step on exact synthetic edges, align_many end to
+"""N-way registration: the global step on exact synthetic edges, align_many end to
 end on small partial captures, and `gsa align-many`."""
 
 import itertools

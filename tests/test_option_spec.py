@@ -1,4 +1,4 @@
-"""gsa.align.spec.OPTIONS, the one description of the alignment options (issue 64): it covers
+"""gsa.align.spec.OPTIONS, the one description of the alignment options: it covers
 AlignOptions' fields, agrees with their types and defaults, and the CLI, AlignOptions' checks and
 the service's model of the options are made from it."""
 

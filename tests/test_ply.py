@@ -194,7 +194,7 @@ def _peak_growth_mb(fn) -> float:
 
 def test_large_files_are_held_once_in_memory(tmp_path):
     """Reading holds the model's arrays plus a chunk, writing the model plus a chunk
-    (no second copy of the data: issue 18's 5M-Gaussian files; python -m benchmarks.ply_memory)."""
+    (no second copy of the data: scene-size 5M-Gaussian files; python -m benchmarks.ply_memory)."""
     import gsa.io.ply as plymod
 
     n = 300_000

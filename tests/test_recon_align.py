@@ -1,4 +1,4 @@
-"""Two reconstructions of one object (issue 26): the robust search must not take the 180° flip.
+"""Two reconstructions of one object (real photo sets): the robust search must not take the 180° flip.
 
 tests/data/recon_chair256.npz holds two `gsa reconstruct` models of the generated textured chair
 (python -m benchmarks.recon --size 256 --category chair --seed 1: 30 views from each of two rigs,

@@ -1,4 +1,4 @@
-"""An object capture keeps only the region its cameras look at (gsa.recon.region, issue 26):
+"""An object capture keeps only the region its cameras look at (gsa.recon.region, real photo sets):
 far background the masks let through is dropped at init and pruned in training; a capture whose
 cameras do not converge keeps everything."""
 

@@ -1,4 +1,4 @@
-"""The scene path (gsa.align.scene, issue 18): the scene test on rooms and objects, the path
+"""The scene path (gsa.align.scene, scene-scale registration): the scene test on rooms and objects, the path
 itself on a small pair of harder room captures, the exposure estimate, and `--scene`."""
 
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""A cancel in the semantic stage stops within one renderer kernel (issue 63): the stage's renders
+"""A cancel in the semantic stage stops within one renderer kernel: the stage's renders
 and lifting passes call the job's progress callback between the CPU renderer's steps
 (gsa.render.steps), not only after each renderer call. One view of a 3M-Gaussian model is one
 call of seconds; here a small model is split the way a 3M one is (one view a call, the lifting's

@@ -9,7 +9,7 @@ from gsa.sim3 import DegenerateCorrespondencesError, Sim3, solve_sim3
 quaternions = st.lists(st.floats(-1, 1), min_size=4, max_size=4).filter(lambda q: np.linalg.norm(q) > 0.1)
 
 
-# derandomize: the same 200 cases on every run, with or without CI (issue 28)
+# derandomize: the same 200 cases on every run, with or without CI (a random failure is not a flaky test)
 @settings(max_examples=200, deadline=None, derandomize=True, database=None)
 @given(
     q=quaternions,

@@ -1,4 +1,4 @@
-"""Outdoor sites (issue 26): the generators (gsa.synth.sites), the site test and the scene
+"""Outdoor sites (scenes that are not rooms): the generators (gsa.synth.sites), the site test and the scene
 path's site search (gsa.align.scene), and the `site` bench pairs."""
 
 from __future__ import annotations

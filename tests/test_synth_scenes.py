@@ -1,4 +1,4 @@
-"""Generated rooms and their two captures (gsa.synth.scenes, issue 18), and the `scene`
+"""Generated rooms and their two captures (gsa.synth.scenes, scene-scale registration), and the `scene`
 bench protocol on a tiny pair."""
 
 from __future__ import annotations
@@ -192,7 +192,7 @@ def test_scene_protocol_runs(monkeypatch, tmp_path, capsys):
 
 
 def test_harder_captures(scene):
-    """SCENE_HARD's options: each changes the captures the way it says (issue 18 data)."""
+    """SCENE_HARD's options: each changes the captures the way it says (the harder scene data)."""
     plain = scene_captures(scene, np.random.default_rng(3), sizes=(15_000, 15_000))
     hard = scene_captures(
         scene,

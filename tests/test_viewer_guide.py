@@ -1,4 +1,4 @@
-"""The results page's guide on `gsa view` (issue 27): alternatives stated in file coordinates by
+"""The results page's guide on `gsa view` (the guided path): alternatives stated in file coordinates by
 the result writer, the page's guide config, and, in headless Chromium against a real `gsa view`,
 each control (alternatives, point picking by mouse and keyboard, up and front axes) showing the
 `gsa align` command that a person then runs: the commands are run here too and their results

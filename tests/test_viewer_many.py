@@ -1,4 +1,4 @@
-"""The many-job results page (issue 30): the graph of a hand-made many.json marks pruned and
+"""The many-job results page (N-way registration): the graph of a hand-made many.json marks pruned and
 corrected edges, names the reference, and escapes the names; `gsa view many.json` (a real local
 server, then headless Chromium) shows every model with a toggle and the marked graph."""
 

@@ -1,7 +1,7 @@
 """The one zip validator (gsa.ziparchive), as the library uses it: every defect in
 tests/zip_defects.py is an ImageSetError with a one-line message (never zipfile's own
 exceptions), a good archive still loads, and `gsa align lie.zip t.ply` prints one
-`gsa: error:` line and exits 1 (it printed a 29-line traceback, issue 28)."""
+`gsa: error:` line and exits 1 (it printed a 29-line traceback)."""
 
 from __future__ import annotations
 

@@ -2,7 +2,7 @@
 """Predicted against measured peak memory of default coarse jobs on large models, with and
 without the semantic stage (docs/service.md, "Worker memory budget").
 
-For each size N: a source of N Gaussians (SH 0, as the captures of the issue's probe) against
+For each size N: a source of N Gaussians (SH 0, as the captures of the memory probe) against
 a 50k-Gaussian target, two ways, each in a fresh child process that reads both models, runs
 `align()` and writes every default output, as a worker does (benchmarks/service/measure_job_memory.py):
 

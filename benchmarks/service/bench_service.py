@@ -28,8 +28,10 @@ import httpx
 import numpy as np
 
 ROOT = Path(__file__).resolve().parents[2]  # the repository
-# Same numba threading layer as `gsa worker` uses, so "direct" and "service" run the same kernels.
-os.environ.setdefault("NUMBA_THREADING_LAYER", "workqueue")
+# Same numba threading layer as `gsa worker` uses (gsa.kernels), so "direct" and "service" run the same kernels.
+from gsa.kernels import use_workqueue_layer  # noqa: E402
+
+use_workqueue_layer()
 KEY = "bench-key"
 
 

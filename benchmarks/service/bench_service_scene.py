@@ -1,5 +1,5 @@
 #!/usr/bin/env python
-"""A scene-size pair through a real service end to end (issue 18): upload, job, artifacts.
+"""A scene-size pair through a real service end to end: upload, job, artifacts.
 
     .venv/bin/python -m benchmarks.service.bench_service_scene [--gaussians 2000000] [--sh-degree 0]
         [--mode redis|embedded] [--seed 0]

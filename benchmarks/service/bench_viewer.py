@@ -18,7 +18,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 import statistics
 import subprocess
 import sys
@@ -31,7 +30,10 @@ import numpy as np
 
 ROOT = Path(__file__).resolve().parents[2]  # the repository
 sys.path.insert(0, str(ROOT))
-os.environ.setdefault("NUMBA_THREADING_LAYER", "workqueue")
+# Same numba threading layer as `gsa worker` uses (gsa.kernels), so "direct" and "service" run the same kernels.
+from gsa.kernels import use_workqueue_layer  # noqa: E402
+
+use_workqueue_layer()
 
 from tests.browser import browser_page, wait_drawn, wait_ready  # noqa: E402
 

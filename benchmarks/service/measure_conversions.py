@@ -1,5 +1,5 @@
 #!/usr/bin/env python
-"""The API process's memory and /healthz latency while artifacts convert (issue 28).
+"""The API process's memory and /healthz latency while artifacts convert (on request, in child processes).
 
     .venv/bin/python -m benchmarks.service.measure_conversions [--gaussians 3000000]
         [--sh-degree 0] [--mode redis|embedded] [--concurrent 5] [--root PATH]
@@ -9,7 +9,7 @@ of its own in a temp folder (`gsa serve` + `gsa worker` on a private redis-serve
 loopback port, or `gsa serve` alone), uploads the pair, runs one job asking for the merged
 model (--gaussians in all), then:
 
-1. --concurrent clients GET `merged.ply?format=splat` at once (the issue's probe), each body
+1. --concurrent clients GET `merged.ply?format=splat` at once (the conversion probe), each body
    read to the end, while /healthz is polled every 50 ms;
 2. the same request once more (a service that keeps conversions serves it from storage);
 3. --concurrent clients at once, each asking for another format (splat, ksplat, spz,

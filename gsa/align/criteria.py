@@ -2,7 +2,7 @@
 (`AlignOptions.criteria`; None: these defaults). The pipeline hands each stage the part it
 reads, and no stage makes fresh defaults where the caller's are available: a criterion
 changed here moves the search, the refinement, the verdict, the frame snap, the open ends,
-the guidance and the scene path alike (issue 64).
+the guidance and the scene path alike.
 
     from dataclasses import replace
     from gsa.align.criteria import Criteria

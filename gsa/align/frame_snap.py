@@ -35,7 +35,7 @@ FRAME_SNAP_SAME_DEG = 2.0
 CHOICE_SPREAD_FLOOR = 0.02
 CHOICE_MARGIN = 0.5
 # The relabelling a given pose points at lies at most this far from it: a rough start (the guided
-# issue's "20 deg off", the snap's reach) plus the frames' own error (within 5 deg of the truth on
+# path's "20 deg off", the snap's reach) plus the frames' own error (within 5 deg of the truth on
 # every category-real pair). A pose farther from every relabelling is the user's own answer.
 GUIDED_REACH_DEG = FRAME_SNAP_DEG + 5.0
 # A guided answer whose surfaces coincide on fewer of the overlap's pairs than this is not two

@@ -1,4 +1,4 @@
-"""Many models into one frame (issue 30): pairwise alignments over a graph of edges, then a
+"""Many models into one frame (N-way registration): pairwise alignments over a graph of edges, then a
 global step over Sim(3) that makes them agree around the cycles they close.
 
 An edge (i, j) holds T_ij with model_j ≈ T_ij(model_i), its confidence, doubtful flag and

@@ -1,4 +1,4 @@
-"""`gsa align-many MODEL… --out DIR [--reference NAME] [--merged-out FILE]` (issue 30).
+"""`gsa align-many MODEL… --out DIR [--reference NAME] [--merged-out FILE]`: N-way registration.
 
 Beside its module, as `gsa render` is: building the parser imports nothing heavy.
 """

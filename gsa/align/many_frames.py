@@ -1,4 +1,4 @@
-"""The members' frames as evidence for the global step of many models (issue 30).
+"""The members' frames as evidence for the global step of many models (N-way registration).
 
 Between two instances of one category the true rotation is one of the 24 relabellings of
 their dominant surface-normal frames (gsa.manhattan; docs/benchmarks.md, "Dominant-normal

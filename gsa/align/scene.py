@@ -1,4 +1,4 @@
-"""Scene-scale registration (issue 18): the test that tells a room from an object, and
+"""Scene-scale registration: the test that tells a room from an object, and
 the scene path align() takes for rooms.
 
 *The test* (`scene_structure`, on each model's floater-free anchors - at least

@@ -1,4 +1,4 @@
-"""The region an object capture looks at: where to keep Gaussians (issue 26, real photo sets).
+"""The region an object capture looks at: where to keep Gaussians (real photo sets).
 
 In an object capture the cameras stand around the subject and their optical axes converge on it.
 The point nearest every axis (least squares) is where the subject is, and the cameras' own

@@ -1,5 +1,5 @@
 """Procedural furnished rooms as 3DGS, and two partial "captures" of one room
-(issue 18: scene-scale registration).
+(scene-scale registration).
 
 make_scene       a room (floor of planks, four walls with recessed windows and a door,
                  optional ceiling), objects of the gsa.synth categories scaled to furniture

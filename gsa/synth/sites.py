@@ -1,4 +1,4 @@
-"""Outdoor sites as 3DGS (issue 26, "scenes that are not rooms"): no walls, a ground.
+"""Outdoor sites as 3DGS (scenes that are not rooms): no walls, a ground.
 
 make_site          a generated site: a terrain heightfield with hills, a textured ground
                    (grass patches, dirt paths, tiles of varied tone), trees, rocks,

@@ -400,7 +400,7 @@ def render_page(
     return layout(title, body, static_url, script=True)
 
 
-# ---------------------------------------------------------------- many jobs (issue 30)
+# ---------------------------------------------------------------- many jobs (N-way registration)
 
 # How the graph draws an edge of each verdict (gsa.align.many Edge.status): pruned edges red and
 # dashed (inconsistent with the cycles, not used), corrected ones purple and dotted (re-estimated).

@@ -10,11 +10,11 @@ from fastapi import APIRouter, Header, Query, Response
 from fastapi.responses import StreamingResponse
 from starlette.concurrency import run_in_threadpool
 
-from service.api.deps import B, Owner
+from service.api.deps import AppBackend, Owner
 from service.api.jobs import _etag_matches
 from service.api.openapi import problem_responses
 from service.jobs import core
-from service.problems import Problem as ProblemError
+from service.problems import Problem
 from service.worker.convert import conversions
 
 router = APIRouter()
@@ -51,7 +51,7 @@ async def get_artifact(
     job_id: str,
     name: str,
     owner: Owner,
-    b: B,
+    b: AppBackend,
     range_header: Annotated[str | None, Header(alias="Range")] = None,
     if_range: Annotated[str | None, Header(alias="If-Range")] = None,
     if_none_match: Annotated[str | None, Header(alias="If-None-Match")] = None,
@@ -99,7 +99,7 @@ async def head_artifact(
     job_id: str,
     name: str,
     owner: Owner,
-    b: B,
+    b: AppBackend,
     range_header: Annotated[str | None, Header(alias="Range")] = None,
     if_range: Annotated[str | None, Header(alias="If-Range")] = None,
     if_none_match: Annotated[str | None, Header(alias="If-None-Match")] = None,
@@ -142,7 +142,7 @@ def _plan(
         else:
             start, end = max(size - int(z), 0), size - 1
         if start >= size or start > end:
-            p = ProblemError(
+            p = Problem(
                 416,
                 "range-not-satisfiable",
                 "Range Not Satisfiable",

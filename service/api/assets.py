@@ -7,7 +7,7 @@ from typing import Annotated
 from fastapi import APIRouter, Query, Request, Response
 from fastapi.concurrency import run_in_threadpool
 
-from service.api.deps import B, Owner
+from service.api.deps import AppBackend, Owner
 from service.api.jobs import _decode_cursor as decode_cursor
 from service.api.jobs import _encode_cursor as encode_cursor
 from service.api.openapi import UPLOAD_BODY, problem_responses
@@ -29,7 +29,7 @@ router = APIRouter()
     openapi_extra=UPLOAD_BODY,
     responses=problem_responses(401, 413, 422),
 )
-async def upload_asset(request: Request, response: Response, owner: Owner, b: B):
+async def upload_asset(request: Request, response: Response, owner: Owner, b: AppBackend):
     s = b.settings
     form = await parse_multipart(request, s.max_upload_bytes, max_files=s.max_images)
     try:
@@ -64,7 +64,7 @@ async def upload_asset(request: Request, response: Response, owner: Owner, b: B)
 )
 async def list_assets(
     owner: Owner,
-    b: B,
+    b: AppBackend,
     limit: Annotated[int, Query(ge=1, le=200)] = 50,
     cursor: str | None = None,
 ):
@@ -86,7 +86,7 @@ async def list_assets(
     summary="Asset metadata",
     responses=problem_responses(401, 404),
 )
-async def get_asset(asset_id: str, owner: Owner, b: B):
+async def get_asset(asset_id: str, owner: Owner, b: AppBackend):
     return AssetOut.from_asset(core.get_asset(b, owner, asset_id))
 
 
@@ -101,6 +101,6 @@ async def get_asset(asset_id: str, owner: Owner, b: B):
     "stored copy; the bytes go with the last asset that uses them.",
     responses=problem_responses(401, 404, 409),
 )
-async def delete_asset(asset_id: str, owner: Owner, b: B):
+async def delete_asset(asset_id: str, owner: Owner, b: AppBackend):
     await run_in_threadpool(retention.delete_asset, b, owner, asset_id)
     return Response(status_code=204)

@@ -41,4 +41,4 @@ async def require_owner(
 
 # Handler parameter types: the caller's owner id (401 without a valid key) and the app's backend.
 Owner = Annotated[str, Depends(require_owner)]
-B = Annotated[Backend, Depends(get_backend)]
+AppBackend = Annotated[Backend, Depends(get_backend)]

@@ -13,7 +13,7 @@ from fastapi.concurrency import run_in_threadpool
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
 
-from service.api.deps import B, Owner
+from service.api.deps import AppBackend, Owner
 from service.api.openapi import JOB_BODY, problem_responses
 from service.api.schemas import JobCreate, JobList, JobOut, RefineIn, WebhookIn
 from service.api.upload import Form, parse_multipart
@@ -49,7 +49,7 @@ def _job_response(job, created: bool) -> JSONResponse:
 async def create_job(
     request: Request,
     owner: Owner,
-    b: B,
+    b: AppBackend,
     idempotency_key: Annotated[str | None, Header(alias="Idempotency-Key")] = None,
 ):
     ctype = request.headers.get("content-type", "")
@@ -139,7 +139,7 @@ def _etag_matches(header: str | None, etag: str) -> bool:
 async def get_job(
     job_id: str,
     owner: Owner,
-    b: B,
+    b: AppBackend,
     if_none_match: Annotated[str | None, Header(alias="If-None-Match")] = None,
 ):
     job = core.get_job(b, owner, job_id)
@@ -173,7 +173,7 @@ def _decode_cursor(c: str) -> tuple[float, str]:
 )
 async def list_jobs(
     owner: Owner,
-    b: B,
+    b: AppBackend,
     state: JobState | None = None,
     limit: Annotated[int, Query(ge=1, le=200)] = 50,
     cursor: str | None = None,
@@ -198,7 +198,7 @@ async def list_jobs(
     "(cancel_requested is true until then). 409 if the job already succeeded or failed.",
     responses=problem_responses(401, 404, 409),
 )
-async def cancel_job(job_id: str, owner: Owner, b: B):
+async def cancel_job(job_id: str, owner: Owner, b: AppBackend):
     return JobOut.from_job(core.cancel_job(b, owner, job_id))
 
 
@@ -213,7 +213,7 @@ async def cancel_job(job_id: str, owner: Owner, b: B):
     "answers 409 job-not-finished: cancel it first. The job's input assets stay (DELETE /v1/assets/{id}).",
     responses=problem_responses(401, 404, 409),
 )
-async def delete_job(job_id: str, owner: Owner, b: B):
+async def delete_job(job_id: str, owner: Owner, b: AppBackend):
     await run_in_threadpool(retention.delete_job, b, owner, job_id)
     return Response(status_code=204)
 
@@ -239,7 +239,7 @@ async def refine_job(
     body: RefineIn,
     request: Request,
     owner: Owner,
-    b: B,
+    b: AppBackend,
     idempotency_key: Annotated[str | None, Header(alias="Idempotency-Key")] = None,
 ):
     hints = body.model_dump(exclude_unset=True)

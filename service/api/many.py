@@ -1,4 +1,4 @@
-"""Many jobs (issue 30): N previously uploaded models into one reference frame
+"""Many jobs (N-way registration): N previously uploaded models into one reference frame
 (service.jobs.many; the job is then read, cancelled, deleted and its artifacts fetched as any job's
 under /v1/jobs/{id})."""
 
@@ -10,7 +10,7 @@ from fastapi import APIRouter, Header, Request
 from fastapi.concurrency import run_in_threadpool
 from pydantic import BaseModel, ConfigDict, Field
 
-from service.api.deps import B, Owner
+from service.api.deps import AppBackend, Owner
 from service.api.jobs import _job_response
 from service.api.openapi import problem_responses
 from service.api.schemas import JobOut, WebhookIn
@@ -60,7 +60,7 @@ async def create_many_job(
     spec: ManyJobCreate,
     request: Request,
     owner: Owner,
-    b: B,
+    b: AppBackend,
     idempotency_key: Annotated[str | None, Header(alias="Idempotency-Key")] = None,
 ):
     req = request_from(spec)

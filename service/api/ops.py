@@ -5,10 +5,10 @@ from __future__ import annotations
 from fastapi import APIRouter, Request, Response
 from prometheus_client import CONTENT_TYPE_LATEST, generate_latest
 
-from service.api.deps import B, Owner
+from service.api.deps import AppBackend, Owner
 from service.api.openapi import problem_responses
 from service.api.schemas import Health
-from service.problems import Problem as ProblemError
+from service.problems import Problem
 
 router = APIRouter()
 
@@ -26,11 +26,11 @@ async def healthz() -> Health:
     summary="Readiness: job store and storage reachable",
     responses=problem_responses(503),
 )
-def readyz(b: B):
+def readyz(b: AppBackend):
     checks = b.ready()
     if not all(checks.values()):
         bad = ", ".join(k for k, v in checks.items() if not v)
-        p = ProblemError(503, "not-ready", "Service not ready", f"failing: {bad}", checks=checks)
+        p = Problem(503, "not-ready", "Service not ready", f"failing: {bad}", checks=checks)
         p.headers["Retry-After"] = str(b.settings.unavailable_retry_after_s)
         raise p
     return Health(status="ready", checks=checks)
@@ -46,10 +46,10 @@ def readyz(b: B):
     responses={200: {"content": {CONTENT_TYPE_LATEST: {}}}, **problem_responses(401, 403)},
     response_class=Response,
 )
-def metrics(request: Request, owner: Owner, b: B):
+def metrics(request: Request, owner: Owner, b: AppBackend):
     s = b.settings
     if not s.auth_disabled and owner not in s.metrics_owners:
-        raise ProblemError(
+        raise Problem(
             403,
             "forbidden",
             "Forbidden",

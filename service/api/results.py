@@ -64,7 +64,7 @@ class SceneTest(_Open):
 
 
 class SceneMetrics(_Open):
-    """Whether align() took the scene path (rooms, sites: issue 18) and why."""
+    """Whether align() took the scene path (rooms, sites: scene-scale registration) and why."""
 
     ran: bool | None = None
     reason: str | None = None

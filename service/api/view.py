@@ -32,7 +32,7 @@ from gsa.viewer.page import (
     render_page,
 )
 from gsa.viewer.preview import PREVIEW_NAMES
-from service.api.deps import B, Owner, get_backend
+from service.api.deps import AppBackend, Owner, get_backend
 from service.api.openapi import problem_responses
 from service.api.schemas import JobOut, RefineIn
 from service.api.view_links import LinkError, sign, verify
@@ -69,7 +69,7 @@ def _link(b: Backend, scope: str, owner: str, path: str) -> ViewLink:
     "GSA_VIEW_LINK_TTL_S seconds (default 900).",
     responses=problem_responses(401, 404),
 )
-def create_job_view_link(job_id: str, owner: Owner, b: B) -> ViewLink:
+def create_job_view_link(job_id: str, owner: Owner, b: AppBackend) -> ViewLink:
     core.get_job(b, owner, job_id)  # another owner's job: 404, as everywhere
     return _link(b, f"job:{job_id}", owner, f"/v1/jobs/{job_id}/view")
 
@@ -83,7 +83,7 @@ def create_job_view_link(job_id: str, owner: Owner, b: B) -> ViewLink:
     summary="A short-lived browser link to the list of the caller's jobs",
     responses=problem_responses(401),
 )
-def create_jobs_view_link(owner: Owner, b: B) -> ViewLink:
+def create_jobs_view_link(owner: Owner, b: AppBackend) -> ViewLink:
     return _link(b, "jobs", owner, JOBS_PAGE)
 
 

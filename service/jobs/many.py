@@ -1,4 +1,4 @@
-"""N-way registration jobs (issue 30): N assets into one reference frame with the library's
+"""N-way registration jobs: N assets into one reference frame with the library's
 gsa.align.many.align_many, as one job over both front ends (POST /v1/many-jobs, gRPC
 SubmitManyAlignment).
 

@@ -1,4 +1,4 @@
-"""A job's predicted peak memory, from its options and its inputs' sizes (issue 28).
+"""A job's predicted peak memory, from its options and its inputs' sizes.
 
 The fine stage's options bound its compute (`GSA_MAX_FINE_WORK`), not its memory: the
 renders of every view are kept for the backward pass, so `fine_views: 64, fine_image_size:

@@ -12,7 +12,6 @@ from pydantic import BaseModel, ConfigDict, Field, WithJsonSchema, create_model,
 from gsa.align.choices import StageName
 from gsa.align.spec import OPTIONS, Bound  # a leaf module: safe at API start-up
 from gsa.features.settings import FeatureSettings  # torch-free: safe at API start-up
-from gsa.settings_env import feature_settings_env
 from service.problems import invalid_input
 
 SERVICE_OPTIONS = {"outputs", "renders", "recon_iterations"}
@@ -39,13 +38,9 @@ def server_options(settings, known: set[str]) -> dict:
         out["device"] = settings.worker_device
     if "semantic" in known and settings.semantic == "off":
         out["semantic"] = "off"
-    if "feature_settings" in known and (settings.dinov2_weights or settings.spheremap_weights):
-        out["feature_settings"] = FeatureSettings(
-            **feature_settings_env(
-                backbone=str(settings.dinov2_weights) if settings.dinov2_weights else None,
-                head=str(settings.spheremap_weights) if settings.spheremap_weights else None,
-            )
-        )
+    feature_kw = settings.feature_settings_kwargs() if "feature_settings" in known else None
+    if feature_kw is not None:
+        out["feature_settings"] = FeatureSettings(**feature_kw)
     return out
 
 
@@ -200,7 +195,7 @@ def fine_work(options: dict[str, Any]) -> int:
 
 # Learned feature extractors and the weights each needs (the workers read them from these
 # settings: server_options); canonical, file and auto need none.
-FEATURE_WEIGHTS = {"dinov2": ("dinov2_weights",), "spheremap": ("dinov2_weights", "spheremap_weights")}
+FEATURE_WEIGHTS = {"dinov2": ("features_backbone",), "spheremap": ("features_backbone", "features_head")}
 
 
 def check_feature_weights(options: dict[str, Any], settings) -> None:

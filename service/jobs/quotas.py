@@ -1,4 +1,4 @@
-"""Per-tenant limits (issue 28): request rate, active jobs, stored bytes.
+"""Per-tenant limits (so no tenant takes what all share): request rate, active jobs, stored bytes.
 
 One tenant must not be able to take what every tenant shares: the API's request capacity
 (429 `rate-limited`), the queue (429 `too-many-jobs` past `GSA_TENANT_MAX_ACTIVE_JOBS` queued

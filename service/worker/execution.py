@@ -238,7 +238,7 @@ def problem_for(exc: Exception) -> Problem:
 
 
 def _run(backend: Backend, job: Job, token: str, prog: JobProgress, art_prefix: str) -> JobState | None:
-    if is_many(job):  # N models into one frame (issue 30)
+    if is_many(job):  # N models into one frame (N-way registration)
         return run_many(backend, job, token, prog, art_prefix)
     # lazy: the aligner (numba kernels, ~1 s of imports) loads in the processes that run jobs
     from gsa.align.contract import hints_from_files

@@ -136,8 +136,10 @@ def _warm_up(settings: Settings | None = None, *, fork: bool = True) -> None:
 
     `fork=False`, the embedded workers (`gsa serve` without Redis): jobs run in threads of this
     process, nothing forks, so none of that applies; torch keeps its thread count."""
-    if fork and "numba" not in sys.modules:
-        os.environ.setdefault("NUMBA_THREADING_LAYER", "workqueue")
+    if fork:
+        from gsa.kernels import use_workqueue_layer
+
+        use_workqueue_layer()
     t = time.perf_counter()
     try:
         import numba
@@ -166,7 +168,7 @@ def _warm_up(settings: Settings | None = None, *, fork: bool = True) -> None:
             # a horse, it went with the horse, and every doubtful job read it again.
             from gsa.align.semantic import available_backbone
 
-            if available_backbone(str(settings.dinov2_weights) if settings.dinov2_weights else None) is not None:
+            if available_backbone(str(settings.features_backbone) if settings.features_backbone else None) is not None:
                 log.info("worker warm-up: semantic backbone loaded")
     except Exception:  # a broken library shows up in the jobs' errors; keep serving
         log.exception("worker warm-up failed")

@@ -118,7 +118,7 @@ def service_env(tmp: Path, **extra) -> dict:
             "GSA_LEASE_S": "2",
             "GSA_REAPER_INTERVAL_S": "0.5",
             "GSA_WEBHOOK_ALLOW_PRIVATE": "true",
-            "GSA_WEBHOOK_LOOPBACK_ONLY": "true",  # no webhook leaves this machine (issue 28)
+            "GSA_WEBHOOK_LOOPBACK_ONLY": "true",  # no webhook leaves this machine
             "GSA_METRICS_OWNERS": '["alice"]',  # /metrics is for operators
             "GSA_MAX_UPLOAD_BYTES": str(MAX_UPLOAD),
             "GSA_MAX_ATTEMPTS": "3",

@@ -84,7 +84,7 @@ class FuzzSession:
             GSA_UNAVAILABLE_RETRY_AFTER_S=1,
         )
         # Fuzzed jobs carry fuzzed webhook URLs: the deployment must refuse every host
-        # outside loopback at submission, and never look names up (issue 28).
+        # outside loopback at submission, and never look names up (no server-side requests leave the machine).
         assert env.get("GSA_WEBHOOK_LOOPBACK_ONLY") == "true", "fuzz deployments are loopback-only"
         self.redis = RedisServer(tmp / "redis")
         self.redis.start()

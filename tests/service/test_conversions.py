@@ -1,4 +1,4 @@
-"""Artifacts converted on request (`?format=`, issue 28): in a child process, at most
+"""Artifacts converted on request (`?format=`): in a child process, at most
 GSA_MAX_CONVERSIONS at once (then 503 conversions-busy with Retry-After), kept in storage and
 served like any artifact (ETag, If-None-Match, Range, If-Range, HEAD); the API's memory stays flat.
 Real uvicorn processes (embedded and with Redis + a worker) over HTTP."""

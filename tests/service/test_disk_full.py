@@ -1,4 +1,4 @@
-"""A really full disk in embedded mode (issue 28): `gsa serve` runs with its storage and SQLite
+"""A really full disk in embedded mode: `gsa serve` runs with its storage and SQLite
 database on a small tmpfs (a user + mount namespace of its own: tests/service/fulldisk.py),
 which the test fills to its last byte. Before: DELETE of a job answered 507 (SQLite could not
 append the DELETE to its log), so the API could not free the space it needed; a COMMIT that

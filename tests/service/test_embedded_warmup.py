@@ -1,6 +1,6 @@
 """Embedded mode (`gsa serve` without Redis) warms its worker up before it takes a job, as the RQ
 worker does (service.worker.runners._warm_up): the first job with renders does not pay the
-library's imports and numba kernels (issue 63 item 10: 87 s on an empty numba cache), and the API
+library's imports and numba kernels (87 s on an empty numba cache), and the API
 answers while the worker warms up."""
 
 from __future__ import annotations

@@ -1,6 +1,6 @@
 """`options.features: dinov2 | spheremap` on a deployment without those weights (the test
 stack has none) is a 422 at submission over REST JSON, multipart and gRPC — it used to be
-a 202 and then a job failing 500 with a message naming server settings (issue 28)."""
+a 202 and then a job failing 500 with a message naming server settings."""
 
 from __future__ import annotations
 
@@ -55,7 +55,7 @@ def test_configured_weights_make_them_available():
 
     from service.jobs.options import check_feature_weights
 
-    s = SimpleNamespace(dinov2_weights="/w/dinov2", spheremap_weights=None)
+    s = SimpleNamespace(features_backbone="/w/dinov2", features_head=None)
     check_feature_weights({"features": "dinov2"}, s)
     with pytest.raises(Exception) as e:
         check_feature_weights({"features": "spheremap"}, s)

@@ -1,4 +1,4 @@
-"""gRPC GetArtifact: a negative offset or length is INVALID_ARGUMENT (issue 28), not read as
+"""gRPC GetArtifact: a negative offset or length is INVALID_ARGUMENT, not read as
 0 / "to the end". Against the real stack (HTTP-created job, read over gRPC)."""
 
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""Worker memory budget (issue 28): a job's peak memory is predicted from its options and its
+"""Worker memory budget: a job's peak memory is predicted from its options and its
 inputs' sizes, and a job predicted above `GSA_WORKER_MEMORY_MB` is refused at submission (422
 naming the number). The probe that drove a worker to 5.7 GB — `fine_views: 64,
 fine_image_size: 1024, fine_iterations: 1` on a small pair — was accepted; now it is refused

@@ -1,4 +1,4 @@
-"""Many jobs (issue 30, N-way registration) against the real stack (uvicorn + RQ worker +
+"""Many jobs (N-way registration) against the real stack (uvicorn + RQ worker +
 redis-server): POST /v1/many-jobs and gRPC SubmitManyAlignment over three partial captures of
 one generated car, each under its own Sim(3); bad requests; cancel mid-edge."""
 

@@ -59,7 +59,7 @@ def test_no_cors_headers_without_configured_origins(stack):
 
 def test_an_unhandled_error_is_a_500_problem_with_the_request_id(tmp_path, caplog):
     # Starlette's catch-all answers outside every middleware, so its 500 had no id
-    # (issue 28: a zip error escaped as exactly that). RequestIds answers it now.
+    # (a zip error escaped as exactly that). RequestIds answers it now.
     from fastapi.testclient import TestClient
 
     from service.api.app import create_app
@@ -81,7 +81,7 @@ def test_an_unhandled_error_is_a_500_problem_with_the_request_id(tmp_path, caplo
 
 def test_cors_preflight_allows_the_conditional_range_headers(api):
     """A browser resuming a download sends Range with If-Range: the preflight must allow both
-    (If-Range was missing from the allowed headers; issue 28)."""
+    (If-Range was missing from the allowed headers)."""
     _, url = api
     pre = {
         "Origin": "https://assets.example",

@@ -1,4 +1,4 @@
-"""Retries after infrastructure errors back off (issue 28): a job attempt that cannot store its
+"""Retries after infrastructure errors back off: a job attempt that cannot store its
 artifacts (storage at its quota) goes back to the queue with `next_attempt_at` set, and the next
 attempt starts no sooner, in both modes (RQ's scheduler with Redis, the store in embedded mode)."""
 

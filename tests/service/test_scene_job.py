@@ -1,4 +1,4 @@
-"""A scene pair (issue 18) through the real service end to end, at CI size: two partial
+"""A scene pair (scene-scale registration) through the real service end to end, at CI size: two partial
 captures of a generated room (~100k Gaussians each, their own Sim(3)) uploaded over HTTP,
 one job asking for the aligned and merged models, the transform checked against the truth
 and both artifacts read back. benchmarks/service/bench_service_scene.py runs the same at 2M."""
@@ -53,7 +53,7 @@ def test_scene_pair_uploaded_aligned_and_merged(http, scene_pair, tmp_path):
     assert 'gsa_stage_duration_seconds_count{stage="loading"}' in metrics
     assert 'gsa_stage_duration_seconds_count{stage="storing"}' in metrics
 
-    # The transform is right: the issue's success test (RRE < 2°, translation error at the
+    # The transform is right: the scene protocol's success test (RRE < 2°, translation error at the
     # source's centroid < 2 % of the room's diagonal) and the scale within 1 %.
     res = job["result"]
     est = Sim3(float(res["scale"]), np.array(res["rotation"]), np.array(res["translation"]))

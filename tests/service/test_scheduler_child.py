@@ -1,4 +1,4 @@
-"""The RQ scheduler child never outlives its `gsa worker` (issue 28).
+"""The RQ scheduler child never outlives its `gsa worker` (no orphan scheduler).
 
 `gsa worker` runs RQ with its scheduler (webhook retries are scheduled jobs), which RQ forks
 as a child process holding the queues' `rq:scheduler-lock:*`. A SIGKILLed worker used to leave

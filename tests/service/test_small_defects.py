@@ -1,4 +1,4 @@
-"""Issue 28 item 10, the smaller defects, each against the real stack: NaN/Inf PLYs refused
+"""Smaller service defects, each against the real stack: NaN/Inf PLYs refused
 at upload, artifacts honour If-None-Match."""
 
 from __future__ import annotations

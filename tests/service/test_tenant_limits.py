@@ -1,4 +1,4 @@
-"""Tenant-facing bounds (issue 28): `outputs` deduplicated and bounded (100,000 duplicate
+"""Tenant-facing bounds: `outputs` deduplicated and bounded (100,000 duplicate
 entries were stored as given: a 923 KB job record), and `/metrics`, which counts every
 tenant's jobs, only for operator keys (GSA_METRICS_OWNERS; the test stack names alice)."""
 

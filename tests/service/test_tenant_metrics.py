@@ -1,4 +1,4 @@
-"""Per-tenant metrics (issue 63): a real `gsa serve` over HTTP with two tenants (the test stack's
+"""Per-tenant metrics: a real `gsa serve` over HTTP with two tenants (the test stack's
 alice, an operator in GSA_METRICS_OWNERS, and bob), a low request rate, a small storage quota and
 a limit of one active job. Bob is driven into 429 (request rate; in Redis mode also active jobs)
 and 507 (storage quota); alice's /metrics scrape then shows exactly those refusals, requests and

@@ -285,7 +285,7 @@ def test_openapi_paths_and_methods_are_the_public_contract(tmp_path):
         ("/v1/jobs/{job_id}/artifacts/{name}", ["get", "head"]),
         ("/v1/jobs/{job_id}/view-link", ["post"]),
         ("/v1/view-link", ["post"]),
-        ("/v1/many-jobs", ["post"]),  # issue 30: added last, so no path moved
+        ("/v1/many-jobs", ["post"]),  # N-way registration: added last, so no path moved
     ]
 
 

@@ -1,5 +1,5 @@
 """The job page's guide against a real API process (uvicorn, embedded worker, SQLite) and
-headless Chromium (issue 27): "use this one" on an alternative, clicked point pairs and the
+headless Chromium (the guided path): "use this one" on an alternative, clicked point pairs and the
 up-axis control each POST the page's refine route, which makes a follow-up job linked to the
 parent; the page opens the follow-up's page, which polls its state and shows its result when
 it is done. Also the route's own checks: the page's cookie, its origin, and the API's 422s."""

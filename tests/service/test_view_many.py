@@ -1,4 +1,4 @@
-"""A many job's results page (issue 30) against a real API process (embedded worker, SQLite) and
+"""A many job's results page (N-way registration) against a real API process (embedded worker, SQLite) and
 headless Chromium: every model in the reference frame with a toggle each, and the graph of its
 edges. The marking of pruned and corrected edges is checked in tests/test_viewer_many.py."""
 

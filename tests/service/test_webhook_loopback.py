@@ -1,4 +1,4 @@
-"""Test and fuzz deployments never send a webhook off this machine (issue 28).
+"""Test and fuzz deployments never send a webhook off this machine.
 
 The test stack allows private webhook hosts (its receivers listen on loopback), which used
 to mean any http(s) URL was accepted: the fuzzer's multipart `webhook_url` values included

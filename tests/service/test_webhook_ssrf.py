@@ -1,4 +1,4 @@
-"""Webhook SSRF (issue 28): every non-global address is refused at submission — REST
+"""Webhook SSRF (server-side request forgery): every non-global address is refused at submission — REST
 JSON, multipart and gRPC — including 100.64.0.0/10 (100.100.100.200 is a cloud metadata
 address), which the old `is_private` test let through; and delivery connects to the
 address that was checked, with no second DNS resolution.

@@ -134,7 +134,7 @@ class AlignmentServiceServicer:
         raise NotImplementedError('Method not implemented!')
 
     def SubmitManyAlignment(self, request, context):
-        """N-way registration (issue 30), like HTTP POST /v1/many-jobs: every model's Sim(3) into the
+        """N-way registration, like HTTP POST /v1/many-jobs: every model's Sim(3) into the
         reference's frame, consistent around the cycles; result_json is many.json's content.
         INVALID_ARGUMENT for fewer than 2 or too many assets, NOT_FOUND for an asset not yours.
         """
