@@ -48,10 +48,10 @@ import service.worker.runners as runners
 
 _execute = runners.execute
 
-def execute(job_id, backend):
+def execute(job_id, backend, **kw):
     prof = cProfile.Profile()
     try:
-        return prof.runcall(_execute, job_id, backend)
+        return prof.runcall(_execute, job_id, backend, **kw)
     finally:
         prof.dump_stats(os.path.join(os.environ["GSA_BENCH_PROFILE"], f"{time.time_ns()}-{job_id}.prof"))
 
