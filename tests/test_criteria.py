@@ -15,6 +15,7 @@ from gsa.align.guided import GuidanceCriteria
 from gsa.align.open_ends import OpenEndCriteria
 from gsa.align.pipeline import AlignOptions, _Hypothesis, _Pair
 from gsa.align.scene import SceneOptions
+from gsa.align.scene import path as scene_path
 from gsa.geometry import axis_rotation
 from gsa.sim3 import Sim3
 from tests.test_open_ends import _vessel
@@ -151,7 +152,7 @@ def test_the_scene_test_and_path_take_the_criteria_in_force(models, monkeypatch)
     with pytest.raises(Seen):
         pipeline.align(source, target, opts)
     assert seen[-1] is CRITERIA.scene
-    monkeypatch.setattr(scene, "scene_anchors", _stop(seen, lambda model, count, seed, o: (count, o)))
+    monkeypatch.setattr(scene_path, "scene_anchors", _stop(seen, lambda model, count, seed, o: (count, o)))
     with pytest.raises(Seen):
         scene.align_scene(source, target, opts, scene.SceneChoice(True, "test"))
     assert seen[-1] == (2345, CRITERIA.scene)
