@@ -41,7 +41,7 @@ def similar_cameras(target, n: int = 3, pool: int = 60, image_size: int = 128, s
 
 
 def _fine_from(source, target, coarse_result, cameras, on: str, views: int, seed: int, quick: bool = False) -> Sim3:
-    """The pipeline's fine stage (gsa.align.pipeline._Pair.fine) from a given coarse
+    """The pipeline's fine stage (gsa.align.pair._Refinement.fine) from a given coarse
     result with an explicit camera set: canonical features from the frames the
     coarse stage chose, as align() builds them."""
     from gsa.align.fine import FineOptions, fine_align  # lazy: loads torch and the renderer

@@ -15,6 +15,7 @@ from gsa.align.guided import GuidanceCriteria
 from gsa.align.open_ends import OpenEndCriteria
 from gsa.align.pipeline import AlignOptions, _Hypothesis, _Pair
 from gsa.align.scene import SceneOptions
+from gsa.align.scene import path as scene_path
 from gsa.geometry import axis_rotation
 from gsa.sim3 import Sim3
 from tests.test_open_ends import _vessel
@@ -73,16 +74,16 @@ def test_the_search_and_the_refinement_take_the_criteria_in_force(pair, monkeypa
     seen: list = []
     monkeypatch.setattr(robust, "global_search", _stop(seen, lambda src, dst, starts, options, **kw: options))
     with pytest.raises(Seen):
-        pair.search(None)
+        pair.anchor_search.search(None)
     assert seen[-1].criteria is CRITERIA.pose and seen[-1].refine_points == 321
     assert seen[-1].rotations == pair.opts.search_rotations
     monkeypatch.setattr(robust, "refine", _stop(seen, lambda *a, criteria=None, **kw: criteria))
     with pytest.raises(Seen):
-        pair.refine_global(Sim3.identity(), None)
+        pair.refinement.refine_global(Sim3.identity(), None)
     assert seen[-1] is CRITERIA.refine
     rigid = replace(pair, opts=replace(pair.opts, rigid=True))
     with pytest.raises(Seen):
-        rigid.refine_global(Sim3.identity(), None)
+        rigid.refinement.refine_global(Sim3.identity(), None)
     assert seen[-1] == replace(CRITERIA.refine, deformable=False)
 
 
@@ -95,14 +96,14 @@ def test_the_verdict_and_the_guidance_take_the_criteria_in_force(pair, monkeypat
         return real(final, search, coincide, criteria, offer_always)
 
     monkeypatch.setattr(robust, "verdict", verdict)
-    assert pair.judge(Sim3.identity(), None)["doubtful"]  # confidence_threshold 0.99
+    assert pair.judge.verdict(Sim3.identity(), None)["doubtful"]  # confidence_threshold 0.99
     assert seen == [CRITERIA.verdict]
     turns = pipeline.guided.local_turns(CRITERIA.guidance)
     angles = [np.degrees(np.arccos(np.clip((np.trace(t) - 1) / 2, -1, 1))) for t in turns]
     assert np.allclose(angles, 7.0)
     monkeypatch.setattr(pipeline.guided, "local_turns", _stop(seen, lambda criteria=None: criteria))
     with pytest.raises(Seen):
-        pair.local_start(Sim3.identity(), None, lambda pose: True)
+        pair.anchor_search.local_start(Sim3.identity(), None, lambda pose: True)
     assert seen[-1] is CRITERIA.guidance
 
 
@@ -151,7 +152,7 @@ def test_the_scene_test_and_path_take_the_criteria_in_force(models, monkeypatch)
     with pytest.raises(Seen):
         pipeline.align(source, target, opts)
     assert seen[-1] is CRITERIA.scene
-    monkeypatch.setattr(scene, "scene_anchors", _stop(seen, lambda model, count, seed, o: (count, o)))
+    monkeypatch.setattr(scene_path, "scene_anchors", _stop(seen, lambda model, count, seed, o: (count, o)))
     with pytest.raises(Seen):
         scene.align_scene(source, target, opts, scene.SceneChoice(True, "test"))
     assert seen[-1] == (2345, CRITERIA.scene)

@@ -12,6 +12,8 @@ from benchmarks.scene import scene_judge
 from benchmarks.site import SITE_HARD, point_files, site_pairs
 from gsa.align import scene as S
 from gsa.align.pipeline import AlignOptions, align
+from gsa.align.scene import sites as scene_sites
+from gsa.geometry import axis_rotation
 from gsa.metrics import rre_deg, scale_error_pct
 from gsa.synth import make_object, scene_captures
 from gsa.synth.sites import PointSite, make_site, resample_site, robust_extent
@@ -76,7 +78,7 @@ def test_sites_pass_the_site_test_and_objects_do_not(site_pair):
     # A shed's walls and the ground can make a room test's shell too; either way the
     # path searches the pair as sites, as both grounds lie open to the sky.
     anchors = [S.scene_anchors(m, S.SceneOptions().scene_anchors) for m in (cap.source, cap.target)]
-    sites = S._sites(*anchors)
+    sites = scene_sites._sites(*anchors)
     assert sites is not None and all(s.open_ground for s in sites)
     for model in (make_object("airplane", seed=0, n_gaussians=20_000), make_object("car", seed=1, n_gaussians=20_000)):
         st = S.scene_structure(S.scene_anchors(model, S.test_anchor_count(len(model), 2000)), gaussians=len(model))
@@ -99,7 +101,7 @@ def test_scene_path_aligns_a_site_pair(site_pair):
 def test_site_search_only_turns_about_the_ground():
     up = np.array([0.0, 0.6, 0.8])
     for options in (S.SceneOptions(), S.SceneOptions(site_yaw_deg=10.0)):
-        rots = S._site_rotations(np.array([0.0, 0.0, 1.0]), up, options)
+        rots = scene_sites._site_rotations(np.array([0.0, 0.0, 1.0]), up, options)
         assert len(rots) == 2 * round(360 / options.site_yaw_deg)
         mapped = rots @ np.array([0.0, 0.0, 1.0])
         assert np.allclose(np.abs(mapped @ up), 1.0, atol=1e-9)  # the up onto ±up, turned about it
@@ -131,7 +133,7 @@ def test_ground_up_is_the_plane_of_the_ground_not_its_mean_normal():
     band of anchors above the plane, which tilts a plain least-squares plane by 1.7
     degrees), gives the tilted plane's normal within 0.6 degrees, signed as the hint."""
     rng = np.random.default_rng(3)
-    tilt = S.axis_rotation(np.array([1.0, 0.0, 0.0]), np.radians(12.0))
+    tilt = axis_rotation(np.array([1.0, 0.0, 0.0]), np.radians(12.0))
     xy = rng.uniform(-10, 10, (3000, 2))
     z = 0.3 * np.sin(xy[:, 0] / 2.0) * np.cos(xy[:, 1] / 3.0)  # hills and hollows about the plane
     kerb = np.column_stack([rng.uniform(-10, 10, 500), rng.uniform(8, 10, 500), rng.uniform(0.5, 1.5, 500)])
@@ -139,7 +141,7 @@ def test_ground_up_is_the_plane_of_the_ground_not_its_mean_normal():
     w = np.full(len(ground), 1.0 / len(ground))
     truth = tilt @ np.array([0.0, 0.0, 1.0])
     for hint in (np.array([0.0, 0.3, 1.0]), np.array([0.0, -0.3, -1.0])):
-        up = S._ground_up(ground, w, hint / np.linalg.norm(hint), S.SceneOptions())
+        up = scene_sites._ground_up(ground, w, hint / np.linalg.norm(hint), S.SceneOptions())
         assert up @ hint > 0
         assert np.degrees(np.arccos(min(1.0, abs(float(up @ truth))))) < 0.6
 
@@ -159,19 +161,19 @@ def test_placed_starts_rank_by_colour_where_geometry_cannot():
     colours = palette[patches[:, 0] + 5, patches[:, 1] + 5]
     field = np.column_stack([xy, 0.02 * rng.standard_normal(len(xy))]).astype(np.float32)
     keep = xy[:, 0] < 4.0  # the source misses a side: its centre is not the target's
-    truth = Sim3(1.3, S.axis_rotation(np.array([0.0, 0.0, 1.0]), np.radians(70.0)), np.array([2.0, -1.0, 0.5]))
+    truth = Sim3(1.3, axis_rotation(np.array([0.0, 0.0, 1.0]), np.radians(70.0)), np.array([2.0, -1.0, 0.5]))
     source = GaussianModel.from_colors(field[keep], colours[keep])
     target = GaussianModel.from_colors(truth.apply(field.astype(np.float64)).astype(np.float32), colours)
     src, dst = robust.anchors(source, 2000), robust.anchors(target, 2000)
     up = np.array([0.0, 0.0, 1.0])
-    rotations = S._site_rotations(up, up, S.SceneOptions())
+    rotations = scene_sites._site_rotations(up, up, S.SceneOptions())
 
     def best_placement(w_colour):
         (r, scale, centre), *_ = robust.placed_starts(
             src, dst, np.random.default_rng(1), rotations=rotations, points=64, step=0.25, truncation=0.2,
             scales=(0.8, 1.0, 1.25), count=3, min_deg=15.0, capture=lambda r, s, t, steps: (s, t),
             capture_steps=(), w_colour=w_colour, colour_sigma=robust.PoseCriteria().colour_sigma,
-            centres=robust.box_lattice(dst.points, S._site_frame(up), 0.25 * dst.radius),
+            centres=robust.box_lattice(dst.points, scene_sites._site_frame(up), 0.25 * dst.radius),
         )  # fmt: skip
         return rre_deg(r, truth.rotation), np.linalg.norm(centre - truth.apply(src.center)) / dst.radius
 
@@ -203,7 +205,7 @@ def test_climb_moves_a_near_pose_onto_the_site(site_pair):
     dst = S.scene_anchors(cap.target, o.scene_anchors)
     src = robust.match_exposure(S.scene_anchors(cap.source, o.scene_anchors), dst)
     up = cap.truth.rotation @ np.array([0.0, 0.0, 1.0])
-    turn = S.axis_rotation(up, np.radians(4.0))
+    turn = axis_rotation(up, np.radians(4.0))
     c = cap.truth.apply(src.center)
     start_pose = Sim3(
         cap.truth.scale * 1.05,
@@ -212,7 +214,7 @@ def test_climb_moves_a_near_pose_onto_the_site(site_pair):
     )
     k = robust.PoseCriteria()
     start = robust.score_pose(src, dst, start_pose, "start", 1.0, k)
-    climbed = robust.score_pose(src, dst, S._climb(src, dst, start, 1.0, k, o).transform, "climbed", 1.0, k)
+    climbed = robust.score_pose(src, dst, scene_sites._climb(src, dst, start, 1.0, k, o).transform, "climbed", 1.0, k)
     assert climbed.score > start.score
     assert rre_deg(climbed.transform.rotation, cap.truth.rotation) < 1.0
     assert scale_error_pct(climbed.transform.scale, cap.truth.scale) < 1.0

@@ -22,7 +22,7 @@ from gsa.align.guided import GuidanceCriteria
 from gsa.align.learned import LearnedCriteria
 from gsa.align.open_ends import OpenEndCriteria
 from gsa.align.robust import PoseCriteria, RefineCriteria, SearchOptions, VerdictCriteria
-from gsa.align.scene import SceneOptions
+from gsa.align.scene.options import SceneOptions
 from gsa.align.semantic import SemanticCriteria
 
 __all__ = ["Criteria"]

@@ -3,7 +3,7 @@ instances, and its alternatives, turned onto the nearest relabelling of the two 
 dominant surface-normal frames (gsa.manhattan). Across instances the refinement drifts 5-37
 degrees off the frame both objects are built along, where one of the 24 relabellings is within
 5 degrees of the truth on every category-real pair (docs/benchmarks.md, "Dominant-normal
-frames"). `pair` is the pipeline's _Pair: its models, anchors and quality metrics.
+frames"). `pair` is the pipeline's _Pair (gsa.align.pair): its models, anchors and quality metrics.
 """
 
 from __future__ import annotations
@@ -263,7 +263,7 @@ def snap_to_frames(
             alternatives.append(alt | {"rotation_offset_deg": robust.rotation_offset_deg(pose, kept[0])})
     if not snapping:
         return transform, metrics | {"frame_snap": report | {"used": False, "deg": gap}, "alternatives": alternatives}
-    updated = metrics | pair.quality(chosen, best) | {"alternatives": alternatives}
+    updated = metrics | pair.judge.quality(chosen, best) | {"alternatives": alternatives}
     return chosen, updated | {"frame_snap": report | {"used": True, "deg": gap}}
 
 
@@ -364,7 +364,7 @@ def choose_relabelling(
                     "transform": poses[k].matrix().tolist(),
                 }
             )
-    updated = metrics | (pair.quality(chosen, best) if turned else {}) | {"alternatives": alternatives}
+    updated = metrics | (pair.judge.quality(chosen, best) if turned else {}) | {"alternatives": alternatives}
     if semantic is not None and turned:
         updated["semantic_score"] = float(semantic[pick])
     return chosen, updated | {"frame_choice": report}
@@ -381,7 +381,7 @@ def geometry_prefers(pair, answer: Sim3, turned: Sim3, metrics: dict) -> dict:
     weight = float(metrics.get("colour_weight") or 0.0)
     k = pair.criteria.pose
     kept = robust.score_pose(src, dst, answer, "answer", weight, k)
-    rival = robust.score_pose(src, dst, pair.constrain(pair.approach(turned)), "turned", weight, k)
+    rival = robust.score_pose(src, dst, pair.constrain(pair.anchor_search.approach(turned)), "turned", weight, k)
     measure = (lambda c: c.geometry) if metrics.get("ranked_by") == "geometry" else (lambda c: c.score)
     lead = measure(kept) - measure(rival)
     return {

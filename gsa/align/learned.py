@@ -102,11 +102,11 @@ def learned_answer(pair, search, transform: Sim3, metrics: dict, criteria: Learn
     else:
         start = learned
         how = "the learned pose"
-    refined = pair.constrain(pair.refine_global(start, None).transform)
+    refined = pair.constrain(pair.refinement.refine_global(start, None).transform)
     if rotation_offset_deg(refined, learned) > criteria.refined_leash_deg:
         refined = start
     previous = {"origin": "geometric answer (before the learned pose)", "transform": transform.matrix().tolist()}
-    updated = metrics | pair.judge(refined, search)
+    updated = metrics | pair.judge.verdict(refined, search)
     updated["alternatives"] = [previous] + list(updated.get("alternatives") or [])
     updated["doubtful"] = True  # the learned pose overruled the geometry: a person should look
     return refined, updated | {"learned": report | {"used": True, "outcome": f"turned onto {how}"}}

@@ -115,7 +115,7 @@ def turn_open_ends(pair, best, transform: Sim3, metrics: dict) -> tuple[Sim3, di
         if robust.rotation_offset_deg(Sim3.from_matrix(np.asarray(alt["transform"], np.float64)), turned)
         > frame_snap.FRAME_SNAP_SAME_DEG
     ]
-    return turned, metrics | pair.quality(turned, best) | {
+    return turned, metrics | pair.judge.quality(turned, best) | {
         "alternatives": [frame_snap.replaced_pose(transform, metrics, "before the open-end turn")] + others,
         "open_ends": report | {"turned": True},
     }

@@ -3,19 +3,16 @@ hypotheses + the paper's feature-guided ICP) -> fine, one call, with a GT-free v
 
 The CLI, the service worker, the benchmarks and the tests all call this. Option and result
 types live in gsa.align.types, the GT-free metrics in gsa.align.quality (both re-exported).
-Kept whole (~480 lines): align() and _Pair, the per-pair state every stage method shares.
+The per-pair state the stages share, and the stages themselves, are gsa.align.pair (_Pair and its parts).
 """
 
 from __future__ import annotations
 
-import functools
 import time
-from collections.abc import Callable
-from dataclasses import dataclass, replace
+from dataclasses import replace
 from typing import TYPE_CHECKING
 
 import numpy as np
-from scipy.spatial import cKDTree
 from threadpoolctl import threadpool_limits
 
 from gsa import manhattan
@@ -34,20 +31,10 @@ from gsa.align.coarse import (
     AlignmentError,
     CoarseOptions,
     CoarseResult,
-    coarse_align,
-    find_candidates,
-    icp_refine,
 )
-from gsa.align.nearest import query_workers
-from gsa.align.quality import quality_metrics, reverse_distances
+from gsa.align.pair import _feature_mode, _Hypothesis, _Pair, _report
+from gsa.align.quality import quality_metrics
 from gsa.align.types import AlignmentResult, AlignOptions
-from gsa.canonical import (
-    CanonicalFrame,
-    canonical_features,
-    frame_hypotheses,
-    model_frame,
-    relabelling_label,
-)
 from gsa.errors import GSAError
 from gsa.model import GaussianModel
 from gsa.sim3 import Sim3
@@ -55,8 +42,6 @@ from gsa.sim3 import Sim3
 if TYPE_CHECKING:
     from gsa.render.cameras import Cameras
 
-# Points per model sampled for the verdict's coincidence test (robust.coincidence).
-JUDGE_POINTS = 6000
 
 __all__ = [
     "EXTRACTOR_MODES",
@@ -75,17 +60,6 @@ __all__ = [
     "align",
     "quality_metrics",
 ]
-
-
-def _initial_transform(src: CanonicalFrame, dst: CanonicalFrame) -> Sim3:
-    """Maps the source's canonical pose onto the target's."""
-    return dst.to_canonical().inverse() @ src.to_canonical()
-
-
-def _centroid_init(src: CanonicalFrame, dst: CanonicalFrame) -> Sim3:
-    """The authors' start (centroids matched), plus the RMS-radius scale ratio."""
-    s = dst.radius / src.radius
-    return Sim3(s, np.eye(3), dst.center - s * src.center)
 
 
 def _semantic_tiebreak(pair, best, search, transform: Sim3, metrics: dict, progress=None) -> tuple[Sim3, dict]:
@@ -129,7 +103,7 @@ def _semantic_tiebreak(pair, best, search, transform: Sim3, metrics: dict, progr
         # favoured like parts piled onto one end (a rifle's barrel on the other's, half of each
         # model uncovered), where the pose they replaced covered both (docs/benchmarks.md,
         # "Whole models stay whole").
-        reading = pair.overlap_reading(poses[pick])
+        reading = pair.judge.overlap_reading(poses[pick])
         refine = pair.criteria.refine
         if frame_snap.whole_models(metrics, refine) and not frame_snap.whole_models(reading, refine):
             report |= {"picked": 0, "vetoed": {"pick": pick} | reading}
@@ -148,8 +122,8 @@ def _semantic_tiebreak(pair, best, search, transform: Sim3, metrics: dict, progr
         "scale_ratio": transform.scale / chosen.scale,
         "transform": transform.matrix().tolist(),
     }
-    updated = pair.quality(chosen, best) | {"hypothesis": metrics.get("hypothesis")}
-    updated.update(pair.judge(chosen, search))
+    updated = pair.judge.quality(chosen, best) | {"hypothesis": metrics.get("hypothesis")}
+    updated.update(pair.judge.verdict(chosen, search))
     offers = [c.to_dict(chosen) | {"tied": False} for c in swept if c.transform is not chosen]
     updated["alternatives"] = _with_semantic_scores(
         [previous] + updated.get("alternatives", [])[: pair.criteria.verdict.max_alternatives - 1] + offers, scored
@@ -256,15 +230,10 @@ def _swept_poses(pair, lifted, known: list[Sim3], search) -> list[robust.Candida
     distinct = lifted.criteria.swept_distinct_deg
     out: list[robust.Candidate] = []
     for start in lifted.sweep():
-        pose = pair.constrain(pair.approach(start))
+        pose = pair.constrain(pair.anchor_search.approach(start))
         if all(robust.rotation_offset_deg(pose, k) > distinct for k in known + [c.transform for c in out]):
             out.append(robust.score_pose(src, dst, pose, "semantic sweep", search.colour_weight, pair.criteria.pose))
     return out
-
-
-def _report(progress: Progress | None, stage: str, fraction: float) -> None:
-    if progress is not None:
-        progress(stage, float(min(max(fraction, 0.0), 1.0)))
 
 
 def align(
@@ -363,7 +332,7 @@ def _align_models(
         if pair.global_search:
             # The search's own poses are weighed too: they are local answers where they lie near
             # the user's pose, and the verdict weighs the user's pose against them.
-            found = pair.search(progress)
+            found = pair.anchor_search.search(progress)
             timings["hypotheses"] = time.perf_counter() - t
             t = time.perf_counter()
 
@@ -372,14 +341,14 @@ def _align_models(
                     pose, best.init, opts, start[1], criteria=opts.criteria.guidance, symmetries=symmetries
                 )
 
-            local = pair.local_start(best.init, found, near)
-            coarse = pair.refine_global(local, progress)
+            local = pair.anchor_search.local_start(best.init, found, near)
+            coarse = pair.refinement.refine_global(local, progress)
             if not near(coarse.transform):
                 start[1]["refinement"] = "undone: it moved away from the given pose or pairs"
                 coarse = replace(coarse, transform=local)
-            search = pair.check_given(pair.constrain(coarse.transform), found)
+            search = pair.anchor_search.check_given(pair.constrain(coarse.transform), found)
         else:
-            coarse = pair.coarse(best, progress)
+            coarse = pair.refinement.coarse(best, progress)
             if not guided.near_start(
                 coarse.transform, best.init, opts, start[1], criteria=opts.criteria.guidance, symmetries=symmetries
             ):
@@ -388,19 +357,19 @@ def _align_models(
         timings["coarse"] = time.perf_counter() - t
     elif pair.global_search:
         t = time.perf_counter()
-        search = pair.search(progress)
+        search = pair.anchor_search.search(progress)
         best = _Hypothesis(search.best.origin, pair.src_frame, pair.constrain(search.best.transform))
         scored = [c.to_dict(search.best.transform) | {"chosen": c is search.best} for c in search.candidates]
         timings["hypotheses"] = time.perf_counter() - t
         t = time.perf_counter()
-        coarse = pair.refine_global(best.init, progress)
+        coarse = pair.refinement.refine_global(best.init, progress)
         timings["coarse"] = time.perf_counter() - t
     else:
         t = time.perf_counter()
-        best, scored = pair.select(pair.hypotheses(), progress)
+        best, scored = pair.frame_search.select(pair.frame_search.hypotheses(), progress)
         timings["hypotheses"] = time.perf_counter() - t
         t = time.perf_counter()
-        coarse = pair.coarse(best, progress)
+        coarse = pair.refinement.coarse(best, progress)
         timings["coarse"] = time.perf_counter() - t
     if guidance is not None:
         coarse = replace(coarse, transform=pair.constrain(coarse.transform))
@@ -410,17 +379,17 @@ def _align_models(
     stages = pair.stages()
     if "fine" in stages:
         t = time.perf_counter()
-        fine_result = pair.fine(best, transform, progress, target_cameras)
+        fine_result = pair.refinement.fine(best, transform, progress, target_cameras)
         transform = pair.constrain(fine_result.transform)
         timings["fine"] = time.perf_counter() - t
 
     t = time.perf_counter()
-    metrics = pair.quality(transform, best)
+    metrics = pair.judge.quality(transform, best)
     metrics["hypothesis"] = best.label
-    metrics.update(pair.judge(transform, search))
+    metrics.update(pair.judge.verdict(transform, search))
     if fine_result is not None:
         # The fine stage can move a right coarse pose off (docs/benchmarks.md): both verdicts, to compare.
-        coarse_verdict = pair.judge(coarse.transform, search)
+        coarse_verdict = pair.judge.verdict(coarse.transform, search)
         metrics["coarse_verdict"] = {k: coarse_verdict[k] for k in ("confidence", "ambiguous", "doubtful")}
     if search is not None and fine_result is None and metrics.get("doubtful"):
         leash = (start[1], symmetries) if start is not None else None
@@ -568,9 +537,9 @@ def _photo_answer(
     t = time.perf_counter()
     transform = found.transform
     best = _Hypothesis("photo matches", pair.src_frame, transform)
-    metrics = pair.quality(transform, best)
+    metrics = pair.judge.quality(transform, best)
     metrics["hypothesis"] = best.label
-    geometric = pair.judge(transform, None)
+    geometric = pair.judge.verdict(transform, None)
     metrics.update(geometric)
     metrics["geometric_verdict"] = {k: geometric[k] for k in ("confidence", "ambiguous", "doubtful")}
     metrics.update(confidence=found.confidence, ambiguous=False, doubtful=False, photo_match=found.to_dict())
@@ -608,430 +577,3 @@ def _global_search_runs(opts: AlignOptions, source: GaussianModel, target: Gauss
         return _feature_mode(source, target, opts.features) == "canonical"
     except AlignmentError:
         return False  # _Pair.build reports it
-
-
-def _feature_mode(source: GaussianModel, target: GaussianModel, requested: str) -> str:
-    both = source.feature_dim > 0 and source.feature_dim == target.feature_dim
-    if requested in EXTRACTOR_MODES:
-        raise AlignmentError(f"features={requested!r} must be lifted first (gsa.features.prepare_pair)")
-    if requested == "auto":
-        # Canonical features saved in a file are coordinates in that model's own frame:
-        # recompute them in frames the pipeline can relabel rather than match them as they are.
-        relative = source.features_frame_relative or target.features_frame_relative
-        return "file" if both and not relative else "canonical"
-    if requested == "file" and not both:
-        raise AlignmentError(
-            f"features='file' needs both models to carry features of one dimension "
-            f"(source {source.feature_dim}, target {target.feature_dim})"
-        )
-    return requested
-
-
-@dataclass
-class _Hypothesis:
-    label: str
-    frame: CanonicalFrame  # the source's frame, axes re-labelled
-    init: Sim3  # where the coarse stage starts
-
-
-@dataclass
-class _Pair:
-    """Everything the stages share about one source/target pair: points, trees
-    (built once), target features, frames and the sampling generator."""
-
-    source: GaussianModel
-    target: GaussianModel
-    opts: AlignOptions
-    mode: str
-    src_frame: CanonicalFrame
-    dst_frame: CanonicalFrame
-    src_pts: np.ndarray
-    dst_pts: np.ndarray
-    src_tree: cKDTree
-    dst_tree: cKDTree
-    dst_feat: np.ndarray
-    weights: np.ndarray | None
-    threshold: float  # GT-free inlier distance in target units
-    rng: np.random.Generator
-    src_anchors: robust.Anchors | None = None
-    dst_anchors: robust.Anchors | None = None
-    lifted: object | None = None  # semantic.LiftedPair, once the semantic tie-break lifted features
-
-    @functools.cached_property
-    def normal_frames(self) -> tuple[manhattan.NormalFrame, manhattan.NormalFrame]:
-        """Both models' dominant surface-normal frames (gsa.manhattan), computed once."""
-        return manhattan.manhattan_frame(self.source), manhattan.manhattan_frame(self.target)
-
-    @functools.cached_property
-    def shape_agreement(self) -> np.ndarray:
-        """(24,) how alike the models spread their surface under each relabelling of their frames
-        (manhattan.relabelling_agreement), computed once: the settling test and the choice both ask."""
-        return manhattan.relabelling_agreement(self.source, self.target, *self.normal_frames)
-
-    @property
-    def criteria(self):
-        """The criteria in force (AlignOptions.criteria): every stage reads its own from them."""
-        return self.opts.criteria
-
-    @classmethod
-    def build(cls, source: GaussianModel, target: GaussianModel, opts: AlignOptions) -> _Pair:
-        scene.check_models(source, target)
-        mode = _feature_mode(source, target, opts.features)
-        src_frame, dst_frame = model_frame(source), model_frame(target)
-        src_pts = source.means.astype(np.float64)
-        dst_pts = target.means.astype(np.float64)
-        dst_feat = target.features if mode == "file" else canonical_features(dst_pts, dst_frame)
-        return cls(
-            source=source,
-            target=target,
-            opts=opts,
-            mode=mode,
-            src_frame=src_frame,
-            dst_frame=dst_frame,
-            src_pts=src_pts,
-            dst_pts=dst_pts,
-            src_tree=cKDTree(src_pts),
-            dst_tree=cKDTree(dst_pts),
-            dst_feat=dst_feat,
-            weights=source.opacities if opts.weight_by_opacity else None,
-            threshold=opts.inlier_threshold * dst_frame.radius,
-            rng=np.random.default_rng(opts.seed),
-        )
-
-    @functools.cached_property
-    def dst_feat_tree(self) -> cKDTree:
-        """Feature-space tree of the target (only the feature-guided stage queries it)."""
-        return cKDTree(np.asarray(self.dst_feat, np.float64))
-
-    @property
-    def global_search(self) -> bool:
-        if self.opts.search == "auto":
-            return self.mode == "canonical" and self.opts.refine != "off"
-        return self.opts.search == "global"
-
-    def anchors(self) -> tuple[robust.Anchors, robust.Anchors]:
-        if self.src_anchors is None or self.dst_anchors is None:
-            self.dst_anchors = robust.anchors(self.target, self.opts.anchor_count)
-            self.src_anchors = robust.match_exposure(
-                robust.anchors(self.source, self.opts.anchor_count), self.dst_anchors, self.criteria.pose.palette
-            )
-        return self.src_anchors, self.dst_anchors
-
-    def search(self, progress: Progress | None) -> robust.SearchResult:
-        """gsa.align.robust: global rotation search on floater-free anchors, seeded also
-        with every relabelling of the two canonical frames."""
-        src, dst = self.anchors()
-        k = self.criteria
-        _report(progress, "hypotheses", 0.0)
-        if self.opts.up_axes is not None:
-            # Known up axes: only turns about them (and no widened search, which would tilt).
-            options = k.search_options(0, self.opts.seed, offer_turn_axes=(tuple(self.opts.up_axes[1]),))
-            starts = guided.up_rotations(*self.opts.up_axes, criteria=k.guidance, fronts=self.opts.front_axes)
-            result = robust.global_search(src, dst, starts, options)
-        else:
-            options = k.search_options(self.opts.search_rotations, self.opts.seed)
-            result = robust.global_search(
-                src,
-                dst,
-                robust.frame_relabellings(self.src_frame, self.dst_frame),
-                options,
-                widen_if=lambda first: robust.verdict(first.best, first, criteria=k.verdict)["doubtful"],
-            )
-        _report(progress, "hypotheses", 1.0)
-        return result
-
-    def approach(self, start: Sim3) -> Sim3:
-        """The anchors' ICP from a given pose, as the search runs it on its own starts: the
-        full-resolution refinement fits the closest pairs, which converges only from within a
-        degree or two, and a user's pose can be tens of degrees off."""
-        src, dst = self.anchors()
-        options = self.criteria.search_options(self.opts.search_rotations, self.opts.seed)
-        rng = np.random.default_rng(self.opts.seed)
-        rows = [robust.subsample(rng, len(a), options.refine_points) for a in (src, dst)]
-        iterations = options.early_iterations + options.refine_iterations
-        k = options.criteria
-        return robust.bidirectional_icp(
-            src, dst, start, *rows, iterations, robust.colour_weight(src, dst, k.palette), k
-        )
-
-    def local_start(self, start: Sim3, found: robust.SearchResult, near: Callable[[Sim3], bool]) -> Sim3:
-        """Where the refinement from a user's pose starts: the best-scoring (as the search ranks)
-        of the anchors' ICP from it and from it turned a little each way (guided.local_turns,
-        about the source's centre), and of the search's own poses, among those still `near` it.
-        One ICP from a pose 20 deg off can stop in a nearer, worse minimum; no pose far from
-        the user's is ever taken."""
-        src, dst = self.anchors()
-        centre = self.src_frame.center
-        starts = [start] + [
-            start.compose(Sim3(1.0, turn, centre - turn @ centre))
-            for turn in guided.local_turns(self.criteria.guidance)
-        ]
-        poses = [self.constrain(self.approach(s)) for s in starts]
-        poses += [self.constrain(c.transform) for c in [*found.candidates, *found.offered]]
-        kept = [p for p in poses if near(p)] or [start]
-        scores = [robust.score_pose(src, dst, p, "guided", found.colour_weight, self.criteria.pose) for p in kept]
-        rank = (lambda c: c.geometry) if found.ranked_by == "geometry" else (lambda c: c.score)
-        return max(scores, key=rank).transform
-
-    def check_given(self, transform: Sim3, found: robust.SearchResult) -> robust.SearchResult:
-        """The automatic search's poses, with the given one first (robust.with_given_pose)."""
-        src, dst = self.anchors()
-        given = robust.score_pose(src, dst, transform, "guided", found.colour_weight, self.criteria.pose)
-        return robust.with_given_pose(given, found)
-
-    @functools.cached_property
-    def source_symmetries(self) -> list[np.ndarray]:
-        """The source's own turn symmetries (gsa.align.guided.source_symmetries), floaters left out."""
-        src, _ = self.anchors()
-        return guided.source_symmetries(self.src_pts[src.kept])
-
-    @functools.cached_property
-    def spins_freely(self) -> bool:
-        """Whether either model turns freely onto itself about an axis (a bottle, a vase:
-        guided.source_symmetries), floaters left out: its dominant-normal frame is then any
-        turn about that axis, and a right answer can lie anywhere between two relabellings."""
-        return bool(self.source_symmetries) or bool(self.target_symmetries)
-
-    @functools.cached_property
-    def target_symmetries(self) -> list[np.ndarray]:
-        """The target's own turn symmetries, as source_symmetries (target coordinates)."""
-        _, dst = self.anchors()
-        return guided.source_symmetries(self.dst_pts[dst.kept])
-
-    def constrain(self, transform: Sim3) -> Sim3:
-        """The pose brought back onto the user's up axes and scale (gsa.align.guided), pivoting
-        about the source's centre."""
-        return guided.constrain(transform, self.opts, self.src_frame.center)
-
-    @functools.cached_property
-    def kept_trees(self) -> tuple[cKDTree, cKDTree]:
-        """KD-trees of the Gaussians that are not floaters (robust.anchors), source and target."""
-        src, dst = self.anchors()
-        src_tree = self.src_tree if src.kept.all() else cKDTree(self.src_pts[src.kept])
-        dst_tree = self.dst_tree if dst.kept.all() else cKDTree(self.dst_pts[dst.kept])
-        return src_tree, dst_tree
-
-    def refine_global(self, init: Sim3, progress: Progress | None) -> CoarseResult:
-        """Trimmed ICP at full resolution from the search's pose, on the Gaussians that
-        are not floaters, with correspondences both ways (gsa.align.robust.refine)."""
-        t0 = time.perf_counter()
-        src, dst = self.anchors()
-        src_tree, dst_tree = self.kept_trees
-        half = self.opts.refine_points // 2
-        p = src_tree.data[robust.subsample(self.rng, src_tree.n, half)]
-        q_rows = robust.subsample(self.rng, dst_tree.n, half)
-        q = dst_tree.data[q_rows]
-        normals, flatness = self.target.surface_normals(slice(None) if dst.kept.all() else dst.kept)
-        transform, history = robust.refine(
-            p,
-            q,
-            src_tree,
-            dst_tree,
-            init,
-            self.opts.refine_iterations,
-            target_normals=(normals, flatness, normals[q_rows], flatness[q_rows]),
-            criteria=self.criteria.refinement(self.opts.rigid),
-        )
-        _report(progress, "coarse", 1.0)
-        return CoarseResult(
-            transform=transform,
-            iterations=len(history),
-            converged=len(history) < self.opts.refine_iterations,
-            history=history,
-            matched=history[-1]["matched"] if history else 0,
-            seconds=time.perf_counter() - t0,
-        )
-
-    def judge(self, transform: Sim3, search: robust.SearchResult | None) -> dict:
-        """Confidence in [0, 1], ambiguity and the alternative poses (GT-free)."""
-        src, dst = self.anchors()
-        k = self.criteria
-        if search is not None:
-            w_colour = search.colour_weight
-        else:
-            noise = 0.5 * (robust.colour_noise(src, k.pose) + robust.colour_noise(dst, k.pose))
-            w_colour = robust.colour_trust(src, dst, noise, k.pose)
-        coincide = self._coincidence(transform)
-        offer_always = self.opts.alternatives == "always" or guided.is_guided(self.opts)
-        final = robust.score_pose(src, dst, transform, "final", w_colour, k.pose)
-        out = robust.verdict(final, search, coincide, k.verdict, offer_always=offer_always)
-        out["colour_gain"] = list(src.colour_gain)  # exposure/white balance matched onto the target's
-        return out
-
-    def _coincidence(self, transform: Sim3):
-        """robust.coincidence of the posed models' surfaces (floaters left out), on JUDGE_POINTS
-        of each drawn by the options' seed: (overlap estimate, coincident share) or None."""
-        src_tree, dst_tree = self.kept_trees
-        rng = np.random.default_rng(self.opts.seed)
-        p = src_tree.data[robust.subsample(rng, src_tree.n, JUDGE_POINTS)]
-        q = dst_tree.data[robust.subsample(rng, dst_tree.n, JUDGE_POINTS)]
-        return robust.coincidence(p, q, src_tree, dst_tree, transform, criteria=self.criteria.refine)
-
-    def overlap_reading(self, transform: Sim3) -> dict:
-        """The verdict's overlap estimate and coincident share of a pose, as judge reads them."""
-        coincide = self._coincidence(transform)
-        return {
-            "overlap_estimate": None if coincide is None else coincide[0],
-            "coincident_share": None if coincide is None else coincide[1],
-        }
-
-    @property
-    def refine(self) -> bool:
-        return self.opts.refine == "on" or (self.opts.refine == "auto" and self.mode == "canonical")
-
-    def stages(self) -> tuple[str, ...]:
-        if self.opts.stages != ("auto",):
-            return self.opts.stages
-        return ("coarse",) if self.refine else ("coarse", "fine")
-
-    def source_features(self, frame: CanonicalFrame, rows: np.ndarray | slice = slice(None)) -> np.ndarray:
-        if self.mode == "file":
-            return self.source.features[rows]
-        return canonical_features(self.src_pts[rows], frame)
-
-    def weights_at(self, rows: np.ndarray | slice) -> np.ndarray | None:
-        return None if self.weights is None else self.weights[rows]
-
-    def hypotheses(self) -> list[_Hypothesis]:
-        """Initialisations: the authors' centroid start when the files carry
-        features, and one per plausible relabelling of the canonical frame."""
-        out = []
-        if self.mode == "file":
-            out.append(_Hypothesis("centroid", self.src_frame, _centroid_init(self.src_frame, self.dst_frame)))
-        for g in frame_hypotheses(self.src_frame, self.dst_frame):
-            frame = self.src_frame.rotated(g)
-            out.append(_Hypothesis(relabelling_label(g), frame, _initial_transform(frame, self.dst_frame)))
-        return out
-
-    def select(self, hypotheses: list[_Hypothesis], progress: Progress | None) -> tuple[_Hypothesis, list[dict]]:
-        """Run each hypothesis briefly on a source subsample and keep the one whose
-        result brings the two models closest (no ground truth needed): score
-        1 − mean(min(d, τ))/τ over forward and reverse nearest-neighbour distances d,
-        τ = hypothesis_truncation × the target's RMS radius. A truncated mean distance,
-        not the 3 % inlier fraction: for two different instances of a category most
-        points lie farther apart than 3 % whichever way round, and that count cannot
-        tell a front/back flip of a near-symmetric shape from the right pose (on the
-        category protocol, docs/benchmarks.md, the count chose 180° flips, this does not)."""
-        if len(hypotheses) == 1:
-            return hypotheses[0], []
-        opts = self.opts
-        sub = robust.subsample(self.rng, len(self.source), opts.hypothesis_points)
-        rev_sub = robust.subsample(self.rng, len(self.target), opts.hypothesis_points)
-        short = opts.coarse_options(opts.hypothesis_iterations)
-        scored: list[dict] = []
-        best, best_score = hypotheses[0], -1.0
-        for h, hyp in enumerate(hypotheses):
-            entry = {"hypothesis": hyp.label, "score": 0.0}
-            try:
-                feats = self.source_features(hyp.frame, sub)
-                cand = find_candidates(feats, self.dst_feat, opts.tau_f, opts.max_candidates, self.dst_feat_tree)
-                res = coarse_align(self.src_pts[sub], self.dst_pts, cand, hyp.init, short, self.weights_at(sub))
-                if self.refine:
-                    res = icp_refine(
-                        self.src_pts[sub], self.dst_pts, self.dst_tree, res.transform, short, self.weights_at(sub)
-                    )
-                fwd_d, _ = self.dst_tree.query(
-                    res.transform.apply(self.src_pts[sub]), k=1, workers=query_workers(len(sub))
-                )
-                rev_d = reverse_distances(res.transform, self.dst_pts[rev_sub], self.src_tree)
-                tau = opts.hypothesis_truncation * self.dst_frame.radius
-                closeness = 1.0 - 0.5 * (np.minimum(fwd_d, tau).mean() + np.minimum(rev_d, tau).mean()) / tau
-                entry.update(
-                    score=float(closeness),
-                    inliers_forward=float(np.mean(fwd_d <= self.threshold)),
-                    inliers_reverse=float(np.mean(rev_d <= self.threshold)),
-                )
-                hyp.init = res.transform
-            except AlignmentError as exc:
-                entry["error"] = str(exc)
-            scored.append(entry)
-            if entry["score"] > best_score:
-                best, best_score = hyp, entry["score"]
-            _report(progress, "hypotheses", (h + 1) / len(hypotheses))
-        scored[hypotheses.index(best)]["chosen"] = True
-        return best, scored
-
-    def coarse(self, best: _Hypothesis, progress: Progress | None) -> CoarseResult:
-        """Alg. 3 on (a sample of) the source, then — with canonical features —
-        nearest-neighbour refinement."""
-        opts = self.opts
-        rows = robust.subsample(self.rng, len(self.source), opts.max_points)
-        feats = self.source_features(best.frame, rows)
-        cand = find_candidates(feats, self.dst_feat, opts.tau_f, opts.max_candidates, self.dst_feat_tree)
-        feature_stage = opts.coarse_options()
-        if self.refine:
-            # With canonical features the feature stage is the global initialiser: its
-            # fixed point carries the two frames' estimation error, so converging it
-            # tightly is wasted work; the refinement below removes what is left.
-            feature_stage.rotation_tolerance = max(feature_stage.rotation_tolerance, 1e-3)
-            feature_stage.scale_tolerance = max(feature_stage.scale_tolerance, 1e-4)
-        coarse = coarse_align(
-            self.src_pts[rows], self.dst_pts, cand, best.init, feature_stage, self.weights_at(rows), progress
-        )
-        if self.refine:
-            # A dense target with a sampled source is as accurate as all-to-all
-            # nearest neighbours and several times cheaper.
-            rows = robust.subsample(self.rng, len(self.source), opts.refine_points)
-            refined = icp_refine(
-                self.src_pts[rows],
-                self.dst_pts,
-                self.dst_tree,
-                coarse.transform,
-                opts.coarse_options(opts.refine_iterations),
-                self.weights_at(rows),
-                progress,
-            )
-            coarse = replace(
-                coarse,
-                transform=refined.transform,
-                history=coarse.history + refined.history,
-                iterations=coarse.iterations + refined.iterations,
-                converged=refined.converged,
-                seconds=coarse.seconds + refined.seconds,
-            )
-        return coarse
-
-    def fine(self, best: _Hypothesis, init: Sim3, progress: Progress | None, cameras: Cameras | None = None):
-        from gsa.align.fine import FineOptions, fine_align  # lazy: loads torch and the renderer
-
-        src_model, dst_model = self.source, self.target
-        if self.mode == "canonical":
-            # Each model's own canonical frame carries its estimation error, and the
-            # fine loss would pull the pose back toward that error. Give the source
-            # the target's canonical features at the coarse pose instead, so the two
-            # agree wherever the geometry does.
-            src_model = self.source.with_features(canonical_features(init.apply(self.src_pts), self.dst_frame))
-            dst_model = self.target.with_features(self.dst_feat)
-        opts = self.opts
-        return fine_align(
-            src_model,
-            dst_model,
-            init,
-            FineOptions(
-                iterations=opts.fine_iterations,
-                lr=opts.fine_lr,
-                views=opts.fine_views,
-                image_size=opts.fine_image_size,
-                loss=opts.fine_loss,
-                on=opts.fine_on,
-                seed=opts.seed,
-            ),
-            cameras=cameras,
-            progress=progress,
-        )
-
-    def quality(self, transform: Sim3, best: _Hypothesis) -> dict:
-        rows = robust.subsample(self.rng, len(self.source), self.opts.max_points)
-        metrics = quality_metrics(
-            transform,
-            self.src_pts[rows],
-            self.dst_pts,
-            self.source_features(best.frame, rows),
-            self.dst_feat,
-            self.threshold,
-            self.src_tree,
-            self.dst_tree,
-            robust.subsample(self.rng, len(self.target), self.opts.max_points),
-        )
-        metrics["inlier_threshold"] = self.threshold
-        return metrics

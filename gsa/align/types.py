@@ -80,7 +80,7 @@ class AlignOptions:
             Gaussians (the authors subsample to 30k-50k); the target is always used whole.
         inlier_threshold: GT-free inlier distance, as a fraction of the target's RMS radius.
         hypothesis_truncation: hypotheses are ranked by the symmetric nearest-neighbour
-            distance truncated at this fraction of the target's RMS radius (see _Pair.select).
+            distance truncated at this fraction of the target's RMS radius (see gsa.align.pair._FrameSearch.select).
         search: auto, global or frames: the coarse initialisation with canonical features.
             "global": the robust search of gsa.align.robust (SO(3) sample + frame relabellings
             on floater-free anchors, scored by overlap and colour); "frames": one canonical
