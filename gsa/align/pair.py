@@ -1,5 +1,5 @@
-"""The per-pair state of align()'s object path, and its stages (issue 64: gsa.align.pipeline's
-_Pair, split by stage).
+"""The per-pair state of align()'s object path, and its stages (gsa.align.pipeline's _Pair,
+split by stage).
 
 `_Pair` holds what every stage shares about one source/target pair: the models, their
 points and trees (built once), the target's features, both canonical frames, the anchors,
