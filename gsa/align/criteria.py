@@ -24,6 +24,7 @@ from gsa.align.open_ends import OpenEndCriteria
 from gsa.align.robust import PoseCriteria, RefineCriteria, SearchOptions, VerdictCriteria
 from gsa.align.scene.options import SceneOptions
 from gsa.align.semantic import SemanticCriteria
+from gsa.align.spin import SpinCriteria
 
 __all__ = ["Criteria"]
 
@@ -41,6 +42,7 @@ class Criteria:
     open_ends: OpenEndCriteria = field(default_factory=OpenEndCriteria)  # gsa.align.open_ends
     semantic: SemanticCriteria = field(default_factory=SemanticCriteria)  # the semantic tie-break
     learned: LearnedCriteria = field(default_factory=LearnedCriteria)  # the learned canonical head's route
+    spin: SpinCriteria = field(default_factory=SpinCriteria)  # the turn about a nearly turn-symmetric axis
 
     def __post_init__(self) -> None:
         defaults = SearchOptions()

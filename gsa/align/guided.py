@@ -265,6 +265,12 @@ def keeps_front(rotation: np.ndarray, fronts, criteria: GuidanceCriteria | None 
     return bool((rotation @ src_front) @ dst_front >= np.cos(np.radians(reach)))
 
 
+def front_gap_deg(rotation: np.ndarray, fronts) -> float:
+    """Degrees between the source's front as `rotation` maps it and the target's front."""
+    src_front, dst_front = (np.asarray(v, np.float64) for v in fronts)
+    return float(np.degrees(np.arccos(np.clip((rotation @ src_front) @ dst_front, -1.0, 1.0))))
+
+
 def _min_rotation(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """The smallest rotation taking unit vector a onto unit vector b."""
     axis = np.cross(a, b)
@@ -444,6 +450,7 @@ __all__ = [
     "click_miss",
     "constrain",
     "describe",
+    "front_gap_deg",
     "doubt_reason",
     "init_sim3",
     "is_guided",

@@ -221,6 +221,10 @@ class _AnchorSearch:
             options = k.search_options(0, pair.opts.seed, offer_turn_axes=(tuple(pair.opts.up_axes[1]),))
             starts = guided.up_rotations(*pair.opts.up_axes, criteria=k.guidance, fronts=pair.opts.front_axes)
             result = robust.global_search(src, dst, starts, options)
+            if pair.opts.front_axes is not None:
+                # the turns about up that the geometry cannot tell apart: the person's front decides
+                fronts = pair.opts.front_axes
+                result = robust.prefer_among_tied(result, lambda c: guided.front_gap_deg(c.transform.rotation, fronts))
         else:
             options = k.search_options(pair.opts.search_rotations, pair.opts.seed)
             result = robust.global_search(

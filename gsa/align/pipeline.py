@@ -16,7 +16,7 @@ import numpy as np
 from threadpoolctl import threadpool_limits
 
 from gsa import manhattan
-from gsa.align import frame_snap, guided, learned, open_ends, photo, robust, scene
+from gsa.align import frame_snap, guided, learned, open_ends, photo, robust, scene, spin
 from gsa.align.choices import (
     EXTRACTOR_MODES,
     FEATURE_MODES,
@@ -217,8 +217,48 @@ def _doubtful_answer(pair, best, search, transform: Sim3, metrics: dict, guidanc
     if guidance is None:
         return _doubtful_search_answer(pair, best, search, transform, metrics, timings, progress)
     if leash is not None:
-        return frame_snap.guided_snap(pair, best, transform, metrics, *leash)
-    return frame_snap.up_snap(pair, best, transform, metrics)
+        transform, metrics = frame_snap.guided_snap(pair, best, transform, metrics, *leash)
+        start, symmetries = leash
+        given = best.init
+
+        def keeps_guidance(pose: Sim3) -> bool:
+            return guided.near_start(
+                pose, given, pair.opts, dict(start), criteria=pair.criteria.guidance, symmetries=symmetries
+            )
+    else:
+        transform, metrics = frame_snap.up_snap(pair, best, transform, metrics)
+
+        def keeps_guidance(pose: Sim3) -> bool:
+            fronts = pair.opts.front_axes
+            return fronts is None or guided.keeps_front(pose.rotation, fronts, pair.criteria.guidance)
+
+    transform, metrics = frame_snap.principal_snap(pair, best, transform, metrics, keeps_guidance)
+    return _settled_spin(pair, best, transform, metrics, keeps_guidance)
+
+
+def _settled_spin(pair, best, transform: Sim3, metrics: dict, keeps_guidance) -> tuple[Sim3, dict]:
+    """A doubtful guided answer turned about a nearly turn-symmetric object's axis onto the
+    turn its symmetry-breaking parts agree on (gsa.align.spin), where that turn still honours
+    the guidance; the answer it replaces becomes the first alternative."""
+    if pair.opts.frame_snap == "off":
+        return transform, metrics
+    settled = spin.settle_spin(pair.source, pair.target, transform, pair.criteria.spin)
+    if settled is None:
+        return transform, metrics
+    turned, report = settled
+    turned = pair.constrain(turned)
+    used = abs(report["turn_deg"]) > 1e-6 and keeps_guidance(turned)
+    if not used:
+        return transform, metrics | {"spin": report | {"used": False}}
+    alternatives = [frame_snap.replaced_pose(transform, metrics, "before the spin settle")]
+    alternatives += [
+        alt
+        for alt in metrics.get("alternatives") or []
+        if robust.rotation_offset_deg(Sim3.from_matrix(np.asarray(alt["transform"], np.float64)), turned)
+        > frame_snap.FRAME_SNAP_SAME_DEG
+    ]
+    updated = metrics | pair.judge.quality(turned, best) | {"alternatives": alternatives}
+    return turned, updated | {"spin": report | {"used": True}}
 
 
 def _swept_poses(pair, lifted, known: list[Sim3], search) -> list[robust.Candidate]:

@@ -67,6 +67,7 @@ from gsa.align.robust.poses import (
     colour_trust,
     decide,
     dedupe,
+    prefer_among_tied,
     rotation_offset_deg,
     score_pose,
     with_given_pose,
@@ -81,7 +82,7 @@ from gsa.align.robust.refinement import (
     refine,
     verdict,
 )
-from gsa.align.robust.search import SearchOptions, global_search
+from gsa.align.robust.search import SearchOptions, global_search, principal_snap
 
 __all__ = [
     "RIGID_REFINE",
@@ -103,9 +104,11 @@ __all__ = [
     "colour_weight",
     "decide",
     "dedupe",
+    "prefer_among_tied",
     "floater_mask",
     "frame_relabellings",
     "global_search",
+    "principal_snap",
     "match_exposure",
     "box_lattice",
     "placed_starts",

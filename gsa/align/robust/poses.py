@@ -379,6 +379,35 @@ def with_given_pose(given: Candidate, found: SearchResult) -> SearchResult:
     )
 
 
+def prefer_among_tied(found: SearchResult, key: Callable[[Candidate], float]) -> SearchResult:
+    """The search's result with, of the best and the poses tied with it, the one of least
+    `key` first: where the models' geometry cannot tell poses apart (a mug turned about its
+    body), what a person said (which way it faces) decides. The others keep their order; the
+    margin and rivals are taken again around the pose now first."""
+    tied = [found.best, *found.rivals]
+    chosen = min(tied, key=key)
+    if chosen is found.best:
+        return found
+    k = found.criteria
+
+    def measure(c: Candidate) -> float:
+        return c.geometry if found.ranked_by == "geometry" else c.score
+
+    others = [c for c in found.candidates if c is not chosen]
+    rivals = [c for c in others if measure(c) >= measure(chosen) - k.score_tie]
+    margin = (measure(chosen) - max(measure(c) for c in others)) / k.score_tie
+    return SearchResult(
+        [chosen, *others],
+        found.colour_weight,
+        float(margin),
+        rivals,
+        found.colour_noise,
+        found.ranked_by,
+        lambda: [found.best, *(c for c in found.offered if c is not chosen)],
+        k,
+    )
+
+
 def _contradicted(pose: Candidate, reference: Candidate, noise: float, criteria: PoseCriteria) -> bool:
     """Whether `pose` disagrees in colour beyond the noise and colour_switch_ratio times
     more than `reference`."""
