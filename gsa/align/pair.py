@@ -548,3 +548,31 @@ def _feature_mode(source: GaussianModel, target: GaussianModel, requested: str) 
 def _report(progress: Progress | None, stage: str, fraction: float) -> None:
     if progress is not None:
         progress(stage, float(min(max(fraction, 0.0), 1.0)))
+
+
+# A stretch of align()'s work between two reports is cut to about this (plus one step).
+REPEAT_S = 0.1
+
+
+class _Repeater:
+    """The progress callback align() hands down: passes each report on, remembers the last, and,
+    installed as the thread's step callback (gsa.render.steps.between_steps), repeats it at a
+    step of the library's long loops (ICP iterations, the search's starts, the relabellings'
+    scores, ...) once REPEAT_S has passed without a report, so a caller whose callback raises
+    (a cancelled service job) stops within a step wherever the work is. Only the calls change:
+    the same work runs on the same data."""
+
+    def __init__(self, progress: Progress, every_s: float = REPEAT_S) -> None:
+        self.progress, self.every_s = progress, every_s
+        self.stage: str | None = None
+        self.fraction = 0.0
+        self.last = time.monotonic()
+
+    def __call__(self, stage: str, fraction: float) -> None:
+        self.stage, self.fraction = stage, fraction
+        self.progress(stage, fraction)
+        self.last = time.monotonic()
+
+    def step(self) -> None:
+        if self.stage is not None and time.monotonic() - self.last >= self.every_s:
+            self(self.stage, self.fraction)
