@@ -36,6 +36,7 @@ from gsa.align.quality import quality_metrics, reverse_distances
 from gsa.align.types import AlignOptions
 from gsa.canonical import CanonicalFrame, canonical_features, frame_hypotheses, model_frame, relabelling_label
 from gsa.model import GaussianModel
+from gsa.render import steps
 from gsa.sim3 import Sim3
 
 if TYPE_CHECKING:
@@ -96,10 +97,17 @@ class _Pair:
     def build(cls, source: GaussianModel, target: GaussianModel, opts: AlignOptions) -> _Pair:
         scene.check_models(source, target)
         mode = _feature_mode(source, target, opts.features)
-        src_frame, dst_frame = model_frame(source), model_frame(target)
+        src_frame = model_frame(source)
+        steps.step()  # a due progress report (_Repeater), between whole-model passes
+        dst_frame = model_frame(target)
         src_pts = source.means.astype(np.float64)
         dst_pts = target.means.astype(np.float64)
         dst_feat = target.features if mode == "file" else canonical_features(dst_pts, dst_frame)
+        steps.step()
+        src_tree = cKDTree(src_pts)
+        steps.step()
+        dst_tree = cKDTree(dst_pts)
+        steps.step()
         return cls(
             source=source,
             target=target,
@@ -109,8 +117,8 @@ class _Pair:
             dst_frame=dst_frame,
             src_pts=src_pts,
             dst_pts=dst_pts,
-            src_tree=cKDTree(src_pts),
-            dst_tree=cKDTree(dst_pts),
+            src_tree=src_tree,
+            dst_tree=dst_tree,
             dst_feat=dst_feat,
             weights=source.opacities if opts.weight_by_opacity else None,
             threshold=opts.inlier_threshold * dst_frame.radius,

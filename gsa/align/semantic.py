@@ -332,7 +332,8 @@ def lifted_features(
     if len(both) <= criteria.components:
         raise ValueError("too few foreground patches to compare the models semantically")
     mean = both.mean(0)
-    basis = torch.linalg.svd(both - mean, full_matrices=False)[2][: criteria.components].T
+    # one LAPACK call of ~1 s: waited for between reports (gsa.render.steps.waiting)
+    basis = steps.waiting(lambda: torch.linalg.svd(both - mean, full_matrices=False))[2][: criteria.components].T
     if progress is not None:
         progress("semantic", 0.6)
     out = []
