@@ -570,8 +570,9 @@ class _Repeater:
     (a cancelled service job) stops within a step wherever the work is. Only the calls change:
     the same work runs on the same data."""
 
-    def __init__(self, progress: Progress, every_s: float = REPEAT_S) -> None:
-        self.progress, self.every_s = progress, every_s
+    def __init__(self, progress: Progress, every_s: float | None = None) -> None:
+        self.progress = progress
+        self.every_s = REPEAT_S if every_s is None else every_s
         self.stage: str | None = None
         self.fraction = 0.0
         self.last = time.monotonic()
