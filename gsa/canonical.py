@@ -17,6 +17,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from gsa.model import GaussianModel
+from gsa.render import steps
 from gsa.sim3 import Sim3
 
 # An axis order is trusted only when extents differ by more than this fraction,
@@ -77,6 +78,7 @@ def canonical_frame(points: np.ndarray, weights: np.ndarray | None = None) -> Ca
         weakest = int(np.argmin(np.abs(skews)))
         axes[weakest] *= -1
         skews[weakest] *= -1
+    steps.step()  # a due progress report (gsa.align.pair._Repeater)
     axes, extents, skews = _settle_close_pair(axes, extents, skews, xc, w)
     radius = float(np.sqrt(w @ np.einsum("ij,ij->i", xc, xc)))
     if not radius > 0:

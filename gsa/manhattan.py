@@ -22,6 +22,7 @@ import numpy as np
 from gsa.canonical import SIGNED_PERMUTATIONS
 from gsa.geometry import rotation_distance_deg
 from gsa.model import GaussianModel
+from gsa.render import steps
 from gsa.sim3 import Sim3
 
 # Coarse search: directions on a half sphere (a normal and its opposite count alike), each
@@ -164,7 +165,11 @@ def relabelling_agreement(
     source_coords = _spread_coords(source, source_frame)
     target_grid = _mass_grid(*_spread_coords(target, target_frame))
     points, weights = source_coords
-    return np.array([float(np.sum(_mass_grid(points @ g.T, weights) * target_grid)) for g in SIGNED_PERMUTATIONS])
+    out = []
+    for g in SIGNED_PERMUTATIONS:
+        steps.step()  # a due progress report (gsa.align.pair._Repeater): 24 passes over the source
+        out.append(float(np.sum(_mass_grid(points @ g.T, weights) * target_grid)))
+    return np.array(out)
 
 
 def feature_agreement(
@@ -186,7 +191,11 @@ def feature_agreement(
     frames")."""
     source_grid = _feature_grid(_frame_coords(source, source_frame, source_features[0]), source_features[1])
     target_grid = _feature_grid(_frame_coords(target, target_frame, target_features[0]), target_features[1])
-    return np.array([float(np.sum(_relabelled_grid(source_grid, g) * target_grid)) for g in SIGNED_PERMUTATIONS])
+    out = []
+    for g in SIGNED_PERMUTATIONS:
+        steps.step()  # a due progress report (gsa.align.pair._Repeater)
+        out.append(float(np.sum(_relabelled_grid(source_grid, g) * target_grid)))
+    return np.array(out)
 
 
 def _frame_coords(model: GaussianModel, frame: NormalFrame, points: np.ndarray) -> np.ndarray:
@@ -324,6 +333,7 @@ def fit_shift(
     moved = pose.scale * np.asarray(source_points, np.float64) @ pose.rotation.T
     shift = pose.translation.copy()
     for _ in range(iterations):
+        steps.step()  # a due progress report (gsa.align.pair._Repeater)
         dist, nearest = tree.query(moved + shift, distance_upper_bound=reach)
         near = np.isfinite(dist)
         if near.sum() < 3:

@@ -14,6 +14,7 @@ import numpy as np
 
 from gsa.errors import GSAError
 from gsa.geometry import normalize_quats, quat_multiply, quat_to_rotation, rotation_to_quat
+from gsa.render import steps
 from gsa.sh import rgb_to_sh_dc, rotate_sh, sh_dc_to_rgb
 
 # Rows per block where whole-model work is done block by block to bound its temporaries.
@@ -132,7 +133,9 @@ class GaussianModel:
         (0 for a ball, whose shortest axis is arbitrary)."""
         scales = self.log_scales[rows].astype(np.float64)
         order = np.argsort(scales, axis=1)
+        steps.step()  # a due progress report (gsa.align.pair._Repeater): whole-model passes
         rot = quat_to_rotation(normalize_quats(self.quats[rows].astype(np.float64)))
+        steps.step()
         normals = np.take_along_axis(rot, order[:, None, :1], axis=2)[:, :, 0]
         ranked = np.take_along_axis(scales, order, axis=1)
         flatness = 1.0 - np.exp(ranked[:, 0] - ranked[:, 1])

@@ -36,6 +36,7 @@ from gsa.align.quality import quality_metrics, reverse_distances
 from gsa.align.types import AlignOptions
 from gsa.canonical import CanonicalFrame, canonical_features, frame_hypotheses, model_frame, relabelling_label
 from gsa.model import GaussianModel
+from gsa.render import steps
 from gsa.sim3 import Sim3
 
 if TYPE_CHECKING:
@@ -96,10 +97,17 @@ class _Pair:
     def build(cls, source: GaussianModel, target: GaussianModel, opts: AlignOptions) -> _Pair:
         scene.check_models(source, target)
         mode = _feature_mode(source, target, opts.features)
-        src_frame, dst_frame = model_frame(source), model_frame(target)
+        src_frame = model_frame(source)
+        steps.step()  # a due progress report (_Repeater), between whole-model passes
+        dst_frame = model_frame(target)
         src_pts = source.means.astype(np.float64)
         dst_pts = target.means.astype(np.float64)
         dst_feat = target.features if mode == "file" else canonical_features(dst_pts, dst_frame)
+        steps.step()
+        src_tree = cKDTree(src_pts)
+        steps.step()
+        dst_tree = cKDTree(dst_pts)
+        steps.step()
         return cls(
             source=source,
             target=target,
@@ -109,8 +117,8 @@ class _Pair:
             dst_frame=dst_frame,
             src_pts=src_pts,
             dst_pts=dst_pts,
-            src_tree=cKDTree(src_pts),
-            dst_tree=cKDTree(dst_pts),
+            src_tree=src_tree,
+            dst_tree=dst_tree,
             dst_feat=dst_feat,
             weights=source.opacities if opts.weight_by_opacity else None,
             threshold=opts.inlier_threshold * dst_frame.radius,
@@ -552,3 +560,32 @@ def _feature_mode(source: GaussianModel, target: GaussianModel, requested: str) 
 def _report(progress: Progress | None, stage: str, fraction: float) -> None:
     if progress is not None:
         progress(stage, float(min(max(fraction, 0.0), 1.0)))
+
+
+# A stretch of align()'s work between two reports is cut to about this (plus one step).
+REPEAT_S = 0.1
+
+
+class _Repeater:
+    """The progress callback align() hands down: passes each report on, remembers the last, and,
+    installed as the thread's step callback (gsa.render.steps.between_steps), repeats it at a
+    step of the library's long loops (ICP iterations, the search's starts, the relabellings'
+    scores, ...) once REPEAT_S has passed without a report, so a caller whose callback raises
+    (a cancelled service job) stops within a step wherever the work is. Only the calls change:
+    the same work runs on the same data."""
+
+    def __init__(self, progress: Progress, every_s: float | None = None) -> None:
+        self.progress = progress
+        self.every_s = REPEAT_S if every_s is None else every_s
+        self.stage: str | None = None
+        self.fraction = 0.0
+        self.last = time.monotonic()
+
+    def __call__(self, stage: str, fraction: float) -> None:
+        self.stage, self.fraction = stage, fraction
+        self.progress(stage, fraction)
+        self.last = time.monotonic()
+
+    def step(self) -> None:
+        if self.stage is not None and time.monotonic() - self.last >= self.every_s:
+            self(self.stage, self.fraction)

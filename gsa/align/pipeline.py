@@ -32,11 +32,12 @@ from gsa.align.coarse import (
     CoarseOptions,
     CoarseResult,
 )
-from gsa.align.pair import _feature_mode, _Hypothesis, _Pair, _report
+from gsa.align.pair import _feature_mode, _Hypothesis, _Pair, _Repeater, _report
 from gsa.align.quality import quality_metrics
 from gsa.align.types import AlignmentResult, AlignOptions
 from gsa.errors import GSAError
 from gsa.model import GaussianModel
+from gsa.render.steps import between_steps
 from gsa.sim3 import Sim3
 
 if TYPE_CHECKING:
@@ -291,8 +292,11 @@ def align(
     # numpy's BLAS calls here are tiny (3×3 SVDs, N×3 products); OpenBLAS's worker
     # threads spin after each one and can take a core from the compiled kernels' threads
     # (docs/benchmarks.md, fifth pass: 50k coarse 1.03 s against 0.87 s, seen once).
-    with threadpool_limits(limits=1, user_api="blas"):
-        return _align(source, target, options or AlignOptions(), progress, target_cameras)
+    # Between two reports the library's long loops call gsa.render.steps.step(), which repeats
+    # the last report once it is REPEAT_S old (pair._Repeater): a raising callback stops soon.
+    repeater = _Repeater(progress) if progress is not None else None
+    with threadpool_limits(limits=1, user_api="blas"), between_steps(repeater.step if repeater else None):
+        return _align(source, target, options or AlignOptions(), repeater, target_cameras)
 
 
 def _align(

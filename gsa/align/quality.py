@@ -8,6 +8,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from gsa.align.nearest import query_workers
+from gsa.render import steps
 from gsa.sim3 import Sim3
 
 
@@ -36,7 +37,9 @@ def quality_metrics(
     source (forward) and target (reverse) Gaussians with a partner within the
     inlier threshold, the RMS distance of forward inliers, and how well the
     features of spatial nearest neighbours agree."""
+    steps.step()  # a due progress report (gsa.align.pair._Repeater)
     fwd_d, fwd_i = dst_tree.query(transform.apply(src_pts), k=1, workers=query_workers(len(src_pts)))
+    steps.step()
     reverse = reverse_inliers(transform, dst_pts[reverse_rows], src_tree, threshold)
     inlier = fwd_d <= threshold
     forward = float(inlier.mean())

@@ -39,6 +39,7 @@ import numpy as np
 
 from gsa.align.choices import Progress
 from gsa.model import GaussianModel
+from gsa.render import steps
 from gsa.sim3 import Sim3
 
 # Views rendered (or lifted through) per renderer call, at most this many views x Gaussians:
@@ -331,7 +332,8 @@ def lifted_features(
     if len(both) <= criteria.components:
         raise ValueError("too few foreground patches to compare the models semantically")
     mean = both.mean(0)
-    basis = torch.linalg.svd(both - mean, full_matrices=False)[2][: criteria.components].T
+    # one LAPACK call of ~1 s: waited for between reports (gsa.render.steps.waiting)
+    basis = steps.waiting(lambda: torch.linalg.svd(both - mean, full_matrices=False))[2][: criteria.components].T
     if progress is not None:
         progress("semantic", 0.6)
     out = []
@@ -487,6 +489,7 @@ class LiftedPair:
         grid = NearestGrid(self.dst_pts, 0.25 * radius, radius)
         score = np.zeros(len(rotations))
         for start in range(0, len(rotations), 128):  # bounded memory: 128 x points x features
+            steps.step()  # a due progress report (gsa.align.pair._Repeater)
             block = rotations[start : start + 128]
             nearest, dist = grid.lookup(scale * np.einsum("rij,nj->rni", block, centred) + dst_centre)
             agree = np.einsum("rnk,nk->rn", self.dst_f[np.maximum(nearest, 0)], feats)

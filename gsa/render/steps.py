@@ -10,6 +10,10 @@ back-projection) installs its callback for the calls it makes with `between_step
 callback may raise, which unwinds the render (the kernel lock is released on the way out).
 Nothing else changes: the same kernels run on the same data, so the images are the same.
 
+align() installs one too (gsa.align.pair._Repeater: its last progress report, repeated once it is
+0.1 s old), and its long loops call `step()` between their passes; one native call too long to
+split (a LAPACK SVD) runs through `waiting()`, which calls `step()` while it waits.
+
 Thread-local, like the backbone's block hooks (gsa.align.semantic): the service's embedded workers
 are threads, and one job's callback must not run in another job's render.
 """
@@ -19,8 +23,10 @@ from __future__ import annotations
 import contextlib
 import threading
 from collections.abc import Callable, Iterator
+from typing import TypeVar
 
 _LOCAL = threading.local()
+T = TypeVar("T")
 
 
 def step() -> None:
@@ -40,3 +46,28 @@ def between_steps(call: Callable[[], None] | None) -> Iterator[None]:
         yield
     finally:
         _LOCAL.call = previous
+
+
+def waiting(call: Callable[[], T], poll_s: float = 0.05) -> T:
+    """`call()`'s value, the call made on a helper thread while this thread calls `step()` every
+    poll_s, for one long native call that releases the GIL (the same call on the same data: the
+    same value). Where `step()` raises, the helper runs its call to the end unwaited for. Without
+    a callback installed, `call()` runs on this thread."""
+    if getattr(_LOCAL, "call", None) is None:
+        return call()
+    box: dict = {}
+
+    def run() -> None:
+        try:
+            box["value"] = call()
+        except BaseException as exc:  # noqa: BLE001 - handed to the waiting thread
+            box["error"] = exc
+
+    helper = threading.Thread(target=run, name="gsa-steps-waiting", daemon=True)
+    helper.start()
+    while helper.is_alive():
+        step()
+        helper.join(poll_s)
+    if "error" in box:
+        raise box["error"]
+    return box["value"]

@@ -15,6 +15,7 @@ from scipy.spatial import cKDTree
 
 from gsa.align.robust.anchoring import Anchors, PaletteOptions, colour_weight
 from gsa.geometry import rotation_distance_deg
+from gsa.render import steps
 from gsa.sim3 import DegenerateCorrespondencesError, Sim3, solve_sim3
 
 
@@ -200,6 +201,7 @@ def bidirectional_icp(
         src_tree = cKDTree(np.hstack([src.points, lam_src * src.lab]))
         p_lab, q_lab = lam * src.lab[src_rows], lam_src * dst.lab[dst_rows]
     for _ in range(iterations):
+        steps.step()  # a due progress report (gsa.align.pair._Repeater)
         if lam > 0:
             _, j = dst_tree.query(np.hstack([transform.apply(p), p_lab]), k=1)
             _, i = src_tree.query(np.hstack([transform.inverse().apply(q), q_lab]), k=1)
@@ -242,6 +244,7 @@ def score_pose(
 ) -> Candidate:
     """Score, overlap-only geometry, colour agreement and overlap fraction of a pose (all anchors)."""
     c = criteria or _DEFAULT
+    steps.step()
     tau = c.truncation * dst.radius
     d_f, j = dst.tree.query(transform.apply(src.points), k=1)
     d_r, i = src.tree.query(transform.inverse().apply(dst.points), k=1)

@@ -20,6 +20,7 @@ from gsa.align.robust.poses import (
 )
 from gsa.canonical import SIGNED_PERMUTATIONS, CanonicalFrame, relabelling_label
 from gsa.geometry import axis_rotation, rotation_distance_deg
+from gsa.render import steps
 from gsa.sim3 import DegenerateCorrespondencesError, Sim3, solve_sim3
 
 
@@ -271,6 +272,7 @@ class _Fit:
             tab_r = np.ascontiguousarray(tab_r.reshape(len(q), -1), np.int64)
             inner = 0
             while it < iterations:
+                steps.step()  # a due progress report (gsa.align.pair._Repeater)
                 it += 1
                 inner += 1
                 d, a, b = self._pairs(transform, tab_f, tab_r)
@@ -319,6 +321,7 @@ class _Fit:
         tab_r = np.ascontiguousarray(tab_r.reshape(len(self.q), -1), np.int64)
         history: list[dict] = []
         for it in range(iterations):
+            steps.step()
             d, a, b, j = self._pairs(transform, tab_f, tab_r, with_rows=True)
             keep = _smallest(d, fraction)
             n = np.concatenate([n_all[j], n_q])[keep]
@@ -377,8 +380,10 @@ def coincidence(
     pairs closer than coincident_spacings sampling spacings: how much of the overlap
     coincides, whatever the share of each model the overlap is."""
     k = criteria or _REFINE
+    steps.step()
     moved = transform.apply(source_points)
     d_f, _ = target_tree.query(moved, workers=_workers(len(source_points)))
+    steps.step()
     d_r, _ = source_tree.query(transform.inverse().apply(target_points), workers=_workers(len(target_points)))
     d_back = d_r * transform.scale  # in the target's units, as d_f
     d = np.concatenate([d_f, d_back])
