@@ -760,6 +760,8 @@ def edge_from_result(i: int, j: int, result, seconds: float) -> Edge:
     metrics, verdict = result.metrics, result.verdict
     alternatives, scores = [], [_score(metrics.get("semantic_score"))]
     for alt in verdict.alternatives:
+        if alt.transform is None:  # an alternative we cannot read is left out
+            continue
         alternatives.append(alt.transform)
         scores.append(_score(alt.details.get("semantic_score")))
     confidence = metrics.get("confidence")

@@ -28,7 +28,7 @@ class Alternative:
     """A pose offered beside the answer (result.json's metrics["alternatives"][k]); `details` is
     that entry whole, every key it carries (geometry, semantic_score, file_transform, ...)."""
 
-    transform: Sim3  # source -> target in align()'s frame: what init_transform takes back
+    transform: Sim3 | None  # source -> target in align()'s frame (init_transform takes it back); None: unreadable
     origin: str  # where it came from: "flip:axis0", "the given start", "frame relabelling", ...
     tied: bool  # it scores within the search's tie of the answer (what makes a result ambiguous)
     rotation_offset_deg: float | None  # how far it turns from the answer
@@ -42,8 +42,12 @@ class Alternative:
             value = d.get(key)
             return float(value) if is_number(value) else None
 
+        try:
+            transform = Sim3.from_matrix(np.asarray(d["transform"], np.float64))
+        except (KeyError, TypeError, ValueError):  # an entry without a readable pose keeps its details
+            transform = None
         return cls(
-            transform=Sim3.from_matrix(np.asarray(d["transform"], np.float64)),
+            transform=transform,
             origin=str(d.get("origin", "")),
             tied=bool(d.get("tied", False)),
             rotation_offset_deg=number("rotation_offset_deg"),
@@ -56,7 +60,9 @@ class Alternative:
         """The entry as result.json writes it: `details` as given, else the typed fields."""
         if self.details:
             return dict(self.details)
-        out = {"origin": self.origin, "tied": self.tied, "transform": self.transform.matrix().tolist()}
+        out = {"origin": self.origin, "tied": self.tied}
+        if self.transform is not None:
+            out["transform"] = self.transform.matrix().tolist()
         for key in ("rotation_offset_deg", "scale_ratio", "score"):
             if getattr(self, key) is not None:
                 out[key] = getattr(self, key)
@@ -109,9 +115,7 @@ def split_record(record: Mapping) -> tuple[dict, Verdict, dict, tuple[str, ...]]
     return metrics, Verdict.from_metrics(record), diagnostics, tuple(record)
 
 
-def merged_record(
-    metrics: Mapping, verdict: Verdict, diagnostics: Mapping, order: Iterable[str] | None = None
-) -> dict:
+def merged_record(metrics: Mapping, verdict: Verdict, diagnostics: Mapping, order: Iterable[str] | None = None) -> dict:
     """result.json's `metrics` object: the three parts merged in `order` (the working record's),
     then keys added since (numbers, the verdict's, diagnostics). A verdict key is written where
     the order has it; one the order lacks, where it is true or non-empty, or always for a result
