@@ -175,7 +175,7 @@ def test_a_doubtful_scene_answer_is_weighed_against_the_object_paths(room_pair):
     offered = [a.details for a in kept.verdict.alternatives if a.origin == "object path"]
     assert len(offered) == 1 and np.allclose(offered[0]["transform"], wrong.matrix())
     # the other way round: the object path's better fit replaces a wrong scene answer
-    swapped = _second_opinion(cap.source, cap.target, AlignOptions(), objects, replace(rooms, metrics={}))
+    swapped = _second_opinion(cap.source, cap.target, AlignOptions(), objects, replace(rooms, metrics={}, verdict=None))
     assert swapped.diagnostics["scene"]["second_opinion"]["chosen"] == "object path"
     assert rre_deg(swapped.transform.rotation, cap.truth.rotation) < 2.0
     assert any(a.origin == "scene path" for a in swapped.verdict.alternatives)

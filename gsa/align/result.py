@@ -42,8 +42,9 @@ class AlignmentResult:
         record_order: the record's key order, which result.json's `metrics` keeps (None for a
             result built from its parts).
 
-    Built with `metrics` as align()'s working record (numbers, verdict and reports in one dict,
-    result.json's `metrics` layout) and no verdict, it splits the record into the three.
+    Built with `metrics` as align()'s working record (result.json's `metrics` layout: numbers,
+    verdict and reports in one dict), or with no verdict, the record is split into the three: its
+    verdict and diagnostics replace any given (dataclasses.replace(result, metrics=record) too).
     """
 
     transform: Sim3  # maps source coordinates into the target frame
@@ -63,11 +64,7 @@ class AlignmentResult:
 
     def __post_init__(self) -> None:
         if self.verdict is None or not all(is_number(v) for v in self.metrics.values()):
-            given, extra = self.verdict, self.diagnostics
             self.set_record(self.metrics)
-            if given is not None:
-                self.verdict = given
-            self.diagnostics = {**self.diagnostics, **extra}
 
     def record(self) -> dict:
         """result.json's `metrics` object: numbers, verdict and diagnostics merged, in the order
