@@ -74,8 +74,8 @@ def test_a_doubtful_answer_between_two_instances_is_turned_onto_their_frames(tmp
     flips = [np.diag(d) for d in ([1, 1, 1], [1, -1, -1], [-1, 1, -1], [-1, -1, 1])]
     error = min(rotation_distance_deg(result.transform.rotation, truth.rotation @ f) for f in flips)
     assert error < 0.5, error
-    assert m["alternatives"][0]["origin"] == "before the frame snap"
-    unsnapped = Sim3.from_matrix(np.asarray(m["alternatives"][0]["transform"]))
+    assert result.verdict.alternatives[0].origin == "before the frame snap"
+    unsnapped = result.verdict.alternatives[0].transform
     assert rotation_distance_deg(unsnapped.rotation, result.transform.rotation) == pytest.approx(
         m["frame_snap"]["deg"], abs=1e-6
     )

@@ -147,6 +147,6 @@ def test_the_learned_pose_picks_among_the_search_poses(monkeypatch, tmp_path):
 
     monkeypatch.setattr(learned, "_models_oriented", lambda pair: (oracle(pair.source, 0), oracle(pair.target, 0)))
     result = align(source, target, AlignOptions(semantic="off"))
-    report = result.metrics["learned"]
+    report = result.diagnostics["learned"]
     assert report["used"], report
     assert rre_deg(result.transform.rotation, truth.rotation) < 3.0
