@@ -177,9 +177,9 @@ def default_align_runner(hint: str | None = None):
         result = align(source, target, AlignOptions(**options))
         flags = {
             "confidence": float(result.metrics.get("confidence", float("nan"))),
-            "ambiguous": bool(result.metrics.get("ambiguous", False)),
-            "doubtful": bool(result.metrics.get("doubtful", False)),
-            "alternatives": [alt["transform"] for alt in result.metrics.get("alternatives") or []],
+            "ambiguous": result.verdict.ambiguous,
+            "doubtful": result.verdict.doubtful,
+            "alternatives": [alt.transform.matrix().tolist() for alt in result.verdict.alternatives],
         }
         return {label: (result.transform, time.perf_counter() - t0, flags)}
 

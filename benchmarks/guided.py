@@ -179,8 +179,8 @@ def guided_runner(hint: str):
         result = align(source, target, AlignOptions(**options))
         flags = {
             "confidence": float(result.metrics.get("confidence", float("nan"))),
-            "doubtful": bool(result.metrics.get("doubtful", False)),
-            "alternatives": [alt["transform"] for alt in result.metrics.get("alternatives") or []]
+            "doubtful": result.verdict.doubtful,
+            "alternatives": [alt.transform.matrix().tolist() for alt in result.verdict.alternatives]
             if hint == "default"
             else None,
         }

@@ -204,16 +204,16 @@ def gsa_runner(fine: bool, labels: tuple[str, str] = (GSA_COARSE, GSA_FINE), **o
         # when align() does not report one.
         flags = {
             "confidence": _float_or_none(result.metrics.get("confidence")),
-            "ambiguous": bool(result.metrics.get("ambiguous", False)),
-            "doubtful": bool(result.metrics.get("doubtful", False)),
+            "ambiguous": result.verdict.ambiguous,
+            "doubtful": result.verdict.doubtful,
             # whether align() took the scene path (gsa.align.scene)
-            "scene_path": bool((result.metrics.get("scene") or {}).get("ran", False)),
+            "scene_path": bool((result.diagnostics.get("scene") or {}).get("ran", False)),
             # what the confidence is made of, kept for calibration
             **{k: _float_or_none(result.metrics.get(k)) for k in ("margin", "overlap_score", "score", "colour_weight")},
         }
         # The coarse row is judged at the coarse pose (align() reports that verdict beside the final one).
         coarse_flags = dict(flags)
-        if verdict := result.metrics.get("coarse_verdict"):
+        if verdict := result.diagnostics.get("coarse_verdict"):
             coarse_flags.update(
                 confidence=_float_or_none(verdict["confidence"]),
                 ambiguous=bool(verdict["ambiguous"]),

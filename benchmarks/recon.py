@@ -89,9 +89,9 @@ def alignment_rows(model_a, model_b, gt, peers: list[str]) -> list[dict]:
                 "rre_deg": rre_deg(r.transform.rotation, gt.rotation),
                 "scale_error_pct": scale_error_pct(r.transform.scale, gt.scale),
                 "confidence": r.metrics.get("confidence"),
-                "doubtful": r.metrics.get("doubtful"),
+                "doubtful": r.verdict.doubtful,
                 "stages": list(r.stages),
-                "photo_match": r.metrics.get("photo_match"),
+                "photo_match": r.diagnostics.get("photo_match"),
                 "align_s": time.perf_counter() - t,
             }
         )

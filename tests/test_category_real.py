@@ -129,22 +129,20 @@ def test_a_flipped_cross_instance_result_offers_the_truth_among_its_alternatives
     make = dict(category_real_pairs(CATEGORY_DEV, quick=False, seed=0))["bottle-0-1"]
     source, target, truth = make()
     result = align(source, target)
-    m = result.metrics
+    v = result.verdict
 
     def judged(transform: Sim3) -> float:
         return category_real_judge(transform, truth, source, target)["rre_deg"]
 
-    offered = [Sim3.from_matrix(np.array(a["transform"])) for a in m["alternatives"]]
+    offered = [a.transform for a in v.alternatives]
     errors = [judged(result.transform)] + [judged(t) for t in offered]
     assert min(errors) < 5.0, errors
-    assert errors[0] < 5.0 or m["doubtful"]  # a wrong choice is flagged
-    assert any(a["origin"].startswith("flip:") for a in m["alternatives"])
+    assert errors[0] < 5.0 or v.doubtful  # a wrong choice is flagged
+    assert any(a.origin.startswith("flip:") for a in v.alternatives)
     # the verdict's list stays short; the choice among the frames' relabellings adds the other
     # relabellings (at most 23) and, where it switched, the pose it replaced
-    chosen_among = [
-        a for a in m["alternatives"] if a["origin"] in ("frame relabelling", "before the relabelling choice")
-    ]
-    assert len(m["alternatives"]) - len(chosen_among) <= 8 and len(chosen_among) <= 24
+    chosen_among = [a for a in v.alternatives if a.origin in ("frame relabelling", "before the relabelling choice")]
+    assert len(v.alternatives) - len(chosen_among) <= 8 and len(chosen_among) <= 24
 
 
 def test_a_large_symmetric_surface_is_judged_symmetric_against_its_dense_sampling():

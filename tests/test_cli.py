@@ -203,12 +203,11 @@ def test_doubt_warning(metrics, expected):
 
 @pytest.mark.parametrize("doubtful", [True, False])
 def test_doubtful_result_prints_one_warning_on_stderr(doubtful, capsys):
-    from types import SimpleNamespace
-
     from gsa.align.command import _print_transform
+    from gsa.align.result import AlignmentResult
 
     metrics = {"inlier_fraction": 0.9, "rms_residual": 0.01, "feature_agreement": 0.9, **_doubtful(doubtful=doubtful)}
-    result = SimpleNamespace(transform=Sim3.identity(), metrics=metrics, timings={"total": 1.0}, features="canonical")
+    result = AlignmentResult(Sim3.identity(), None, "canonical", metrics=metrics, timings={"total": 1.0})
     _print_transform(result, "r.json")
     out, err = capsys.readouterr()
     assert "scale" in out and "warning" not in out

@@ -134,9 +134,9 @@ def test_cross_instance_front_back_flip_is_right_or_flagged(category, a, b):
     assert len(chosen) == 1 and chosen[0]["score"] == max(h["score"] for h in result.hypotheses)
     if rre_deg(result.transform.rotation, truth.rotation) < 5.0:
         return
-    metrics = result.metrics
-    assert metrics["ambiguous"] and metrics["doubtful"] and metrics["confidence"] < 0.5
-    alternatives = [Sim3.from_matrix(np.array(alt["transform"])) for alt in metrics["alternatives"]]
+    v = result.verdict
+    assert v.ambiguous and v.doubtful and v.confidence < 0.5
+    alternatives = [alt.transform for alt in v.alternatives]
     assert any(rre_deg(alt.rotation, truth.rotation) < 5.0 for alt in alternatives)
 
 
@@ -206,7 +206,7 @@ def test_pipeline_runs_the_fine_stage_after_coarse():
     coarse_verdict = d["metrics"]["coarse_verdict"]
     assert set(coarse_verdict) == {"confidence", "ambiguous", "doubtful"}
     assert 0.0 <= coarse_verdict["confidence"] <= 1.0
-    assert "coarse_verdict" not in align(source, target, AlignOptions(stages=("coarse",))).metrics
+    assert "coarse_verdict" not in align(source, target, AlignOptions(stages=("coarse",))).diagnostics
 
 
 def test_auto_stages_add_fine_only_after_the_feature_stage():

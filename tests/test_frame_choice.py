@@ -379,8 +379,8 @@ def test_frames_that_hold_little_of_the_surfaces_turn_nothing(tmp_path):
     pair = _Pair.build(source, target, AlignOptions(semantic="off"))
     assert not frame_snap.frames_supported(pair), [f.support for f in pair.normal_frames]
     result = align(source, target, AlignOptions(semantic="off"))
-    m = result.metrics
-    assert m["doubtful"], "the pair was meant to be doubtful (a near-symmetric body)"
+    m = result.diagnostics
+    assert result.verdict.doubtful, "the pair was meant to be doubtful (a near-symmetric body)"
     assert m["frames"]["used"] is False and "not a frame" in m["frames"]["reason"], m["frames"]
     assert "frame_snap" not in m and "frame_choice" not in m
     boxes = _Pair.build(*_pair(tmp_path, truth), AlignOptions(semantic="off"))

@@ -147,7 +147,7 @@ def test_picked_pairs_align_a_model_and_say_so(pair):
     dst = dst + np.random.default_rng(2).normal(0, 0.02 * size / np.sqrt(3), dst.shape)  # clicks 2 % off
     result = align(source, target, AlignOptions(point_pairs={"source": src.tolist(), "target": dst.tolist()}))
     assert rre_deg(result.transform.rotation, truth.rotation) < 1.0
-    guidance = result.metrics["guidance"]
+    guidance = result.diagnostics["guidance"]
     assert guidance["point_pairs"] == 4 and guidance["start"]["from"] == "point_pairs"
     assert len(guidance["start"]["residuals"]) == 4
 
@@ -157,21 +157,21 @@ def test_init_refines_locally_and_never_jumps(pair):
     near = Sim3(truth.scale * 1.05, axis_rotation([1, 1, 0], np.radians(8)) @ truth.rotation, truth.translation)
     result = align(source, target, AlignOptions(init_transform=near.matrix().tolist()))
     assert rre_deg(result.transform.rotation, truth.rotation) < 0.5
-    assert result.metrics["guidance"]["init_transform"] is True and result.hypotheses == []
+    assert result.diagnostics["guidance"]["init_transform"] is True and result.hypotheses == []
     # the answer left the given pose: that pose is the first alternative, one step back to it
-    given = result.metrics["alternatives"][0]
+    given = result.verdict.alternatives[0].details
     assert given["origin"] == "the given start" and np.allclose(given["transform"], near.matrix())
     assert given["rotation_offset_deg"] > 5.0
     # Half a turn away: the answer stays near where it was told to start (and is doubtful).
     far = Sim3(truth.scale, truth.rotation @ axis_rotation([0, 0, 1], np.pi), truth.translation)
     stay = align(source, target, AlignOptions(init_transform=far.matrix()))
     assert rre_deg(stay.transform.rotation, far.rotation) < 30.0
-    assert stay.metrics["doubtful"]
-    assert "fit better at another pose" in stay.metrics["guidance"]["doubt"]
+    assert stay.verdict.doubtful
+    assert "fit better at another pose" in stay.diagnostics["guidance"]["doubt"]
     # the pose the doubt points at is one the models offer, never the given start
-    index = int(stay.metrics["guidance"]["doubt"].split("(alternatives[")[1].split("]")[0])
-    assert stay.metrics["alternatives"][index]["origin"] != "the given start"
-    assert result.metrics["guidance"]["doubt"] is None or result.metrics["doubtful"]
+    index = int(stay.diagnostics["guidance"]["doubt"].split("(alternatives[")[1].split("]")[0])
+    assert stay.verdict.alternatives[index].origin != "the given start"
+    assert result.diagnostics["guidance"]["doubt"] is None or result.verdict.doubtful
 
 
 def test_a_wrong_up_axis_gives_a_flagged_result_with_its_reason(pair):
@@ -179,8 +179,8 @@ def test_a_wrong_up_axis_gives_a_flagged_result_with_its_reason(pair):
     up = np.array([0.0, 0.0, 1.0])
     wrong = axis_rotation([1, 0, 0], np.radians(90.0)) @ truth.rotation @ up
     result = align(source, target, AlignOptions(up_axes=(up, wrong)))
-    assert result.metrics["doubtful"]
-    assert result.metrics["guidance"]["doubt"]
+    assert result.verdict.doubtful
+    assert result.diagnostics["guidance"]["doubt"]
 
 
 def test_up_axes_hold_and_fixed_scale_is_kept(pair):
@@ -204,7 +204,7 @@ def test_up_and_front_axes_decide_which_way_the_model_faces(pair):
     ups = (up, truth.rotation @ up)
     right = align(source, target, AlignOptions(up_axes=ups, front_axes=(front, truth.rotation @ front)))
     assert rre_deg(right.transform.rotation, truth.rotation) < 2.0
-    assert right.metrics["guidance"]["front_axes"] is not None
+    assert right.diagnostics["guidance"]["front_axes"] is not None
     # A person who says the target faces the other way gets the answer that faces the other way.
     reversed_front = align(source, target, AlignOptions(up_axes=ups, front_axes=(front, -(truth.rotation @ front))))
     turned = truth.rotation @ axis_rotation(up, np.pi)

@@ -69,18 +69,18 @@ def test_a_doubtful_answer_between_two_instances_is_turned_onto_their_frames(tmp
     source = _box((1.0, 0.55, 0.3), 3, tmp_path)
     target = _box((0.7, 0.6, 0.5), 4, tmp_path).transformed(truth)
     result = align(source, target, AlignOptions(semantic="off"))
-    m = result.metrics
-    assert m["doubtful"] and m["frame_snap"]["used"], m.get("frame_snap")
+    m = result.diagnostics
+    assert result.verdict.doubtful and m["frame_snap"]["used"], m.get("frame_snap")
     flips = [np.diag(d) for d in ([1, 1, 1], [1, -1, -1], [-1, 1, -1], [-1, -1, 1])]
     error = min(rotation_distance_deg(result.transform.rotation, truth.rotation @ f) for f in flips)
     assert error < 0.5, error
-    assert m["alternatives"][0]["origin"] == "before the frame snap"
-    unsnapped = Sim3.from_matrix(np.asarray(m["alternatives"][0]["transform"]))
+    assert result.verdict.alternatives[0].origin == "before the frame snap"
+    unsnapped = result.verdict.alternatives[0].transform
     assert rotation_distance_deg(unsnapped.rotation, result.transform.rotation) == pytest.approx(
         m["frame_snap"]["deg"], abs=1e-6
     )
     off = align(source, target, AlignOptions(semantic="off", frame_snap="off"))
-    assert "frame_snap" not in off.metrics
+    assert "frame_snap" not in off.diagnostics
 
 
 def test_two_samplings_of_one_object_are_not_snapped():
@@ -95,7 +95,7 @@ def test_two_samplings_of_one_object_are_not_snapped():
     target = make_symmetric_object(seed=1, n_gaussians=6000, sample_seed=12)
     target.sh[:, 0, :] = 0.3
     result = align(source, target.transformed(truth), AlignOptions(semantic="off"))
-    assert result.metrics["doubtful"] and "frame_snap" not in result.metrics
+    assert result.verdict.doubtful and "frame_snap" not in result.diagnostics
 
 
 def test_a_pose_refined_from_a_users_start_between_two_instances_is_turned_onto_their_frames(tmp_path):
@@ -110,11 +110,11 @@ def test_a_pose_refined_from_a_users_start_between_two_instances_is_turned_onto_
     target = _box((0.7, 0.6, 0.5), 4, tmp_path).transformed(truth)
     start = truth @ Sim3(1.0, axis_rotation([1.0, 1.0, 0.0], np.radians(15.0)), np.zeros(3))
     result = align(source, target, AlignOptions(init_transform=tuple(map(tuple, start.matrix()))))
-    m = result.metrics
+    m = result.diagnostics
     assert m["frame_snap"]["used"], m.get("frame_snap")
     flips = [np.diag(d) for d in ([1, 1, 1], [1, -1, -1], [-1, 1, -1], [-1, -1, 1])]
     assert min(rotation_distance_deg(result.transform.rotation, truth.rotation @ f) for f in flips) < 0.5
-    assert "guidance" in m and m["doubtful"]
+    assert "guidance" in m and result.verdict.doubtful
 
 
 def test_a_spinning_sources_pose_is_snapped_up_to_its_spins():

@@ -125,9 +125,10 @@ def test_the_learned_route_steps_aside_without_a_head(monkeypatch, tmp_path):
     monkeypatch.delenv("GSA_CANONICAL_HEAD", raising=False)
     monkeypatch.setattr(nocs, "SHIPPED_HEAD", tmp_path / "none.pt")
     source, target = _doubtful_pair()
-    m = align(source, target, AlignOptions(semantic="off")).metrics
-    assert m["doubtful"] and m["learned"] == {"used": False, "reason": "no canonical head or backbone installed"}
-    off = align(source, target, AlignOptions(semantic="off", learned="off")).metrics
+    result = align(source, target, AlignOptions(semantic="off"))
+    assert result.verdict.doubtful
+    assert result.diagnostics["learned"] == {"used": False, "reason": "no canonical head or backbone installed"}
+    off = align(source, target, AlignOptions(semantic="off", learned="off")).diagnostics
     assert "learned" not in off
 
 
@@ -146,6 +147,6 @@ def test_the_learned_pose_picks_among_the_search_poses(monkeypatch, tmp_path):
 
     monkeypatch.setattr(learned, "_models_oriented", lambda pair: (oracle(pair.source, 0), oracle(pair.target, 0)))
     result = align(source, target, AlignOptions(semantic="off"))
-    report = result.metrics["learned"]
+    report = result.diagnostics["learned"]
     assert report["used"], report
     assert rre_deg(result.transform.rotation, truth.rotation) < 3.0

@@ -141,12 +141,12 @@ def test_align_takes_the_photos_pose_and_reports_both_verdicts(surface):
     assert r.stages == ("photo",)
     assert rre_deg(r.transform.rotation, TRUTH.rotation) < 0.1
     assert scale_error_pct(r.transform.scale, TRUTH.scale) < 0.1
-    m = r.metrics
-    assert m["photo_match"]["accepted"] and not m["doubtful"] and m["confidence"] > 0.9
-    assert set(m["geometric_verdict"]) == {"confidence", "ambiguous", "doubtful"}
+    m, d = r.metrics, r.diagnostics
+    assert d["photo_match"]["accepted"] and not r.verdict.doubtful and m["confidence"] > 0.9
+    assert set(d["geometric_verdict"]) == {"confidence", "ambiguous", "doubtful"}
     assert r.to_dict()["stages_run"] == ["photo"]
     off = align(source, target, AlignOptions(photo_matches="off"))
-    assert off.stages != ("photo",) and "photo_match" not in off.metrics
+    assert off.stages != ("photo",) and "photo_match" not in off.diagnostics
 
 
 def test_a_refused_match_says_why_and_the_geometry_answers(surface):
@@ -154,14 +154,14 @@ def test_a_refused_match_says_why_and_the_geometry_answers(surface):
     source, target = _pair(surface, target_texture=rng.integers(0, 256, size=(500, 128)))
     r = align(source, target)
     assert r.stages != ("photo",)
-    assert r.metrics["photo_match"]["accepted"] is False
-    assert r.metrics["photo_match"]["reason"]
+    assert r.diagnostics["photo_match"]["accepted"] is False
+    assert r.diagnostics["photo_match"]["reason"]
 
 
 def test_hints_take_precedence_over_the_photos(surface):
     source, target = _pair(surface)
     r = align(source, target, AlignOptions(init_transform=TRUTH.matrix().tolist()))
-    assert r.stages != ("photo",) and "photo_match" not in r.metrics
+    assert r.stages != ("photo",) and "photo_match" not in r.diagnostics
 
 
 def test_large_anchor_sets_are_capped_and_still_register(surface):
@@ -230,7 +230,7 @@ def test_a_shared_background_does_not_register_two_different_objects(surface):
     assert len(on_source.points) == 300  # the car's own points; the ring is left out
     r = align(source, target)
     assert r.stages != ("photo",)
-    assert r.metrics["photo_match"]["accepted"] is False
+    assert r.diagnostics["photo_match"]["accepted"] is False
 
 
 def test_subset_keeps_the_chosen_points_and_their_views():

@@ -258,10 +258,10 @@ def test_two_reconstructions_register_by_their_photos(rendered, recon, second):
     )
     truth = t_b.inverse().compose(SECOND_RIG.compose(t_a))
     r = align(recon.model, recon_b.model)
-    assert r.stages == ("photo",), r.metrics.get("photo_match")
+    assert r.stages == ("photo",), r.diagnostics.get("photo_match")
     assert rre_deg(r.transform.rotation, truth.rotation) < 0.5
     assert scale_error_pct(r.transform.scale, truth.scale) < 1.0
-    assert not r.metrics["doubtful"] and r.metrics["photo_match"]["inliers"] >= 100
+    assert not r.verdict.doubtful and r.diagnostics["photo_match"]["inliers"] >= 100
     # what `gsa align DIR_A DIR_B` reads: the folders, anchors included
     assert is_reconstruction(recon.out_dir) and not is_reconstruction(rendered.directory)
     again = align(read_reconstruction(recon.out_dir), read_reconstruction(recon_b.out_dir))

@@ -95,7 +95,7 @@ def test_scene_path_recovers_a_harder_room_pair(room_pair):
     assert rre_deg(result.transform.rotation, cap.truth.rotation) < 0.5
     assert judged["translation_error_pct_extent"] < 0.5
     assert scale_error_pct(result.transform.scale, cap.truth.scale) < 0.5
-    scene = result.metrics["scene"]
+    scene = result.diagnostics["scene"]
     assert scene["ran"] and scene["reason"] == "scene=on"
     assert scene["anchors"][0] > 2000 and max(scene["refine_cloud"]) <= S.SceneOptions().refine_cloud
     assert result.metrics["colour_weight"] > 0.5  # the exposures were brought together
@@ -126,7 +126,7 @@ def test_scene_options_are_frozen():
 def test_object_path_reports_why_it_ran():
     car = make_object("car", seed=1, n_gaussians=5000)
     result = align(car, car.transformed(random_sim3(np.random.default_rng(2))), AlignOptions(scene="off"))
-    assert result.metrics["scene"] == {"ran": False, "reason": "scene=off"}
+    assert result.diagnostics["scene"] == {"ran": False, "reason": "scene=off"}
 
 
 def _cli(*args):
@@ -170,12 +170,12 @@ def test_a_doubtful_scene_answer_is_weighed_against_the_object_paths(room_pair):
     wrong = rooms.transform.compose(Sim3(1.0, turn, centre - turn @ centre))
     objects = replace(rooms, transform=wrong, metrics={"alternatives": [], "doubtful": True})
     kept = _second_opinion(cap.source, cap.target, AlignOptions(), rooms, objects)
-    assert kept.transform is rooms.transform and kept.metrics["doubtful"]
-    assert kept.metrics["scene"]["second_opinion"]["chosen"] == "scene path"
-    offered = [a for a in kept.metrics["alternatives"] if a["origin"] == "object path"]
+    assert kept.transform is rooms.transform and kept.verdict.doubtful
+    assert kept.diagnostics["scene"]["second_opinion"]["chosen"] == "scene path"
+    offered = [a.details for a in kept.verdict.alternatives if a.origin == "object path"]
     assert len(offered) == 1 and np.allclose(offered[0]["transform"], wrong.matrix())
     # the other way round: the object path's better fit replaces a wrong scene answer
-    swapped = _second_opinion(cap.source, cap.target, AlignOptions(), objects, replace(rooms, metrics={}))
-    assert swapped.metrics["scene"]["second_opinion"]["chosen"] == "object path"
+    swapped = _second_opinion(cap.source, cap.target, AlignOptions(), objects, replace(rooms, metrics={}, verdict=None))
+    assert swapped.diagnostics["scene"]["second_opinion"]["chosen"] == "object path"
     assert rre_deg(swapped.transform.rotation, cap.truth.rotation) < 2.0
-    assert any(a["origin"] == "scene path" for a in swapped.metrics["alternatives"])
+    assert any(a.origin == "scene path" for a in swapped.verdict.alternatives)

@@ -175,7 +175,7 @@ def test_the_backbone_in_bf16_gives_the_fp32_tokens(monkeypatch):
 def test_a_doubtful_answer_reports_the_tie_break_and_stays_doubtful():
     source, target = _doubtful_pair(3000)
     result = align(source, target)
-    m = result.metrics
+    m = result.record()  # result.json's metrics layout
     assert m["doubtful"], "the pair was meant to be doubtful"
     report = m["semantic"]
     assert report["used"] and len(report["scores"]) >= 2 and all(-1 <= s <= 1 for s in report["scores"])
@@ -206,7 +206,7 @@ def test_a_doubtful_answer_reports_the_tie_break_and_stays_doubtful():
     if report["picked"]:
         assert m["alternatives"][0]["semantic_score"] == report["scores"][0]
     off = align(source, target, AlignOptions(semantic="off"))
-    assert "semantic" not in off.metrics and "semantic" not in off.timings
+    assert "semantic" not in off.diagnostics and "semantic" not in off.timings
 
 
 def test_a_backbone_that_does_not_load_is_reported_not_raised(tmp_path, monkeypatch):
@@ -217,8 +217,8 @@ def test_a_backbone_that_does_not_load_is_reported_not_raised(tmp_path, monkeypa
     broken.write_bytes(b"junk")
     source, target = _doubtful_pair(2000)
     result = align(source, target, AlignOptions(feature_settings=FeatureSettings(backbone=str(broken))))
-    assert result.metrics["doubtful"]
-    report = result.metrics["semantic"]
+    assert result.verdict.doubtful
+    report = result.diagnostics["semantic"]
     assert not report["used"] and "broken.onnx" in report["reason"]
 
 
@@ -432,7 +432,7 @@ def test_the_tie_break_does_not_trade_whole_models_for_a_pose_that_leaves_part_a
 
         monkeypatch.setattr(pipeline, "_swept_poses", swept)
         result = align(source, target, AlignOptions(frame_snap="off"))
-        report, m = result.metrics["semantic"], result.metrics
+        report, m = result.diagnostics["semantic"], result.record()
         assert m["doubtful"]
         if vetoed:
             assert report["picked"] == 0 and report["vetoed"]["pick"] == len(report["scores"]) - 1

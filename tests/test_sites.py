@@ -89,13 +89,13 @@ def test_scene_path_aligns_a_site_pair(site_pair):
     cap = site_pair
     assert cap.gains[0] != cap.gains[1] and cap.wave is not None  # the harder captures
     result = align(cap.source, cap.target, AlignOptions())
-    scene = result.metrics["scene"]
+    scene = result.diagnostics["scene"]
     assert scene["ran"] and scene["kind"] == "site"
     judged = scene_judge(result.transform, cap.truth, cap.source, cap.target)
     assert rre_deg(result.transform.rotation, cap.truth.rotation) < 0.5
     assert judged["translation_error_pct_extent"] < 0.5
     assert scale_error_pct(result.transform.scale, cap.truth.scale) < 0.5
-    assert not result.metrics["doubtful"]
+    assert not result.verdict.doubtful
 
 
 def test_site_search_only_turns_about_the_ground():

@@ -277,13 +277,12 @@ def test_symmetric_success_column():
     assert "success, any symmetric pose (RRE<5°)" in text and "| 67% |" in text
 
 
-class _FakeResult:
-    def __init__(self, metrics):
-        ident = Sim3.identity()
-        self.transform = ident
-        self.coarse = type("C", (), {"transform": ident})()
-        self.metrics = metrics
-        self.timings = {}
+def _FakeResult(metrics):
+    from gsa.align.coarse import CoarseResult
+    from gsa.align.result import AlignmentResult
+
+    ident = Sim3.identity()
+    return AlignmentResult(ident, CoarseResult(ident, iterations=0, converged=True), "none", metrics=metrics)
 
 
 @pytest.mark.parametrize(

@@ -68,19 +68,19 @@ def spz_pair(tmp_path_factory):
 
 def test_alternatives_are_also_stated_in_file_coordinates(spz_pair):
     source, target, result = spz_pair["source"], spz_pair["target"], spz_pair["result"]
-    before = json.dumps(result.metrics["alternatives"])
+    before = json.dumps(result.verdict.entries()["alternatives"])
     data = result_dict(result, source, target)
     x_internal = source.means[:50].astype(np.float64)
     x_file = x_internal @ FLIP  # the points as the SPZ file stores them
-    for alt, kept in zip(data["metrics"]["alternatives"], result.metrics["alternatives"]):
-        assert alt["transform"] == kept["transform"]  # still internal: --alternative N and refine read it
+    for alt, kept in zip(data["metrics"]["alternatives"], result.verdict.alternatives):
+        assert alt["transform"] == kept.details["transform"]  # still internal: --alternative N and refine read it
         internal = Sim3.from_matrix(np.asarray(alt["transform"]))
         file = Sim3.from_matrix(np.asarray(alt["file_transform"]))
         # The file-frame pose takes the source file's points where the internal pose puts them
         # in the target's file (PLY: the internal frame).
         np.testing.assert_allclose(file.apply(x_file), internal.apply(x_internal), atol=1e-9)
         assert rre_deg(file.rotation, internal.rotation) > 90  # SPZ: a real difference, not a copy
-    assert json.dumps(result.metrics["alternatives"]) == before  # the result itself is not changed
+    assert json.dumps(result.verdict.entries()["alternatives"]) == before  # the result itself is not changed
 
 
 def test_guide_config_for_an_spz_source(spz_pair):

@@ -43,7 +43,7 @@ def child(src: str, tgt: str, options: dict, out: str) -> dict:
         "peak_bytes": _peak_rss_bytes(),
         "seconds": round(time.perf_counter() - t0, 2),
         "fine_ran": res.fine is not None,
-        "semantic_ran": bool((res.metrics.get("semantic") or {}).get("used")),
+        "semantic_ran": bool((res.diagnostics.get("semantic") or {}).get("used")),
         "semantic_seconds": round(res.timings.get("semantic", 0.0), 2),
     }
 

@@ -90,7 +90,7 @@ def main() -> None:
         return
     returned = time.perf_counter()
     total = returned - t0
-    used = bool((result.metrics.get("semantic") or {}).get("used"))
+    used = bool((result.diagnostics.get("semantic") or {}).get("used"))
     sem = [(t, f) for t, s, f in calls if s == "semantic"]
     if not sem:
         print("the semantic stage did not run")

@@ -314,7 +314,7 @@ def cmd_align(args: argparse.Namespace) -> int:
 
 def _print_transform(result, out: str | None = None) -> None:
     t = result.transform
-    m = result.metrics
+    m, d, v = result.metrics, result.diagnostics, result.verdict
     print(f"scale        {t.scale:.6g}")
     print(
         f"rotation     {np.array2string(t.rotation, precision=6, suppress_small=True).replace(chr(10), chr(10) + ' ' * 13)}"
@@ -327,13 +327,13 @@ def _print_transform(result, out: str | None = None) -> None:
         else ""  # the scene path compares no features
     )
     print(f"quality      inliers {m['inlier_fraction']:.3f}, rms residual {m['rms_residual']:.4g}{features}")
-    if (m.get("scene") or {}).get("ran"):
-        print(f"scene path   {m['scene']['reason']}")
-    if "photo_match" in m:  # two reconstructions: whether their photos decided the pose
-        pm = m["photo_match"]
+    if (d.get("scene") or {}).get("ran"):
+        print(f"scene path   {d['scene']['reason']}")
+    if "photo_match" in d:  # two reconstructions: whether their photos decided the pose
+        pm = d["photo_match"]
         print(f"photos       {'the pose' if pm['accepted'] else 'not used'}: {pm['reason']}")
     if "confidence" in m:
-        verdict = "ambiguous" if m.get("ambiguous") else ("doubtful" if m.get("doubtful") else "confident")
+        verdict = "ambiguous" if v.ambiguous else ("doubtful" if v.doubtful else "confident")
         print(
             f"confidence   {m['confidence']:.2f} ({verdict}; overlap {m.get('overlap_score', float('nan')):.3f}, "
             f"colour agreement {m.get('colour_agreement', float('nan')):.2f})"
@@ -341,7 +341,7 @@ def _print_transform(result, out: str | None = None) -> None:
     print(f"time         {result.timings['total']:.2f} s")
     if out:
         print(f"result       {out}")
-    warning = doubt_warning(m, out)
+    warning = doubt_warning(result.record(), out)
     if warning:
         sys.stdout.flush()
         print(warning, file=sys.stderr, flush=True)

@@ -757,22 +757,21 @@ def select_edges(models: Sequence[GaussianModel], edges: str = "auto", k: int = 
 
 
 def edge_from_result(i: int, j: int, result, seconds: float) -> Edge:
-    metrics = result.metrics or {}
+    metrics, verdict = result.metrics, result.verdict
     alternatives, scores = [], [_score(metrics.get("semantic_score"))]
-    for alt in metrics.get("alternatives") or []:
-        try:
-            alternatives.append(Sim3.from_matrix(np.asarray(alt["transform"], np.float64)))
-        except (KeyError, TypeError, ValueError):  # an alternative we cannot read is left out
+    for alt in verdict.alternatives:
+        if alt.transform is None:  # an alternative we cannot read is left out
             continue
-        scores.append(_score(alt.get("semantic_score")))
+        alternatives.append(alt.transform)
+        scores.append(_score(alt.details.get("semantic_score")))
     confidence = metrics.get("confidence")
     return Edge(
         source=i,
         target=j,
         transform=result.transform,
         confidence=1.0 if confidence is None else float(confidence),
-        doubtful=bool(metrics.get("doubtful", False)),
-        ambiguous=bool(metrics.get("ambiguous", False)),
+        doubtful=verdict.doubtful,
+        ambiguous=verdict.ambiguous,
         alternatives=alternatives,
         scores=scores,
         seconds=seconds,

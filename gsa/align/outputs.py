@@ -55,7 +55,7 @@ def result_dict(result: AlignmentResult, source: GaussianModel, target: Gaussian
             if isinstance(alt, dict) and "transform" in alt:
                 internal = Sim3.from_matrix(np.asarray(alt["transform"], np.float64))
                 file = frames.file_transform(internal, source_format, target_format).matrix().tolist()
-                alt = {**alt, "file_transform": file}  # a copy: result.metrics stays as align() made it
+                alt = {**alt, "file_transform": file}  # a copy: the result's verdict stays as align() made it
             alternatives.append(alt)
         data["metrics"] = {**metrics, "alternatives": alternatives}
     return data

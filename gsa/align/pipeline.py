@@ -313,7 +313,7 @@ def _align(
         return _photo_answer(source, target, opts, photo_match, timings, t_start, progress)
     result = _align_models(source, target, opts, progress, target_cameras, timings, t_start)
     if photo_match is not None:  # why the photos did not decide it
-        result.metrics["photo_match"] = photo_match.to_dict()
+        result.diagnostics["photo_match"] = photo_match.to_dict()
     return result
 
 
@@ -500,7 +500,7 @@ def _object_path_too(opts: AlignOptions, choice, result: AlignmentResult) -> boo
     than on the models' size. Objects pass that test too (of 248 public object meshes, 10:
     mugs and a bottle read as rooms, cars with their seats inside, grand pianos as sites), and
     the scene path offers no alternatives there; the object path, at that size, costs seconds."""
-    if opts.scene != "auto" or not result.metrics.get("doubtful"):
+    if opts.scene != "auto" or not result.verdict.doubtful:
         return False
     limit = opts.criteria.scene.scene_gaussians
     return all(s is not None and s.gaussians < limit for s in (choice.source, choice.target))
@@ -526,11 +526,11 @@ def _second_opinion(
         else (rooms, objects, "object path")
     )
     offered = [chosen.transform]
-    alternatives = list(chosen.metrics.get("alternatives") or [])
+    alternatives = [a.to_dict() for a in chosen.verdict.alternatives]
     offered += [Sim3.from_matrix(np.asarray(a["transform"], np.float64)) for a in alternatives]
-    extra = [frame_snap.replaced_pose(other.transform, other.metrics, other_name)] + list(
-        other.metrics.get("alternatives") or []
-    )
+    extra = [frame_snap.replaced_pose(other.transform, other.record(), other_name)] + [
+        a.to_dict() for a in other.verdict.alternatives
+    ]
     for alt in extra:
         pose = Sim3.from_matrix(np.asarray(alt["transform"], np.float64))
         if all(robust.rotation_offset_deg(pose, p) > frame_snap.FRAME_SNAP_SAME_DEG for p in offered):
@@ -541,8 +541,9 @@ def _second_opinion(
         "object_fit": round(fit["object"], 4),
         "chosen": "object path" if chosen is objects else "scene path",
     }
-    chosen.metrics = chosen.metrics | {"alternatives": alternatives, "doubtful": True}
-    chosen.metrics["scene"] = rooms.metrics.get("scene", {}) | {"second_opinion": report}
+    record = chosen.record() | {"alternatives": alternatives, "doubtful": True}
+    record["scene"] = rooms.diagnostics.get("scene", {}) | {"second_opinion": report}
+    chosen.set_record(record)
     chosen.timings = rooms.timings | {f"object_path_{step}": v for step, v in objects.timings.items()}
     chosen.lifting = rooms.lifting
     return chosen

@@ -131,9 +131,9 @@ class AlignOptions:
         nearest of the 24 relabellings of the two models' dominant surface-normal frames where
         that turn is at most 20 degrees (gsa.manhattan): across instances the refinement drifts
         off the frame both objects are built along; "off" leaves the poses as refined.
-    alternatives: "doubtful" lists the poses worth picking (metrics["alternatives"]) where the
-        answer is doubtful or guided, an empty list where it is confident (the half turns
-        offered cost three ICPs a job); "always" lists them for every answer (gsa.align.many
+    alternatives: "doubtful" lists the poses worth picking (result.verdict.alternatives;
+        result.json's metrics["alternatives"]) where the answer is doubtful or guided, an empty
+        list where it is confident (the half turns offered cost three ICPs a job); "always" lists them for every answer (gsa.align.many
         weighs every edge's alternatives).
     criteria: the thresholds every stage decides by (gsa.align.criteria.Criteria: the search's
         pose criteria and counts, the refinement's, the verdict's, the guidance's, the scene

@@ -71,8 +71,8 @@ def test_grpc_end_to_end_and_visible_over_http(stub, stack, pair):
     np.testing.assert_allclose(final.transform.quaternion, ref.transform.quaternion(), atol=1e-9)
     # the GT-free judgement travels with the transform
     assert final.transform.confidence == pytest.approx(ref.metrics["confidence"])
-    assert final.transform.doubtful == ref.metrics["doubtful"]
-    assert final.transform.ambiguous == ref.metrics["ambiguous"]
+    assert final.transform.doubtful == ref.verdict.doubtful
+    assert final.transform.ambiguous == ref.verdict.ambiguous
 
     # same store: HTTP sees the gRPC job, and the artifacts match byte for byte
     with httpx.Client(base_url=stack["url"], headers=ALICE) as http:
