@@ -8,7 +8,8 @@ Hints (AlignOptions fields; each optional):
 - up_axes: the up vector of each model: the search only turns about it, and every later pose
   is brought back onto it (a cross-instance refinement can tilt).
 - front_axes (with up_axes): the way each model faces: the turns about up are those that keep
-  the fronts within front_reach_deg (up alone cannot tell a nose from a tail).
+  the fronts within front_reach_deg (up alone cannot tell a nose from a tail), and of the turns
+  the geometry ties (a mug's body fits any), the one nearest the fronts wins.
 - fixed_scale: the answer's scale, kept through every stage.
 
 Functions taking `opts` take a gsa.align.AlignOptions (not imported here: it imports this module);
@@ -67,7 +68,7 @@ class GuidanceCriteria:
     # Given fronts keep the turn about up within this of agreeing, through the search and every
     # later pose: a front says which side faces which way (the page offers the six axis
     # directions, up to 45 deg off an object's true front), so a nose is never turned to a tail
-    # nor to a side; within it the geometry decides. Measured at 15 deg: one held-out mug pair
+    # nor to a side; within it the geometry decides, and where it ties, the nearest to the fronts. Measured at 15 deg: one held-out mug pair
     # more within 5 deg (docs/benchmarks.md, "Up and front"), and an axis-picked front held 25 deg off.
     front_reach_deg: float = 45.0
     # A front within this of its model's up says nothing about the turn about up.
