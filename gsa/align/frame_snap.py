@@ -175,15 +175,22 @@ def principal_snap(pair, best, transform: Sim3, metrics: dict, keeps_guidance) -
     report = {"deg": gap, "answer": round(kept, 4), "snapped": round(turned, 4), "used": bool(turned > kept)}
     if turned <= kept:
         return transform, metrics | {"principal_snap": report}
-    alternatives = [replaced_pose(transform, metrics, "before the principal-axes snap")]
+    return snapped, replaced(pair, best, transform, snapped, metrics, "before the principal-axes snap") | {
+        "principal_snap": report
+    }
+
+
+def replaced(pair, best, transform: Sim3, chosen: Sim3, metrics: dict, origin: str) -> dict:
+    """metrics for `chosen` taking the answer's place: its quality, the answer replaced as the
+    first alternative (`origin` names the step), then the alternatives that are not `chosen`."""
+    alternatives = [replaced_pose(transform, metrics, origin)]
     alternatives += [
         alt
         for alt in metrics.get("alternatives") or []
-        if robust.rotation_offset_deg(Sim3.from_matrix(np.asarray(alt["transform"], np.float64)), snapped)
+        if robust.rotation_offset_deg(Sim3.from_matrix(np.asarray(alt["transform"], np.float64)), chosen)
         > FRAME_SNAP_SAME_DEG
     ]
-    updated = metrics | pair.judge.quality(snapped, best) | {"alternatives": alternatives}
-    return snapped, updated | {"principal_snap": report}
+    return metrics | pair.judge.quality(chosen, best) | {"alternatives": alternatives}
 
 
 def guided_relabelling(pair, start_pose: Sim3, start: dict, symmetries) -> np.ndarray | None:

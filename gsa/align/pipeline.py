@@ -251,14 +251,7 @@ def _settled_spin(pair, best, transform: Sim3, metrics: dict, keeps_guidance) ->
     used = abs(report["turn_deg"]) > 1e-6 and keeps_guidance(turned)
     if not used:
         return transform, metrics | {"spin": report | {"used": False}}
-    alternatives = [frame_snap.replaced_pose(transform, metrics, "before the spin settle")]
-    alternatives += [
-        alt
-        for alt in metrics.get("alternatives") or []
-        if robust.rotation_offset_deg(Sim3.from_matrix(np.asarray(alt["transform"], np.float64)), turned)
-        > frame_snap.FRAME_SNAP_SAME_DEG
-    ]
-    updated = metrics | pair.judge.quality(turned, best) | {"alternatives": alternatives}
+    updated = frame_snap.replaced(pair, best, transform, turned, metrics, "before the spin settle")
     return turned, updated | {"spin": report | {"used": True}}
 
 

@@ -97,12 +97,14 @@ def _axis_line(points: np.ndarray, normals: np.ndarray, rounds: int = 3) -> tupl
 def _spinner(model, k: SpinCriteria) -> _Spinner | None:
     """The axis `model`'s surface nearly spins about and the points that break the symmetry;
     None where it does not nearly spin."""
-    normals, flatness = model.surface_normals()
-    rows = np.flatnonzero((model.opacities > 0.5) & (flatness > 0.5))
-    if len(rows) < 50:
+    # a few times the sample, of the opaque Gaussians; then those flat enough to have a normal
+    rows = _sample(np.flatnonzero(model.opacities > 0.5), 4 * k.sample_size)
+    normals, flatness = model.surface_normals(rows)
+    flat = flatness > 0.5
+    if flat.sum() < 50:
         return None
-    rows = _sample(rows, k.sample_size)
-    sample, normals = np.asarray(model.means[rows], np.float64), normals[rows]
+    keep = _sample(np.flatnonzero(flat), k.sample_size)
+    sample, normals = np.asarray(model.means[rows[keep]], np.float64), normals[keep]
     line = _axis_line(sample, normals)
     if line is None:
         return None
