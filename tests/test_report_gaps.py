@@ -13,12 +13,12 @@ import sys
 
 import numpy as np
 import pytest
-import torch
 
 import gsa.align.pair as pair_module
 from gsa.align import semantic
 from gsa.align.pipeline import AlignOptions, align
 from gsa.synth import make_object
+from tests.tiny_vit import tiny_vit
 
 REGIONS = (
     "global_search",
@@ -33,23 +33,12 @@ REGIONS = (
 )
 
 
-def _tiny_vit():
-    from gsa.features.vit import DinoV2, VitConfig
-
-    torch.manual_seed(0)
-    vit = DinoV2(VitConfig(embed_dim=32, depth=2, num_heads=2, pos_grid=16)).eval()
-    with torch.no_grad():
-        for p in vit.parameters():
-            p.copy_(torch.randn(p.shape) * 0.3)
-    return vit
-
-
 @pytest.fixture(scope="module")
 def traced():
     """(regions counted per (stage, code), result with reports, result without) of a doubtful
     cross-instance pair (a bus against a car) with a small backbone, every step reporting."""
     mp = pytest.MonkeyPatch()
-    vit = _tiny_vit()
+    vit = tiny_vit()
     mp.setattr(semantic, "available_backbone", lambda path=None: vit)
     mp.setattr(semantic, "MODEL_VIEWS", semantic.ModelViewCache())
     mp.setattr(pair_module, "REPEAT_S", 0.0)
@@ -78,7 +67,7 @@ def traced():
 
 def test_the_pair_runs_the_long_stretches(traced):
     _, stages, result, _ = traced
-    assert result.metrics["doubtful"] and result.metrics["semantic"]["used"]
+    assert result.verdict.doubtful and result.diagnostics["semantic"]["used"]
     assert "frame_snap" in result.metrics and "frame_choice" in result.metrics
     assert stages[-1] == "done"
 
@@ -103,4 +92,4 @@ def test_the_semantic_tail_reports_within(traced):
 def test_reports_change_nothing(traced):
     _, _, with_reports, without = traced
     np.testing.assert_array_equal(with_reports.transform.matrix(), without.transform.matrix())
-    assert with_reports.metrics["frame_choice"] == without.metrics["frame_choice"]
+    assert with_reports.diagnostics["frame_choice"] == without.diagnostics["frame_choice"]

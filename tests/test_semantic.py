@@ -23,6 +23,7 @@ from gsa.io.ply import write_ply
 from gsa.sim3 import Sim3
 from gsa.synth import make_object, random_sim3
 from gsa.synth.variants import make_symmetric_object
+from tests.tiny_vit import tiny_vit
 
 BUNDLED = bundled_backbone_path()
 needs_bundled = pytest.mark.skipif(
@@ -254,22 +255,11 @@ def test_cli_semantic_flag_and_environment(tmp_path):
     assert "semantic" not in json.loads((tmp_path / "r.json").read_text())["metrics"]
 
 
-def _tiny_vit(seed: int = 0):
-    from gsa.features.vit import DinoV2, VitConfig
-
-    torch.manual_seed(seed)
-    vit = DinoV2(VitConfig(embed_dim=32, depth=2, num_heads=2, pos_grid=16)).eval()
-    with torch.no_grad():
-        for p in vit.parameters():
-            p.copy_(torch.randn(p.shape) * 0.3)
-    return vit
-
-
 def test_patches_left_out_do_not_reach_the_ones_kept():
     """A batch whose images keep different patches: each kept token is what that image gives
     alone (the padding is masked out of attention), every left-out patch comes back zero, and
     keeping every patch is the plain forward."""
-    vit = _tiny_vit()
+    vit = tiny_vit()
     images = torch.randn(3, 3, 224, 224)
     rng = np.random.default_rng(1)
     keep = torch.as_tensor(rng.random((3, 16, 16)) < np.array([0.2, 0.5, 0.9])[:, None, None])
@@ -355,7 +345,7 @@ def test_a_model_met_again_reuses_its_views_and_lifts_the_same_features(monkeypa
     the models used last, no more."""
     cache = semantic.ModelViewCache(kept=2)
     monkeypatch.setattr(semantic, "MODEL_VIEWS", cache)
-    backbone = _CountingBackbone(_tiny_vit())
+    backbone = _CountingBackbone(tiny_vit())
     criteria = semantic.SemanticCriteria(views=4, rolls=1, batch=4, components=8)
     chair, other, third = (make_object("chair", seed=s, n_gaussians=2000) for s in (2, 3, 4))
 

@@ -10,7 +10,6 @@ import threading
 
 import numpy as np
 import pytest
-import torch
 
 import gsa.render.cpu as cpu
 import gsa.render.cpu.composite as composite
@@ -18,19 +17,9 @@ from gsa.align import semantic
 from gsa.kernels import KERNEL_LOCK
 from gsa.render.steps import between_steps, step
 from gsa.synth import make_object
+from tests.tiny_vit import tiny_vit
 
 KERNELS = ("_footprints", "_depth_order", "_bin", "_pack", "_forward", "_backward", "_reduce")
-
-
-def _tiny_vit():
-    from gsa.features.vit import DinoV2, VitConfig
-
-    torch.manual_seed(0)
-    vit = DinoV2(VitConfig(embed_dim=32, depth=2, num_heads=2, pos_grid=16)).eval()
-    with torch.no_grad():
-        for p in vit.parameters():
-            p.copy_(torch.randn(p.shape) * 0.3)
-    return vit
 
 
 @pytest.fixture
@@ -70,7 +59,7 @@ def test_the_semantic_stage_reports_between_every_two_kernels_of_its_renders(eve
     The reports' fractions still only grow, and the features are those lifted without the
     callback (the same kernels on the same data)."""
     source, target = _models()
-    backbone = _tiny_vit()
+    backbone = tiny_vit()
 
     def progress(stage, fraction):
         events.append(("report", fraction))
@@ -124,7 +113,7 @@ def test_a_callback_that_raises_within_a_render_stops_it_there(events, at):
     setattr(composite, target_kernel, arm_at_kernel(target_kernel))
     try:
         with pytest.raises(Cancelled):
-            semantic.lifted_features(source, target, _tiny_vit(), CRITERIA, progress=progress)
+            semantic.lifted_features(source, target, tiny_vit(), CRITERIA, progress=progress)
     finally:
         setattr(composite, target_kernel, composite_kernel)
     last = [name for kind, name in events if kind == "kernel"][-1]
