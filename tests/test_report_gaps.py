@@ -68,7 +68,7 @@ def traced():
 def test_the_pair_runs_the_long_stretches(traced):
     _, stages, result, _ = traced
     assert result.verdict.doubtful and result.diagnostics["semantic"]["used"]
-    assert "frame_snap" in result.metrics and "frame_choice" in result.metrics
+    assert "frame_snap" in result.diagnostics and "frame_choice" in result.diagnostics
     assert stages[-1] == "done"
 
 
