@@ -149,37 +149,6 @@ def up_snap(pair, best, transform: Sim3, metrics: dict) -> tuple[Sim3, dict]:
     return choose_relabelling(pair, best, turned, updated, allowed=keeps, hold=pair.constrain)
 
 
-def principal_snap(pair, best, transform: Sim3, metrics: dict, keeps_guidance) -> tuple[Sim3, dict]:
-    """A doubtful guided answer turned onto the nearest relabelling of the two models'
-    principal axes (at most FRAME_SNAP_DEG away) where that pose still honours the guidance
-    (`keeps_guidance(pose)`) and fits the models better than the answer by the search's own
-    measure: the refinement slides along a valley the geometry hardly tells apart (two benches
-    of other proportions, 4-8 deg off), while the principal axes of one category's instances
-    agree. Decided by the score, not by a rule: where the answer fits better it stays."""
-    opts = pair.opts
-    if opts.frame_snap == "off":
-        return transform, metrics
-    src, dst = pair.anchors()
-    snapped, gap = robust.principal_snap(src, dst, transform)
-    if not 1e-6 < gap <= FRAME_SNAP_DEG:
-        return transform, metrics
-    reach = pair.criteria.pose.truncation * dst.radius
-    snapped = pair.constrain(manhattan.fit_shift(pair.constrain(snapped), src.points, dst.points, reach))
-    if not keeps_guidance(snapped):
-        return transform, metrics
-    weight = float(metrics.get("colour_weight") or 0.0)
-    k = pair.criteria.pose
-    measure = (lambda c: c.geometry) if metrics.get("ranked_by") == "geometry" else (lambda c: c.score)
-    kept = measure(robust.score_pose(src, dst, transform, "answer", weight, k))
-    turned = measure(robust.score_pose(src, dst, snapped, "principal snap", weight, k))
-    report = {"deg": gap, "answer": round(kept, 4), "snapped": round(turned, 4), "used": bool(turned > kept)}
-    if turned <= kept:
-        return transform, metrics | {"principal_snap": report}
-    return snapped, replaced(pair, best, transform, snapped, metrics, "before the principal-axes snap") | {
-        "principal_snap": report
-    }
-
-
 def replaced(pair, best, transform: Sim3, chosen: Sim3, metrics: dict, origin: str) -> dict:
     """metrics for `chosen` taking the answer's place: its quality, the answer replaced as the
     first alternative (`origin` names the step), then the alternatives that are not `chosen`."""

@@ -233,7 +233,6 @@ def _doubtful_answer(pair, best, search, transform: Sim3, metrics: dict, guidanc
             fronts = pair.opts.front_axes
             return fronts is None or guided.keeps_front(pose.rotation, fronts, pair.criteria.guidance)
 
-    transform, metrics = frame_snap.principal_snap(pair, best, transform, metrics, keeps_guidance)
     return _settled_spin(pair, best, transform, metrics, keeps_guidance)
 
 

@@ -82,7 +82,7 @@ from gsa.align.robust.refinement import (
     refine,
     verdict,
 )
-from gsa.align.robust.search import SearchOptions, global_search, principal_snap
+from gsa.align.robust.search import SearchOptions, global_search
 
 __all__ = [
     "RIGID_REFINE",
@@ -108,7 +108,6 @@ __all__ = [
     "floater_mask",
     "frame_relabellings",
     "global_search",
-    "principal_snap",
     "match_exposure",
     "box_lattice",
     "placed_starts",

@@ -235,7 +235,8 @@ def _snapped(
     one per snapped rotation. Another instance's proportions leave the principal axes of a
     category's shapes in place (an elongated bathtub, rifle or table) where the ICP's pose
     drifts off them by 5-20 degrees."""
-    frames = principal_relabellings(src, dst)
+    src_axes, dst_axes = _principal_axes(src), _principal_axes(dst)
+    frames = [dst_axes.T @ g @ src_axes for g in SIGNED_PERMUTATIONS]
     out: list[tuple[int, Candidate]] = []
     for n, c in enumerate(poses):
         gaps = [rotation_distance_deg(r, c.transform.rotation) for r in frames]
@@ -248,22 +249,6 @@ def _snapped(
         pose = Sim3(c.transform.scale, r, centre - c.transform.scale * r @ src.center)
         out.append((n, score_pose(src, dst, pose, "snap:" + c.origin, w_colour, opts.criteria)))
     return out
-
-
-def principal_relabellings(src: Anchors, dst: Anchors) -> list[np.ndarray]:
-    """The 24 rotations taking the source anchors' principal axes onto the target's."""
-    src_axes, dst_axes = _principal_axes(src), _principal_axes(dst)
-    return [dst_axes.T @ g @ src_axes for g in SIGNED_PERMUTATIONS]
-
-
-def principal_snap(src: Anchors, dst: Anchors, pose: Sim3) -> tuple[Sim3, float]:
-    """`pose` with its rotation replaced by the nearest principal_relabellings one, turned
-    about the source's mapped centre (scale kept), and how many degrees that turned it."""
-    frames = principal_relabellings(src, dst)
-    gaps = [rotation_distance_deg(r, pose.rotation) for r in frames]
-    r = frames[int(np.argmin(gaps))]
-    centre = pose.apply(src.center)
-    return Sim3(pose.scale, r, centre - pose.scale * r @ src.center), float(min(gaps))
 
 
 def _principal_axes(a: Anchors) -> np.ndarray:
