@@ -25,6 +25,10 @@ def format_table(name: str, rows: list[dict]) -> str:
         from benchmarks.category_real import format_category_real
 
         return format_category_real(rows)
+    if name == "real":
+        from benchmarks.real_captures import per_capture_table
+
+        return "\n\n".join(t for t in (format_table("real-rows", rows), per_capture_table(rows)) if t)
     if name == "guided":
         from benchmarks.guided import format_guided
 
