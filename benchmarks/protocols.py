@@ -375,7 +375,9 @@ def protocol_real(
         name = "real-exposure" if exposure else "real"
         sizes: dict[str, dict] = {}
         pairs = real_split_pairs(data, quick, seed, exposure=exposure, sizes=sizes)
-        variant = evaluate(name, pairs, runners, lambda label: {**capture_of(label), **sizes.get(label, {})}, out=out)
+        variant = evaluate(
+            name, pairs, runners, lambda label, sizes=sizes: {**capture_of(label), **sizes.get(label, {})}, out=out
+        )
         for row in variant:
             row["variant"] = "exposure shifted" if exposure else "as captured"
             row["method"] += f" · {row['variant']}"
