@@ -10,7 +10,8 @@ Two variants, one table each: as captured, and with the source under another exp
 white balance (±1 stop, gsa.synth.shift_exposure), as a second capture on another day would
 record it. Success: RRE < 5° (strict: a real capture has no known symmetry).
 
-GSA_REAL_PAIRS=N sets the pairs per capture (default PAIRS_PER_CAPTURE, full or --quick), and
+GSA_REAL_PAIRS=N sets the pairs per capture (default PAIRS_PER_CAPTURE, full or --quick; FIRST:END
+deals pairs FIRST..END-1 only, to continue a run), and
 GSA_REAL_VARIANTS=as-captured or exposure runs one variant only (default both), for a long run
 over many captures (benchmarks.fetch_captures). The report gives a table per capture
 (per_capture_table): success, the misses with their RRE and whether align() flagged them
@@ -37,14 +38,17 @@ QUICK_GAUSSIANS = 40_000
 VARIANTS = ("as-captured", "exposure")
 
 
-def pairs_per_capture(quick: bool) -> int:
-    """GSA_REAL_PAIRS when set (a positive integer), else PAIRS_PER_CAPTURE."""
+def pair_range(quick: bool) -> range:
+    """The pair indices k dealt per capture: range(PAIRS_PER_CAPTURE) by default; GSA_REAL_PAIRS=N
+    for range(N), or FIRST:END for range(FIRST, END) (a long run continued: pair k of a capture is
+    the same whatever the range)."""
     value = os.environ.get("GSA_REAL_PAIRS", "").strip()
     if not value:
-        return PAIRS_PER_CAPTURE[1] if quick else PAIRS_PER_CAPTURE[0]
-    if not value.isdigit() or int(value) < 1:
-        raise ValueError(f"GSA_REAL_PAIRS={value!r}: give a positive number of pairs per capture")
-    return int(value)
+        return range(PAIRS_PER_CAPTURE[1] if quick else PAIRS_PER_CAPTURE[0])
+    first, sep, end = value.rpartition(":") if ":" in value else ("0", "", value)
+    if not (first.isdigit() and end.isdigit()) or int(end) <= int(first):
+        raise ValueError(f"GSA_REAL_PAIRS={value!r}: give a number of pairs per capture, or FIRST:END (END > FIRST)")
+    return range(int(first), int(end))
 
 
 def variants() -> list[bool]:
@@ -82,15 +86,15 @@ def split_pair(model, rng: np.random.Generator, keep: tuple[float, float] = KEEP
 def real_split_pairs(
     data: str | Path, quick: bool, seed: int, exposure: bool = False, sizes: dict | None = None
 ) -> list[Pair]:
-    """pairs_per_capture() split pairs per capture of `data`; labels '<file name>-<k>'. With
+    """pair_range() split pairs per capture of `data`; labels '<file name>-<k>'. With
     `sizes`, each pair made records its halves' Gaussian counts there under its label."""
     captures = find_captures(data)
     if not captures:
         raise ValueError(f"{data}: no 3DGS files found ({', '.join(sorted(set(EXTENSIONS.values())))})")
-    per_capture = pairs_per_capture(quick)
+    ks = pair_range(quick)
     pairs: list[Pair] = []
     for c, path in enumerate(captures):
-        for k in range(per_capture):
+        for k in ks:
 
             def make(c=c, k=k, path=path, label=f"{path.name}-{k}"):
                 rng = np.random.default_rng([seed, 26, c, k])

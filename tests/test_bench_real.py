@@ -67,18 +67,23 @@ def test_pairs_per_capture_and_variants_follow_the_environment(captures, monkeyp
 
     monkeypatch.delenv("GSA_REAL_PAIRS", raising=False)
     monkeypatch.delenv("GSA_REAL_VARIANTS", raising=False)
-    assert (
-        rc.pairs_per_capture(False) == rc.PAIRS_PER_CAPTURE[0] and rc.pairs_per_capture(True) == rc.PAIRS_PER_CAPTURE[1]
-    )
+    assert rc.pair_range(False) == range(rc.PAIRS_PER_CAPTURE[0])
+    assert rc.pair_range(True) == range(rc.PAIRS_PER_CAPTURE[1])
     assert rc.variants() == [False, True]
     monkeypatch.setenv("GSA_REAL_PAIRS", "5")
     assert len(real_split_pairs(captures, quick=True, seed=0)) == 10
+    monkeypatch.setenv("GSA_REAL_PAIRS", "3:5")
+    later = real_split_pairs(captures, quick=True, seed=0)
+    assert [label for label, _ in later] == ["car.ply-3", "car.ply-4", "chair.spz-3", "chair.spz-4"]
+    monkeypatch.setenv("GSA_REAL_PAIRS", "5")
+    same = dict(real_split_pairs(captures, quick=True, seed=0))["car.ply-3"]()[2]
+    assert np.allclose(same.matrix(), dict(later)["car.ply-3"]()[2].matrix())  # pair k is the same in any range
     monkeypatch.setenv("GSA_REAL_VARIANTS", "exposure")
     assert rc.variants() == [True]
-    for bad in ("0", "x"):
+    for bad in ("0", "x", "5:5", "a:3"):
         monkeypatch.setenv("GSA_REAL_PAIRS", bad)
         with pytest.raises(ValueError, match="GSA_REAL_PAIRS"):
-            rc.pairs_per_capture(False)
+            rc.pair_range(False)
     monkeypatch.setenv("GSA_REAL_VARIANTS", "as-captured,sunset")
     with pytest.raises(ValueError, match="sunset"):
         rc.variants()
