@@ -11,7 +11,8 @@ white balance (±1 stop, gsa.synth.shift_exposure), as a second capture on anoth
 record it. Success: RRE < 5° (strict: a real capture has no known symmetry).
 
 GSA_REAL_PAIRS=N sets the pairs per capture (default PAIRS_PER_CAPTURE, full or --quick; FIRST:END
-deals pairs FIRST..END-1 only, to continue a run), and
+deals pairs FIRST..END-1 only, to continue a run), GSA_REAL_CAPTURES=GLOB[,GLOB] runs the captures
+whose file names match (their pairs unchanged), and
 GSA_REAL_VARIANTS=as-captured or exposure runs one variant only (default both), for a long run
 over many captures (benchmarks.fetch_captures). The report gives a table per capture
 (per_capture_table): success, the misses with their RRE and whether align() flagged them
@@ -21,6 +22,7 @@ doubtful, median time, and the Gaussians per half.
 from __future__ import annotations
 
 import os
+from fnmatch import fnmatch
 from functools import cache
 from pathlib import Path
 
@@ -49,6 +51,12 @@ def pair_range(quick: bool) -> range:
     if not (first.isdigit() and end.isdigit()) or int(end) <= int(first):
         raise ValueError(f"GSA_REAL_PAIRS={value!r}: give a number of pairs per capture, or FIRST:END (END > FIRST)")
     return range(int(first), int(end))
+
+
+def chosen(name: str) -> bool:
+    """Whether GSA_REAL_CAPTURES (comma-separated file-name globs; default all) picks capture `name`."""
+    globs = [g.strip() for g in os.environ.get("GSA_REAL_CAPTURES", "").split(",") if g.strip()]
+    return not globs or any(fnmatch(name, g) for g in globs)
 
 
 def variants() -> list[bool]:
@@ -93,7 +101,10 @@ def real_split_pairs(
         raise ValueError(f"{data}: no 3DGS files found ({', '.join(sorted(set(EXTENSIONS.values())))})")
     ks = pair_range(quick)
     pairs: list[Pair] = []
+    # c counts every capture of the folder, so a capture's pairs stay the same when others are left out
     for c, path in enumerate(captures):
+        if not chosen(path.name):
+            continue
         for k in ks:
 
             def make(c=c, k=k, path=path, label=f"{path.name}-{k}"):

@@ -78,6 +78,13 @@ def test_pairs_per_capture_and_variants_follow_the_environment(captures, monkeyp
     monkeypatch.setenv("GSA_REAL_PAIRS", "5")
     same = dict(real_split_pairs(captures, quick=True, seed=0))["car.ply-3"]()[2]
     assert np.allclose(same.matrix(), dict(later)["car.ply-3"]()[2].matrix())  # pair k is the same in any range
+    monkeypatch.setenv("GSA_REAL_CAPTURES", "chair*")
+    assert [label for label, _ in real_split_pairs(captures, quick=True, seed=0)][:1] == ["chair.spz-0"]
+    chair = dict(real_split_pairs(captures, quick=True, seed=0))["chair.spz-3"]()[2]
+    monkeypatch.delenv("GSA_REAL_CAPTURES")
+    assert np.allclose(
+        chair.matrix(), dict(real_split_pairs(captures, quick=True, seed=0))["chair.spz-3"]()[2].matrix()
+    )
     monkeypatch.setenv("GSA_REAL_VARIANTS", "exposure")
     assert rc.variants() == [True]
     for bad in ("0", "x", "5:5", "a:3"):
