@@ -87,7 +87,7 @@ from benchmarks.pairs import (
     symmetric_pairs,
 )
 from benchmarks.peers import Peer, available_peers
-from benchmarks.real_captures import capture_of, real_split_pairs
+from benchmarks.real_captures import capture_of, per_capture, real_split_pairs, variants
 from benchmarks.records import (
     GSA_COARSE,
     GSA_FINE,
@@ -371,14 +371,18 @@ def protocol_real(
         raise ValueError("real needs --data DIR (a folder of 3DGS captures)")
     runners = [default_align_runner()] + [peer_runner(p, seed) for p in available_peers(peers)]
     rows = []
-    for exposure in (False, True):
+    for exposure in variants():
         name = "real-exposure" if exposure else "real"
-        pairs = real_split_pairs(data, quick, seed, exposure=exposure)
-        variant = evaluate(name, pairs, runners, capture_of, out=out)
+        sizes: dict[str, dict] = {}
+        pairs = real_split_pairs(data, quick, seed, exposure=exposure, sizes=sizes)
+        variant = evaluate(
+            name, pairs, runners, lambda label, sizes=sizes: {**capture_of(label), **sizes.get(label, {})}, out=out
+        )
         for row in variant:
             row["variant"] = "exposure shifted" if exposure else "as captured"
             row["method"] += f" · {row['variant']}"
             row["per_capture_mean_rre_deg"] = row.pop("per_category_mean_rre_deg", {})
+            row["per_capture"] = per_capture(row["records"])
         rows += variant
     save_rows(out, "real", rows)
     return rows

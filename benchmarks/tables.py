@@ -16,7 +16,8 @@ def _f(x: float, digits: int) -> str:
     return "—" if x is None or not np.isfinite(x) else f"{x:.{digits}f}"
 
 
-def format_table(name: str, rows: list[dict]) -> str:
+def _own_table(name: str, rows: list[dict]) -> str | None:
+    """The table of a protocol that formats its own rows, else None."""
     if name in ("scene", "site"):
         from benchmarks.scene import format_scene_table
 
@@ -25,10 +26,21 @@ def format_table(name: str, rows: list[dict]) -> str:
         from benchmarks.category_real import format_category_real
 
         return format_category_real(rows)
+    if name == "real":
+        from benchmarks.real_captures import per_capture_table
+
+        return "\n\n".join(t for t in (format_table("real-rows", rows), per_capture_table(rows)) if t)
     if name == "guided":
         from benchmarks.guided import format_guided
 
         return format_guided(rows)
+    return None
+
+
+def format_table(name: str, rows: list[dict]) -> str:
+    own = _own_table(name, rows)
+    if own is not None:
+        return own
     if name == "io":
         lines = [
             "| Gaussians (SH degree 3) | file (MB) | write (s) | read (s) | RSS growth after read (MB) |",

@@ -60,3 +60,67 @@ def test_protocol_runs_and_succeeds_on_generated_captures(captures, tmp_path, mo
         assert row["pairs"] == 4 and set(row["per_capture_mean_rre_deg"]) == {"car.ply", "chair.spz"}
         assert row["success_rate"] == 1.0, [(r["pair"], r["rre_deg"]) for r in row["records"]]
     assert (tmp_path / "out" / "real.json").exists()
+
+
+def test_pairs_per_capture_and_variants_follow_the_environment(captures, monkeypatch):
+    from benchmarks import real_captures as rc
+
+    monkeypatch.delenv("GSA_REAL_PAIRS", raising=False)
+    monkeypatch.delenv("GSA_REAL_VARIANTS", raising=False)
+    assert rc.pair_range(False) == range(rc.PAIRS_PER_CAPTURE[0])
+    assert rc.pair_range(True) == range(rc.PAIRS_PER_CAPTURE[1])
+    assert rc.variants() == [False, True]
+    monkeypatch.setenv("GSA_REAL_PAIRS", "5")
+    assert len(real_split_pairs(captures, quick=True, seed=0)) == 10
+    monkeypatch.setenv("GSA_REAL_PAIRS", "3:5")
+    later = real_split_pairs(captures, quick=True, seed=0)
+    assert [label for label, _ in later] == ["car.ply-3", "car.ply-4", "chair.spz-3", "chair.spz-4"]
+    monkeypatch.setenv("GSA_REAL_PAIRS", "5")
+    same = dict(real_split_pairs(captures, quick=True, seed=0))["car.ply-3"]()[2]
+    assert np.allclose(same.matrix(), dict(later)["car.ply-3"]()[2].matrix())  # pair k is the same in any range
+    monkeypatch.setenv("GSA_REAL_CAPTURES", "chair*")
+    assert [label for label, _ in real_split_pairs(captures, quick=True, seed=0)][:1] == ["chair.spz-0"]
+    chair = dict(real_split_pairs(captures, quick=True, seed=0))["chair.spz-3"]()[2]
+    monkeypatch.delenv("GSA_REAL_CAPTURES")
+    assert np.allclose(
+        chair.matrix(), dict(real_split_pairs(captures, quick=True, seed=0))["chair.spz-3"]()[2].matrix()
+    )
+    monkeypatch.setenv("GSA_REAL_VARIANTS", "exposure")
+    assert rc.variants() == [True]
+    for bad in ("0", "x", "5:5", "a:3"):
+        monkeypatch.setenv("GSA_REAL_PAIRS", bad)
+        with pytest.raises(ValueError, match="GSA_REAL_PAIRS"):
+            rc.pair_range(False)
+    monkeypatch.setenv("GSA_REAL_VARIANTS", "as-captured,sunset")
+    with pytest.raises(ValueError, match="sunset"):
+        rc.variants()
+
+
+def test_per_capture_breakdown_lists_misses_with_their_flag():
+    from benchmarks.real_captures import per_capture, per_capture_table
+
+    def rec(cap, k, rre, doubtful=False, **more):
+        return {
+            "pair": f"{cap}-{k}",
+            "category": cap,
+            "rre_deg": rre,
+            "doubtful": doubtful,
+            "seconds": 2.0 + k,
+            "source_gaussians": 1000 + k,
+            "target_gaussians": 900 + k,
+            **more,
+        }
+
+    records = [
+        rec("a.spz", 0, 0.1),
+        rec("a.spz", 1, 179.5, True),
+        rec("b.sog", 0, 0.2),
+        rec("b.sog", 1, float("nan"), error="ValueError: x"),
+    ]
+    caps = per_capture(records)
+    assert caps["a.spz"]["successes"] == 1 and caps["a.spz"]["misses"] == [
+        {"pair": "a.spz-1", "rre_deg": 179.5, "doubtful": True}
+    ]
+    assert caps["b.sog"]["misses"][0]["error"] == "ValueError: x" and caps["a.spz"]["median_seconds"] == 2.5
+    table = per_capture_table([{"method": "GSA · as captured", "per_capture": caps}])
+    assert "| a.spz | 950 | 2 | 1/2 (50 %) | 179.5 D | 2.5 |" in table and "failed" in table
