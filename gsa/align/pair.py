@@ -377,29 +377,16 @@ class _Refinement:
         q_rows = robust.subsample(pair.rng, dst_tree.n, half)
         q = dst_tree.data[q_rows]
         normals, flatness = pair.target.surface_normals(slice(None) if dst.kept.all() else dst.kept)
-        criteria = pair.criteria.refinement(pair.opts.rigid)
-
-        def run(criteria: robust.RefineCriteria) -> tuple[Sim3, list[dict]]:
-            return robust.refine(
-                p,
-                q,
-                src_tree,
-                dst_tree,
-                init,
-                pair.opts.refine_iterations,
-                target_normals=(normals, flatness, normals[q_rows], flatness[q_rows]),
-                criteria=criteria,
-            )
-
-        transform, history = run(criteria)
-        if any(step.get("stage") == "refine-all-pairs" for step in history) and self.fits_worse(transform, init):
-            # The all-pairs fit is for models that differ everywhere (a deformed copy, another
-            # instance); where it leaves the pose fitting clearly worse than the search's, the
-            # models were two captures of one thing read at a slightly wrong scale (two partial
-            # halves of a street: 0.6 deg taken 32 deg off): the rigid fit from the same start.
-            undone = {"stage": "all-pairs fit undone", "iteration": len(history), "fitted_worse": True}
-            transform, history = run(replace(criteria, deformable=False))
-            history = [undone, *history]
+        transform, history = robust.refine(
+            p,
+            q,
+            src_tree,
+            dst_tree,
+            init,
+            pair.opts.refine_iterations,
+            target_normals=(normals, flatness, normals[q_rows], flatness[q_rows]),
+            criteria=pair.criteria.refinement(pair.opts.rigid),
+        )
         _report(progress, "coarse", 1.0)
         return CoarseResult(
             transform=transform,
@@ -409,16 +396,6 @@ class _Refinement:
             matched=history[-1]["matched"] if history else 0,
             seconds=time.perf_counter() - t0,
         )
-
-    def fits_worse(self, refined: Sim3, start: Sim3) -> bool:
-        """Whether `refined` fits the anchors worse than `start` by more than a tie
-        (PoseCriteria.score_tie) both with colour and by geometry alone, as the search scores poses."""
-        pair = self.pair
-        src, dst = pair.anchors()
-        k = pair.criteria.pose
-        weight = robust.colour_weight(src, dst, k.palette)
-        after, before = (robust.score_pose(src, dst, pose, "", weight, k) for pose in (refined, start))
-        return before.score - after.score > k.score_tie and before.geometry - after.geometry > k.score_tie
 
     def coarse(self, best: _Hypothesis, progress: Progress | None) -> CoarseResult:
         """Alg. 3 on (a sample of) the source, then — with canonical features —

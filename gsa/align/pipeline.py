@@ -109,14 +109,6 @@ def _semantic_tiebreak(pair, best, search, transform: Sim3, metrics: dict, progr
         if frame_snap.whole_models(metrics, refine) and not frame_snap.whole_models(reading, refine):
             report |= {"picked": 0, "vetoed": {"pick": pick} | reading}
             pick = 0
-    if pick:
-        # The features break ties the geometry leaves; where the geometric choice fits clearly
-        # better than the pose they favour (two halves of one street: 0.2 deg scoring 0.18 against
-        # a half turn's 0.015) it stands, as against the frames' turns (frame_snap.geometry_prefers).
-        geometry = frame_snap.geometry_prefers(pair, transform, poses[pick], metrics)
-        if geometry["answer_wins"]:
-            report |= {"picked": 0, "vetoed": {"pick": pick, "geometry": geometry}}
-            pick = 0
     if pick == 0:
         offers = [c.to_dict(transform) | {"tied": False} for c in swept]
         alternatives = _with_semantic_scores(offered + offers, scored)
