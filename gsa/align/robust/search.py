@@ -360,21 +360,14 @@ def _refine_starts(
     crit = opts.criteria
     src_rows = subsample(rng, len(src), opts.refine_points)
     dst_rows = subsample(rng, len(dst), opts.refine_points)
-    # The anchors' ICP only ever improves a start by the search's own score: where two partial
-    # captures overlap on about half of each, its median-based weights take in pairs from the
-    # parts that do not overlap, and it slid a street's true pose 21 deg off (score 0.32 -> 0.01).
     early = [
-        max(
-            score_pose(src, dst, init, origin, w_colour, crit),
-            score_pose(
-                src,
-                dst,
-                bidirectional_icp(src, dst, init, src_rows, dst_rows, opts.early_iterations, w_colour, crit),
-                origin,
-                w_colour,
-                crit,
-            ),
-            key=lambda c: c.score,
+        score_pose(
+            src,
+            dst,
+            bidirectional_icp(src, dst, init, src_rows, dst_rows, opts.early_iterations, w_colour, crit),
+            origin,
+            w_colour,
+            crit,
         )
         for origin, init in starts
     ]
@@ -388,7 +381,7 @@ def _refine_starts(
             refined.append(c)
             continue
         transform = bidirectional_icp(src, dst, c.transform, src_rows, dst_rows, opts.refine_iterations, w_colour, crit)
-        refined.append(max(c, score_pose(src, dst, transform, c.origin, w_colour, crit), key=lambda c: c.score))
+        refined.append(score_pose(src, dst, transform, c.origin, w_colour, crit))
     return refined
 
 
