@@ -11,14 +11,13 @@ import pytest
 from scipy.spatial import cKDTree
 
 from benchmarks.pairs import exposure_pairs
-from gsa.align import robust
-from gsa.align import AlignOptions
+from gsa.align import AlignOptions, robust
 from gsa.align.criteria import Criteria
 from gsa.align.pipeline import align
 from gsa.align.robust import search
 from gsa.align.robust.anchoring import NearestGrid
-from gsa.align.robust.search import SearchOptions
 from gsa.align.robust.refinement import _plane_step, _smallest
+from gsa.align.robust.search import SearchOptions
 from gsa.geometry import axis_rotation, quat_to_rotation, super_fibonacci_rotations
 from gsa.metrics import accuracy, rre_deg
 from gsa.sim3 import Sim3

@@ -470,7 +470,16 @@ class _GridScorer:
         with KERNEL_LOCK:
             for reach in reaches:
                 _capture_step(
-                    u, scale, t, g.nearest_flat, g.lo, 1.0 / g.cell, g.shape, self.dst.points, reach * self.tau, hold_scale
+                    u,
+                    scale,
+                    t,
+                    g.nearest_flat,
+                    g.lo,
+                    1.0 / g.cell,
+                    g.shape,
+                    self.dst.points,
+                    reach * self.tau,
+                    hold_scale,
                 )
         return scale, t
 
