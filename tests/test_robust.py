@@ -11,13 +11,9 @@ import pytest
 from scipy.spatial import cKDTree
 
 from benchmarks.pairs import exposure_pairs
-from gsa.align import AlignOptions, robust
-from gsa.align.criteria import Criteria
+from gsa.align import robust
 from gsa.align.pipeline import align
-from gsa.align.robust import search
-from gsa.align.robust.anchoring import NearestGrid
 from gsa.align.robust.refinement import _plane_step, _smallest
-from gsa.align.robust.search import SearchOptions
 from gsa.geometry import axis_rotation, quat_to_rotation, super_fibonacci_rotations
 from gsa.metrics import accuracy, rre_deg
 from gsa.sim3 import Sim3
@@ -131,52 +127,12 @@ def test_symmetric_shape_is_resolved_by_colour_under_another_exposure():
 def test_a_symmetric_pose_the_coloured_icp_left_off_is_found_by_the_sweep():
     # A small 5-fold wheel under two exposures: the anchor ICP stops ~10° off the true pose
     # (geometry holds nothing in place about the axis), and a converged flip outscored it.
-    # The grid's polish (search._polish_rotations) reaches this pose on its own: it is off
-    # here, so that the sweep is what is tested.
     label, make = exposure_pairs(True, 0)[3]
     source, target, truth = make()
-    criteria = Criteria(search=SearchOptions(polish_steps=()))
-    result = align(source, target, AlignOptions(criteria=criteria))
+    result = align(source, target)
     assert rre_deg(result.transform.rotation, truth.rotation) < 5.0, label
     chosen = next(h for h in result.hypotheses if h["chosen"])
     assert chosen["origin"].endswith("+sweep")
-
-
-def test_the_polish_climbs_from_a_grid_sample_onto_a_narrow_peak():
-    # Two partial halves of one object: from rotations 8-10 degrees off the truth (the grid's
-    # spacing) at a wrong scale, the polish climbs the score to within a few degrees.
-    rng = np.random.default_rng(3)
-    model = make_object("chair", n_gaussians=20_000, seed=3)
-    halves = rng.random(len(model)) < 0.5
-    source = cut_by_plane(model.subset(halves), rng, (0.6, 0.7))
-    truth = Sim3(2.0, axis_rotation(np.array([0.3, 1.0, 0.2]), 2.0), np.array([0.5, -1.0, 2.0]))
-    target = cut_by_plane(model.subset(~halves), rng, (0.6, 0.7)).transformed(truth)
-    src, dst = robust.anchors(source), robust.anchors(target)
-    options = SearchOptions()
-    k = options.criteria
-    tau = k.truncation * dst.radius
-    scorer = search._GridScorer(
-        src,
-        dst,
-        NearestGrid(dst.points, 0.5 * tau, dst.radius),
-        NearestGrid(src.points, 0.5 * tau / truth.scale, src.radius),
-        np.random.default_rng(0),
-        options.score_points,
-        tau,
-        0.0,
-        k.colour_sigma,
-    )
-    axes = rng.normal(size=(8, 3))
-    rotations = np.array([axis_rotation(a / np.linalg.norm(a), np.radians(9.0)) @ truth.rotation for a in axes])
-    scale = np.full(len(rotations), 0.85 * truth.scale)
-    t = np.tile(truth.apply(src.center), (len(rotations), 1))
-    score = scorer.score(rotations, scale, t, blend=True)
-    before = score.copy()
-    search._polish_rotations(scorer, rotations, scale, t, score, list(range(len(rotations))), options)
-    errors = [rre_deg(r, truth.rotation) for r in rotations]
-    assert (score >= before).all() and score.mean() > before.mean() + 0.05
-    assert np.median(errors) < 4.0, errors
-    assert np.median(np.abs(scale / truth.scale - 1.0)) < 0.08
 
 
 def test_overlap_trim_stops_at_the_overlap_and_keeps_smooth_residuals():

@@ -46,11 +46,6 @@ class SearchOptions:
     translation_step: float = 0.25  # offset grid step, fraction of the target radius
     translation_reach: int = 2  # offsets −reach..reach steps per axis
     scale_factors: tuple[float, ...] = (0.7, 0.85, 1.0, 1.18, 1.4)
-    # Rounds of (turn in degrees, scale factor, move in target radii) in which the
-    # translation_top poses climb the score between the grid's samples (_polish_rotations).
-    # Rounds of (turn in degrees, scale factor) in which the translation_top poses climb the
-    # score between the grid's samples (_polish_rotations); () for none.
-    polish_steps: tuple[tuple[float, float], ...] = ((6.0, 1.1), (6.0, 1.1), (3.0, 1.05), (3.0, 1.05))
     refine_top: int = 10  # distinct rotations refined by anchor ICP
     refine_points: int = 800  # anchors per side in the starts' ICP
     early_iterations: int = 10  # ICP iterations every refined start gets
@@ -124,7 +119,6 @@ def global_search(
     score = scorer.score(rotations, scale, t, blend=True)
     top = _distinct(np.argsort(-score), rotations, opts.translation_top, k.distinct_deg / 2)
     _try_offsets(scorer, rotations, scale, t, score, top, opts)
-    _polish_rotations(scorer, rotations, scale, t, score, top, opts)
 
     # Refine the best distinct rotations, and the best frame relabelling (exact on clean copies).
     frames = np.arange(opts.rotations, len(rotations))
@@ -296,56 +290,12 @@ def _try_offsets(
     trial_t = t[k_rot] + scale[k_rot, None] * arm + offsets[k_off] - trial_scale[:, None] * arm
     trial_score = scorer.score(rotations[k_rot], trial_scale, trial_t, blend=True).reshape(len(top), -1)
     rows = np.arange(len(top)) * trial_score.shape[1] + np.argmax(trial_score, axis=1)
-    # the scale tried is kept: the capture's one-way pairs shrink two partial captures' scale
-    s2, t2 = scorer.capture(rotations[top], trial_scale[rows], trial_t[rows], opts.capture_steps[-2:], hold_scale=True)
+    s2, t2 = scorer.capture(rotations[top], trial_scale[rows], trial_t[rows], opts.capture_steps[-2:])
     new_score = scorer.score(rotations[top], s2, t2, blend=True)
     better = new_score > score[top]
     scale[top] = np.where(better, s2, scale[top])
     t[top] = np.where(better[:, None], t2, t[top])
     score[top] = np.maximum(score[top], new_score)
-
-
-def _polish_rotations(
-    scorer: _GridScorer,
-    rotations: np.ndarray,
-    scale: np.ndarray,
-    t: np.ndarray,
-    score: np.ndarray,
-    top: list[int],
-    opts: SearchOptions,
-) -> None:
-    """The most promising poses climb the score between the grid's samples: per round of
-    opts.polish_steps (degrees, scale factor), each tries the turns about the three axes
-    through the mapped source centre and the scale up and down, its translation captured
-    again at the scale tried, and moves to the best where it scores better. Between two
-    partial captures the score's peak is a few degrees wide, narrower than the grid's
-    spacing (~10 deg): a street's true rotation scored 0.19 where its nearest grid sample,
-    12 deg off, scored 0.08 and ranked 36th, past the starts refined. The scale is climbed on
-    the score, not captured: the capture's one-way pairs shrink the scale of two captures
-    that overlap in part (a street's halves: 0.69 of the true scale). Updates rotations,
-    scale, t and score in place."""
-    top = np.asarray(top, int)
-    n = len(top)
-    for degrees, factor in opts.polish_steps:
-        angle = np.radians(degrees)
-        turns = [axis_rotation(axis, sign * angle) for axis in np.eye(3) for sign in (-1.0, 1.0)]
-        steps = len(turns) + 2
-        r = np.repeat(rotations[top], steps, axis=0).reshape(n, steps, 3, 3)
-        sc = np.repeat(scale[top], steps).reshape(n, steps)
-        for j, turn in enumerate(turns):
-            r[:, j] = turn @ rotations[top]
-        sc[:, -2] *= factor
-        sc[:, -1] /= factor
-        r, sc = r.reshape(-1, 3, 3), sc.ravel()
-        sc, tt = scorer.capture(r, sc, np.repeat(t[top], steps, axis=0), opts.capture_steps[-2:], hold_scale=True)
-        trial = scorer.score(r, sc, tt, blend=True).reshape(n, steps)
-        best = np.argmax(trial, axis=1)
-        rows = np.arange(n)
-        better = trial[rows, best] > score[top]
-        flat = (rows * steps + best)[better]
-        moved = top[better]
-        rotations[moved], scale[moved], t[moved] = r[flat], sc[flat], tt[flat]
-        score[moved] = trial[rows, best][better]
 
 
 def _refine_starts(
@@ -460,7 +410,7 @@ class _GridScorer:
         self.src_mean = self.ps.mean(0)
         self.tau, self.w_colour, self.sigma = tau, w_colour, sigma
 
-    def capture(self, rotations, scale, t, reaches, hold_scale: bool = False):
+    def capture(self, rotations, scale, t, reaches):
         """Shrinking capture radii (units of τ) pull each pose's translation and scale
         onto the nearest target anchors: Horn's symmetric scale and the centroid of the
         captured pairs, rotation held."""
@@ -470,16 +420,7 @@ class _GridScorer:
         with KERNEL_LOCK:
             for reach in reaches:
                 _capture_step(
-                    u,
-                    scale,
-                    t,
-                    g.nearest_flat,
-                    g.lo,
-                    1.0 / g.cell,
-                    g.shape,
-                    self.dst.points,
-                    reach * self.tau,
-                    hold_scale,
+                    u, scale, t, g.nearest_flat, g.lo, 1.0 / g.cell, g.shape, self.dst.points, reach * self.tau
                 )
         return scale, t
 
@@ -573,7 +514,7 @@ def _score_poses(
 
 
 @numba.njit(parallel=True, cache=True)
-def _capture_step(u, scale, t, nearest, lo, inv_cell, shape, other, reach, hold_scale):  # pragma: no cover - compiled
+def _capture_step(u, scale, t, nearest, lo, inv_cell, shape, other, reach):  # pragma: no cover - compiled
     """One capture step per pose (in place): pairs within `reach` of their nearest
     anchor give Horn's symmetric scale and the translation, rotation held."""
     n_pose, n_pt = u.shape[0], u.shape[1]
@@ -607,7 +548,7 @@ def _capture_step(u, scale, t, nearest, lo, inv_cell, shape, other, reach, hold_
         if var_u <= 0 or var_y <= 0:
             continue
         # At most a factor 1.5 per step: few captured pairs give a noisy ratio.
-        s_new = scale[k] if hold_scale else min(max(np.sqrt(var_y / var_u), scale[k] / 1.5), scale[k] * 1.5)
+        s_new = min(max(np.sqrt(var_y / var_u), scale[k] / 1.5), scale[k] * 1.5)
         scale[k] = s_new
         for a in range(3):
             t[k, a] = sy[a] / cnt - s_new * su[a] / cnt
