@@ -46,6 +46,10 @@ def sh_degree_from_count(count: int) -> int:
 FRAME_RELATIVE_FEATURES = ("canonical", "lifted:canonical")
 
 
+# Gaussians per block of surface_normals' rotation pass (a progress report between blocks).
+NORMALS_BLOCK = 500_000
+
+
 @dataclass
 class GaussianModel:
     """N Gaussians.
@@ -133,10 +137,16 @@ class GaussianModel:
         (0 for a ball, whose shortest axis is arbitrary)."""
         scales = self.log_scales[rows].astype(np.float64)
         order = np.argsort(scales, axis=1)
-        steps.step()  # a due progress report (gsa.align.pair._Repeater): whole-model passes
-        rot = quat_to_rotation(normalize_quats(self.quats[rows].astype(np.float64)))
+        quats = self.quats[rows]
+        # In blocks, each followed by a due progress report (gsa.align.pair._Repeater): on 3M
+        # Gaussians the whole pass ran 2 s without one, an embedded cancel's wait.
+        normals = np.empty((len(quats), 3))
+        for start in range(0, len(quats), NORMALS_BLOCK):
+            block = slice(start, start + NORMALS_BLOCK)
+            steps.step()
+            rot = quat_to_rotation(normalize_quats(quats[block].astype(np.float64)))
+            normals[block] = np.take_along_axis(rot, order[block, None, :1], axis=2)[:, :, 0]
         steps.step()
-        normals = np.take_along_axis(rot, order[:, None, :1], axis=2)[:, :, 0]
         ranked = np.take_along_axis(scales, order, axis=1)
         flatness = 1.0 - np.exp(ranked[:, 0] - ranked[:, 1])
         return normals, flatness

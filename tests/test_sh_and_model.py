@@ -92,3 +92,21 @@ def test_merge_models_selects_rows_pads_sh_and_matches_concatenation(car_model):
     sub = merge_models(a.subset(mask), b.subset(idx))
     for name in ("means", "quats", "log_scales", "opacity_logits", "sh", "features"):
         np.testing.assert_array_equal(getattr(picked, name), getattr(sub, name))
+
+
+def test_surface_normals_in_blocks_equal_one_pass(monkeypatch):
+    # surface_normals runs its rotation pass in blocks (a progress report between them): the
+    # normals must be those of one pass over every Gaussian, for any rows asked for.
+    import gsa.model
+    from gsa.geometry import normalize_quats, quat_to_rotation
+    from gsa.synth import make_object
+
+    model = make_object("car", seed=2, n_gaussians=5000)
+    scales = model.log_scales.astype(np.float64)
+    rot = quat_to_rotation(normalize_quats(model.quats.astype(np.float64)))
+    one_pass = np.take_along_axis(rot, np.argsort(scales, axis=1)[:, None, :1], axis=2)[:, :, 0]
+    monkeypatch.setattr(gsa.model, "NORMALS_BLOCK", 700)
+    rows = np.random.default_rng(0).random(len(model)) < 0.6
+    assert np.array_equal(model.surface_normals()[0], one_pass)
+    assert np.array_equal(model.surface_normals(rows)[0], one_pass[rows])
+    assert np.array_equal(model.surface_normals(np.arange(10, 4000, 3))[0], one_pass[10:4000:3])

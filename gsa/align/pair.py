@@ -103,11 +103,9 @@ class _Pair:
         src_pts = source.means.astype(np.float64)
         dst_pts = target.means.astype(np.float64)
         dst_feat = target.features if mode == "file" else canonical_features(dst_pts, dst_frame)
-        steps.step()
-        src_tree = cKDTree(src_pts)
-        steps.step()
-        dst_tree = cKDTree(dst_pts)
-        steps.step()
+        # KD-tree builds release the GIL: waited for between reports (1.3 s each at 3M Gaussians)
+        src_tree = steps.waiting(lambda: cKDTree(src_pts))
+        dst_tree = steps.waiting(lambda: cKDTree(dst_pts))
         return cls(
             source=source,
             target=target,
@@ -172,8 +170,9 @@ class _Pair:
     def kept_trees(self) -> tuple[cKDTree, cKDTree]:
         """KD-trees of the Gaussians that are not floaters (robust.anchors), source and target."""
         src, dst = self.anchors()
-        src_tree = self.src_tree if src.kept.all() else cKDTree(self.src_pts[src.kept])
-        dst_tree = self.dst_tree if dst.kept.all() else cKDTree(self.dst_pts[dst.kept])
+        # waited for between progress reports (steps.waiting), as the pair's own trees
+        src_tree = self.src_tree if src.kept.all() else steps.waiting(lambda: cKDTree(self.src_pts[src.kept]))
+        dst_tree = self.dst_tree if dst.kept.all() else steps.waiting(lambda: cKDTree(self.dst_pts[dst.kept]))
         return src_tree, dst_tree
 
     @property
