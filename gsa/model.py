@@ -138,7 +138,7 @@ class GaussianModel:
         scales = self.log_scales[rows].astype(np.float64)
         order = np.argsort(scales, axis=1)
         quats = self.quats[rows]
-        # In blocks, each followed by a due progress report (gsa.align.pair._Repeater): on 3M
+        # In blocks, a due progress report (gsa.align.pair._Repeater) before each: on 3M
         # Gaussians the whole pass ran 2 s without one, an embedded cancel's wait.
         normals = np.empty((len(quats), 3))
         for start in range(0, len(quats), NORMALS_BLOCK):

@@ -2,10 +2,12 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from gsa.geometry import quat_to_rotation
+import gsa.model
+from gsa.geometry import normalize_quats, quat_to_rotation
 from gsa.model import GaussianModel, ModelError, merge_models
 from gsa.sh import eval_sh, rotate_sh, sh_basis
 from gsa.sim3 import Sim3
+from gsa.synth import make_object
 
 
 def _random_dirs(rng, n):
@@ -97,10 +99,6 @@ def test_merge_models_selects_rows_pads_sh_and_matches_concatenation(car_model):
 def test_surface_normals_in_blocks_equal_one_pass(monkeypatch):
     # surface_normals runs its rotation pass in blocks (a progress report between them): the
     # normals must be those of one pass over every Gaussian, for any rows asked for.
-    import gsa.model
-    from gsa.geometry import normalize_quats, quat_to_rotation
-    from gsa.synth import make_object
-
     model = make_object("car", seed=2, n_gaussians=5000)
     scales = model.log_scales.astype(np.float64)
     rot = quat_to_rotation(normalize_quats(model.quats.astype(np.float64)))
