@@ -209,7 +209,18 @@ def gsa_runner(fine: bool, labels: tuple[str, str] = (GSA_COARSE, GSA_FINE), **o
             # whether align() took the scene path (gsa.align.scene)
             "scene_path": bool((result.diagnostics.get("scene") or {}).get("ran", False)),
             # what the confidence is made of, kept for calibration
-            **{k: _float_or_none(result.metrics.get(k)) for k in ("margin", "overlap_score", "score", "colour_weight")},
+            **{
+                k: _float_or_none(result.metrics.get(k))
+                for k in (
+                    "margin",
+                    "overlap_score",
+                    "score",
+                    "colour_weight",
+                    "colour_mismatch",
+                    "overlap_estimate",
+                    "coincident_share",
+                )
+            },
         }
         # The coarse row is judged at the coarse pose (align() reports that verdict beside the final one).
         coarse_flags = dict(flags)
