@@ -213,6 +213,44 @@ def test_verdict_reads_how_well_an_overlap_coincides_where_the_overlap_is_large_
     assert robust.verdict(partial, tied, (0.7, 0.93))["doubtful"]  # coinciding does not make a margin
 
 
+def test_an_overlap_that_does_not_coincide_is_unconfirmed_where_it_is_large_enough():
+    v = robust.VerdictCriteria()
+    assert robust.overlap_unconfirmed({"overlap_estimate": 0.8, "coincident_share": 0.34})
+    assert not robust.overlap_unconfirmed({"overlap_estimate": 0.8, "coincident_share": 0.74})
+    assert not robust.overlap_unconfirmed({"overlap_estimate": 0.4, "coincident_share": 0.1})  # a sliver: no reading
+    assert not robust.overlap_unconfirmed({"overlap_estimate": None, "coincident_share": None})
+    stricter = robust.VerdictCriteria(unconfirmed_share=0.8)
+    assert robust.overlap_unconfirmed({"overlap_estimate": v.coincide_min_overlap, "coincident_share": 0.74}, stricter)
+
+
+def test_a_confident_pose_whose_overlap_does_not_coincide_is_flagged_and_kept():
+    """A copy slid along by a few sample spacings: the surfaces lie near each other over all
+    of the model, yet little of the overlap coincides. Under a verdict whose overlap score
+    calls that pose confident (a lower fit floor: a street's ground under its half turn scored
+    0.60), only the verdict changes, the answer is not moved, and the reason says why."""
+    from dataclasses import replace
+
+    from gsa.align.criteria import Criteria
+    from gsa.align.pair import _Pair
+    from gsa.align.types import AlignOptions
+    from gsa.align.verdict import Verdict
+
+    model = make_object("car", seed=3, n_gaussians=6000)
+    lenient = Criteria(verdict=replace(robust.VerdictCriteria(), fit_floor=0.1))
+    pair = _Pair.build(model, model, AlignOptions(semantic="off", learned="off", criteria=lenient))
+    points = model.means.astype(np.float64)
+    spacing = float(np.median(cKDTree(points).query(points, k=2)[0][:, 1]))
+    slid = Sim3(1.0, np.eye(3), np.array([0.0, 0.0, 8.0 * spacing]))
+    metrics = pair.judge.verdict(slid, None)
+    assert not metrics["doubtful"] and metrics["coincident_share"] < 0.5 <= metrics["overlap_estimate"], metrics
+    flagged = pair.judge.unconfirmed(slid, None, metrics)
+    assert flagged["doubtful"] and flagged["overlap_unconfirmed"]
+    assert flagged["confidence"] <= pair.criteria.verdict.doubt_cap
+    assert "coincides" in Verdict.from_metrics(flagged).reason
+    exact = pair.judge.verdict(Sim3.identity(), None)
+    assert pair.judge.unconfirmed(Sim3.identity(), None, exact) == exact  # a coinciding pose keeps its verdict
+
+
 def test_a_source_shrunk_onto_a_speck_of_the_target_does_not_coincide():
     # Seen on two rifles at 5k Gaussians: the source 14x too small sat wholly within the
     # coincidence tolerance of a few target points (share 1.0), and the verdict called a pose

@@ -475,8 +475,9 @@ class _Judge:
     def __init__(self, pair: _Pair) -> None:
         self.pair = pair
 
-    def verdict(self, transform: Sim3, search: robust.SearchResult | None) -> dict:
-        """Confidence in [0, 1], ambiguity and the alternative poses (GT-free)."""
+    def verdict(self, transform: Sim3, search: robust.SearchResult | None, offer: bool = False) -> dict:
+        """Confidence in [0, 1], ambiguity and the alternative poses (GT-free); `offer` lists
+        the alternatives whatever the verdict."""
         pair = self.pair
         src, dst = pair.anchors()
         k = pair.criteria
@@ -486,11 +487,27 @@ class _Judge:
             noise = 0.5 * (robust.colour_noise(src, k.pose) + robust.colour_noise(dst, k.pose))
             w_colour = robust.colour_trust(src, dst, noise, k.pose)
         coincide = self._coincidence(transform)
-        offer_always = pair.opts.alternatives == "always" or guided.is_guided(pair.opts)
+        offer_always = offer or pair.opts.alternatives == "always" or guided.is_guided(pair.opts)
         final = robust.score_pose(src, dst, transform, "final", w_colour, k.pose)
         out = robust.verdict(final, search, coincide, k.verdict, offer_always=offer_always)
         out["colour_gain"] = list(src.colour_gain)  # exposure/white balance matched onto the target's
         return out
+
+    def unconfirmed(self, transform: Sim3, search: robust.SearchResult | None, metrics: dict) -> dict:
+        """A confident answer's record (metrics, verdict's keys at `transform`) flagged where its
+        overlap does not coincide (robust.overlap_unconfirmed), with the alternatives listed;
+        the answer itself is kept. Only the verdict changes: the doubtful chain is for answers
+        the search doubted, and it moves poses."""
+        criteria = self.pair.criteria.verdict
+        if metrics.get("doubtful") or not robust.overlap_unconfirmed(metrics, criteria):
+            return metrics
+        offered = self.verdict(transform, search, offer=True).get("alternatives")
+        return metrics | {
+            "confidence": min(float(metrics["confidence"]), criteria.doubt_cap),
+            "doubtful": True,
+            "overlap_unconfirmed": True,
+            **({"alternatives": offered} if offered is not None else {}),
+        }
 
     def _coincidence(self, transform: Sim3):
         """robust.coincidence of the posed models' surfaces (floaters left out), on JUDGE_POINTS

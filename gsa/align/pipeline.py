@@ -432,6 +432,8 @@ def _align_models(
         transform, metrics = _doubtful_answer(
             pair, best, search, transform, metrics, guidance, leash, timings, progress
         )
+    else:
+        metrics = pair.judge.unconfirmed(transform, search, metrics)
     metrics["scene"] = choice.to_dict()
     if guidance is not None:
         metrics = _guidance_report(pair, best.init if start else None, transform, metrics, guidance, start)

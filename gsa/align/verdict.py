@@ -146,4 +146,10 @@ def _reason(metrics: Mapping, doubtful: bool, ambiguous: bool, confidence: float
         return guidance["doubt"]
     if ambiguous:
         return "another pose fits the models as well as this one (see alternatives)"
+    share = metrics.get("coincident_share")
+    if metrics.get("overlap_unconfirmed") and is_number(share):
+        return (
+            f"the models overlap at this pose but only {share:.0%} of the overlap coincides: they may lie "
+            "near each other without being aligned (see alternatives)"
+        )
     return f"low confidence ({confidence:.2f})"

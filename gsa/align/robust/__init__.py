@@ -79,6 +79,7 @@ from gsa.align.robust.refinement import (
     coincidence,
     frame_relabellings,
     overlap_fraction,
+    overlap_unconfirmed,
     refine,
     verdict,
 )
@@ -112,6 +113,7 @@ __all__ = [
     "box_lattice",
     "placed_starts",
     "overlap_fraction",
+    "overlap_unconfirmed",
     "refine",
     "rotation_offset_deg",
     "score_pose",

@@ -91,6 +91,12 @@ class VerdictCriteria:
     coincide_floor: float = 0.7
     coincide_span: float = 0.2
     coincide_min_overlap: float = 0.5
+    # An answer judged confident whose overlap (an estimate of at least coincide_min_overlap)
+    # coincides on less than this share is flagged all the same (overlap_unconfirmed): the
+    # surfaces lie near each other without being one surface. Measured at answers: right ones
+    # on 12 real captures 0.52-0.90 (140 of 141 unflagged pairs 0.74 or more, both exposure
+    # variants), a street turned 168 deg 0.34 (confidence 0.65); docs/benchmarks.md.
+    unconfirmed_share: float = 0.5
     doubt_cap: float = 0.25  # the confidence at most of a tie or a colour contradiction
     # Poses offered beside the chosen one (`alternatives`): the first rival, the chosen pose
     # snapped onto the principal frames, the three half turns, the next candidates and their
@@ -169,6 +175,17 @@ def verdict(
             for c in (alternatives(final, search, v.max_alternatives) if offer else [])
         ]
     return out
+
+
+def overlap_unconfirmed(metrics: dict, criteria: VerdictCriteria | None = None) -> bool:
+    """Whether a verdict's record (verdict's keys) holds an overlap that does not coincide: the
+    models overlap on at least coincide_min_overlap of their pairs, yet less than
+    unconfirmed_share of that overlap coincides. A confident answer with such an overlap scored
+    on surfaces that lie near each other, not on one surface (a street's ground under its
+    half turn)."""
+    v = criteria or _VERDICT
+    estimate, share = metrics.get("overlap_estimate"), metrics.get("coincident_share")
+    return estimate is not None and share is not None and estimate >= v.coincide_min_overlap and share < v.unconfirmed_share
 
 
 def alternatives(
