@@ -185,7 +185,12 @@ def overlap_unconfirmed(metrics: dict, criteria: VerdictCriteria | None = None) 
     half turn)."""
     v = criteria or _VERDICT
     estimate, share = metrics.get("overlap_estimate"), metrics.get("coincident_share")
-    return estimate is not None and share is not None and estimate >= v.coincide_min_overlap and share < v.unconfirmed_share
+    return (
+        estimate is not None
+        and share is not None
+        and estimate >= v.coincide_min_overlap
+        and share < v.unconfirmed_share
+    )
 
 
 def alternatives(
