@@ -12,6 +12,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from gsa.align.robust.anchoring import Anchors, NearestGrid, grid_index, subsample
+from gsa.align.robust.matching import MatchOptions, matched_poses
 from gsa.align.robust.placement import placed_starts
 from gsa.align.robust.poses import (
     Candidate,
@@ -58,6 +59,10 @@ class SearchOptions:
     place_truncation: float = 0.25  # loose: the coarse rotation is up to ~20° off
     place_scales: tuple[float, ...] = (0.75, 1.0, 1.33)
     place_top: int = 6  # distinct placements refined to convergence
+    # Matched starts (gsa.align.robust.matching), run beside the placements: poses most
+    # descriptor pairs agree with, refined to convergence (0: none).
+    match_top: int = 4
+    matching: MatchOptions = field(default_factory=MatchOptions)
     # Axes (target coordinates) of the half turns offered beside the best pose (_with_offers);
     # None: the target's principal axes. A search about a known up axis offers the turn about it.
     offer_turn_axes: tuple[tuple[float, float, float], ...] | None = None
@@ -157,6 +162,14 @@ def global_search(
             src, dst, init, src_rows, dst_rows, opts.early_iterations + opts.refine_iterations, w_colour, k
         )
         refined.append(score_pose(src, dst, transform, "placed", w_colour, k))
+    if opts.match_top:
+        # their own draws: where no pose is matched, the search's later draws (the offers) stay as they were
+        matching_rng = np.random.default_rng([opts.seed, 1])
+        for init in matched_poses(src, dst, matching_rng, opts.match_top, k.distinct_deg, opts.matching, w_colour):
+            transform = bidirectional_icp(
+                src, dst, init, src_rows, dst_rows, opts.early_iterations + opts.refine_iterations, w_colour, k
+            )
+            refined.append(score_pose(src, dst, transform, "matched", w_colour, k))
     return _with_offers(src, dst, decide(dedupe(refined, k), w_colour, noise, k), w_colour, rng, opts)
 
 

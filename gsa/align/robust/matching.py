@@ -1,0 +1,169 @@
+"""Matched starts: poses from local shape descriptors paired across the two models.
+
+The global search places each rotation by the models' centres and radii, and the placement
+search by a lattice of centres; both sample rotations on a grid. Two partial captures of one
+place (a street, a room, a statue each missing a side) score the truth in a peak narrower than
+the grid and overlap only in part, so neither reaches it (docs/benchmarks.md, "Where the tail
+comes from"). Here each anchor gets a histogram of how its neighbours lie around it (the angles
+between its normal, theirs and the line joining them, and their distances, counted
+sign-free so that no normal orientation is needed), anchors are paired with their most alike
+across the models, and triples of pairs whose three sides keep one ratio give similarities
+(RANSAC); the poses most pairs agree with become starts. Neither a centre nor a grid is
+involved, only the anchors' own neighbourhoods, whose size is a number of anchors and so
+follows each model's own scale.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from gsa.align.robust.anchoring import Anchors
+from gsa.geometry import rotation_distance_deg
+from gsa.render import steps
+from gsa.sim3 import Sim3
+
+
+@dataclass(frozen=True)
+class MatchOptions:
+    """The tunables of the matched starts (SearchOptions.matching)."""
+
+    normal_neighbours: int = 16  # anchors a normal is fitted to
+    neighbours: int = 32  # anchors a descriptor describes (about 6 spacings across)
+    bins: int = 8  # histogram bins per measured quantity (4 quantities)
+    pairs_per_anchor: int = 2  # each source anchor is paired with this many most alike targets ...
+    # ... and a pair is kept only where the source anchor is also among the target's most alike
+    # RANSAC draws; about 1 in 20-100 keeps its side ratios within side_ratio_spread
+    triples: int = 20_000
+    side_ratio_spread: float = 0.15  # a triple's three side ratios (target / source) agree within this
+    inlier_spacings: float = 3.0  # a pair agrees with a pose within this many target anchor spacings
+    # A pose is a start only where at least this share of the pairs agree with it. Chance
+    # agreement is 1-3 % (3 spacings of ~2,000 anchors); measured best poses: two captures of
+    # one object 6-25 % (halves of 12 real captures, deformed copies), two instances of a
+    # category 1-5 % (24 development pairs), whose local shapes do not correspond.
+    min_consensus: float = 0.05
+    chunk: int = 256  # poses whose agreement is counted at once (memory: chunk × pairs × 3)
+    # Where the models share a palette (the search's colour trust), each descriptor also holds
+    # its anchor's and its neighbourhood's CIELAB colour, in units of colour_scale ΔE, times
+    # the trust: two captures of one object pair like places by their colour as well.
+    colour_scale: float = 50.0
+
+
+def descriptors(
+    points: np.ndarray, options: MatchOptions | None = None, lab: np.ndarray | None = None, colour: float = 0.0
+) -> tuple[np.ndarray, float]:
+    """(one histogram per point, the median nearest-neighbour spacing). Per point and each of
+    its `neighbours`: |n·d|, |n'·d|, |n·n'| (n, n' the two normals, d the unit line between
+    them) and the distance over the farthest neighbour's, each in `bins` bins; with `lab`
+    (CIELAB per point) and colour > 0, the point's and its neighbours' mean colour follow,
+    weighted by `colour`."""
+    o = options or MatchOptions()
+    n = len(points)
+    k_normal, k = min(o.normal_neighbours, n), min(o.neighbours + 1, n)
+    tree = cKDTree(points)
+    dist, idx = tree.query(points, k=max(k_normal, k))
+    spacing = float(np.median(dist[:, 1])) if dist.shape[1] > 1 else 0.0
+    local = points[idx[:, :k_normal]]
+    centred = local - local.mean(axis=1, keepdims=True)
+    normals = np.linalg.eigh(np.einsum("nki,nkj->nij", centred, centred))[1][:, :, 0]
+    near = idx[:, 1:k]
+    line = points[near] - points[:, None, :]
+    length = np.linalg.norm(line, axis=2)
+    unit = line / np.maximum(length, 1e-300)[:, :, None]
+    reach = np.maximum(length.max(axis=1, keepdims=True), 1e-300)
+    quantities = (
+        np.abs(np.einsum("nkj,nj->nk", unit, normals)),
+        np.abs(np.einsum("nkj,nkj->nk", unit, normals[near])),
+        np.abs(np.einsum("nkj,nj->nk", normals[near], normals)),
+        length / reach,
+    )
+    out = np.zeros((n, len(quantities) * o.bins))
+    rows = np.repeat(np.arange(n), near.shape[1])
+    for q, values in enumerate(quantities):
+        cells = np.minimum((values * o.bins).astype(np.int64), o.bins - 1).reshape(-1)
+        np.add.at(out, (rows, q * o.bins + cells), 1.0)
+    out /= max(near.shape[1], 1)
+    if lab is not None and colour > 0:
+        tint = np.concatenate([lab, lab[near].mean(axis=1)], axis=1) * (colour / o.colour_scale)
+        out = np.concatenate([out, tint], axis=1)
+    return out, spacing
+
+
+def matched_poses(
+    src: Anchors,
+    dst: Anchors,
+    rng: np.random.Generator,
+    count: int,
+    min_deg: float,
+    options: MatchOptions | None = None,
+    colour: float = 0.0,
+) -> list[Sim3]:
+    """Up to `count` similarities, min_deg apart in rotation, that the most descriptor pairs
+    agree with (best first), each agreed by min_consensus of the pairs at least; empty where
+    none is (two instances of a category, whose local shapes do not correspond). `colour`:
+    how far the models' colours are trusted (the search's colour weight, 0..1)."""
+    o = options or MatchOptions()
+    if len(src) < 4 or len(dst) < 4:
+        return []
+    f_src, _ = descriptors(src.points, o, src.lab, colour)
+    steps.step()
+    f_dst, spacing = descriptors(dst.points, o, dst.lab, colour)
+    steps.step()
+    per = min(o.pairs_per_anchor, len(dst))
+    alike = cKDTree(f_dst).query(f_src, k=per)[1].reshape(len(src), per)
+    s_idx, d_idx = np.repeat(np.arange(len(src)), per), alike.reshape(-1)
+    back = cKDTree(f_src).query(f_dst[d_idx], k=min(o.pairs_per_anchor, len(src)))[1].reshape(len(d_idx), -1)
+    mutual = np.any(back == s_idx[:, None], axis=1)
+    p, q = src.points[s_idx[mutual]], dst.points[d_idx[mutual]]
+    if len(p) < 3:
+        return []
+    steps.step()
+    poses, agree = _ransac(p, q, rng, o.inlier_spacings * spacing, o)
+    out: list[Sim3] = []
+    least = max(3.0, o.min_consensus * len(p))
+    for i in np.argsort(-agree, kind="stable"):
+        if agree[i] < least:
+            break
+        if all(rotation_distance_deg(poses[i].rotation, kept.rotation) > min_deg for kept in out):
+            out.append(poses[i])
+            if len(out) == count:
+                break
+    return out
+
+
+def _ransac(
+    p: np.ndarray, q: np.ndarray, rng: np.random.Generator, tolerance: float, o: MatchOptions
+) -> tuple[list[Sim3], np.ndarray]:
+    """The similarities of random triples of pairs (p[i] -> q[i]) whose sides keep one ratio,
+    each with the number of pairs it maps within `tolerance`."""
+    draws = rng.integers(0, len(p), size=(o.triples, 3))
+    a, b = p[draws], q[draws]  # (m, 3 points, 3)
+    side_a = np.linalg.norm(a - a[:, [1, 2, 0]], axis=2)
+    side_b = np.linalg.norm(b - b[:, [1, 2, 0]], axis=2)
+    ok = (side_a.min(axis=1) > 1e-9) & (side_b.min(axis=1) > 1e-9)
+    ratio = side_b[ok] / side_a[ok]
+    ok[ok] = ratio.max(axis=1) <= (1.0 + o.side_ratio_spread) * ratio.min(axis=1)
+    a, b = a[ok], b[ok]
+    if not len(a):
+        return [], np.zeros(0)
+    ca, cb = a.mean(axis=1, keepdims=True), b.mean(axis=1, keepdims=True)
+    xa, xb = a - ca, b - cb
+    u, _, vt = np.linalg.svd(np.einsum("mki,mkj->mij", xa, xb))
+    flip = np.sign(np.linalg.det(np.einsum("mij,mjk->mik", u, vt)))
+    d = np.ones((len(a), 3))
+    d[:, 2] = flip
+    rotation = np.einsum("mji,mj,mkj->mik", vt, d, u)  # V diag(d) Uᵀ
+    scale = np.sqrt(np.sum(xb**2, axis=(1, 2)) / np.maximum(np.sum(xa**2, axis=(1, 2)), 1e-300))
+    shift = cb[:, 0] - scale[:, None] * np.einsum("mij,mj->mi", rotation, ca[:, 0])
+    agree = np.empty(len(a))
+    for start in range(0, len(a), o.chunk):
+        sl = slice(start, start + o.chunk)
+        mapped = scale[sl, None, None] * np.einsum("mij,nj->mni", rotation[sl], p) + shift[sl, None, :]
+        agree[sl] = np.sum(np.sum((mapped - q) ** 2, axis=2) < tolerance**2, axis=1)
+        steps.step()
+    return [Sim3(float(s), r, t) for s, r, t in zip(scale, rotation, shift, strict=True)], agree
+
+
+__all__ = ["MatchOptions", "descriptors", "matched_poses"]
