@@ -25,18 +25,24 @@ def test_descriptors_follow_the_shape_through_a_similarity():
     assert np.median(np.linalg.norm(before - before.mean(axis=0), axis=1)) > 0.1
 
 
-def test_matched_poses_reach_the_truth_of_two_partial_captures_of_one_object():
-    """Two disjoint halves of a chair, each cut by its own plane, the target moved and shrunk
-    5x: the starts come from paired anchors, not from the (misleading) centres. Generated
-    objects are built of boxes and cylinders, alike everywhere in shape alone; their colours
-    tell the places apart (the search passes its colour trust)."""
+def _partial_chair_anchors():
+    """Anchors of two disjoint halves of a chair, each cut by its own plane, the target moved
+    and shrunk 5x, and that move."""
     rng = np.random.default_rng([5, 1])
     model = make_object("chair", seed=4, n_gaussians=16_000)
     halves = rng.random(len(model)) < 0.5
     source = cut_by_plane(model.subset(halves), rng, keep=(0.6, 0.7))
     truth = Sim3(0.2, random_sim3(rng).rotation, np.array([1.0, 2.0, 3.0]))
     target = cut_by_plane(model.subset(~halves), rng, keep=(0.6, 0.7)).transformed(truth)
-    src, dst = robust.anchors(source, 2000), robust.anchors(target, 2000)
+    return robust.anchors(source, 2000), robust.anchors(target, 2000), truth
+
+
+def test_matched_poses_reach_the_truth_of_two_partial_captures_of_one_object():
+    """Two disjoint halves of a chair, each cut by its own plane, the target moved and shrunk
+    5x: the starts come from paired anchors, not from the (misleading) centres. Generated
+    objects are built of boxes and cylinders, alike everywhere in shape alone; their colours
+    tell the places apart (the search passes its colour trust)."""
+    src, dst, truth = _partial_chair_anchors()
     poses = matched_poses(src, dst, np.random.default_rng(0), count=4, min_deg=10.0, colour=1.0)
     assert 1 <= len(poses) <= 4
     assert all(rre_deg(a.rotation, b.rotation) > 10.0 for i, a in enumerate(poses) for b in poses[:i])
@@ -53,13 +59,7 @@ def test_a_model_matched_with_itself_gives_the_identity_first():
 
 
 def test_the_widened_search_refines_the_matched_starts():
-    rng = np.random.default_rng([5, 1])
-    model = make_object("chair", seed=4, n_gaussians=16_000)
-    halves = rng.random(len(model)) < 0.5
-    source = cut_by_plane(model.subset(halves), rng, keep=(0.6, 0.7))
-    truth = Sim3(0.2, random_sim3(rng).rotation, np.array([1.0, 2.0, 3.0]))
-    target = cut_by_plane(model.subset(~halves), rng, keep=(0.6, 0.7)).transformed(truth)
-    src, dst = robust.anchors(source, 2000), robust.anchors(target, 2000)
+    src, dst, truth = _partial_chair_anchors()
     widened = robust.global_search(src, dst, widen_if=lambda first: True)
     matched = [c for c in widened.candidates if c.origin == "matched"]
     assert matched, [c.origin for c in widened.candidates]
