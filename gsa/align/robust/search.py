@@ -143,6 +143,10 @@ def global_search(
     # overlap converges slowly), so each runs to convergence rather than being halved.
     src_rows = subsample(rng, len(src), opts.refine_points)
     dst_rows = subsample(rng, len(dst), opts.refine_points)
+
+    def converged(init: Sim3, origin: str) -> Candidate:
+        return _converged(src, dst, init, origin, (src_rows, dst_rows), w_colour, opts)
+
     for r, s_, t_ in placed_starts(
         src,
         dst,
@@ -157,20 +161,24 @@ def global_search(
         capture=scorer.capture,
         capture_steps=opts.capture_steps[-3:],
     ):
-        init = Sim3(s_, r, t_ - s_ * r @ src.center)
-        transform = bidirectional_icp(
-            src, dst, init, src_rows, dst_rows, opts.early_iterations + opts.refine_iterations, w_colour, k
-        )
-        refined.append(score_pose(src, dst, transform, "placed", w_colour, k))
+        refined.append(converged(Sim3(s_, r, t_ - s_ * r @ src.center), "placed"))
     if opts.match_top:
         # their own draws: where no pose is matched, the search's later draws (the offers) stay as they were
         matching_rng = np.random.default_rng([opts.seed, 1])
         for init in matched_poses(src, dst, matching_rng, opts.match_top, k.distinct_deg, opts.matching, w_colour):
-            transform = bidirectional_icp(
-                src, dst, init, src_rows, dst_rows, opts.early_iterations + opts.refine_iterations, w_colour, k
-            )
-            refined.append(score_pose(src, dst, transform, "matched", w_colour, k))
+            refined.append(converged(init, "matched"))
     return _with_offers(src, dst, decide(dedupe(refined, k), w_colour, noise, k), w_colour, rng, opts)
+
+
+def _converged(
+    src: Anchors, dst: Anchors, init: Sim3, origin: str, rows: tuple, w_colour: float, opts: SearchOptions
+) -> Candidate:
+    """A start taken by the anchors' ICP to convergence (the early and the refine budgets) and
+    scored: the widened search's placed and matched starts, and the offers' half turns."""
+    k = opts.criteria
+    iterations = opts.early_iterations + opts.refine_iterations
+    transform = bidirectional_icp(src, dst, init, rows[0], rows[1], iterations, w_colour, k)
+    return score_pose(src, dst, transform, origin, w_colour, k)
 
 
 def _with_offers(
@@ -205,6 +213,10 @@ def _offers(
     k = opts.criteria
     src_rows = subsample(rng, len(src), opts.refine_points)
     dst_rows = subsample(rng, len(dst), opts.refine_points)
+
+    def converged(init: Sim3, origin: str) -> Candidate:
+        return _converged(src, dst, init, origin, (src_rows, dst_rows), w_colour, opts)
+
     if opts.offer_turn_axes is not None:
         axes = np.asarray(opts.offer_turn_axes, np.float64).reshape(-1, 3)
         axes = axes / np.linalg.norm(axes, axis=1, keepdims=True)
@@ -215,9 +227,7 @@ def _offers(
         turn = axis_rotation(axis, np.pi)
         # x -> turn (T(x) - c) + c: the half turn about the target's centre, after the best pose.
         start = Sim3(best.scale, turn @ best.rotation, turn @ (best.translation - dst.center) + dst.center)
-        iterations = opts.early_iterations + opts.refine_iterations
-        transform = bidirectional_icp(src, dst, start, src_rows, dst_rows, iterations, w_colour, k)
-        flips.append(score_pose(src, dst, transform, f"flip:axis{n}", w_colour, k))
+        flips.append(converged(start, f"flip:axis{n}"))
     sample = src.points[src_rows]
     limit = opts.offer_distinct * k.truncation * dst.radius
     # The first rival stays whatever its surface: the turns of a symmetric shape are what the
@@ -323,6 +333,7 @@ def _refine_starts(
     crit = opts.criteria
     src_rows = subsample(rng, len(src), opts.refine_points)
     dst_rows = subsample(rng, len(dst), opts.refine_points)
+
     early = [
         score_pose(
             src,
@@ -366,6 +377,7 @@ def _sweep_twins(
         return refined
     src_rows = subsample(rng, len(src), opts.refine_points)
     dst_rows = subsample(rng, len(dst), opts.refine_points)
+
     out = list(refined)
     turns = _sweep_turns(opts.sweep_degrees)
     for c in distinct[: opts.finalists]:
