@@ -337,14 +337,17 @@ def _all_pairs_phase(history) -> bool:
     return any(h["stage"] == "refine-all-pairs" for h in history)
 
 
-def test_refinement_fits_every_pair_only_where_the_models_coincide_nowhere():
+def test_refinement_fits_every_pair_only_where_opted_into_and_the_models_coincide_nowhere():
     pairs = _deformed_pairs()
-    assert sum(_all_pairs_phase(_refine(s, deformed)[1]) for s, _, deformed, _ in pairs) >= 4
-    assert not any(_all_pairs_phase(_refine(s, resampled)[1]) for s, resampled, _, _ in pairs)
-    assert not any(_all_pairs_phase(_refine(s, cut)[1]) for s, _, _, cut in pairs)
-    # Two captures of one place (the scene path) are never deformed copies: the trimmed fit stands.
-    one_place = robust.RefineCriteria(deformable=False)
-    assert not any(_all_pairs_phase(_refine(s, deformed, criteria=one_place)[1]) for s, _, deformed, _ in pairs)
+    opted = robust.RefineCriteria(deformable=True)
+    assert sum(_all_pairs_phase(_refine(s, deformed, criteria=opted)[1]) for s, _, deformed, _ in pairs) >= 4
+    assert not any(_all_pairs_phase(_refine(s, resampled, criteria=opted)[1]) for s, resampled, _, _ in pairs)
+    assert not any(_all_pairs_phase(_refine(s, cut, criteria=opted)[1]) for s, _, _, cut in pairs)
+    # By default (and for two captures of one place, the scene path) the trimmed fit stands.
+    assert not any(_all_pairs_phase(_refine(s, deformed)[1]) for s, _, deformed, _ in pairs)
+    assert not any(
+        _all_pairs_phase(_refine(s, deformed, criteria=robust.RIGID_REFINE)[1]) for s, _, deformed, _ in pairs
+    )
 
 
 def _turned(model, seed: int, degrees: float) -> Sim3:
@@ -359,10 +362,11 @@ def _turned(model, seed: int, degrees: float) -> Sim3:
 def test_fitting_every_pair_averages_a_deformation_better_than_trimming():
     """From the search's pose (a few degrees off), a fit trimmed to the best-matching part of a
     deformed copy locks onto that part, away from the natural alignment; one over all pairs
-    drifts less."""
+    (RefineCriteria.deformable, opt-in) drifts less."""
     pairs = [(s, deformed, _turned(s, k, 3.0)) for k, (s, _, deformed, _) in enumerate(_deformed_pairs())]
-    every_pair = [rre_deg(_refine(s, t, init)[0].rotation, np.eye(3)) for s, t, init in pairs]
-    trim_only = robust.RefineCriteria(whole_overlap=2.0)  # never "differ everywhere": trim only
+    opted = robust.RefineCriteria(deformable=True)
+    every_pair = [rre_deg(_refine(s, t, init, opted)[0].rotation, np.eye(3)) for s, t, init in pairs]
+    trim_only = robust.RefineCriteria()  # the default: the trimmed fit stands
     trimmed = [rre_deg(_refine(s, t, init, trim_only)[0].rotation, np.eye(3)) for s, t, init in pairs]
     assert np.mean(every_pair) < np.mean(trimmed), (every_pair, trimmed)
 
@@ -533,17 +537,19 @@ def test_snapped_offers_turn_a_drifted_pose_onto_the_principal_frames():
 
 def test_rigid_hint_keeps_the_trimmed_fit():
     """AlignOptions(rigid=True) (`gsa align --rigid`): two models the user knows to be one
-    rigid object are never averaged as deformed copies - on a deformed copy, where align()'s
-    refinement takes the all-pairs fit by default, it keeps its trimmed fit."""
+    rigid object are never averaged as deformed copies - on a deformed copy, where criteria
+    that opt into the all-pairs fit take it, it keeps its trimmed fit."""
+    from gsa.align.criteria import Criteria
     from gsa.align.pipeline import AlignOptions
 
+    opted = Criteria(refine=robust.RefineCriteria(deformable=True))
     for s, _, deformed, _ in _deformed_pairs():
-        default = align(s, deformed, AlignOptions(stages=("coarse",)))
-        if _all_pairs_phase(default.coarse.history):
+        averaged = align(s, deformed, AlignOptions(stages=("coarse",), criteria=opted))
+        if _all_pairs_phase(averaged.coarse.history):
             break
     else:
-        pytest.fail("no deformed pair took the all-pairs fit by default")
-    rigid = align(s, deformed, AlignOptions(stages=("coarse",), rigid=True))
+        pytest.fail("no deformed pair took the all-pairs fit where opted into")
+    rigid = align(s, deformed, AlignOptions(stages=("coarse",), rigid=True, criteria=opted))
     assert rigid.coarse.history and not _all_pairs_phase(rigid.coarse.history)
     with pytest.raises(ValueError, match="rigid"):
         AlignOptions(rigid="yes")

@@ -116,10 +116,10 @@ class AlignOptions:
             agreeing. Only their parts across the up axes count.
         fixed_scale: the scale s of the answer, when the user knows it.
         rigid: the two models are captures of one rigid object (two reconstructions, two
-            scans), never another instance or a deformed copy: where they coincide nowhere at
-            their own sampling, the refinement keeps its trimmed fit instead of averaging every
-            pair (which suits deformed copies and pulls noisy reconstructions towards their
-            extent ratio). The scene path always takes its pairs so.
+            scans), never another instance or a deformed copy: the refinement keeps its trimmed
+            fit even where `criteria` opt into averaging every pair of models that coincide
+            nowhere (RefineCriteria.deformable, off by default: it took partial real captures
+            off their answer). The scene path always takes its pairs so.
 
     photo_matches: "auto" registers two reconstructions (gsa.recon.reconstruct keeps each
         one's SfM points and their SIFT descriptors, model.metadata["photo_anchors"]) by their

@@ -57,11 +57,18 @@ class RefineCriteria:
     # coincide, and their fit is exact there (docs/benchmarks.md, "real captures").
     core_fraction: float = 0.3
     plane_iterations: int = 8  # point-to-plane polish steps after the point-to-point fit converged
-    # Whether the models may be other instances or deformed copies (the object path). Two
-    # captures of one place (the scene path) are not: where their samplings coincide nowhere
-    # (Gaussians spread around a real site's SfM points), the all-pairs fit slid a real
-    # garden's true pose 12 degrees away, so the core fit stands.
-    deformable: bool = True
+    # Whether a fit whose models differ everywhere goes on over every pair (opt-in). Off: the
+    # core fit stands whatever the pose shows. Real captures are volumes, not thin surfaces:
+    # between two partial captures of one object the overlap estimate keeps every pair and
+    # fewer than half coincide at the sampling noise, as between deformed copies, and the
+    # all-pairs fit pulls the parts one capture lacks onto the other. Measured on pairs 0-9 of
+    # 12 public captures (both exposure variants, 240 pairs): the branch fired on 11 pairs, all
+    # of them misses; without it 6 of the 11 end right (bouquet, kneeling angel, candlestick,
+    # street: 16-33 deg -> 0.04-0.36 deg), and no right answer changes. It paid where models really differ
+    # everywhere, little: generated deformed copies 88 -> 87 of 90 (seeds 1-3), cross-instance
+    # real meshes (category-real --quick) one bottle pair lost (docs/benchmarks.md, "The
+    # all-pairs fit"). A real garden's two captures (the scene path) slid 12 degrees with it.
+    deformable: bool = False
     # Steps below these sit in the sampling noise of the correspondences (point-to-point fit),
     # and end the point-to-plane polish.
     convergence: Convergence = Convergence(rotation_deg=2e-3, log_scale=2e-5)
@@ -109,7 +116,8 @@ class VerdictCriteria:
 SNAP_DISTINCT_DEG = 1.0
 
 _REFINE = RefineCriteria()
-# Two captures of one rigid object or place: never another instance or a deformed copy.
+# Two captures of one rigid object or place: never averaged as another instance or a deformed
+# copy, whatever the criteria in force opt into (AlignOptions.rigid, the scene path).
 RIGID_REFINE = RefineCriteria(deformable=False)
 _VERDICT = VerdictCriteria()
 
@@ -240,8 +248,8 @@ def refine(
     one direction. Both directions: where two captures overlap only in part, a
     one-way match pulls the overlap's boundary inwards and biases the scale.
 
-    The fit holds the core_fraction closest pairs (RefineCriteria). Where its pose shows two
-    models that coincide nowhere (see
+    The fit holds the core_fraction closest pairs (RefineCriteria). With
+    RefineCriteria.deformable, where its pose shows two models that coincide nowhere (see
     `coincide`: another instance, a deformed copy), the fit goes on with every
     pair, so that it averages the difference instead of locking onto one part.
 
