@@ -107,7 +107,14 @@ def _semantic_tiebreak(pair, best, search, transform: Sim3, metrics: dict, progr
         reading = pair.judge.overlap_reading(poses[pick])
         refine = pair.criteria.refine
         if frame_snap.whole_models(metrics, refine) and not frame_snap.whole_models(reading, refine):
-            report |= {"picked": 0, "vetoed": {"pick": pick} | reading}
+            report |= {"picked": 0, "vetoed": {"pick": pick, "why": "whole models left part apart"} | reading}
+            pick = 0
+        elif not frame_snap.surfaces_apart(metrics) and frame_snap.surfaces_apart(reading):
+            # The features tell instances' parts apart; where the answer's surfaces coincide as
+            # two captures of one object's do and the pick's lie apart, the pick trades one
+            # surface for two (two rooms and a street captured twice, turned 150-171 degrees
+            # off a right answer: docs/benchmarks.md, "One surface stays one").
+            report |= {"picked": 0, "vetoed": {"pick": pick, "why": "one surface left apart"} | reading}
             pick = 0
     if pick == 0:
         offers = [c.to_dict(transform) | {"tied": False} for c in swept]
