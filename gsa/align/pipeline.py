@@ -112,8 +112,8 @@ def _semantic_tiebreak(pair, best, search, transform: Sim3, metrics: dict, progr
         elif not frame_snap.surfaces_apart(metrics) and frame_snap.surfaces_apart(reading):
             # The features tell instances' parts apart; where the answer's surfaces coincide as
             # two captures of one object's do and the pick's lie apart, the pick trades one
-            # surface for two (two rooms and a street captured twice, turned 150-171 degrees
-            # off a right answer: docs/benchmarks.md, "One surface stays one").
+            # surface for two (two rooms captured twice, turned 152-171 degrees off a right
+            # answer: docs/benchmarks.md, "One surface stays one").
             report |= {"picked": 0, "vetoed": {"pick": pick, "why": "one surface left apart"} | reading}
             pick = 0
     if pick == 0:

@@ -67,7 +67,7 @@ class RefineCriteria:
     # street: 16-33 deg -> 0.04-0.36 deg), and no right answer changes. It paid where models really differ
     # everywhere, little: generated deformed copies 88 -> 87 of 90 (seeds 1-3), cross-instance
     # real meshes (category-real --quick) one bottle pair lost (docs/benchmarks.md, "The
-    # all-pairs fit"). A real garden's two captures (the scene path) slid 12 degrees with it.
+    # all-pairs fit, opt-in"). A real garden's two captures (the scene path) slid 12 degrees with it.
     deformable: bool = False
     # Steps below these sit in the sampling noise of the correspondences (point-to-point fit),
     # and end the point-to-plane polish.

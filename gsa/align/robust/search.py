@@ -333,7 +333,6 @@ def _refine_starts(
     crit = opts.criteria
     src_rows = subsample(rng, len(src), opts.refine_points)
     dst_rows = subsample(rng, len(dst), opts.refine_points)
-
     early = [
         score_pose(
             src,
