@@ -393,6 +393,21 @@ def test_every_bench_run_is_timed_without_the_views_of_the_run_before():
     assert seen == [0, 0, 0, 0]
 
 
+def _bar_sampled_twice():
+    """(source, target, truth): a grey bar 8 x 2 x 1.2 sampled twice, the target moved (a box's
+    half turns leave the answer doubtful, so the semantic tie-break runs)."""
+    from gsa.synth.meshes import Mesh, mesh_to_gaussians
+
+    corners = np.array([[x, y, z] for x in (-4, 4) for y in (-1, 1) for z in (-0.6, 0.6)], float)
+    faces = [[0, 1, 3], [0, 3, 2], [4, 6, 7], [4, 7, 5], [0, 4, 5], [0, 5, 1]]
+    faces += [[2, 3, 7], [2, 7, 6], [0, 2, 6], [0, 6, 4], [1, 5, 7], [1, 7, 3]]
+    bar = Mesh("bar", "bar", corners, np.array(faces), np.full((12, 3), 0.5))
+    truth = random_sim3(np.random.default_rng([1, 9]))
+    source = mesh_to_gaussians(bar, 3000, np.random.default_rng(1))
+    target = mesh_to_gaussians(bar, 3000, np.random.default_rng(2)).transformed(truth)
+    return source, target, truth
+
+
 @needs_bundled
 @pytest.mark.semantic
 def test_the_tie_break_does_not_trade_whole_models_for_a_pose_that_leaves_part_apart(monkeypatch):
@@ -402,16 +417,8 @@ def test_the_tie_break_does_not_trade_whole_models_for_a_pose_that_leaves_part_a
     pose still offered. A whole pose the features favour is taken. The features' preference is
     set here (semantic.pick, and the sweep's one pose): which pose they favour is the question."""
     from gsa.align import frame_snap, pipeline, robust
-    from gsa.synth.meshes import Mesh, mesh_to_gaussians
 
-    # a bar 8 x 2 x 1.2 (a box's half turns leave the answer doubtful), sampled twice
-    corners = np.array([[x, y, z] for x in (-4, 4) for y in (-1, 1) for z in (-0.6, 0.6)], float)
-    faces = [[0, 1, 3], [0, 3, 2], [4, 6, 7], [4, 7, 5], [0, 4, 5], [0, 5, 1]]
-    faces += [[2, 3, 7], [2, 7, 6], [0, 2, 6], [0, 6, 4], [1, 5, 7], [1, 7, 3]]
-    bar = Mesh("bar", "bar", corners, np.array(faces), np.full((12, 3), 0.5))
-    truth = random_sim3(np.random.default_rng([1, 9]))
-    source = mesh_to_gaussians(bar, 3000, np.random.default_rng(1))
-    target = mesh_to_gaussians(bar, 3000, np.random.default_rng(2)).transformed(truth)
+    source, target, truth = _bar_sampled_twice()
     # slid a quarter of its length along itself: three quarters lie on the other, one off it
     half_off = truth @ Sim3(1.0, np.eye(3), np.array([0.25 * np.ptp(source.means[:, 0]), 0.0, 0.0]))
     monkeypatch.setattr(semantic, "pick", lambda scores, criteria=None: len(scores) - 1)
@@ -443,15 +450,8 @@ def test_the_tie_break_does_not_trade_one_surface_for_a_pose_whose_surfaces_lie_
     (the cross-sections differ): it is not taken, and still offered (docs/benchmarks.md, "One
     surface stays one": rooms and a street captured twice, turned 150-171 degrees off)."""
     from gsa.align import frame_snap, pipeline, robust
-    from gsa.synth.meshes import Mesh, mesh_to_gaussians
 
-    corners = np.array([[x, y, z] for x in (-4, 4) for y in (-1, 1) for z in (-0.6, 0.6)], float)
-    faces = [[0, 1, 3], [0, 3, 2], [4, 6, 7], [4, 7, 5], [0, 4, 5], [0, 5, 1]]
-    faces += [[2, 3, 7], [2, 7, 6], [0, 2, 6], [0, 6, 4], [1, 5, 7], [1, 7, 3]]
-    bar = Mesh("bar", "bar", corners, np.array(faces), np.full((12, 3), 0.5))
-    truth = random_sim3(np.random.default_rng([1, 9]))
-    source = mesh_to_gaussians(bar, 3000, np.random.default_rng(1))
-    target = mesh_to_gaussians(bar, 3000, np.random.default_rng(2)).transformed(truth)
+    source, target, truth = _bar_sampled_twice()
     quarter = truth @ Sim3(1.0, axis_rotation(np.array([1.0, 0.0, 0.0]), np.pi / 2), np.zeros(3))
     monkeypatch.setattr(semantic, "pick", lambda scores, criteria=None: len(scores) - 1)
 
