@@ -494,3 +494,28 @@ def test_the_views_and_the_lifting_of_a_large_model_in_bounded_calls_are_the_sam
     assert torch.equal(one_pass, passes)
     # a report after each pass (and before it, between its steps): 2 x 3 values past 0
     assert len(set(ticks)) == 1 + 2 * 3 and ticks == sorted(ticks) and ticks[-1] == 1.0
+
+
+def test_a_tie_break_needs_a_tie():
+    """The features' pick replaces the answer only where the search left it tied with a rival
+    (margin below VerdictCriteria.margin_span): a doubtful answer that beat every distinct pose
+    by a full margin is doubted for its fit, and the pick is vetoed (docs/benchmarks.md, "A
+    tie-break needs a tie"). The other vetoes are read first; neither applies to these readings."""
+    from types import SimpleNamespace
+
+    from gsa.align import pipeline
+    from gsa.align.pair import _Pair
+
+    source, target, _ = _bar_sampled_twice()
+    pair = _Pair.build(source, target, AlignOptions())
+    span = pair.criteria.verdict.margin_span
+    whole_apart = {"overlap_estimate": 0.95, "coincident_share": 0.4}  # two instances, whole
+    for margin, vetoed in ((0.5, False), (span - 0.01, False), (span, True), (float("inf"), True)):
+        why = pipeline._pick_vetoed(pair, SimpleNamespace(margin=margin), whole_apart, whole_apart)
+        assert why == ("the search left no tie" if vetoed else None), margin
+    assert pipeline._pick_vetoed(pair, None, whole_apart, whole_apart) is None  # no search: nothing says it is clear
+    # the surface vetoes speak first, whatever the margin
+    one_surface = {"overlap_estimate": 0.95, "coincident_share": 0.8}
+    assert (
+        pipeline._pick_vetoed(pair, SimpleNamespace(margin=0.1), one_surface, whole_apart) == "one surface left apart"
+    )

@@ -100,21 +100,10 @@ def _semantic_tiebreak(pair, best, search, transform: Sim3, metrics: dict, progr
     listed += [c.transform.matrix().tolist() for c in swept]
     scored = {_pose_key(m): score for m, score in zip(listed, scores)}
     if pick:
-        # Between whole models a pose that leaves part of them apart is no answer: the features
-        # favoured like parts piled onto one end (a rifle's barrel on the other's, half of each
-        # model uncovered), where the pose they replaced covered both (docs/benchmarks.md,
-        # "Whole models stay whole").
         reading = pair.judge.overlap_reading(poses[pick])
-        refine = pair.criteria.refine
-        if frame_snap.whole_models(metrics, refine) and not frame_snap.whole_models(reading, refine):
-            report |= {"picked": 0, "vetoed": {"pick": pick, "why": "whole models left part apart"} | reading}
-            pick = 0
-        elif not frame_snap.surfaces_apart(metrics) and frame_snap.surfaces_apart(reading):
-            # The features tell instances' parts apart; where the answer's surfaces coincide as
-            # two captures of one object's do and the pick's lie apart, the pick trades one
-            # surface for two (two rooms captured twice, turned 152-171 degrees off a right
-            # answer: docs/benchmarks.md, "One surface stays one").
-            report |= {"picked": 0, "vetoed": {"pick": pick, "why": "one surface left apart"} | reading}
+        why = _pick_vetoed(pair, search, metrics, reading)
+        if why is not None:
+            report |= {"picked": 0, "vetoed": {"pick": pick, "why": why} | reading}
             pick = 0
     if pick == 0:
         offers = [c.to_dict(transform) | {"tied": False} for c in swept]
@@ -139,6 +128,30 @@ def _semantic_tiebreak(pair, best, search, transform: Sim3, metrics: dict, progr
     updated["doubtful"] = True  # the features broke a tie the geometry could not: still a guess
     updated["semantic_score"] = scores[pick]
     return chosen, updated | {"semantic": report | {"switched_from": previous["transform"]}}
+
+
+def _pick_vetoed(pair, search, metrics: dict, reading: dict) -> str | None:
+    """Why the semantic pick (its overlap `reading`) may not replace the geometric answer
+    (`metrics`), or None where it may."""
+    refine = pair.criteria.refine
+    if frame_snap.whole_models(metrics, refine) and not frame_snap.whole_models(reading, refine):
+        # Between whole models a pose that leaves part of them apart is no answer: the features
+        # favoured like parts piled onto one end (a rifle's barrel on the other's, half of each
+        # model uncovered), where the pose they replaced covered both (docs/benchmarks.md,
+        # "Whole models stay whole").
+        return "whole models left part apart"
+    if not frame_snap.surfaces_apart(metrics) and frame_snap.surfaces_apart(reading):
+        # The features tell instances' parts apart; where the answer's surfaces coincide as
+        # two captures of one object's do and the pick's lie apart, the pick trades one
+        # surface for two (two rooms captured twice, turned 152-171 degrees off a right
+        # answer: docs/benchmarks.md, "One surface stays one").
+        return "one surface left apart"
+    if search is not None and search.margin >= pair.criteria.verdict.margin_span:
+        # The search separated its answer from every distinct rival by a full margin: the doubt
+        # is the fit's, not a tie, and a tie-break has nothing to break (docs/benchmarks.md,
+        # "A tie-break needs a tie").
+        return "the search left no tie"
+    return None
 
 
 def _pose_key(matrix) -> tuple:
