@@ -67,7 +67,10 @@ def _semantic_tiebreak(pair, best, search, transform: Sim3, metrics: dict, progr
     """A doubtful global-search answer: let a pretrained backbone's features pick among the
     chosen pose, its alternatives and the poses their own sweep finds (gsa.align.semantic).
     The result stays doubtful; the geometric choice becomes the first alternative when another
-    pose is taken, and the swept poses join the alternatives (the truth is often among them)."""
+    pose is taken, and the swept poses join the alternatives (the truth is often among them)
+    where the search's offers leave room: the list holds VerdictCriteria.max_alternatives
+    poses, so that a person reads a short list (a bottle's eight offers and six swept spins
+    were fourteen)."""
     opts = pair.opts
     from gsa.align import semantic  # lazy: loads torch
 
@@ -107,7 +110,8 @@ def _semantic_tiebreak(pair, best, search, transform: Sim3, metrics: dict, progr
             pick = 0
     if pick == 0:
         offers = [c.to_dict(transform) | {"tied": False} for c in swept]
-        alternatives = _with_semantic_scores(offered + offers, scored)
+        room = pair.criteria.verdict.max_alternatives
+        alternatives = _with_semantic_scores((offered + offers)[:room], scored)
         return transform, metrics | {"semantic": report, "semantic_score": scores[0], "alternatives": alternatives}
     chosen = poses[pick]
     previous = {
@@ -122,8 +126,9 @@ def _semantic_tiebreak(pair, best, search, transform: Sim3, metrics: dict, progr
     updated = pair.judge.quality(chosen, best) | {"hypothesis": metrics.get("hypothesis")}
     updated.update(pair.judge.verdict(chosen, search))
     offers = [c.to_dict(chosen) | {"tied": False} for c in swept if c.transform is not chosen]
+    room = pair.criteria.verdict.max_alternatives
     updated["alternatives"] = _with_semantic_scores(
-        [previous] + updated.get("alternatives", [])[: pair.criteria.verdict.max_alternatives - 1] + offers, scored
+        ([previous] + updated.get("alternatives", []) + offers)[:room], scored
     )
     updated["doubtful"] = True  # the features broke a tie the geometry could not: still a guess
     updated["semantic_score"] = scores[pick]
