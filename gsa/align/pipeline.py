@@ -108,9 +108,9 @@ def _semantic_tiebreak(pair, best, search, transform: Sim3, metrics: dict, progr
         if why is not None:
             report |= {"picked": 0, "vetoed": {"pick": pick, "why": why} | reading}
             pick = 0
+    room = pair.criteria.verdict.max_alternatives
     if pick == 0:
         offers = [c.to_dict(transform) | {"tied": False} for c in swept]
-        room = pair.criteria.verdict.max_alternatives
         alternatives = _with_semantic_scores((offered + offers)[:room], scored)
         return transform, metrics | {"semantic": report, "semantic_score": scores[0], "alternatives": alternatives}
     chosen = poses[pick]
@@ -126,7 +126,6 @@ def _semantic_tiebreak(pair, best, search, transform: Sim3, metrics: dict, progr
     updated = pair.judge.quality(chosen, best) | {"hypothesis": metrics.get("hypothesis")}
     updated.update(pair.judge.verdict(chosen, search))
     offers = [c.to_dict(chosen) | {"tied": False} for c in swept if c.transform is not chosen]
-    room = pair.criteria.verdict.max_alternatives
     updated["alternatives"] = _with_semantic_scores(
         ([previous] + updated.get("alternatives", []) + offers)[:room], scored
     )
