@@ -81,9 +81,6 @@ class PoseCriteria:
     # The anchors' ICP (bidirectional_icp): Tukey cut-off in median pair distances, and when it
     # stops (anchors are a summary: the full-resolution refinement does the last digits).
     icp_trim: float = 4.0
-    # ... and, where given, never beyond icp_reach truncation distances (None: no cap; the
-    # search's polish sets it, SearchOptions.polish_reach).
-    icp_reach: float | None = None
     icp_convergence: Convergence = Convergence(rotation_deg=0.01, log_scale=1e-4, translation=1e-4)
     palette: PaletteOptions = field(default_factory=PaletteOptions)  # how the palettes are compared (no pose)
 
@@ -218,8 +215,6 @@ def bidirectional_icp(
         b = np.concatenate([dst.points[j], q])
         d = np.concatenate([d_f, d_r])
         cut = c.icp_trim * max(float(np.median(d)), 1e-12 * dst.radius)
-        if c.icp_reach is not None:
-            cut = min(cut, c.icp_reach * c.truncation * dst.radius)
         weight = np.clip(1.0 - (d / cut) ** 2, 0.0, None) ** 2
         if w_colour > 0:
             de2 = np.concatenate(

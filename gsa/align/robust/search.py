@@ -77,13 +77,6 @@ class SearchOptions:
     # this many degrees: across instances the ICP drifts 5-20 degrees off poses whose principal
     # axes agree (a bathtub, a rifle, a table). None: no snapped poses.
     offer_snap_deg: float | None = 1.0
-    # Each finished start is polished by the anchors' ICP again with its cut-off capped at this
-    # many truncation distances (PoseCriteria.icp_reach), kept where it scores higher. Where two
-    # partial captures overlap on about half, the median pair distance is the part one lacks and
-    # the ICP slides off the score's peak (an exact truth 10-12 deg, its score 0.15 -> 0.04);
-    # pairs the score does not count cannot pull the polish (docs/benchmarks.md, "The ICP's
-    # reach"). None: no polish.
-    polish_reach: float | None = 2.0
     rival_window: float = 0.08  # unfinished starts scoring within this of the best finished one are finished too
     sweep_degrees: float = 16.0  # _sweep_twins: rotations of ± this and half this about each axis
     seed: int = 0
@@ -185,20 +178,7 @@ def _converged(
     k = opts.criteria
     iterations = opts.early_iterations + opts.refine_iterations
     transform = bidirectional_icp(src, dst, init, rows[0], rows[1], iterations, w_colour, k)
-    return _polished(src, dst, score_pose(src, dst, transform, origin, w_colour, k), rows, w_colour, opts)
-
-
-def _polished(
-    src: Anchors, dst: Anchors, cand: Candidate, rows: tuple, w_colour: float, opts: SearchOptions
-) -> Candidate:
-    """A finished start polished within the score's reach (SearchOptions.polish_reach), or
-    as it was where the polish does not score higher."""
-    if opts.polish_reach is None:
-        return cand
-    k = replace(opts.criteria, icp_reach=opts.polish_reach)
-    transform = bidirectional_icp(src, dst, cand.transform, rows[0], rows[1], opts.refine_iterations, w_colour, k)
-    polished = score_pose(src, dst, transform, cand.origin, w_colour, opts.criteria)
-    return polished if polished.score > cand.score else cand
+    return score_pose(src, dst, transform, origin, w_colour, k)
 
 
 def _with_offers(
@@ -374,8 +354,7 @@ def _refine_starts(
             refined.append(c)
             continue
         transform = bidirectional_icp(src, dst, c.transform, src_rows, dst_rows, opts.refine_iterations, w_colour, crit)
-        cand = score_pose(src, dst, transform, c.origin, w_colour, crit)
-        refined.append(_polished(src, dst, cand, (src_rows, dst_rows), w_colour, opts))
+        refined.append(score_pose(src, dst, transform, c.origin, w_colour, crit))
     return refined
 
 

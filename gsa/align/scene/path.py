@@ -53,8 +53,7 @@ def align_scene(
             src,
             dst,
             None,
-            # the scenes' searches keep their ICP: the polish was measured on objects only
-            k.search_options(opts.search_rotations, opts.seed, polish_reach=None),
+            k.search_options(opts.search_rotations, opts.seed),
             widen_if=lambda first: robust.verdict(first.best, first, criteria=k.verdict)["doubtful"],
         )
         search = translation_sweep(src, dst, search, opts.seed, o)

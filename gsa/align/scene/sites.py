@@ -249,8 +249,7 @@ def site_search(
         s_thin,
         d_thin,
         [("site", r) for r in rotations],
-        # the polish was measured on objects only: the sites keep their ICP
-        replace(search_options or robust.SearchOptions(), rotations=0, seed=seed, polish_reach=None),
+        replace(search_options or robust.SearchOptions(), rotations=0, seed=seed),
     )
     search = translation_sweep(s_thin, d_thin, search, seed, o)
     # Re-scored on all anchors, so the verdict and the alternatives read what rooms' do,
