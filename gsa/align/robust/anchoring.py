@@ -158,10 +158,12 @@ class NearestGrid:
         shape = np.ceil((points.max(0) + pad - self.lo) / cell).astype(int) + 1
         self.shape = shape
         ijk = np.floor((points - self.lo) / cell).astype(int)
-        owner = np.full(tuple(shape), -1, np.int64)
-        owner[ijk[:, 0], ijk[:, 1], ijk[:, 2]] = np.arange(len(points))
-        _, nearest = ndimage.distance_transform_edt(owner < 0, return_indices=True)
-        self.nearest_flat = np.ascontiguousarray(owner[nearest[0], nearest[1], nearest[2]].ravel())
+        # int32 and the feature transform alone (no distances): a search builds two grids of
+        # ~0.5M cells per job, and each byte of them is memory a fresh work horse first faults in.
+        owner = np.full(tuple(shape), -1, np.int32)
+        owner[ijk[:, 0], ijk[:, 1], ijk[:, 2]] = np.arange(len(points), dtype=np.int32)
+        nearest = ndimage.distance_transform_edt(owner < 0, return_distances=False, return_indices=True)
+        self.nearest_flat = owner.ravel()[np.ravel_multi_index(tuple(nearest), owner.shape).ravel()]
         self.shape = np.asarray(shape, np.int64)
 
     def lookup(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -439,12 +439,13 @@ class _GridScorer:
         onto the nearest target anchors: Horn's symmetric scale and the centroid of the
         captured pairs, rotation held."""
         scale, t = scale.astype(np.float64).copy(), t.astype(np.float64).copy()
-        u = np.ascontiguousarray(np.einsum("rij,pj->rpi", rotations, self.ps - self.src.center))
+        rotations = np.ascontiguousarray(rotations, np.float64)
+        centred = np.ascontiguousarray(self.ps - self.src.center)
         g = self.dst_grid
         with KERNEL_LOCK:
             for reach in reaches:
                 _capture_step(
-                    u, scale, t, g.nearest_flat, g.lo, 1.0 / g.cell, g.shape, self.dst.points, reach * self.tau
+                    rotations, centred, scale, t, g.nearest_flat, g.lo, 1.0 / g.cell, g.shape, self.dst.points, reach * self.tau
                 )
         return scale, t
 
@@ -538,41 +539,51 @@ def _score_poses(
 
 
 @numba.njit(parallel=True, cache=True)
-def _capture_step(u, scale, t, nearest, lo, inv_cell, shape, other, reach):  # pragma: no cover - compiled
+def _capture_step(rotations, pts, scale, t, nearest, lo, inv_cell, shape, other, reach):  # pragma: no cover - compiled
     """One capture step per pose (in place): pairs within `reach` of their nearest
-    anchor give Horn's symmetric scale and the translation, rotation held."""
-    n_pose, n_pt = u.shape[0], u.shape[1]
+    anchor give Horn's symmetric scale and the translation, rotation held. `pts` are the
+    source samples about the source centre, rotated here: a (poses × points × 3) array of
+    them was the job's largest allocation (25 MB for 4,096 rotations)."""
+    n_pose, n_pt = rotations.shape[0], pts.shape[0]
     for k in numba.prange(n_pose):
+        r = rotations[k]
         cnt = 0
-        su = np.zeros(3)
-        sy = np.zeros(3)
+        su0 = su1 = su2 = sy0 = sy1 = sy2 = 0.0
         suu = 0.0
         syy = 0.0
         for i in range(n_pt):
-            x0 = scale[k] * u[k, i, 0] + t[k, 0]
-            x1 = scale[k] * u[k, i, 1] + t[k, 1]
-            x2 = scale[k] * u[k, i, 2] + t[k, 2]
+            u0 = r[0, 0] * pts[i, 0] + r[0, 1] * pts[i, 1] + r[0, 2] * pts[i, 2]
+            u1 = r[1, 0] * pts[i, 0] + r[1, 1] * pts[i, 1] + r[1, 2] * pts[i, 2]
+            u2 = r[2, 0] * pts[i, 0] + r[2, 1] * pts[i, 1] + r[2, 2] * pts[i, 2]
+            x0 = scale[k] * u0 + t[k, 0]
+            x1 = scale[k] * u1 + t[k, 1]
+            x2 = scale[k] * u2 + t[k, 2]
             cell = grid_index(x0, x1, x2, lo, inv_cell, shape)
             if cell < 0:
                 continue
             j = nearest[cell]
-            d = np.sqrt((other[j, 0] - x0) ** 2 + (other[j, 1] - x1) ** 2 + (other[j, 2] - x2) ** 2)
+            y0, y1, y2 = other[j, 0], other[j, 1], other[j, 2]
+            d = np.sqrt((y0 - x0) ** 2 + (y1 - x1) ** 2 + (y2 - x2) ** 2)
             if d >= reach:
                 continue
             cnt += 1
-            for a in range(3):
-                su[a] += u[k, i, a]
-                sy[a] += other[j, a]
-            suu += u[k, i, 0] ** 2 + u[k, i, 1] ** 2 + u[k, i, 2] ** 2
-            syy += other[j, 0] ** 2 + other[j, 1] ** 2 + other[j, 2] ** 2
+            su0 += u0
+            su1 += u1
+            su2 += u2
+            sy0 += y0
+            sy1 += y1
+            sy2 += y2
+            suu += u0**2 + u1**2 + u2**2
+            syy += y0**2 + y1**2 + y2**2
         if cnt < 8:
             continue
-        var_u = suu / cnt - (su[0] ** 2 + su[1] ** 2 + su[2] ** 2) / cnt**2
-        var_y = syy / cnt - (sy[0] ** 2 + sy[1] ** 2 + sy[2] ** 2) / cnt**2
+        var_u = suu / cnt - (su0**2 + su1**2 + su2**2) / cnt**2
+        var_y = syy / cnt - (sy0**2 + sy1**2 + sy2**2) / cnt**2
         if var_u <= 0 or var_y <= 0:
             continue
         # At most a factor 1.5 per step: few captured pairs give a noisy ratio.
         s_new = min(max(np.sqrt(var_y / var_u), scale[k] / 1.5), scale[k] * 1.5)
         scale[k] = s_new
-        for a in range(3):
-            t[k, a] = sy[a] / cnt - s_new * su[a] / cnt
+        t[k, 0] = sy0 / cnt - s_new * su0 / cnt
+        t[k, 1] = sy1 / cnt - s_new * su1 / cnt
+        t[k, 2] = sy2 / cnt - s_new * su2 / cnt
