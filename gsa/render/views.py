@@ -27,7 +27,8 @@ def write_png(path: str | Path, rgb: np.ndarray) -> Path:
     path.parent.mkdir(parents=True, exist_ok=True)
     img = np.asarray(rgb)
     if img.dtype != np.uint8:
-        img = (np.clip(np.nan_to_num(img), 0.0, 1.0) * 255.0 + 0.5).astype(np.uint8)
+        img = np.nan_to_num(img, nan=0.0, posinf=1.0, neginf=0.0)
+        img = (np.clip(img, 0.0, 1.0, out=img) * 255.0 + 0.5).astype(np.uint8)
     if not cv2.imwrite(str(path), np.ascontiguousarray(img[..., ::-1])):
         raise OSError(f"could not write {path}")
     return path
@@ -88,7 +89,7 @@ def _cameras_for(points: list[np.ndarray], n: int, size: int, seed: int) -> Came
 
 def _hstack(images: list[np.ndarray], gap: int = 4) -> np.ndarray:
     h = images[0].shape[0]
-    sep = np.ones((h, gap, 3))
+    sep = np.ones((h, gap, 3), images[0].dtype)
     parts = []
     for i, im in enumerate(images):
         if i:
@@ -110,15 +111,17 @@ def _vstack(rows: list[np.ndarray], gap: int = 4) -> np.ndarray:
 
 
 def _overlay(src: np.ndarray, tgt: np.ndarray, src_alpha: np.ndarray, tgt_alpha: np.ndarray) -> np.ndarray:
-    """Source tinted orange over target tinted blue: misalignment shows as doubled, two-tone edges."""
-    lum_s = src.mean(-1, keepdims=True)
-    lum_t = tgt.mean(-1, keepdims=True)
-    tint_s = 0.35 + 0.65 * lum_s * np.array([1.0, 0.55, 0.1])
-    tint_t = 0.35 + 0.65 * lum_t * np.array([0.1, 0.45, 1.0])
-    a_s, a_t = src_alpha[..., None] * 0.6, tgt_alpha[..., None] * 0.6
-    out = np.ones_like(src)
-    out = out * (1 - a_t) + tint_t * a_t
-    return out * (1 - a_s) + tint_s * a_s
+    """Source tinted orange over target tinted blue: misalignment shows as doubled, two-tone edges.
+    In the renders' own precision (float32): float64 temporaries made this a fifth of a small
+    job's outputs."""
+    dt = np.result_type(src, tgt, np.float32)
+    third = np.full(3, 1 / 3, dt)  # a product, not .mean(-1): the mean over 3 channels is 20x slower
+    tint_s = (src @ third)[..., None] * np.array([0.65, 0.3575, 0.065], dt) + dt.type(0.35)
+    tint_t = (tgt @ third)[..., None] * np.array([0.065, 0.2925, 0.65], dt) + dt.type(0.35)
+    a_s = src_alpha[..., None].astype(dt) * dt.type(0.6)
+    a_t = tgt_alpha[..., None].astype(dt) * dt.type(0.6)
+    out = 1 + a_t * (tint_t - 1)  # white, then the target over it, then the source
+    return out + a_s * (tint_s - out)
 
 
 def write_alignment_renders(

@@ -442,11 +442,9 @@ class _GridScorer:
         rotations = np.ascontiguousarray(rotations, np.float64)
         centred = np.ascontiguousarray(self.ps - self.src.center)
         g = self.dst_grid
+        radii = np.asarray(reaches, np.float64) * self.tau
         with KERNEL_LOCK:
-            for reach in reaches:
-                _capture_step(
-                    rotations, centred, scale, t, g.nearest_flat, g.lo, 1.0 / g.cell, g.shape, self.dst.points, reach * self.tau
-                )
+            _capture(rotations, centred, scale, t, g.nearest_flat, g.lo, 1.0 / g.cell, g.shape, self.dst.points, radii)
         return scale, t
 
     def score(self, rotations, scale, t, blend: bool = False) -> np.ndarray:
@@ -512,15 +510,26 @@ def _score_poses(
     for k in numba.prange(n_pose):
         total = 0.0
         geometric = 0.0
+        a00, a01, a02, o0 = lin[k, 0, 0], lin[k, 0, 1], lin[k, 0, 2], off[k, 0]
+        a10, a11, a12, o1 = lin[k, 1, 0], lin[k, 1, 1], lin[k, 1, 2], off[k, 1]
+        a20, a21, a22, o2 = lin[k, 2, 0], lin[k, 2, 1], lin[k, 2, 2], off[k, 2]
+        ds = dist_scale[k]
+        # Most points miss: their squared distance rules them out without a square root
+        # (the exact test below still decides the rest).
+        miss2 = (tau / ds) ** 2
         for i in range(n_pt):
-            x0 = lin[k, 0, 0] * pts[i, 0] + lin[k, 0, 1] * pts[i, 1] + lin[k, 0, 2] * pts[i, 2] + off[k, 0]
-            x1 = lin[k, 1, 0] * pts[i, 0] + lin[k, 1, 1] * pts[i, 1] + lin[k, 1, 2] * pts[i, 2] + off[k, 1]
-            x2 = lin[k, 2, 0] * pts[i, 0] + lin[k, 2, 1] * pts[i, 1] + lin[k, 2, 2] * pts[i, 2] + off[k, 2]
+            p0, p1, p2 = pts[i, 0], pts[i, 1], pts[i, 2]
+            x0 = a00 * p0 + a01 * p1 + a02 * p2 + o0
+            x1 = a10 * p0 + a11 * p1 + a12 * p2 + o1
+            x2 = a20 * p0 + a21 * p1 + a22 * p2 + o2
             cell = grid_index(x0, x1, x2, lo, inv_cell, shape)
             if cell < 0:
                 continue
             j = nearest[cell]
-            d = np.sqrt((other[j, 0] - x0) ** 2 + (other[j, 1] - x1) ** 2 + (other[j, 2] - x2) ** 2) * dist_scale[k]
+            d2 = (other[j, 0] - x0) ** 2 + (other[j, 1] - x1) ** 2 + (other[j, 2] - x2) ** 2
+            if d2 >= miss2:
+                continue
+            d = np.sqrt(d2) * ds
             if d >= tau:
                 continue
             c = 1.0 - d / tau
@@ -539,51 +548,62 @@ def _score_poses(
 
 
 @numba.njit(parallel=True, cache=True)
-def _capture_step(rotations, pts, scale, t, nearest, lo, inv_cell, shape, other, reach):  # pragma: no cover - compiled
-    """One capture step per pose (in place): pairs within `reach` of their nearest
-    anchor give Horn's symmetric scale and the translation, rotation held. `pts` are the
-    source samples about the source centre, rotated here: a (poses × points × 3) array of
-    them was the job's largest allocation (25 MB for 4,096 rotations)."""
+def _capture(rotations, pts, scale, t, nearest, lo, inv_cell, shape, other, radii):  # pragma: no cover - compiled
+    """The capture steps of every pose (in place), one per radius in turn: pairs within the
+    radius of their nearest anchor give Horn's symmetric scale and the translation, rotation
+    held. `pts` are the source samples about the source centre, rotated once per pose here: a
+    (poses × points × 3) array of them was the job's largest allocation (25 MB for 4,096
+    rotations). Poses are independent, so each runs all its steps before the next."""
     n_pose, n_pt = rotations.shape[0], pts.shape[0]
     for k in numba.prange(n_pose):
-        r = rotations[k]
-        cnt = 0
-        su0 = su1 = su2 = sy0 = sy1 = sy2 = 0.0
-        suu = 0.0
-        syy = 0.0
+        u = np.empty((n_pt, 3))
         for i in range(n_pt):
-            u0 = r[0, 0] * pts[i, 0] + r[0, 1] * pts[i, 1] + r[0, 2] * pts[i, 2]
-            u1 = r[1, 0] * pts[i, 0] + r[1, 1] * pts[i, 1] + r[1, 2] * pts[i, 2]
-            u2 = r[2, 0] * pts[i, 0] + r[2, 1] * pts[i, 1] + r[2, 2] * pts[i, 2]
-            x0 = scale[k] * u0 + t[k, 0]
-            x1 = scale[k] * u1 + t[k, 1]
-            x2 = scale[k] * u2 + t[k, 2]
-            cell = grid_index(x0, x1, x2, lo, inv_cell, shape)
-            if cell < 0:
-                continue
-            j = nearest[cell]
-            y0, y1, y2 = other[j, 0], other[j, 1], other[j, 2]
-            d = np.sqrt((y0 - x0) ** 2 + (y1 - x1) ** 2 + (y2 - x2) ** 2)
-            if d >= reach:
-                continue
-            cnt += 1
-            su0 += u0
-            su1 += u1
-            su2 += u2
-            sy0 += y0
-            sy1 += y1
-            sy2 += y2
-            suu += u0**2 + u1**2 + u2**2
-            syy += y0**2 + y1**2 + y2**2
-        if cnt < 8:
+            for a in range(3):
+                u[i, a] = rotations[k, a, 0] * pts[i, 0] + rotations[k, a, 1] * pts[i, 1] + rotations[k, a, 2] * pts[i, 2]
+        for reach in radii:
+            _capture_step(u, k, scale, t, nearest, lo, inv_cell, shape, other, reach)
+
+
+@numba.njit(cache=True)
+def _capture_step(u, k, scale, t, nearest, lo, inv_cell, shape, other, reach):  # pragma: no cover - compiled
+    """One capture step of pose k: its rotated samples `u` (points × 3) within `reach` of
+    their nearest anchor give Horn's symmetric scale and the translation."""
+    n_pt = u.shape[0]
+    reach2 = reach * reach
+    cnt = 0
+    su0 = su1 = su2 = sy0 = sy1 = sy2 = 0.0
+    suu = 0.0
+    syy = 0.0
+    for i in range(n_pt):
+        u0, u1, u2 = u[i, 0], u[i, 1], u[i, 2]
+        x0 = scale[k] * u0 + t[k, 0]
+        x1 = scale[k] * u1 + t[k, 1]
+        x2 = scale[k] * u2 + t[k, 2]
+        cell = grid_index(x0, x1, x2, lo, inv_cell, shape)
+        if cell < 0:
             continue
-        var_u = suu / cnt - (su0**2 + su1**2 + su2**2) / cnt**2
-        var_y = syy / cnt - (sy0**2 + sy1**2 + sy2**2) / cnt**2
-        if var_u <= 0 or var_y <= 0:
+        j = nearest[cell]
+        y0, y1, y2 = other[j, 0], other[j, 1], other[j, 2]
+        if (y0 - x0) ** 2 + (y1 - x1) ** 2 + (y2 - x2) ** 2 >= reach2:
             continue
-        # At most a factor 1.5 per step: few captured pairs give a noisy ratio.
-        s_new = min(max(np.sqrt(var_y / var_u), scale[k] / 1.5), scale[k] * 1.5)
-        scale[k] = s_new
-        t[k, 0] = sy0 / cnt - s_new * su0 / cnt
-        t[k, 1] = sy1 / cnt - s_new * su1 / cnt
-        t[k, 2] = sy2 / cnt - s_new * su2 / cnt
+        cnt += 1
+        su0 += u0
+        su1 += u1
+        su2 += u2
+        sy0 += y0
+        sy1 += y1
+        sy2 += y2
+        suu += u0**2 + u1**2 + u2**2
+        syy += y0**2 + y1**2 + y2**2
+    if cnt < 8:
+        return
+    var_u = suu / cnt - (su0**2 + su1**2 + su2**2) / cnt**2
+    var_y = syy / cnt - (sy0**2 + sy1**2 + sy2**2) / cnt**2
+    if var_u <= 0 or var_y <= 0:
+        return
+    # At most a factor 1.5 per step: few captured pairs give a noisy ratio.
+    s_new = min(max(np.sqrt(var_y / var_u), scale[k] / 1.5), scale[k] * 1.5)
+    scale[k] = s_new
+    t[k, 0] = sy0 / cnt - s_new * su0 / cnt
+    t[k, 1] = sy1 / cnt - s_new * su1 / cnt
+    t[k, 2] = sy2 / cnt - s_new * su2 / cnt
