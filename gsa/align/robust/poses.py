@@ -203,9 +203,10 @@ def bidirectional_icp(
     for _ in range(iterations):
         steps.step()  # a due progress report (gsa.align.pair._Repeater)
         if lam > 0:
-            _, j = dst_tree.query(np.hstack([transform.apply(p), p_lab]), k=1)
+            mapped = transform.apply(p)
+            _, j = dst_tree.query(np.hstack([mapped, p_lab]), k=1)
             _, i = src_tree.query(np.hstack([transform.inverse().apply(q), q_lab]), k=1)
-            d_f = np.linalg.norm(transform.apply(p) - dst.points[j], axis=1)
+            d_f = np.linalg.norm(mapped - dst.points[j], axis=1)
             d_r = np.linalg.norm(q - transform.apply(src.points[i]), axis=1)
         else:
             d_f, j = dst.tree.query(transform.apply(p), k=1)
