@@ -66,6 +66,41 @@ def test_nearest_grid_matches_brute_force():
     assert np.all(np.isinf(d[~inside]))
 
 
+def test_the_capture_kernel_matches_its_numpy_statement():
+    # The compiled capture (each pose's samples rotated once, its steps in turn) against the
+    # plain statement of a step: pairs within the radius give Horn's scale and the centroids' shift.
+    from gsa.align.robust.search import _capture
+
+    rng = np.random.default_rng(2)
+    dst = rng.normal(size=(400, 3))
+    grid = robust.NearestGrid(dst, cell=0.05, pad=1.0)
+    pts = rng.normal(size=(64, 3)) * 0.8
+    q = rng.normal(size=(20, 4))
+    rotations = np.stack([quat_to_rotation(v / np.linalg.norm(v)) for v in q])
+    scale0, t0 = rng.uniform(0.4, 2.5, 20), rng.normal(size=(20, 3)) * 0.2  # some steps clamp the scale
+    radii = np.array([0.8, 0.4, 0.2])
+    scale, t = scale0.copy(), t0.copy()
+    _capture(rotations, pts, scale, t, grid.nearest_flat, grid.lo, 1.0 / grid.cell, grid.shape, dst, radii)
+
+    for k in range(len(rotations)):
+        s, tk = scale0[k], t0[k].copy()
+        u = pts @ rotations[k].T
+        for reach in radii:
+            idx, d = grid.lookup(s * u + tk)
+            keep = (idx >= 0) & (d < reach)
+            if keep.sum() < 8:
+                continue
+            uu, yy = u[keep], dst[idx[keep]]
+            var_u = np.mean(np.sum(uu**2, 1)) - np.sum(uu.mean(0) ** 2)
+            var_y = np.mean(np.sum(yy**2, 1)) - np.sum(yy.mean(0) ** 2)
+            if var_u <= 0 or var_y <= 0:
+                continue
+            s = float(np.clip(np.sqrt(var_y / var_u), s / 1.5, s * 1.5))
+            tk = yy.mean(0) - s * uu.mean(0)
+        assert scale[k] == pytest.approx(s, rel=1e-9) and np.allclose(t[k], tk, atol=1e-9), k
+    assert np.mean(np.abs(scale - scale0) > 1e-6) > 0.5  # the steps moved most poses
+
+
 def test_anchors_drop_faint_and_sparse_floaters():
     rng = np.random.default_rng(2)
     model = make_object("car", seed=1, n_gaussians=20_000)
