@@ -79,9 +79,7 @@ def test_a_large_model_is_rendered_a_few_views_a_call_into_the_same_images(monke
     move = Sim3(1.2, np.eye(3), np.array([0.1, 0.0, 0.0]))
     whole = render_model(model, cams, features=True, background=views_module.WHITE, sim3=move)
     monkeypatch.setattr(views_module, "VIEW_GAUSSIANS_PER_CALL", 2 * len(model))  # 2 views a call
-    parts = views_module.render_views(
-        model, cams, features=True, background=views_module.WHITE, sim3=move, depth=True
-    )
+    parts = views_module.render_views(model, cams, features=True, background=views_module.WHITE, sim3=move, depth=True)
     for name in ("colors", "features", "alpha", "depth"):
         assert np.array_equal(getattr(whole, name).numpy(), getattr(parts, name).numpy()), name
     # The images people look at show no depth: unless asked, it is not composited.

@@ -559,7 +559,9 @@ def _capture(rotations, pts, scale, t, nearest, lo, inv_cell, shape, other, radi
         u = np.empty((n_pt, 3))
         for i in range(n_pt):
             for a in range(3):
-                u[i, a] = rotations[k, a, 0] * pts[i, 0] + rotations[k, a, 1] * pts[i, 1] + rotations[k, a, 2] * pts[i, 2]
+                u[i, a] = (
+                    rotations[k, a, 0] * pts[i, 0] + rotations[k, a, 1] * pts[i, 1] + rotations[k, a, 2] * pts[i, 2]
+                )
         for reach in radii:
             _capture_step(u, k, scale, t, nearest, lo, inv_cell, shape, other, reach)
 
