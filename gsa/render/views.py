@@ -27,7 +27,7 @@ def write_png(path: str | Path, rgb: np.ndarray) -> Path:
     path.parent.mkdir(parents=True, exist_ok=True)
     img = np.asarray(rgb)
     if img.dtype != np.uint8:
-        img = np.nan_to_num(img, nan=0.0, posinf=1.0, neginf=0.0)
+        img = np.nan_to_num(img if img.dtype.kind == "f" else img.astype(np.float32), nan=0.0, posinf=1.0, neginf=0.0)
         img = (np.clip(img, 0.0, 1.0, out=img) * 255.0 + 0.5).astype(np.uint8)
     if not cv2.imwrite(str(path), np.ascontiguousarray(img[..., ::-1])):
         raise OSError(f"could not write {path}")
