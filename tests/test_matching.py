@@ -4,8 +4,10 @@ similarity, and poses from paired descriptors that reach a partial capture's tru
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
 from gsa.align import robust
+from gsa.geometry import axis_rotation
 from gsa.align.robust.matching import MatchOptions, descriptors, matched_poses
 from gsa.metrics import rre_deg
 from gsa.sim3 import Sim3
@@ -68,3 +70,107 @@ def test_the_widened_search_refines_the_matched_starts():
     assert not any(c.origin == "matched" for c in without.candidates)
     first = robust.global_search(src, dst)  # not widened: no matched starts
     assert not any(c.origin == "matched" for c in first.candidates)
+
+
+def test_a_triples_pose_is_fitted_again_to_every_pair_that_agrees_with_it():
+    """LO-RANSAC's local step: a pose 8 degrees off (as a triple of pairs a spacing apart
+    gives) is fitted again to the pairs it agrees with and lands on the truth, the outliers
+    (a third of the pairs) left out."""
+    from gsa.align.robust.matching import DescriptorPairs, _refit
+
+    rng = np.random.default_rng(3)
+    truth = Sim3(2.5, random_sim3(rng).rotation, np.array([1.0, -4.0, 2.0]))
+    p = rng.uniform(-1.0, 1.0, size=(600, 3))
+    q = truth.apply(p) + rng.normal(scale=0.005, size=p.shape)
+    q[:200] = rng.uniform(-4.0, 4.0, size=(200, 3))  # pairs of unlike places
+    off = Sim3(truth.scale, truth.rotation @ axis_rotation([0.0, 0.0, 1.0], np.radians(8.0)), truth.translation)
+    pairs = DescriptorPairs(p, q, tolerance=0.5)
+    refitted = _refit(off, p, q, pairs.tolerance, rounds=5)
+    assert rre_deg(off.rotation, truth.rotation) > 7.9
+    assert rre_deg(refitted.rotation, truth.rotation) < 0.5
+    assert abs(refitted.scale / truth.scale - 1.0) < 0.01
+    assert pairs.agreement(refitted) == pytest.approx(400 / 600, abs=0.02)
+    assert _refit(off, p, q, pairs.tolerance, rounds=0) is off
+
+
+def test_the_capped_icp_holds_two_halves_that_overlap_on_little():
+    """Two parts of one chair that share a fifth of its length, started at the truth: the plain
+    cut-off (4 median distances) takes in the pairs of the parts one side lacks and slides the
+    pose off; capped at 2 of the score's truncation distances it stays near."""
+    from gsa.align.robust.poses import bidirectional_icp
+
+    model = make_object("chair", seed=4, n_gaussians=16_000)
+    x = model.means[:, 0]
+    lo, hi = np.quantile(x, [0.4, 0.6])
+    src, dst = robust.anchors(model.subset(x < hi), 2000), robust.anchors(model.subset(x > lo), 2000)
+    rows = (np.arange(len(src)), np.arange(len(dst)))
+    start = Sim3(1.0, np.eye(3), np.zeros(3))
+    plain = bidirectional_icp(src, dst, start, *rows, 70)
+    capped = bidirectional_icp(src, dst, start, *rows, 70, reach=2.0)
+    assert rre_deg(plain.rotation, np.eye(3)) > 45.0
+    assert rre_deg(capped.rotation, np.eye(3)) < 15.0
+
+
+def _chain_returning(monkeypatch, pose: Sim3):
+    """The doubtful chain (semantic tie-break, the frames' turns) replaced by one that answers
+    `pose`, as its rules for other instances do when they turn an answer."""
+    from gsa.align import pipeline
+
+    def chain(pair, best, search, transform, metrics, timings, progress):
+        return pose, metrics | {"chain": "ran"}
+
+    monkeypatch.setattr(pipeline, "_doubtful_chain", chain)
+
+
+def _doubtful(pair, answer: Sim3, colour: float):
+    from gsa.align.pipeline import _doubtful_search_answer, _Hypothesis
+
+    search = robust.SearchResult(candidates=[], colour_weight=colour, margin=0.0, rivals=[])
+    metrics = {"doubtful": True, "alternatives": []}
+    best = _Hypothesis("test", pair.src_frame, answer)
+    return _doubtful_search_answer(pair, best, search, answer, metrics, {}, None)
+
+
+def test_an_answer_the_local_shapes_hold_is_turned_only_onto_a_pose_they_hold(monkeypatch):
+    """Two halves of one chair at their truth: the local shapes hold it, so the chain's half
+    turn (a rule for other instances) is refused and offered first, while a pose the shapes
+    hold as well (a degree off) is taken."""
+    from gsa.align.pipeline import _Pair
+    from gsa.align.types import AlignOptions
+
+    rng = np.random.default_rng([5, 1])
+    model = make_object("chair", seed=4, n_gaussians=16_000)
+    halves = rng.random(len(model)) < 0.5
+    truth = Sim3(0.2, random_sim3(rng).rotation, np.array([1.0, 2.0, 3.0]))
+    source, target = model.subset(halves), model.subset(~halves).transformed(truth)
+    pair = _Pair.build(source, target, AlignOptions(semantic="off"))
+    half_turn = truth @ Sim3(1.0, axis_rotation([0.0, 1.0, 0.0], np.pi), np.zeros(3))
+    _chain_returning(monkeypatch, half_turn)
+    kept, report = _doubtful(pair, truth, colour=1.0)
+    shapes = report["local_shapes"]
+    assert kept is truth and shapes["holds"] and shapes["kept"] == "the answer", shapes
+    assert shapes["agreement"] >= shapes["needed"] > shapes["chain_agreement"]
+    assert np.allclose(report["alternatives"][0]["transform"], half_turn.matrix())
+    assert report["doubtful"] and "chain" not in report  # the chain's report goes with its pose
+    near = truth @ Sim3(1.0, axis_rotation([0.0, 1.0, 0.0], np.radians(1.0)), np.zeros(3))
+    _chain_returning(monkeypatch, near)
+    taken, report = _doubtful(pair, truth, colour=1.0)
+    assert taken is near and report["local_shapes"]["kept"] == "the chain's pose" and report["chain"] == "ran"
+
+
+def test_the_chain_turns_an_answer_the_local_shapes_do_not_hold(monkeypatch):
+    """Two shapes whose parts do not correspond (a chair and an airplane: generated instances
+    of one kind are near copies of one shape, and pair 5-18 % like places): the local shapes
+    do not hold the answer, so the chain's rules decide as before."""
+    from gsa.align.pipeline import _Pair
+    from gsa.align.types import AlignOptions
+
+    source = make_object("chair", seed=4, n_gaussians=8000)
+    target = make_object("airplane", seed=4, n_gaussians=8000)
+    pair = _Pair.build(source, target, AlignOptions(semantic="off"))
+    identity = Sim3(1.0, np.eye(3), np.zeros(3))
+    turned = Sim3(1.0, axis_rotation([0.0, 1.0, 0.0], np.pi), np.zeros(3))
+    _chain_returning(monkeypatch, turned)
+    answer, report = _doubtful(pair, identity, colour=0.0)
+    assert answer is turned and report["chain"] == "ran"
+    assert not report["local_shapes"]["holds"], report["local_shapes"]

@@ -34,6 +34,7 @@ from gsa.align.coarse import (
 )
 from gsa.align.pair import _feature_mode, _Hypothesis, _Pair, _Repeater, _report
 from gsa.align.quality import quality_metrics
+from gsa.align.robust import matching
 from gsa.align.types import AlignmentResult, AlignOptions
 from gsa.errors import GSAError
 from gsa.model import GaussianModel
@@ -172,6 +173,49 @@ def _with_semantic_scores(alternatives: list[dict], scored: dict[tuple, float]) 
 
 
 def _doubtful_search_answer(pair, best, search, transform: Sim3, metrics: dict, timings: dict, progress):
+    """What a doubtful global-search answer goes through (_doubtful_chain), held to what the
+    models' local shapes say (_local_shapes): the chain's rules break ties between other
+    instances, and where the local shapes hold the answer (two captures of one object, a
+    deformed copy), the chain's pose replaces it only where they hold that pose too; a refused
+    pose is offered first among the alternatives."""
+    shapes = _local_shapes(pair, search)
+    needed = pair.criteria.search.matching.min_consensus
+    agreement = shapes.agreement(transform)
+    chained, chained_metrics = _doubtful_chain(pair, best, search, transform, metrics, timings, progress)
+    report = {"agreement": agreement, "needed": needed, "holds": agreement >= needed}
+    if not report["holds"]:
+        return chained, chained_metrics | {"local_shapes": report}
+    report["chain_agreement"] = shapes.agreement(chained)
+    if report["chain_agreement"] >= needed:
+        return chained, chained_metrics | {"local_shapes": report | {"kept": "the chain's pose"}}
+    src, dst = pair.anchors()
+    refused = robust.score_pose(
+        src,
+        dst,
+        chained,
+        "the doubtful chain's pose (the local shapes do not hold it)",
+        shapes.colour,
+        pair.criteria.pose,
+    )
+    room = pair.criteria.verdict.max_alternatives
+    alternatives = ([refused.to_dict(transform) | {"tied": False}] + (metrics.get("alternatives") or []))[:room]
+    return transform, metrics | {"alternatives": alternatives, "local_shapes": report | {"kept": "the answer"}}
+
+
+def _local_shapes(pair, search) -> matching.DescriptorPairs:
+    """The anchors paired across the models by their local shapes (gsa.align.robust.matching).
+    A pose they hold (at least min_consensus of the pairs where it maps them) is one the local
+    shapes agree on: two captures of one object or a deformed copy pair like places (6-25 % of
+    the pairs agree with their truth), two instances of a category do not (1-5 %). The chain's
+    rules took such answers 12-180 degrees off (a street's halves at 0.4 degrees, a deformed
+    nut's copy at 1 degree: issue 66)."""
+    src, dst = pair.anchors()
+    # the colour trust the search scored with (without a search: the palettes' agreement)
+    colour = search.colour_weight if search is not None else robust.colour_weight(src, dst, pair.criteria.pose.palette)
+    return matching.descriptor_pairs(src, dst, pair.criteria.search.matching, colour)
+
+
+def _doubtful_chain(pair, best, search, transform: Sim3, metrics: dict, timings: dict, progress):
     """What a doubtful global-search answer goes through: the relabelling the shapes settle where
     they do (_shape_settled_answer, which ends it); else the semantic tie-break, then the turn
     onto the dominant-normal frames where the models are other instances, the choice among

@@ -178,6 +178,7 @@ def bidirectional_icp(
     iterations: int,
     w_colour: float = 0.0,
     criteria: PoseCriteria | None = None,
+    reach: float | None = None,
 ) -> Sim3:
     """Robust ICP with Horn's symmetric scale on correspondences from both
     directions: a source anchor's nearest target anchor, and a target anchor's
@@ -185,7 +186,9 @@ def bidirectional_icp(
     scale drift (it matches into the other's interior); both pin it. Pairs get
     Tukey weights (cut-off icp_trim × median distance) times their colour similarity
     as far as colour is trusted: where two partial captures do not overlap, the
-    nearest partner is close in space but the wrong colour."""
+    nearest partner is close in space but the wrong colour. `reach` (in units of the
+    score's truncation distance) caps that cut-off: where two halves overlap on about half,
+    the median distance is the part one lacks, and the plain cut-off takes those pairs in."""
     c = criteria or _DEFAULT
     p, q = src.points[src_rows], dst.points[dst_rows]
     transform = init
@@ -216,6 +219,8 @@ def bidirectional_icp(
         b = np.concatenate([dst.points[j], q])
         d = np.concatenate([d_f, d_r])
         cut = c.icp_trim * max(float(np.median(d)), 1e-12 * dst.radius)
+        if reach is not None:
+            cut = min(cut, reach * c.truncation * dst.radius)
         weight = np.clip(1.0 - (d / cut) ** 2, 0.0, None) ** 2
         if w_colour > 0:
             de2 = np.concatenate(

@@ -166,18 +166,28 @@ def global_search(
         # their own draws: where no pose is matched, the search's later draws (the offers) stay as they were
         matching_rng = np.random.default_rng([opts.seed, 1])
         for init in matched_poses(src, dst, matching_rng, opts.match_top, k.distinct_deg, opts.matching, w_colour):
-            refined.append(converged(init, "matched"))
+            plain = converged(init, "matched")
+            held = _converged(src, dst, init, "matched", (src_rows, dst_rows), w_colour, opts, opts.matching.icp_reach)
+            refined.append(max(plain, held, key=lambda c: c.score))
     return _with_offers(src, dst, decide(dedupe(refined, k), w_colour, noise, k), w_colour, rng, opts)
 
 
 def _converged(
-    src: Anchors, dst: Anchors, init: Sim3, origin: str, rows: tuple, w_colour: float, opts: SearchOptions
+    src: Anchors,
+    dst: Anchors,
+    init: Sim3,
+    origin: str,
+    rows: tuple,
+    w_colour: float,
+    opts: SearchOptions,
+    reach: float | None = None,
 ) -> Candidate:
     """A start taken by the anchors' ICP to convergence (the early and the refine budgets) and
-    scored: the widened search's placed and matched starts, and the offers' half turns."""
+    scored: the widened search's placed and matched starts, and the offers' half turns. `reach`:
+    bidirectional_icp's cap on its cut-off."""
     k = opts.criteria
     iterations = opts.early_iterations + opts.refine_iterations
-    transform = bidirectional_icp(src, dst, init, rows[0], rows[1], iterations, w_colour, k)
+    transform = bidirectional_icp(src, dst, init, rows[0], rows[1], iterations, w_colour, k, reach)
     return score_pose(src, dst, transform, origin, w_colour, k)
 
 
