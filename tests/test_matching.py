@@ -7,8 +7,8 @@ import numpy as np
 import pytest
 
 from gsa.align import robust
-from gsa.geometry import axis_rotation
 from gsa.align.robust.matching import MatchOptions, descriptors, matched_poses
+from gsa.geometry import axis_rotation
 from gsa.metrics import rre_deg
 from gsa.sim3 import Sim3
 from gsa.synth import make_object, random_sim3
