@@ -167,8 +167,13 @@ def global_search(
         matching_rng = np.random.default_rng([opts.seed, 1])
         for init in matched_poses(src, dst, matching_rng, opts.match_top, k.distinct_deg, opts.matching, w_colour):
             plain = converged(init, "matched")
-            held = _converged(src, dst, init, "matched", (src_rows, dst_rows), w_colour, opts, opts.matching.icp_reach)
-            refined.append(max(plain, held, key=lambda c: c.score))
+            start = score_pose(src, dst, init, "matched", w_colour, k)
+            if plain.score < opts.matching.slid_share * start.score:
+                # the ICP slid off the start (two halves overlapping on about half): held within its reach
+                rows = (src_rows, dst_rows)
+                held = _converged(src, dst, init, "matched", rows, w_colour, opts, opts.matching.icp_reach)
+                plain = max(plain, held, key=lambda c: c.score)
+            refined.append(plain)
     return _with_offers(src, dst, decide(dedupe(refined, k), w_colour, noise, k), w_colour, rng, opts)
 
 
