@@ -472,6 +472,42 @@ def test_a_confident_edge_outweighs_the_frames_grid_scores():
     assert all(e.status == "kept" for e in result.edges)
 
 
+def test_edges_the_local_shapes_hold_are_not_turned_by_the_frames_grid_scores():
+    # Model 3's grid scores favour its half turn by two standard deviations on each of its
+    # edges, and every edge is doubtful and barely confident: the frames turn model 3 over.
+    # Where the models' local shapes hold each edge's measured pose (two captures of one object:
+    # align()'s local_agreement over the share needed), the grids are not what decides and no
+    # edge is turned onto a relabelling: every model stays right.
+    import copy
+
+    truth, centres, sizes, edges = _graph(4, seed=9, noise_deg=0.0)
+    misleading = {(i, j): 2.0 for i, j in itertools.combinations(range(4), 2) if 3 in (i, j)}
+    evidence = _frame_evidence(truth, seed=9, misleading=misleading)
+    for e in edges:
+        e.alternatives, e.confidence, e.doubtful = [], 0.05, True
+    turned = solve_graph(4, copy.deepcopy(edges), 0, centres, sizes, frames=evidence)
+    assert _errors(turned, truth)[3][0] > 170
+    for e in edges:
+        e.agreements, e.agreement_needed = [0.12], 0.05
+    result = solve_graph(4, edges, 0, centres, sizes, frames=evidence)
+    for rot, log_s in _errors(result, truth):
+        assert rot < 1.5 and log_s < 0.02
+    assert all(e.status == "kept" for e in result.edges)
+
+
+def test_the_local_shapes_weigh_an_edges_poses_where_they_hold_any():
+    from gsa.align.many import held_poses, pose_weights
+
+    edge = Edge(0, 1, Sim3.identity(), confidence=0.5, alternatives=[Sim3.identity()] * 3, scores=[0.1, 0.4, 0.2, 0.3])
+    by_scores = pose_weights(edge)
+    assert np.argmax(by_scores) == 1 and not held_poses(edge).any()  # unknown shares: the semantic scores
+    edge.agreements, edge.agreement_needed = [0.14, 0.07, 0.02, None], 0.05
+    assert held_poses(edge).tolist() == [True, True, False, False]
+    assert pose_weights(edge) == pytest.approx([0.5, 0.25, 0.0, 0.0])
+    edge.agreements = [0.01, 0.02, 0.03, 0.04]  # none held (other instances): the scores again
+    assert pose_weights(edge) == pytest.approx(by_scores)
+
+
 def test_the_members_relabellings_are_the_best_assignment():
     # The beam search against every assignment of 4 members (24³), on random grid scores and
     # no belief of the edges' own (so the scores alone decide).

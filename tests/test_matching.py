@@ -174,3 +174,30 @@ def test_the_chain_turns_an_answer_the_local_shapes_do_not_hold(monkeypatch):
     answer, report = _doubtful(pair, identity, colour=0.0)
     assert answer is turned and report["chain"] == "ran"
     assert not report["local_shapes"]["holds"], report["local_shapes"]
+
+
+def test_align_reports_the_local_shapes_share_of_the_answer_and_each_alternative():
+    """With alternatives always offered (as N-way edges ask), the answer and each alternative
+    carry the share of the local shapes' pairs they hold: the right answer over the share
+    needed, a half turn of it under."""
+    from gsa.align import AlignOptions, align
+    from gsa.align.many import edge_from_result, held_poses
+
+    rng = np.random.default_rng([5, 2])
+    model = make_object("chair", seed=4, n_gaussians=8000)
+    halves = rng.random(len(model)) < 0.5
+    truth = random_sim3(rng)
+    result = align(model.subset(halves), model.subset(~halves).transformed(truth), AlignOptions(alternatives="always"))
+    assert rre_deg(result.transform.rotation, truth.rotation) < 2.0
+    metrics = result.metrics
+    assert metrics["local_agreement"] >= metrics["local_agreement_needed"] > 0
+    alternatives = [a.details for a in result.verdict.alternatives]
+    assert alternatives and all("local_agreement" in a for a in alternatives)
+    far = [
+        a["local_agreement"]
+        for a in alternatives
+        if rre_deg(Sim3.from_matrix(np.asarray(a["transform"])).rotation, truth.rotation) > 150
+    ]
+    assert far and max(far) < metrics["local_agreement"]
+    edge = edge_from_result(0, 1, result, 0.0)
+    assert held_poses(edge)[0] and len(edge.agreements) == 1 + len(edge.alternatives)

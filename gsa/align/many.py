@@ -95,6 +95,10 @@ class Edge:
     alternatives: list[Sim3] = field(default_factory=list)
     # The semantic tie-break's score of the transform and of each alternative (None: not scored).
     scores: list[float | None] = field(default_factory=list)
+    # The share of the local shapes' pairs the transform and each alternative hold (None: not
+    # measured), and the share that counts as holding (align()'s local_agreement metrics).
+    agreements: list[float | None] = field(default_factory=list)
+    agreement_needed: float | None = None
     seconds: float = 0.0
     # Set by the global step:
     used: Sim3 | None = None  # the transform the solution used (an alternative when corrected)
@@ -205,16 +209,33 @@ CONSENSUS_BEAM = 64  # partial assignments kept while models are added one at a 
 CONSENSUS_SAME_DEG = 5.0  # candidate rotations of one model this near are one candidate
 
 
+def held_poses(edge: Edge) -> np.ndarray:
+    """(H,) bool: which of the edge's poses ([transform] + alternatives) its models' local
+    shapes hold (align()'s local_agreement at least local_agreement_needed); none where unknown."""
+    n = 1 + len(edge.alternatives)
+    if edge.agreement_needed is None:
+        return np.zeros(n, bool)
+    shares = (list(edge.agreements) + [None] * n)[:n]
+    return np.array([v is not None and v >= edge.agreement_needed for v in shares])
+
+
 def pose_weights(edge: Edge) -> np.ndarray:
     """How plausible each of an edge's poses ([transform] + alternatives) is, from the edge:
-    its confidence (as the global step's prior) spread over its poses by their semantic scores
-    relative to the best one; without scores all of it on the measured pose. The measured pose
-    keeps the lead the tie-break gave it (its score times the switch ratio: no other pose beat
-    that), so one edge alone never turns; it takes other edges agreeing with an alternative."""
+    its confidence (as the global step's prior) spread over its poses. Where the models' local
+    shapes hold some of them (two captures of one object, a deformed copy), over those poses by
+    the share of the shapes' pairs each holds, relative to the best one; the others get none.
+    Otherwise (other instances, whose local shapes do not pair) by the semantic scores relative
+    to the best one; without scores all of it on the measured pose. The measured pose keeps the
+    lead the tie-break gave it (its score times the switch ratio: no other pose beat that), so
+    one edge alone never turns; it takes other edges agreeing with an alternative."""
     from gsa.align.semantic import SemanticCriteria
 
     base = max(float(edge.confidence), 0.05)
     n = 1 + len(edge.alternatives)
+    held = held_poses(edge)
+    if held.any():
+        shares = np.array([float(v) if h else 0.0 for v, h in zip(edge.agreements, held)], np.float64)
+        return base * shares / shares.max()
     scores = np.array([v if v is not None else 0.0 for v in (list(edge.scores) + [None] * n)[:n]], np.float64)
     scores = np.maximum(scores, 0.0)
     scores[0] *= SemanticCriteria().switch_ratio
@@ -572,7 +593,9 @@ def _frame_consensus(
 
     # Each relabelling's belief: the plausibility of the edge's pose agreeing with it.
     beliefs = [_agreement(_pose_rotations(e), relabelled(e, frames), pose_weights(e)) for e in edges]
-    assignment = synchronise(n, reference, edges, frames, beliefs)
+    # The grids are what other instances share; where the local shapes pair, they say more.
+    held = [held_poses(e) for e in edges]
+    assignment = synchronise(n, reference, edges, frames, beliefs, [not h.any() for h in held])
     out: list[Sim3 | None] = []
     agreeing = []
     cycled = on_cycles(n, edges)
@@ -582,9 +605,15 @@ def _frame_consensus(
             continue
         cos = (np.einsum("ab,hab->h", target, _pose_rotations(edge)) - 1.0) / 2.0
         near = np.flatnonzero(cos > np.cos(np.radians(CONSENSUS_DEG)))
+        if held[k].any():
+            # Two captures of one object: only a pose their local shapes hold, never a turn.
+            near = near[held[k][near]]
+            if not len(near):
+                out.append(None)
+                continue
         pick = int(near[np.argmax(pose_weights(edge)[near])]) if len(near) else 0
         pose = edge.transform if pick == 0 else edge.alternatives[pick - 1]
-        if edge.doubtful and on_frames(edge, frames, CONSENSUS_DEG):
+        if edge.doubtful and not held[k].any() and on_frames(edge, frames, CONSENSUS_DEG):
             # Across instances the frames are exact where the fits drift (docs/benchmarks.md,
             # "Dominant-normal frames"): the pose is turned onto the relabelling itself.
             if cos[pick] < np.cos(np.radians(FRAME_EXACT_DEG)):
@@ -759,11 +788,13 @@ def select_edges(models: Sequence[GaussianModel], edges: str = "auto", k: int = 
 def edge_from_result(i: int, j: int, result, seconds: float) -> Edge:
     metrics, verdict = result.metrics, result.verdict
     alternatives, scores = [], [_score(metrics.get("semantic_score"))]
+    agreements = [_score(metrics.get("local_agreement"))]
     for alt in verdict.alternatives:
         if alt.transform is None:  # an alternative we cannot read is left out
             continue
         alternatives.append(alt.transform)
         scores.append(_score(alt.details.get("semantic_score")))
+        agreements.append(_score(alt.details.get("local_agreement")))
     confidence = metrics.get("confidence")
     return Edge(
         source=i,
@@ -774,6 +805,8 @@ def edge_from_result(i: int, j: int, result, seconds: float) -> Edge:
         ambiguous=verdict.ambiguous,
         alternatives=alternatives,
         scores=scores,
+        agreements=agreements,
+        agreement_needed=_score(metrics.get("local_agreement_needed")),
         seconds=seconds,
     )
 

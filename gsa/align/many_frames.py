@@ -89,11 +89,14 @@ def _sampled(model: GaussianModel) -> GaussianModel:
     return model.subset(np.sort(rows))
 
 
-def _edge_gains(edge, evidence: FrameEvidence, belief: np.ndarray) -> np.ndarray:
-    """(24,) what the edge says of each relabelling: its grid score plus POSE_GAIN times the
-    edge's own belief in it (the plausibility of its pose agreeing with it, from the caller)."""
+def _edge_gains(edge, evidence: FrameEvidence, belief: np.ndarray, grid: bool = True) -> np.ndarray:
+    """(24,) what the edge says of each relabelling: its grid score (where `grid`) plus
+    POSE_GAIN times the edge's own belief in it (the plausibility of its pose agreeing with it,
+    from the caller)."""
     i, j = edge.source, edge.target
-    if (i, j) in evidence.shape:
+    if not grid:
+        gains = np.zeros(24)
+    elif (i, j) in evidence.shape:
         gains = np.array(evidence.shape[(i, j)], np.float64)
     elif (j, i) in evidence.shape:  # the pair scored the other way
         back = evidence.shape[(j, i)]
@@ -118,13 +121,20 @@ def incident_edges(n: int, edges: Sequence) -> dict[int, list[int]]:
 
 
 def synchronise(
-    n: int, reference: int, edges: Sequence, evidence: FrameEvidence, beliefs: Sequence[np.ndarray]
+    n: int,
+    reference: int,
+    edges: Sequence,
+    evidence: FrameEvidence,
+    beliefs: Sequence[np.ndarray],
+    grids: Sequence[bool] | None = None,
 ) -> list[int | None]:
     """One relabelling index G_k per member (the reference's the identity; None for a member no
     edge reaches) maximising the summed edge gains of P_ij = G_jᵀ G_i (beliefs: per edge, (24,)
-    its own belief in each relabelling): a beam search adding the members in order of how many
-    edges join them to those placed before."""
-    gains = [_edge_gains(e, evidence, b) for e, b in zip(edges, beliefs)]
+    its own belief in each relabelling; grids: per edge, whether its grid scores count, all by
+    default): a beam search adding the members in order of how many edges join them to those
+    placed before."""
+    grids = [True] * len(edges) if grids is None else grids
+    gains = [_edge_gains(e, evidence, b, g) for e, b, g in zip(edges, beliefs, grids)]
     incident = incident_edges(n, edges)
     placed, order = {reference}, []
     while True:

@@ -76,6 +76,7 @@ class _Pair:
     src_anchors: robust.Anchors | None = None
     dst_anchors: robust.Anchors | None = None
     lifted: object | None = None  # semantic.LiftedPair, once the semantic tie-break lifted features
+    local_shapes: object | None = None  # robust.matching.DescriptorPairs, once asked for (pipeline._local_shapes)
 
     @functools.cached_property
     def normal_frames(self) -> tuple[manhattan.NormalFrame, manhattan.NormalFrame]:

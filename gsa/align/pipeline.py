@@ -203,16 +203,41 @@ def _doubtful_search_answer(pair, best, search, transform: Sim3, metrics: dict, 
 
 
 def _local_shapes(pair, search) -> matching.DescriptorPairs:
-    """The anchors paired across the models by their local shapes (gsa.align.robust.matching).
-    A pose they hold (at least min_consensus of the pairs where it maps them) is one the local
-    shapes agree on: two captures of one object or a deformed copy pair like places (6-25 % of
-    the pairs agree with their truth), two instances of a category do not (1-5 %). The chain's
-    rules took such answers 12-180 degrees off (a street's halves at 0.4 degrees, a deformed
-    nut's copy at 1 degree: issue 66)."""
-    src, dst = pair.anchors()
-    # the colour trust the search scored with (without a search: the palettes' agreement)
-    colour = search.colour_weight if search is not None else robust.colour_weight(src, dst, pair.criteria.pose.palette)
-    return matching.descriptor_pairs(src, dst, pair.criteria.search.matching, colour)
+    """The anchors paired across the models by their local shapes (gsa.align.robust.matching),
+    made once per pair. A pose they hold (at least min_consensus of the pairs where it maps
+    them) is one the local shapes agree on: two captures of one object or a deformed copy pair
+    like places (6-25 % of the pairs agree with their truth), two instances of a category do not
+    (1-5 %). The chain's rules took such answers 12-180 degrees off (a street's halves at 0.4
+    degrees, a deformed nut's copy at 1 degree: issue 66)."""
+    if pair.local_shapes is None:
+        src, dst = pair.anchors()
+        # the colour trust the search scored with (without a search: the palettes' agreement)
+        colour = (
+            search.colour_weight if search is not None else robust.colour_weight(src, dst, pair.criteria.pose.palette)
+        )
+        pair.local_shapes = matching.descriptor_pairs(src, dst, pair.criteria.search.matching, colour)
+    return pair.local_shapes
+
+
+def _local_agreements(pair, search, transform: Sim3, metrics: dict) -> dict:
+    """Where the answer comes with alternatives: how much of the local shapes' pairs the answer
+    (metrics.local_agreement) and each alternative (its local_agreement) hold, and the share
+    that counts as holding (local_agreement_needed). The N-way consensus weighs an edge's poses
+    by them (gsa.align.many.pose_weights): between captures of one object they name the right
+    pose where the frames' and the semantic scores are built for other instances."""
+    offered = metrics.get("alternatives") or []
+    if search is None or not offered:
+        return metrics
+    shapes = _local_shapes(pair, search)
+    alternatives = [
+        a | {"local_agreement": shapes.agreement(Sim3.from_matrix(np.asarray(a["transform"], np.float64)))}
+        for a in offered
+    ]
+    return metrics | {
+        "local_agreement": shapes.agreement(transform),
+        "local_agreement_needed": pair.criteria.search.matching.min_consensus,
+        "alternatives": alternatives,
+    }
 
 
 def _doubtful_chain(pair, best, search, transform: Sim3, metrics: dict, timings: dict, progress):
@@ -502,6 +527,7 @@ def _align_models(
         )
     else:
         metrics = pair.judge.unconfirmed(transform, search, metrics)
+    metrics = _local_agreements(pair, search, transform, metrics)
     metrics["scene"] = choice.to_dict()
     if guidance is not None:
         metrics = _guidance_report(pair, best.init if start else None, transform, metrics, guidance, start)

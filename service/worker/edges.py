@@ -41,6 +41,8 @@ def edge_payload(edge, worker: str) -> dict[str, Any]:
         "ambiguous": edge.ambiguous,
         "alternatives": [a.matrix().tolist() for a in edge.alternatives],
         "scores": list(edge.scores),
+        "agreements": list(edge.agreements),
+        "agreement_needed": edge.agreement_needed,
         "seconds": edge.seconds,
         "worker": worker,
     }
@@ -64,6 +66,8 @@ def edge_from_payload(i: int, j: int, data: dict[str, Any]):
         ambiguous=bool(data["ambiguous"]),
         alternatives=[sim3(a) for a in data["alternatives"]],
         scores=[None if v is None else float(v) for v in data.get("scores") or []],
+        agreements=[None if v is None else float(v) for v in data.get("agreements") or []],
+        agreement_needed=None if data.get("agreement_needed") is None else float(data["agreement_needed"]),
         seconds=float(data["seconds"]),
     )
 

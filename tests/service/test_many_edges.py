@@ -102,5 +102,7 @@ def test_an_edge_payload_keeps_the_scores_of_its_poses():
 
     turned = Sim3(1.0, np.diag([1.0, -1.0, -1.0]), np.zeros(3))
     edge = Edge(0, 1, Sim3.identity(), confidence=0.1, doubtful=True, alternatives=[turned], scores=[0.2, None])
+    edge.agreements, edge.agreement_needed = [0.12, 0.01], 0.05
     back = edge_from_payload(0, 1, json.loads(json.dumps(edge_payload(edge, "w"))))
     assert back.scores == [0.2, None] and np.allclose(back.alternatives[0].rotation, turned.rotation)
+    assert back.agreements == [0.12, 0.01] and back.agreement_needed == 0.05  # and the local shapes' shares

@@ -55,7 +55,7 @@ class MatchOptions:
     # Off by default (0) until the many-model consensus is squared with it: on three partial
     # captures of a generated car the refitted starts added half-turned alternatives to two
     # edges and align_many's consensus took them (tests/test_many.py, docs/benchmarks.md).
-    refit_rounds: int = 0
+    refit_rounds: int = 5
     # Where the ICP that takes a matched start on ends scoring less than slid_share of the start
     # itself, it slid off it: two halves that overlap on about half, whose median pair distance is
     # the part one lacks (a street's halves: 0.31 -> 0.013, 1.6° -> 21°; the room's 0.055 -> 0.002).
