@@ -397,6 +397,21 @@ class _Refinement:
             seconds=time.perf_counter() - t0,
         )
 
+    def held_within_reach(self, coarse: CoarseResult, search: robust.SearchResult) -> tuple[CoarseResult, dict]:
+        """The refined pose, or where the fit slid off the score's peak, the anchors' ICP from
+        it within its reach (robust.held_within_reach), and the metrics saying so (empty:
+        nothing held)."""
+        pair = self.pair
+        src, dst = pair.anchors()
+        options = pair.criteria.search_options(pair.opts.search_rotations, pair.opts.seed)
+        held = robust.held_within_reach(src, dst, coarse.transform, search.colour_weight, options)
+        if held is None:
+            return coarse, {}
+        before = robust.score_pose(src, dst, coarse.transform, "", search.colour_weight, options.criteria)
+        report = {"score_before": before.score, "score": held.score}
+        report["rotation_deg"] = robust.rotation_offset_deg(held.transform, coarse.transform)
+        return replace(coarse, transform=held.transform), {"held_within_reach": report}
+
     def coarse(self, best: _Hypothesis, progress: Progress | None) -> CoarseResult:
         """Alg. 3 on (a sample of) the source, then — with canonical features —
         nearest-neighbour refinement."""

@@ -448,7 +448,7 @@ def _align_models(
     timings["features"] = time.perf_counter() - t
     _report(progress, "features", 1.0)
 
-    search = None
+    search, held = None, {}  # held: the refinement's slide undone (metrics.held_within_reach)
     start = guided.start_transform(opts, opts.criteria.guidance)  # a pose the user gave or picked pairs for
     guidance = guided.describe(opts) | ({"start": start[1]} if start else {}) if guided.is_guided(opts) else None
     if start is not None:
@@ -492,6 +492,7 @@ def _align_models(
         timings["hypotheses"] = time.perf_counter() - t
         t = time.perf_counter()
         coarse = pair.refinement.refine_global(best.init, progress)
+        coarse, held = pair.refinement.held_within_reach(coarse, search)
         timings["coarse"] = time.perf_counter() - t
     else:
         t = time.perf_counter()
@@ -515,6 +516,7 @@ def _align_models(
     t = time.perf_counter()
     metrics = pair.judge.quality(transform, best)
     metrics["hypothesis"] = best.label
+    metrics.update(held)
     metrics.update(pair.judge.verdict(transform, search))
     if fine_result is not None:
         # The fine stage can move a right coarse pose off (docs/benchmarks.md): both verdicts, to compare.

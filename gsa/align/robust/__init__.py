@@ -83,7 +83,7 @@ from gsa.align.robust.refinement import (
     refine,
     verdict,
 )
-from gsa.align.robust.search import SearchOptions, global_search
+from gsa.align.robust.search import SearchOptions, global_search, held_within_reach
 
 __all__ = [
     "RIGID_REFINE",
@@ -109,6 +109,7 @@ __all__ = [
     "floater_mask",
     "frame_relabellings",
     "global_search",
+    "held_within_reach",
     "match_exposure",
     "box_lattice",
     "placed_starts",
