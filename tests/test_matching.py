@@ -201,3 +201,26 @@ def test_align_reports_the_local_shapes_share_of_the_answer_and_each_alternative
     assert far and max(far) < metrics["local_agreement"]
     edge = edge_from_result(0, 1, result, 0.0)
     assert held_poses(edge)[0] and len(edge.agreements) == 1 + len(edge.alternatives)
+
+
+def test_a_pose_that_slid_off_the_scores_peak_is_held_within_reach():
+    """Two halves of one chair, each cut by its own plane: a pose 15 degrees off scores under
+    half of what the capped ICP from it reaches (the truth), so it is held there; the truth
+    itself, and a pose that keeps over half of the peak's score, are left as they are."""
+    from gsa.synth.variants import cut_by_plane
+
+    rng = np.random.default_rng([7, 0])
+    model = make_object("chair", seed=4, n_gaussians=16_000)
+    halves = rng.random(len(model)) < 0.5
+    a = cut_by_plane(model.subset(halves), rng, keep=(0.6, 0.7))
+    b = cut_by_plane(model.subset(~halves), rng, keep=(0.6, 0.7))
+    src, dst = robust.anchors(a, 2000), robust.anchors(b, 2000)
+    opts = robust.SearchOptions()
+
+    def turned(deg: float) -> Sim3:
+        return Sim3(1.0, axis_rotation([0.0, 1.0, 0.0], np.radians(deg)), np.zeros(3))
+
+    held = robust.held_within_reach(src, dst, turned(15.0), 0.0, opts)
+    assert held is not None and rre_deg(held.transform.rotation, np.eye(3)) < 1.0
+    assert robust.held_within_reach(src, dst, turned(0.0), 0.0, opts) is None
+    assert robust.held_within_reach(src, dst, turned(6.0), 0.0, opts) is None

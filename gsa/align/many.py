@@ -7,7 +7,9 @@ frame) with X_i ≈ X_j ∘ T_ij for every edge:
 
 0. a consensus over each edge's poses (consensus_rotations): the pose each edge enters the
    least squares with is the one that agrees with the rotations its edges, summed, find most
-   plausible (an alternative there is a correction);
+   plausible (an alternative there is a correction); a pose's plausibility is the share of
+   the models' local-shape pairs it holds where any of the edge's poses holds (two captures of
+   one object), else its semantic score (pose_weights);
 1. every model is first put in a normalised frame (centroid at 0, RMS radius 1), so that
    translation residuals are fractions of the model's size and scales are near 1;
 2. initialisation: a maximum spanning tree over each edge's triangle support (how many

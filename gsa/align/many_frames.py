@@ -17,7 +17,10 @@ the plausibility (many.pose_weights, computed by the caller) of the edge's pose,
 alternative, that lies within many.CONSENSUS_DEG of it. A confident edge's measured pose so
 counts as much as a standard deviation of the shapes. What the global step does with the
 assignment (gsa.align.many._frame_consensus): a doubtful edge on its frames is turned onto the
-relabelling it is given; an edge off its frames or on no cycle is left as measured.
+relabelling it is given; an edge off its frames or on no cycle is left as measured. An edge
+whose models' local shapes hold one of its poses (two captures of one object: many.held_poses)
+is judged by those poses alone: its grid scores, made for other instances, do not count, and
+it is never turned onto a relabelling, only moved to another pose the local shapes hold.
 """
 
 from __future__ import annotations
