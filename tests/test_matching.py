@@ -224,3 +224,6 @@ def test_a_pose_that_slid_off_the_scores_peak_is_held_within_reach():
     assert held is not None and rre_deg(held.transform.rotation, np.eye(3)) < 1.0
     assert robust.held_within_reach(src, dst, turned(0.0), 0.0, opts) is None
     assert robust.held_within_reach(src, dst, turned(6.0), 0.0, opts) is None
+    # where nothing overlaps the scores are no share of anything: nothing is held
+    apart = Sim3(1.0, np.eye(3), np.array([50.0, 0.0, 0.0]) * dst.radius)
+    assert robust.held_within_reach(src, dst, apart, 0.0, opts) is None

@@ -209,7 +209,8 @@ def held_within_reach(src: Anchors, dst: Anchors, pose: Sim3, w_colour: float, o
     rows = (subsample(rng, len(src), opts.refine_points), subsample(rng, len(dst), opts.refine_points))
     held = _converged(src, dst, pose, "held within reach", rows, w_colour, opts, opts.matching.icp_reach)
     now = score_pose(src, dst, pose, "", w_colour, k)
-    return held if now.score < opts.matching.slid_share * held.score else None
+    # a share of a score at or below zero (nothing overlaps) says nothing
+    return held if held.score > 0 and now.score < opts.matching.slid_share * held.score else None
 
 
 def _with_offers(
