@@ -177,7 +177,11 @@ def _doubtful_search_answer(pair, best, search, transform: Sim3, metrics: dict, 
     models' local shapes say (_local_shapes): the chain's rules break ties between other
     instances, and where the local shapes hold the answer (two captures of one object, a
     deformed copy), the chain's pose replaces it only where they hold that pose too; a refused
-    pose is offered first among the alternatives."""
+    pose is offered first among the alternatives. First, the answer held from turned starts
+    (_held_from_turns): a doubtful answer may sit a few degrees beside the score's peak."""
+    transform, metrics = _held_from_turns(pair, best, search, transform, metrics)
+    if not metrics.get("doubtful"):
+        return transform, pair.judge.unconfirmed(transform, search, metrics)
     shapes = _local_shapes(pair, search)
     needed = pair.criteria.search.matching.min_consensus
     agreement = shapes.agreement(transform)
@@ -200,6 +204,35 @@ def _doubtful_search_answer(pair, best, search, transform: Sim3, metrics: dict, 
     room = pair.criteria.verdict.max_alternatives
     alternatives = ([refused.to_dict(transform) | {"tied": False}] + (metrics.get("alternatives") or []))[:room]
     return transform, metrics | {"alternatives": alternatives, "local_shapes": report | {"kept": "the answer"}}
+
+
+def _held_from_turns(pair, best, search, transform: Sim3, metrics: dict) -> tuple[Sim3, dict]:
+    """The doubtful answer, or where it sits beside the score's peak, the pose held within reach
+    from it and from starts turned by MatchOptions.reach_turns about it (robust.held_within_reach:
+    the answer scores under slid_share of that pose, colours agreeing there), with the pose's own
+    quality and verdict; the answer is then offered first among the alternatives."""
+    src, dst = pair.anchors()
+    options = pair.criteria.search_options(pair.opts.search_rotations, pair.opts.seed)
+    turns = options.matching.reach_turns
+    held = robust.held_within_reach(src, dst, transform, search.colour_weight, options, turns) if turns else None
+    if held is None:
+        return transform, metrics
+    previous = robust.score_pose(
+        src, dst, transform, "the answer before it was held within reach", search.colour_weight, options.criteria
+    )
+    updated = pair.judge.quality(held.transform, best) | {"hypothesis": metrics.get("hypothesis")}
+    updated.update(pair.judge.verdict(held.transform, search))
+    room = pair.criteria.verdict.max_alternatives
+    updated["alternatives"] = ([previous.to_dict(held.transform) | {"tied": False}] + updated.get("alternatives", []))[
+        :room
+    ]
+    report = {
+        "score_before": previous.score,
+        "score": held.score,
+        "rotation_deg": robust.rotation_offset_deg(held.transform, transform),
+        "turned": True,
+    }
+    return held.transform, updated | {"held_within_reach": report}
 
 
 def _local_shapes(pair, search) -> matching.DescriptorPairs:

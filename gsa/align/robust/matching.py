@@ -52,9 +52,6 @@ class MatchOptions:
     # A triple's pose is as exact as its three pairs (10-20 degrees off where the pairs sit a
     # spacing apart); it is fitted again, least squares, to every pair agreeing with it, this many
     # times (LO-RANSAC's local optimisation): measured on the iPhone room's halves, 17-46° -> 3-12°.
-    # Off by default (0) until the many-model consensus is squared with it: on three partial
-    # captures of a generated car the refitted starts added half-turned alternatives to two
-    # edges and align_many's consensus took them (tests/test_many.py, docs/benchmarks.md).
     refit_rounds: int = 5
     # Where the ICP that takes a matched start on ends scoring less than slid_share of the start
     # itself, it slid off it: two halves that overlap on about half, whose median pair distance is
@@ -66,6 +63,11 @@ class MatchOptions:
     # 0.257 at 6.2° against 0.226 at 2.6°), the score's peak not being the truth there.
     slid_share: float = 0.5
     icp_reach: float = 2.0
+    # A doubtful answer is also held from starts turned this many degrees about 26 axes (the
+    # cube's faces, edges and corners) through it (search.held_within_reach): the score's peak
+    # between two partial halves is a few degrees wide, and an answer 9-10 degrees off it is
+    # outside the capped ICP's reach (the iPhone room's pair 16: 9.1° -> 0.9°).
+    reach_turns: tuple[float, ...] = (6.0, 12.0)
 
 
 def descriptors(

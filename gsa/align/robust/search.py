@@ -4,6 +4,7 @@ successive-halving refinement of the best starts (the candidates themselves: pos
 
 from __future__ import annotations
 
+import itertools
 from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 
@@ -196,18 +197,31 @@ def _converged(
     return score_pose(src, dst, transform, origin, w_colour, k)
 
 
-def held_within_reach(src: Anchors, dst: Anchors, pose: Sim3, w_colour: float, opts: SearchOptions) -> Candidate | None:
+# Unit axes the turned starts of held_within_reach turn about: the cube's 6 faces, 12 edges, 8 corners.
+_TURN_AXES = np.array([v for v in itertools.product((-1.0, 0.0, 1.0), repeat=3) if any(v)])
+_TURN_AXES /= np.linalg.norm(_TURN_AXES, axis=1)[:, None]
+
+
+def held_within_reach(
+    src: Anchors, dst: Anchors, pose: Sim3, w_colour: float, opts: SearchOptions, turns: tuple[float, ...] = ()
+) -> Candidate | None:
     """The anchors' ICP from `pose` with its cut-off capped at matching.icp_reach, where `pose`
     scores under matching.slid_share of the pose it reaches; None elsewhere. The matched
     starts' slide test, asked of the full-resolution fit: where two halves overlap on about
     half, the fit's trimmed pairs include the part one lacks and it slides off the search's
     pose (an iPhone room's halves: 5.3 degrees off at the start, 5.7 after the fit, 0.4 within
     reach, the score 0.057 against 0.168); between a model and its bent copy the score peaks a
-    few degrees off the truth, but not by twice. Only where colours agree at the held pose."""
+    few degrees off the truth, but not by twice. Only where colours agree at the held pose.
+    `turns` (degrees): the ICP runs from `pose` turned so about each of 26 axes through the
+    source centroid's image too, the best scoring held."""
     k = opts.criteria
     rng = np.random.default_rng([opts.seed, 2])  # its own draws: the search's stay as they were
     rows = (subsample(rng, len(src), opts.refine_points), subsample(rng, len(dst), opts.refine_points))
-    held = _converged(src, dst, pose, "held within reach", rows, w_colour, opts, opts.matching.icp_reach)
+    starts = [pose] + [_turned_about(pose, src.center, axis, deg) for deg in turns for axis in _TURN_AXES]
+    held = max(
+        (_converged(src, dst, s, "held within reach", rows, w_colour, opts, opts.matching.icp_reach) for s in starts),
+        key=lambda c: c.score,
+    )
     now = score_pose(src, dst, pose, "", w_colour, k)
     # Scores compare only where colours agree at the held pose (its coloured score keeps
     # slid_share of its geometric one): under an exposure shift the coloured scores sit near
@@ -215,6 +229,12 @@ def held_within_reach(src: Anchors, dst: Anchors, pose: Sim3, w_colour: float, o
     # (exposure-shifted statues: a 0.02-degree fit scoring -0.02 against 0.01 within reach).
     agree = held.score > 0 and held.score >= opts.matching.slid_share * held.geometry
     return held if agree and now.score < opts.matching.slid_share * held.score else None
+
+
+def _turned_about(pose: Sim3, centre: np.ndarray, axis: np.ndarray, degrees: float) -> Sim3:
+    """`pose` turned by `degrees` about `axis` through the image of the source point `centre`."""
+    rotation = axis_rotation(axis, np.radians(degrees)) @ pose.rotation
+    return Sim3(pose.scale, rotation, pose.apply(centre[None])[0] - pose.scale * rotation @ centre)
 
 
 def _with_offers(
