@@ -179,9 +179,11 @@ def _doubtful_search_answer(pair, best, search, transform: Sim3, metrics: dict, 
     deformed copy), the chain's pose replaces it only where they hold that pose too; a refused
     pose is offered first among the alternatives. First, the answer held from turned starts
     (_held_from_turns): a doubtful answer may sit a few degrees beside the score's peak."""
-    transform, metrics = _held_from_turns(pair, best, search, transform, metrics)
-    if not metrics.get("doubtful"):
-        return transform, pair.judge.unconfirmed(transform, search, metrics)
+    held, held_metrics = _held_from_turns(pair, best, search, transform, metrics)
+    if held is not transform:
+        transform, metrics = held, held_metrics
+        if not metrics.get("doubtful"):  # the held pose stands out: no chain
+            return transform, pair.judge.unconfirmed(transform, search, metrics)
     shapes = _local_shapes(pair, search)
     needed = pair.criteria.search.matching.min_consensus
     agreement = shapes.agreement(transform)
@@ -211,10 +213,12 @@ def _held_from_turns(pair, best, search, transform: Sim3, metrics: dict) -> tupl
     from it and from starts turned by MatchOptions.reach_turns about it (robust.held_within_reach:
     the answer scores under slid_share of that pose, colours agreeing there), with the pose's own
     quality and verdict; the answer is then offered first among the alternatives."""
-    src, dst = pair.anchors()
     options = pair.criteria.search_options(pair.opts.search_rotations, pair.opts.seed)
     turns = options.matching.reach_turns
-    held = robust.held_within_reach(src, dst, transform, search.colour_weight, options, turns) if turns else None
+    if search is None or not turns:  # no search (a caller's own answer): nothing scored it
+        return transform, metrics
+    src, dst = pair.anchors()
+    held = robust.held_within_reach(src, dst, transform, search.colour_weight, options, turns)
     if held is None:
         return transform, metrics
     previous = robust.score_pose(
