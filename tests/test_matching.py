@@ -221,7 +221,8 @@ def test_a_pose_that_slid_off_the_scores_peak_is_held_within_reach():
         return Sim3(1.0, axis_rotation([0.0, 1.0, 0.0], np.radians(deg)), np.zeros(3))
 
     held = robust.held_within_reach(src, dst, turned(15.0), 0.0, opts)
-    assert held is not None and rre_deg(held.transform.rotation, np.eye(3)) < 1.0
+    assert held is not None and rre_deg(held[0].transform.rotation, np.eye(3)) < 1.0
+    assert held[1].score < opts.matching.slid_share * held[0].score  # the pose it was held from, as scored
     assert robust.held_within_reach(src, dst, turned(0.0), 0.0, opts) is None
     assert robust.held_within_reach(src, dst, turned(6.0), 0.0, opts) is None
     # where nothing overlaps the scores are no share of anything: nothing is held
@@ -249,9 +250,9 @@ def test_a_pose_beyond_the_capped_icps_reach_is_held_from_turned_starts():
     pose = Sim3(1.0, axis_rotation(axis, np.radians(40.0)), np.zeros(3))
     opts = robust.SearchOptions()
     alone = robust.held_within_reach(src, dst, pose, 0.0, opts)
-    assert alone is None or rre_deg(alone.transform.rotation, np.eye(3)) > 10.0
+    assert alone is None or rre_deg(alone[0].transform.rotation, np.eye(3)) > 10.0
     turned = robust.held_within_reach(src, dst, pose, 0.0, opts, (6.0, 12.0))
-    assert turned is not None and rre_deg(turned.transform.rotation, np.eye(3)) < 3.0
+    assert turned is not None and rre_deg(turned[0].transform.rotation, np.eye(3)) < 3.0
 
 
 def test_a_doubtful_answer_beside_the_peak_is_held_before_the_chain(monkeypatch):

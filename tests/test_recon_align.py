@@ -51,7 +51,7 @@ def test_noisy_colour_does_not_reward_less_overlap(pair):
     a, b, truth = pair
     src = robust.anchors(a)
     dst = robust.anchors(b)
-    src = robust.match_exposure(src, dst)
+    src, dst = robust.match_exposure(src, dst)
     noise = 0.5 * (robust.colour_noise(src) + robust.colour_noise(dst))
     assert noise > robust.PoseCriteria().noise_trust  # the case this file is about: texture finer than the anchors
     w = robust.colour_trust(src, dst, noise)

@@ -202,8 +202,9 @@ def test_climb_moves_a_near_pose_onto_the_site(site_pair):
 
     cap = site_pair
     o = S.SceneOptions()
-    dst = S.scene_anchors(cap.target, o.scene_anchors)
-    src = robust.match_exposure(S.scene_anchors(cap.source, o.scene_anchors), dst)
+    src, dst = robust.match_exposure(
+        S.scene_anchors(cap.source, o.scene_anchors), S.scene_anchors(cap.target, o.scene_anchors)
+    )
     up = cap.truth.rotation @ np.array([0.0, 0.0, 1.0])
     turn = axis_rotation(up, np.radians(4.0))
     c = cap.truth.apply(src.center)

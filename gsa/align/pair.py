@@ -137,9 +137,10 @@ class _Pair:
 
     def anchors(self) -> tuple[robust.Anchors, robust.Anchors]:
         if self.src_anchors is None or self.dst_anchors is None:
-            self.dst_anchors = robust.anchors(self.target, self.opts.anchor_count)
-            self.src_anchors = robust.match_exposure(
-                robust.anchors(self.source, self.opts.anchor_count), self.dst_anchors, self.criteria.pose.palette
+            self.src_anchors, self.dst_anchors = robust.match_exposure(
+                robust.anchors(self.source, self.opts.anchor_count),
+                robust.anchors(self.target, self.opts.anchor_count),
+                self.criteria.pose.palette,
             )
         return self.src_anchors, self.dst_anchors
 
@@ -397,19 +398,33 @@ class _Refinement:
             seconds=time.perf_counter() - t0,
         )
 
-    def held_within_reach(self, coarse: CoarseResult, search: robust.SearchResult) -> tuple[CoarseResult, dict]:
-        """The refined pose, or where the fit slid off the score's peak, the anchors' ICP from
-        it within its reach (robust.held_within_reach), and the metrics saying so (empty:
-        nothing held)."""
+    def held(
+        self, transform: Sim3, search: robust.SearchResult, turns: tuple[float, ...] = ()
+    ) -> tuple[robust.Candidate, robust.Candidate, dict] | None:
+        """robust.held_within_reach from `transform` (and from it turned by `turns`) on the
+        pair's anchors: the held pose, `transform` as scored, and the report
+        (metrics.held_within_reach); None where nothing was held."""
         pair = self.pair
         src, dst = pair.anchors()
         options = pair.criteria.search_options(pair.opts.search_rotations, pair.opts.seed)
-        held = robust.held_within_reach(src, dst, coarse.transform, search.colour_weight, options)
-        if held is None:
+        found = robust.held_within_reach(src, dst, transform, search.colour_weight, options, turns)
+        if found is None:
+            return None
+        held, before = found
+        report = {
+            "score_before": before.score,
+            "score": held.score,
+            "rotation_deg": robust.rotation_offset_deg(held.transform, transform),
+        }
+        return held, before, report
+
+    def held_within_reach(self, coarse: CoarseResult, search: robust.SearchResult) -> tuple[CoarseResult, dict]:
+        """The refined pose, or where the fit slid off the score's peak, the anchors' ICP from
+        it within its reach (held), and the metrics saying so (empty: nothing held)."""
+        found = self.held(coarse.transform, search)
+        if found is None:
             return coarse, {}
-        before = robust.score_pose(src, dst, coarse.transform, "", search.colour_weight, options.criteria)
-        report = {"score_before": before.score, "score": held.score}
-        report["rotation_deg"] = robust.rotation_offset_deg(held.transform, coarse.transform)
+        held, _, report = found
         return replace(coarse, transform=held.transform), {"held_within_reach": report}
 
     def coarse(self, best: _Hypothesis, progress: Progress | None) -> CoarseResult:
@@ -506,7 +521,9 @@ class _Judge:
         offer_always = offer or pair.opts.alternatives == "always" or guided.is_guided(pair.opts)
         final = robust.score_pose(src, dst, transform, "final", w_colour, k.pose)
         out = robust.verdict(final, search, coincide, k.verdict, offer_always=offer_always)
-        out["colour_gain"] = list(src.colour_gain)  # exposure/white balance matched onto the target's
+        out["colour_gain"] = list(
+            robust.exposure_gain(src, dst)
+        )  # the source's exposure/white balance onto the target's
         return out
 
     def unconfirmed(self, transform: Sim3, search: robust.SearchResult | None, metrics: dict) -> dict:

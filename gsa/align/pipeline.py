@@ -213,30 +213,21 @@ def _held_from_turns(pair, best, search, transform: Sim3, metrics: dict) -> tupl
     from it and from starts turned by MatchOptions.reach_turns about it (robust.held_within_reach:
     the answer scores under slid_share of that pose, colours agreeing there), with the pose's own
     quality and verdict; the answer is then offered first among the alternatives."""
-    options = pair.criteria.search_options(pair.opts.search_rotations, pair.opts.seed)
-    turns = options.matching.reach_turns
+    turns = pair.criteria.search_options(pair.opts.search_rotations, pair.opts.seed).matching.reach_turns
     if search is None or not turns:  # no search (a caller's own answer): nothing scored it
         return transform, metrics
-    src, dst = pair.anchors()
-    held = robust.held_within_reach(src, dst, transform, search.colour_weight, options, turns)
-    if held is None:
+    found = pair.refinement.held(transform, search, turns)
+    if found is None:
         return transform, metrics
-    previous = robust.score_pose(
-        src, dst, transform, "the answer before it was held within reach", search.colour_weight, options.criteria
-    )
+    held, previous, report = found
+    previous = replace(previous, origin="the answer before it was held within reach")
     updated = pair.judge.quality(held.transform, best) | {"hypothesis": metrics.get("hypothesis")}
     updated.update(pair.judge.verdict(held.transform, search))
     room = pair.criteria.verdict.max_alternatives
     updated["alternatives"] = ([previous.to_dict(held.transform) | {"tied": False}] + updated.get("alternatives", []))[
         :room
     ]
-    report = {
-        "score_before": previous.score,
-        "score": held.score,
-        "rotation_deg": robust.rotation_offset_deg(held.transform, transform),
-        "turned": True,
-    }
-    return held.transform, updated | {"held_within_reach": report}
+    return held.transform, updated | {"held_within_reach": report | {"turned": True}}
 
 
 def _local_shapes(pair, search) -> matching.DescriptorPairs:

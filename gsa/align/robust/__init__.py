@@ -27,8 +27,8 @@ part in it. This module does not trust any single frame:
    beyond the models' own colour noise yields to a consistent one and is doubtful
    (`colour_mismatch`); where no pose makes them agree (another paint), geometry ranks.
 
-Colours are compared after `match_exposure` (the source's anchors under the target's
-exposure and white balance), and the full-resolution refinement ends point-to-plane on the
+Colours are compared after `match_exposure` (both models' anchors in one exposure and
+white balance, the brighter capture's, the darker raised and clipped at white), and the full-resolution refinement ends point-to-plane on the
 target Gaussians' normals where the two captures coincide.
 
 Modules: anchoring (1, and the colour trust), search (2-3, with the numba scoring and
@@ -48,7 +48,9 @@ from gsa.align.robust.anchoring import (
     PaletteOptions,
     anchors,
     colour_weight,
+    exposure_gain,
     floater_mask,
+    in_one_exposure,
     match_exposure,
     solid_voxels,
     srgb_to_lab,
@@ -111,6 +113,8 @@ __all__ = [
     "global_search",
     "held_within_reach",
     "match_exposure",
+    "exposure_gain",
+    "in_one_exposure",
     "box_lattice",
     "placed_starts",
     "overlap_fraction",

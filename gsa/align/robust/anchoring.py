@@ -42,6 +42,9 @@ class PaletteOptions:
     exposure_explains: float = 0.86
     exposure_steps: int = 8
     exposure_sample: int = 512
+    # a colour with any linear channel at or above this was clipped at white (anchors average
+    # several Gaussians, so a clipped voxel's mean sits just under 1)
+    clipped_linear: float = 0.9
 
 
 _PALETTE = PaletteOptions()
@@ -59,7 +62,11 @@ class Anchors:
     kept: np.ndarray  # (N,) bool: Gaussians that are not floaters
     tree: cKDTree = field(repr=False)
     rgb: np.ndarray | None = field(default=None, repr=False)  # (A, 3) mean sRGB, before any correction
-    colour_gain: tuple[float, float, float] = (1.0, 1.0, 1.0)  # linear-RGB gains applied to `lab` (match_exposure)
+    colour_gain: tuple[float, float, float] = (
+        1.0,
+        1.0,
+        1.0,
+    )  # linear-RGB gains raising `lab` into one exposure (match_exposure)
 
     def __len__(self) -> int:
         return len(self.points)
@@ -195,31 +202,42 @@ def _shared_fraction(lab_a: np.ndarray, w_a: np.ndarray, lab_b: np.ndarray, w_b:
     return float(0.5 * (np.average(d1 <= within, weights=w_a) + np.average(d2 <= within, weights=w_b)))
 
 
-def match_exposure(src: Anchors, dst: Anchors, options: PaletteOptions | None = None) -> Anchors:
-    """The source anchors with their colours corrected for an exposure or white-balance
-    change between the two captures (another day, camera or auto-exposure): per-channel
-    gains in linear RGB, the physical model of both, found from the palettes alone (no
-    pose). Starts: no gain, the ratios of the two palettes' quantiles per channel and in
-    luminance; each is refined by matching every colour to its nearest in the other
+def match_exposure(src: Anchors, dst: Anchors, options: PaletteOptions | None = None) -> tuple[Anchors, Anchors]:
+    """Both anchors with their colours in one exposure, corrected for an exposure or
+    white-balance change between the two captures (another day, camera or auto-exposure):
+    per-channel gains in linear RGB, the physical model of both, found from the palettes
+    alone (no pose). Starts: no gain, the ratios of the two palettes' quantiles per channel
+    and in luminance; each is refined by matching every colour to its nearest in the other
     palette. The gains are kept only if they bring the palettes markedly closer
     (exposure_closer) without sharing less of them, stay within max_exposure_gain and
     leave a plausible white balance (max_white_balance), so two differently painted
-    instances keep their own colours (PaletteOptions)."""
+    instances keep their own colours (PaletteOptions).
+
+    The colours are compared in the brighter capture's exposure, channel by channel, the
+    darker capture's colours raised and clipped at white (in_one_exposure): a sensor clips
+    what is brighter than white, so the brighter capture lost its brightest colours, and
+    only the darker one, raised and clipped the same way, can be compared with them. Taking
+    the source into the target's exposure instead made a brightened source's clipped whites
+    grey: on an iPhone room whose source half was a stop brighter (37 % of its anchors
+    clipped), no gain passed and the truth scored 0.014 against 0.163 as captured; in one
+    exposure the estimated gain passes and the truth scores 0.152. exposure_gain tells the
+    gain found."""
     o = options or _PALETTE
     if src.rgb is None or dst.rgb is None:
-        return src
+        return src, dst
     lin_s, lin_d = srgb_to_linear(src.rgb), srgb_to_linear(dst.rgb)
-    # Anchors' colours cluster (a few paints), and a k-d tree over thousands of near-duplicates
-    # is slow to query: the target palette is kept to one colour per 0.5 ΔE cell.
-    _, distinct = np.unique(np.round(dst.lab * 2.0), axis=0, return_index=True)
-    dst_tree = cKDTree(dst.lab[distinct])
-    lin_d = lin_d[distinct]
     src_w, dst_w = src.weights, dst.weights
 
-    def judge(lab_s: np.ndarray) -> tuple[float, float]:
-        """(truncated mean nearest-colour ΔE both ways, shared fraction)."""
-        d1, _ = dst_tree.query(lab_s, k=1)
-        d2, _ = cKDTree(np.unique(np.round(lab_s * 2.0), axis=0) / 2.0).query(dst.lab, k=1)
+    def palette_tree(lab: np.ndarray) -> cKDTree:
+        # Anchors' colours cluster (a few paints), and a k-d tree over thousands of near-duplicates
+        # is slow to query: a palette is kept to one colour per 0.5 ΔE cell.
+        return cKDTree(np.unique(np.round(lab * 2.0), axis=0) / 2.0)
+
+    def judge(gain: np.ndarray) -> tuple[float, float]:
+        """(truncated mean nearest-colour ΔE both ways, shared fraction) in one exposure."""
+        lab_s, lab_d = (linear_to_lab(c) for c in in_one_exposure(lin_s, lin_d, gain))
+        d1, _ = palette_tree(lab_d).query(lab_s, k=1)
+        d2, _ = palette_tree(lab_s).query(lab_d, k=1)
         cap = 2 * o.shared_delta_e
         distance = 0.5 * (
             np.average(np.minimum(d1, cap), weights=src_w) + np.average(np.minimum(d2, cap), weights=dst_w)
@@ -229,7 +247,7 @@ def match_exposure(src: Anchors, dst: Anchors, options: PaletteOptions | None = 
         )
         return float(distance), float(shared)
 
-    base_distance, base_shared = judge(src.lab)
+    base_distance, base_shared = judge(np.ones(3))
     q = np.array([0.25, 0.5, 0.75, 0.9])
     qs = np.stack([_weighted_quantiles(lin_s[:, c], src_w, q) for c in range(3)], 1)
     qd = np.stack([_weighted_quantiles(lin_d[:, c], dst_w, q) for c in range(3)], 1)
@@ -237,38 +255,87 @@ def match_exposure(src: Anchors, dst: Anchors, options: PaletteOptions | None = 
     lum = np.array([0.2126, 0.7152, 0.0722])
     grey = float(np.median((qd @ lum) / np.maximum(qs @ lum, 1e-4)))
     best_gain, best_distance = None, (1.0 - o.exposure_closer) * base_distance
-    rows = subsample(np.random.default_rng(0), len(src), o.exposure_sample)  # the gains' fit needs few colours
+    fit = _GainFit.between(lin_s, src_w, lin_d, dst_w, o)
     limit = o.max_exposure_gain
     for start in (np.ones(3), ratio, np.full(3, grey)):
         gain = np.clip(start, 1 / limit, limit)
         for _ in range(o.exposure_steps):
-            step = _refine_gain(lin_s[rows] * gain, lin_d, src_w[rows], dst_tree, o.shared_delta_e)
-            gain = np.clip(step * gain, 1 / limit, limit)
-            if np.max(np.abs(np.log(step))) < 1e-3:
+            fitted = fit.step(gain)
+            if fitted is None:
+                break
+            fitted = np.clip(fitted, 1 / limit, limit)
+            moved, gain = np.max(np.abs(np.log(fitted / gain))), fitted
+            if moved < 1e-3:
                 break
         if gain.max() / gain.min() > o.max_white_balance:
             continue
-        distance, shared = judge(linear_to_lab(lin_s * gain))
+        distance, shared = judge(gain)
         # A gain explains the difference only if under it the palettes agree as two
         # captures of one object do; two instances of other paints may come closer, never that close.
         if distance < best_distance and shared >= max(base_shared, o.exposure_explains):
             best_gain, best_distance = gain, distance
     if best_gain is None:
-        return src
-    return replace(src, lab=linear_to_lab(lin_s * best_gain), colour_gain=tuple(float(g) for g in best_gain))
+        return src, dst
+    in_s, in_d = in_one_exposure(lin_s, lin_d, best_gain)
+    raised_s, raised_d = np.maximum(best_gain, 1.0), np.maximum(1.0 / best_gain, 1.0)
+    return (
+        replace(src, lab=linear_to_lab(in_s), colour_gain=tuple(float(g) for g in raised_s)),
+        replace(dst, lab=linear_to_lab(in_d), colour_gain=tuple(float(g) for g in raised_d)),
+    )
 
 
-def _refine_gain(
-    lin_s: np.ndarray, lin_d: np.ndarray, w_s: np.ndarray, dst_tree: cKDTree, shared_delta_e: float
-) -> np.ndarray:
-    """One step: each source colour's nearest target colour (CIELAB), pairs within
-    2·shared_delta_e, gain per channel = Σ w·target / Σ w·source over them."""
-    d, j = dst_tree.query(linear_to_lab(lin_s), k=1)
-    near = d <= 2 * shared_delta_e
-    if near.sum() < 8:
-        return np.ones(3)
-    w = w_s[near, None]
-    return np.sum(w * lin_d[j[near]], 0) / np.maximum(np.sum(w * lin_s[near], 0), 1e-9)
+def exposure_gain(src: Anchors, dst: Anchors) -> tuple[float, float, float]:
+    """The linear-RGB gains match_exposure found between the captures: the source's colours
+    in the target's exposure (1 per channel where it found none)."""
+    return tuple(float(s / d) for s, d in zip(src.colour_gain, dst.colour_gain, strict=True))
+
+
+def in_one_exposure(lin_s: np.ndarray, lin_d: np.ndarray, gain: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Both captures' linear colours in the brighter one's exposure per channel (`gain`: the
+    source's colours in the target's exposure): the darker side raised and clipped at white."""
+    return np.minimum(lin_s * np.maximum(gain, 1.0), 1.0), np.minimum(lin_d * np.maximum(1.0 / gain, 1.0), 1.0)
+
+
+@dataclass
+class _GainFit:
+    """One step of the gains' fit: each sampled colour of one capture paired with its nearest
+    colour of the other (CIELAB, both in one exposure under the current gain), pairs within
+    2·shared_delta_e where neither colour is clipped there, gain per channel = Σ w·other /
+    Σ w·own over them. Clipped colours (any channel at white) say only that the truth was
+    brighter, and the sampled side is the capture that clipped fewer: the other's few
+    unclipped colours are its darkest, too few and too dark to pair reliably."""
+
+    lin_q: np.ndarray  # the sampled capture's unclipped colours
+    w_q: np.ndarray
+    lin_r: np.ndarray
+    sampled_source: bool  # whether the sampled capture is the source (gains: source onto target)
+    shared_delta_e: float
+    clipped_linear: float
+
+    @classmethod
+    def between(cls, lin_s: np.ndarray, w_s: np.ndarray, lin_d: np.ndarray, w_d: np.ndarray, o: PaletteOptions):
+        unclipped_s, unclipped_d = lin_s.max(1) < o.clipped_linear, lin_d.max(1) < o.clipped_linear
+        sampled_source = unclipped_s.mean() >= unclipped_d.mean()
+        lin_q, w_q, unclipped, lin_r = (
+            (lin_s, w_s, unclipped_s, lin_d) if sampled_source else (lin_d, w_d, unclipped_d, lin_s)
+        )
+        fitted = np.flatnonzero(unclipped)  # the fit needs few colours, and only unclipped ones
+        rows = fitted[subsample(np.random.default_rng(0), len(fitted), o.exposure_sample)]
+        return cls(lin_q[rows], w_q[rows], lin_r, bool(sampled_source), o.shared_delta_e, o.clipped_linear)
+
+    def step(self, gain: np.ndarray) -> np.ndarray | None:
+        """The gains (source onto target) the pairs under `gain` give; None where too few pair."""
+        own_gain = gain if self.sampled_source else 1.0 / gain
+        in_q, in_r = in_one_exposure(self.lin_q, self.lin_r, own_gain)
+        d, j = cKDTree(linear_to_lab(in_r)).query(linear_to_lab(in_q), k=1)
+        # clipped on either side, raised or as recorded, a colour tells no ratio
+        unclipped = (in_q.max(1) < self.clipped_linear) & (in_r[j].max(1) < self.clipped_linear)
+        near = (d <= 2 * self.shared_delta_e) & unclipped
+        if near.sum() < 8:
+            return None
+        w = self.w_q[near, None]
+        fitted = np.sum(w * self.lin_r[j[near]], 0) / np.maximum(np.sum(w * self.lin_q[near], 0), 1e-9)
+        return fitted if self.sampled_source else 1.0 / fitted
 
 
 def _weighted_quantiles(x: np.ndarray, w: np.ndarray, q: np.ndarray) -> np.ndarray:

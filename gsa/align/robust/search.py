@@ -29,6 +29,7 @@ from gsa.align.robust.poses import (
 from gsa.canonical import SIGNED_PERMUTATIONS
 from gsa.geometry import axis_rotation, rotation_distance_deg, super_fibonacci_rotations
 from gsa.kernels import KERNEL_LOCK
+from gsa.manhattan import turned_onto
 from gsa.sim3 import Sim3
 
 
@@ -204,9 +205,10 @@ _TURN_AXES /= np.linalg.norm(_TURN_AXES, axis=1)[:, None]
 
 def held_within_reach(
     src: Anchors, dst: Anchors, pose: Sim3, w_colour: float, opts: SearchOptions, turns: tuple[float, ...] = ()
-) -> Candidate | None:
+) -> tuple[Candidate, Candidate] | None:
     """The anchors' ICP from `pose` with its cut-off capped at matching.icp_reach, where `pose`
-    scores under matching.slid_share of the pose it reaches; None elsewhere. The matched
+    scores under matching.slid_share of the pose it reaches: (that pose, `pose` as scored);
+    None elsewhere. The matched
     starts' slide test, asked of the full-resolution fit: where two halves overlap on about
     half, the fit's trimmed pairs include the part one lacks and it slides off the search's
     pose (an iPhone room's halves: 5.3 degrees off at the start, 5.7 after the fit, 0.4 within
@@ -217,7 +219,11 @@ def held_within_reach(
     k = opts.criteria
     rng = np.random.default_rng([opts.seed, 2])  # its own draws: the search's stay as they were
     rows = (subsample(rng, len(src), opts.refine_points), subsample(rng, len(dst), opts.refine_points))
-    starts = [pose] + [_turned_about(pose, src.center, axis, deg) for deg in turns for axis in _TURN_AXES]
+    starts = [pose] + [
+        turned_onto(pose, axis_rotation(axis, np.radians(deg)) @ pose.rotation, src.center)
+        for deg in turns
+        for axis in _TURN_AXES
+    ]
     held = max(
         (_converged(src, dst, s, "held within reach", rows, w_colour, opts, opts.matching.icp_reach) for s in starts),
         key=lambda c: c.score,
@@ -228,13 +234,7 @@ def held_within_reach(
     # or below zero at the truth, and a share of them measures the colours' noise, not a slide
     # (exposure-shifted statues: a 0.02-degree fit scoring -0.02 against 0.01 within reach).
     agree = held.score > 0 and held.score >= opts.matching.slid_share * held.geometry
-    return held if agree and now.score < opts.matching.slid_share * held.score else None
-
-
-def _turned_about(pose: Sim3, centre: np.ndarray, axis: np.ndarray, degrees: float) -> Sim3:
-    """`pose` turned by `degrees` about `axis` through the image of the source point `centre`."""
-    rotation = axis_rotation(axis, np.radians(degrees)) @ pose.rotation
-    return Sim3(pose.scale, rotation, pose.apply(centre[None])[0] - pose.scale * rotation @ centre)
+    return (held, now) if agree and now.score < opts.matching.slid_share * held.score else None
 
 
 def _with_offers(

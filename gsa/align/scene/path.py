@@ -40,8 +40,9 @@ def align_scene(
     _report(progress, "features", 0.0)
     t = time.perf_counter()
     count = max(opts.anchor_count, o.scene_anchors)
-    dst = scene_anchors(target, count, opts.seed, o)
-    src = robust.match_exposure(scene_anchors(source, count, opts.seed, o), dst, k.pose.palette)
+    src, dst = robust.match_exposure(
+        scene_anchors(source, count, opts.seed, o), scene_anchors(target, count, opts.seed, o), k.pose.palette
+    )
     timings["anchors"] = time.perf_counter() - t
     _report(progress, "features", 1.0)
 
@@ -114,7 +115,9 @@ def align_scene(
         "refinement_kept": refine_kept,
         "anchors": [len(src), len(dst)],
         "refine_cloud": [len(p_cloud), len(q_cloud)],
-        "exposure_gains": list(src.colour_gain),  # linear RGB gains: the source's colours in the target's exposure
+        "exposure_gains": list(
+            robust.exposure_gain(src, dst)
+        ),  # linear RGB gains: the source's colours in the target's exposure
     }
     timings["metrics"] = time.perf_counter() - t
     timings["total"] = time.perf_counter() - t_start

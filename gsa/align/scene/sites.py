@@ -402,8 +402,9 @@ def _pose_gain_score(
     ratio = np.median(lin_d[j[near]] / np.maximum(lin_s[near], 1e-4), axis=0)
     limit = criteria.palette.max_exposure_gain
     gain = np.clip(ratio, 1 / limit, limit)
-    shifted = replace(src, lab=linear_to_lab(np.clip(lin_s * gain, 0.0, 1.0)))
-    gained = robust.score_pose(shifted, dst, cand.transform, cand.origin, w_colour, criteria)
+    in_s, in_d = robust.in_one_exposure(lin_s, lin_d, gain)  # as match_exposure compares them
+    in_one = replace(src, lab=linear_to_lab(in_s)), replace(dst, lab=linear_to_lab(in_d))
+    gained = robust.score_pose(*in_one, cand.transform, cand.origin, w_colour, criteria)
     return gained if gained.score > plain.score else plain
 
 
