@@ -181,6 +181,19 @@ def test_symmetric_shape_is_resolved_by_colour_under_another_exposure():
     assert np.allclose(result.diagnostics["colour_gain"], [0.45, 0.5, 0.4], rtol=0.1)  # source onto target
 
 
+def test_symmetric_shape_is_resolved_by_colour_when_one_capture_clipped_at_white():
+    """The source 1.3 stops brighter, its light colours clipped: compared in its exposure (the
+    target raised and clipped the same way), colour still tells the sides apart. Taking the
+    source into the target's exposure found no gain here and turned the answer 144 degrees."""
+    truth = random_sim3(np.random.default_rng([3, 8]))
+    source = shift_exposure(make_symmetric_object(seed=3, n_gaussians=8000, sample_seed=11), [2.5, 2.3, 2.6])
+    target = make_symmetric_object(seed=3, n_gaussians=8000, sample_seed=12).transformed(truth)
+    result = align(source, target)
+    assert rre_deg(result.transform.rotation, truth.rotation) < 5.0
+    assert not result.verdict.doubtful
+    assert np.allclose(result.diagnostics["colour_gain"], [1 / 2.5, 1 / 2.3, 1 / 2.6], rtol=0.15)
+
+
 def test_a_symmetric_pose_the_coloured_icp_left_off_is_found_by_the_sweep():
     # A small 4-fold wheel under two exposures: the anchor ICP stops ~10° off the true pose
     # (geometry holds nothing in place about the axis), and a converged flip outscored it.
