@@ -521,9 +521,8 @@ class _Judge:
         offer_always = offer or pair.opts.alternatives == "always" or guided.is_guided(pair.opts)
         final = robust.score_pose(src, dst, transform, "final", w_colour, k.pose)
         out = robust.verdict(final, search, coincide, k.verdict, offer_always=offer_always)
-        out["colour_gain"] = list(
-            robust.exposure_gain(src, dst)
-        )  # the source's exposure/white balance onto the target's
+        # the source's colours in the target's exposure and white balance
+        out["colour_gain"] = list(robust.exposure_gain(src, dst))
         return out
 
     def unconfirmed(self, transform: Sim3, search: robust.SearchResult | None, metrics: dict) -> dict:

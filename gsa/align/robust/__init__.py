@@ -28,8 +28,9 @@ part in it. This module does not trust any single frame:
    (`colour_mismatch`); where no pose makes them agree (another paint), geometry ranks.
 
 Colours are compared after `match_exposure` (both models' anchors in one exposure and
-white balance, the brighter capture's, the darker raised and clipped at white), and the full-resolution refinement ends point-to-plane on the
-target Gaussians' normals where the two captures coincide.
+white balance, the brighter capture's, the darker raised and clipped at white), and the
+full-resolution refinement ends point-to-plane on the target Gaussians' normals where the
+two captures coincide.
 
 Modules: anchoring (1, and the colour trust), search (2-3, with the numba scoring and
 capture kernels), placement (the widened search for doubtful answers), poses (one

@@ -62,11 +62,8 @@ class Anchors:
     kept: np.ndarray  # (N,) bool: Gaussians that are not floaters
     tree: cKDTree = field(repr=False)
     rgb: np.ndarray | None = field(default=None, repr=False)  # (A, 3) mean sRGB, before any correction
-    colour_gain: tuple[float, float, float] = (
-        1.0,
-        1.0,
-        1.0,
-    )  # linear-RGB gains raising `lab` into one exposure (match_exposure)
+    # linear-RGB gains raising `lab` into one exposure (match_exposure; exposure_gain reads them)
+    colour_gain: tuple[float, float, float] = (1.0, 1.0, 1.0)
 
     def __len__(self) -> int:
         return len(self.points)

@@ -208,12 +208,11 @@ def held_within_reach(
 ) -> tuple[Candidate, Candidate] | None:
     """The anchors' ICP from `pose` with its cut-off capped at matching.icp_reach, where `pose`
     scores under matching.slid_share of the pose it reaches: (that pose, `pose` as scored);
-    None elsewhere. The matched
-    starts' slide test, asked of the full-resolution fit: where two halves overlap on about
-    half, the fit's trimmed pairs include the part one lacks and it slides off the search's
-    pose (an iPhone room's halves: 5.3 degrees off at the start, 5.7 after the fit, 0.4 within
-    reach, the score 0.057 against 0.168); between a model and its bent copy the score peaks a
-    few degrees off the truth, but not by twice. Only where colours agree at the held pose.
+    None elsewhere. The matched starts' slide test, asked of the full-resolution fit: where
+    two halves overlap on about half, the fit's trimmed pairs include the part one lacks and
+    it slides off the search's pose (an iPhone room's halves: 5.3 degrees off at the start,
+    5.7 after the fit, 0.4 within reach, the score 0.057 against 0.168); between a model and
+    its bent copy the score peaks a few degrees off the truth, but not by twice. Only where colours agree at the held pose.
     `turns` (degrees): the ICP runs from `pose` turned so about each of 26 axes through the
     source centroid's image too, the best scoring held."""
     k = opts.criteria
