@@ -10,8 +10,13 @@ Judged as rooms are (benchmarks.scene.scene_judge: RRE < 2 deg and translation e
 of the site's extent; a point site's extent is its 1st-99th percentile box's diagonal, so
 far background points do not loosen the tolerance).
 
-Full: SITE_FULL generated pairs plus SITE_REAL_PAIRS per SfM point file, 1-2M Gaussians
-per capture; --quick: 3 pairs of ~100k (one of them real when a point file is found).
+A second generator, written apart from make_site (gsa.synth.terrain: rolling plane-wave
+hills, primitive props, Y up, each capture 60-80 % of the scene), deals the 'terrain-i'
+pairs, so the site path is measured on scenes it was not designed on.
+
+Full: SITE_FULL generated pairs, SITE_TERRAIN terrain pairs, then SITE_REAL_PAIRS per SfM
+point file, 1-2M Gaussians per capture (terrain: 1M sampled, 60-80 % kept); --quick: 3 pairs
+of ~100k (one of them real when a point file is found).
 """
 
 from __future__ import annotations
@@ -24,10 +29,12 @@ from benchmarks.pairs import SCENE_HARD
 from benchmarks.records import Pair
 from gsa.synth.scenes import scene_captures
 from gsa.synth.sites import PointSite, make_site, resample_site
+from gsa.synth.terrain import terrain_captures
 
 # (generated pairs, capture size range) for quick and full; real pairs per point file.
 SITE_QUICK = (2, (80_000, 120_000))
 SITE_FULL = (12, (1_000_000, 2_000_000))
+SITE_TERRAIN = (0, 8, 1_000_000)  # terrain pairs quick, full; Gaussians sampled per capture
 SITE_REAL_PAIRS = (1, 8)  # quick, full: a real site is the hard case, 8 pairs tell more than 4
 SITE_HARD = {k: v for k, v in SCENE_HARD.items() if k != "no_ceiling"}
 # Where the project's development data lives (../shared/data/real-dev beside the checkout).
@@ -78,6 +85,14 @@ def site_pairs(quick: bool, seed: int, data: str | Path | None = None, count: in
                 lambda i=i: build(lambda n, i: make_site(seed=2600 + i, n_gaussians=n), i, "gen", resample_site),
             )
         )
+    for i in range(SITE_TERRAIN[1 if not quick and count is None else 0]):
+
+        def terrain(i=i):
+            cap = terrain_captures(2700 + i, SITE_TERRAIN[2], np.random.default_rng([seed, 27, i]))
+            cap.target.metadata.update(scene_extent=cap.extent * cap.truth.scale, site="terrain")
+            return cap.source, cap.target, cap.truth
+
+        pairs.append((f"terrain-{i}", terrain))
     for f in files:
         cache: dict = {}
 
@@ -98,4 +113,6 @@ def site_pairs(quick: bool, seed: int, data: str | Path | None = None, count: in
 
 def site_of(label: str) -> dict:
     """The record's `site`: "generated", or the point file's stem."""
-    return {"site": "generated" if label.startswith("site-") else label.rsplit("-", 1)[0]}
+    if label.startswith("site-"):
+        return {"site": "generated"}
+    return {"site": label.rsplit("-", 1)[0]}

@@ -7,6 +7,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from scipy.spatial import cKDTree
 
 from benchmarks.scene import scene_judge
 from benchmarks.site import SITE_HARD, point_files, site_pairs
@@ -219,3 +220,44 @@ def test_climb_moves_a_near_pose_onto_the_site(site_pair):
     assert climbed.score > start.score
     assert rre_deg(climbed.transform.rotation, cap.truth.rotation) < 1.0
     assert scale_error_pct(climbed.transform.scale, cap.truth.scale) < 1.0
+
+
+def test_terrain_captures_are_two_partial_samplings_moved_by_the_truth():
+    from gsa.synth.terrain import make_terrain, terrain_captures
+
+    first, size = make_terrain(3, 1, 20_000)
+    again, _ = make_terrain(3, 1, 20_000)
+    other, _ = make_terrain(3, 2, 20_000)
+    assert len(first) == 20_000 and 30 <= size <= 80
+    assert np.array_equal(first.means, again.means) and not np.array_equal(first.means, other.means)
+    assert np.ptp(first.means[:, 1]) < 0.5 * np.ptp(first.means[:, 0])  # Y is up: the scene is flat along it
+    cap = terrain_captures(3, 20_000, np.random.default_rng(0))
+    assert 0.6 * 20_000 - 1 <= len(cap.source) <= 0.8 * 20_000 + 1
+    assert 0.6 * 20_000 - 1 <= len(cap.target) <= 0.8 * 20_000 + 1
+    assert 0.2 <= cap.truth.scale <= 5.0
+    # the target is the second sampling's far part under the truth: taken back, it lies on the scene
+    back = cap.truth.inverse().apply(cap.target.means.astype(np.float64))
+    d, _ = cKDTree(first.means).query(back)
+    assert np.median(d) < 0.5 * size / np.sqrt(20_000)
+
+
+def test_site_search_finds_a_terrain_whose_ups_disagree():
+    """Two partial captures of a rolling terrain: each capture's up is its own part's ground
+    plane, here 8.5 degrees apart, so no up-aligned rotation is near the truth (the search
+    without the matched starts answered 174 degrees off); the matched starts trust no up."""
+    from gsa.align import robust
+    from gsa.synth.terrain import terrain_captures
+
+    cap = terrain_captures(6, 80_000, np.random.default_rng(6))
+    opts = AlignOptions()
+    k, o = opts.criteria, opts.criteria.scene
+    src, dst = robust.match_exposure(
+        S.scene_anchors(cap.source, o.scene_anchors, 0, o), S.scene_anchors(cap.target, o.scene_anchors, 0, o)
+    )
+    sites = scene_sites._sites(src, dst, o)
+    assert sites is not None
+    ups_apart = np.degrees(np.arccos(abs((cap.truth.rotation @ sites[0].up) @ sites[1].up)))
+    assert ups_apart > 5.0
+    search = scene_sites.site_search(src, dst, *sites, 0, o, k.search_options(0, 0), k.verdict)
+    assert rre_deg(search.best.transform.rotation, cap.truth.rotation) < 2.0
+    assert scale_error_pct(search.best.transform.scale, cap.truth.scale) < 2.0

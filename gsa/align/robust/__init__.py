@@ -59,6 +59,7 @@ from gsa.align.robust.anchoring import (
     voxel_anchors,
     voxelise,
 )
+from gsa.align.robust.matching import matched_poses
 from gsa.align.robust.placement import box_lattice, placed_starts
 from gsa.align.robust.poses import (
     Candidate,
@@ -117,6 +118,7 @@ __all__ = [
     "exposure_gain",
     "in_one_exposure",
     "box_lattice",
+    "matched_poses",
     "placed_starts",
     "overlap_fraction",
     "overlap_unconfirmed",

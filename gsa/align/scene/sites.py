@@ -266,9 +266,11 @@ def site_search(
     # chromaticity alone (_chroma): where the palettes did not tell the exposure apart,
     # the full colours disagree at the truth itself.
     starts, refined = _placed(_chroma(s_thin), _chroma(d_thin), src_site, dst_site, search, rng, o)
-    scored = [_pose_gain_score(src, dst, c, w, k) for c in starts + refined]
+    matched = _matched(src, dst, search, seed, search_options or robust.SearchOptions())
+    scored = [_pose_gain_score(src, dst, c, w, k) for c in starts + refined + matched]
     result = robust.decide(robust.dedupe(result.candidates + scored, k), w, None, k)
-    climbers = [result.best, *starts[: o.climb_top]]  # the placement's own order: by chromaticity
+    # the placement's own order (by chromaticity), then the matches' (by consensus)
+    climbers = [result.best, *starts[: o.climb_top], *matched[: o.climb_top]]
     src_chroma, dst_chroma = _chroma(src), _chroma(dst)
     climbed = [_pose_gain_score(src, dst, _climb(src_chroma, dst_chroma, c, w, k, o), w, k) for c in climbers]
     return robust.decide(robust.dedupe(climbed + result.candidates, k), w, None, k)
@@ -318,6 +320,22 @@ def _placed(
         starts.append(robust.Candidate(init, "placed"))
         refined.append(robust.score_pose(src, dst, pose, "placed", search.colour_weight, k))
     return starts, refined
+
+
+def _matched(
+    src: robust.Anchors, dst: robust.Anchors, search: robust.SearchResult, seed: int, so: robust.SearchOptions
+) -> list[robust.Candidate]:
+    """Starts that trust no up axis: poses most local-shape pairs agree with
+    (robust.matched_poses), unscored and not moved by the ICP (on two partial captures it
+    slides them, as it does placements; the climb takes them on). The search's rotations
+    take one capture's up onto the other's, and the ups of two partial captures of a hilly
+    site are each their own part's ground plane: 5-11 degrees apart on generated terrains
+    (docs/benchmarks.md, "Sites whose ups disagree"), where no searched rotation is near the truth."""
+    rng = np.random.default_rng([seed, 1])  # their own draws, as the object path's matched starts
+    poses = robust.matched_poses(
+        src, dst, rng, so.match_top, search.criteria.distinct_deg, so.matching, search.colour_weight
+    )
+    return [robust.Candidate(p, "matched") for p in poses]
 
 
 def _chroma(a: robust.Anchors) -> robust.Anchors:
