@@ -261,3 +261,17 @@ def test_site_search_finds_a_terrain_whose_ups_disagree():
     search = scene_sites.site_search(src, dst, *sites, 0, o, k.search_options(0, 0), k.verdict)
     assert rre_deg(search.best.transform.rotation, cap.truth.rotation) < 2.0
     assert scale_error_pct(search.best.transform.scale, cap.truth.scale) < 2.0
+
+
+def test_rolling_hills_pass_the_site_test():
+    """Terrain whose slopes pass 30 degrees over a third of its ground (gsa.synth.terrain's
+    terrain 2711): both captures are sites, with most of their weight on the ground; with
+    ground_deg 30 both failed (ground share 0.21) and the pair went to the object path."""
+    from gsa.synth.terrain import terrain_captures
+
+    cap = terrain_captures(2711, 300_000, np.random.default_rng([0, 27, 11]))
+    choice = S.choose(cap.source, cap.target, "auto", True, 2000)
+    assert choice.run and choice.source.is_site and choice.target.is_site
+    assert choice.source.site.ground_share > 0.35 and choice.target.site.ground_share > 0.35
+    strict = S.SceneOptions(ground_deg=30.0)
+    assert not S.choose(cap.source, cap.target, "auto", True, 2000, options=strict).run
