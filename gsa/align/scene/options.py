@@ -33,6 +33,10 @@ class SceneOptions:
     # Ground normals within this of the up axis: slopes are ground too. At 30 a third of rolling
     # hills (gsa.synth.terrain) fell off the ground and 2 of 16 terrain pairs failed the test.
     ground_deg: float = 40.0
+    # What covers a ground column (an object's top over its underside, a canopy): a surface
+    # facing up or down within this, above the ground. Steeper slopes of what stands on a
+    # site (cone and ball flanks) cover nothing: the sky share was set on objects at 30.
+    cover_deg: float = 30.0
     ground_band: float = 1.5  # the ground's band above each column's lowest up-facing anchor, in anchor voxels
     ground_share: float = 0.25  # weight on the ground a site needs: a site is mostly its ground
     sky_share: float = 0.8  # ground columns open to the sky a site needs: an object's underside has its top above it

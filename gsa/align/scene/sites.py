@@ -89,7 +89,7 @@ def site_structure(
     principal axis). Seen along it, the ground is each column's lowest anchors that face
     up (within ground_deg), up to ground_band voxels above the lowest (columns two voxels
     wide). A site's ground holds ground_share of the weight, lies open to the sky in
-    sky_share of its columns (no other up- or down-facing surface above it: an object's
+    sky_share of its columns (no other surface facing up or down within cover_deg above it: an object's
     underside has its top above it, a site's ground has the sky), spans ground_span of
     the extent across (the smaller horizontal side), is at most site_height as tall as
     wide, and has site_parts separate things standing on it (trees, rocks, benches: as
@@ -122,6 +122,7 @@ def _site_along(
     v = np.cross(axis, u)
     xy = np.stack([pts @ u, pts @ v], 1)
     facing = np.abs(normals @ axis) >= np.cos(np.radians(o.ground_deg))
+    covering = np.abs(normals @ axis) >= np.cos(np.radians(o.cover_deg))
     cell = 2.0 * voxel
     ij = np.floor((xy - xy.min(0)) / cell).astype(np.int64)
     _, col = np.unique(ij[:, 0] * (ij[:, 1].max() + 1) + ij[:, 1], return_inverse=True)
@@ -138,7 +139,7 @@ def _site_along(
         rel = h - lowest[col]
         ground = facing & (rel <= band)
         covered = np.zeros(n_col, bool)
-        covered[col[facing & (rel > band)]] = True  # another horizontal surface above the ground
+        covered[col[covering & (rel > band)]] = True  # another horizontal surface above the ground
         n_ground_cols = max(int(has_ground.sum()), 1)
         sky = float(np.sum(has_ground & ~covered) / n_ground_cols)
         g_xy = xy[ground]
