@@ -59,6 +59,7 @@ class SceneOptions:
     # Its scales, times the radius ratio: the radii of partial captures are ~30 % off.
     site_place_scales: tuple[float, ...] = (0.75, 1.0, 1.33)
     site_place_top: int = 6  # distinct placements refined by the anchor ICP
+    climb_anchors: int = 3000  # anchors per side the climbs score on at most
     climb_top: int = 2  # best placed starts of a doubtful site answer that climb the score (_climb), beside its best
     climb_rounds: int = 6  # step halvings of each climb
     climb_turn_deg: float = 4.0  # its first turn

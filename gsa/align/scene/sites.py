@@ -271,10 +271,35 @@ def site_search(
     scored = [_pose_gain_score(src, dst, c, w, k) for c in starts + refined + matched]
     result = robust.decide(robust.dedupe(result.candidates + scored, k), w, None, k)
     # the placement's own order (by chromaticity), then the matches' (by consensus)
-    climbers = [result.best, *starts[: o.climb_top], *matched[: o.climb_top]]
-    src_chroma, dst_chroma = _chroma(src), _chroma(dst)
+    climbers = _apart([result.best, *starts[: o.climb_top], *matched[: o.climb_top]], src, dst, o)
+    # The climbs score on a sample of the anchors: each is hundreds of scores, and a site's
+    # anchors are thousands (a 1M terrain's 7k: 3.4 s a climb on all of them)
+    src_chroma, dst_chroma = (_chroma(_rows_of(a, robust.subsample(rng, len(a), o.climb_anchors))) for a in (src, dst))
     climbed = [_pose_gain_score(src, dst, _climb(src_chroma, dst_chroma, c, w, k, o), w, k) for c in climbers]
     return robust.decide(robust.dedupe(climbed + result.candidates, k), w, None, k)
+
+
+def _apart(
+    starts: list[robust.Candidate],
+    src: robust.Anchors,
+    dst: robust.Anchors,
+    o: SceneOptions,
+) -> list[robust.Candidate]:
+    """The starts less any that lies within one first climb step of an earlier one (turn,
+    shift of the source's centre, scale), which would climb the same hill: a matched start is
+    often the search's best pose already, and each climb costs seconds at a site's anchors."""
+    out: list[robust.Candidate] = []
+    for c in starts:
+        near = any(
+            robust.rotation_offset_deg(c.transform, kept.transform) <= o.climb_turn_deg
+            and abs(np.log(c.transform.scale / kept.transform.scale)) <= o.climb_scale
+            and np.linalg.norm(c.transform.apply(src.center) - kept.transform.apply(src.center))
+            <= o.climb_shift * dst.radius
+            for kept in out
+        )
+        if not near:
+            out.append(c)
+    return out
 
 
 def _placed(
@@ -446,7 +471,11 @@ def _ground_thinned(a: robust.Anchors, ground: np.ndarray, rng: np.random.Genera
     keep = int(o.site_ground_keep / (1 - o.site_ground_keep) * len(rest))
     if keep >= len(g) or len(rest) < 50:
         return a
-    rows = np.sort(np.concatenate([rest, rng.choice(g, keep, replace=False)]))
+    return _rows_of(a, np.sort(np.concatenate([rest, rng.choice(g, keep, replace=False)])))
+
+
+def _rows_of(a: robust.Anchors, rows: np.ndarray) -> robust.Anchors:
+    """The anchors of `rows`; centre and radius stay the whole model's."""
     return replace(
         a,
         points=a.points[rows],
