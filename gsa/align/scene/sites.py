@@ -239,7 +239,7 @@ def site_search(
       itself within the search's truncation, is thinned to site_ground_keep of the
       anchors the search scores on, so the things standing on it decide.
     The translation sweep follows, as for rooms; the verdict scores on all anchors. Where
-    that answer is doubtful, placed starts and climbs join (below). search_options: the
+    that answer is doubtful, placed and matched starts and climbs join (below). search_options: the
     search's (its rotations are these, its seed `seed`), verdict: what makes an answer
     doubtful (None: the defaults)."""
     o = options or SceneOptions()
@@ -261,9 +261,9 @@ def site_search(
     )
     if not robust.verdict(result.best, result, criteria=verdict)["doubtful"]:
         return result
-    # A doubtful answer: starts that trust no centroid join (_placed), and the best placed
-    # starts - before the anchors' ICP moves them and the dedup merges them into a pose
-    # that scores higher there - climb the score, as does the best pose. Both compare
+    # A doubtful answer: starts that trust no centroid (_placed) or no up axis (_matched)
+    # join, and the best of each - before the anchors' ICP moves them and the dedup merges
+    # them into a pose that scores higher there - climb the score, as does the best pose. Both compare
     # chromaticity alone (_chroma): where the palettes did not tell the exposure apart,
     # the full colours disagree at the truth itself.
     starts, refined = _placed(_chroma(s_thin), _chroma(d_thin), src_site, dst_site, search, rng, o)
