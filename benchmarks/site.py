@@ -113,6 +113,4 @@ def site_pairs(quick: bool, seed: int, data: str | Path | None = None, count: in
 
 def site_of(label: str) -> dict:
     """The record's `site`: "generated", or the point file's stem."""
-    if label.startswith("site-"):
-        return {"site": "generated"}
-    return {"site": label.rsplit("-", 1)[0]}
+    return {"site": "generated" if label.startswith("site-") else label.rsplit("-", 1)[0]}

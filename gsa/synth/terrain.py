@@ -119,14 +119,7 @@ def terrain_captures(layout_seed: int, n: int, rng: np.random.Generator) -> Terr
     along_a, along_b = a.means @ direction, b.means @ direction
     source = a.subset(np.flatnonzero(along_a <= np.quantile(along_a, keep_a)))
     target = b.subset(np.flatnonzero(along_b >= np.quantile(along_b, 1 - keep_b)))
-    q = rng.normal(size=4)
-    w, x, y, z = q / np.linalg.norm(q)
-    rotation = np.array(
-        [
-            [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
-            [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
-            [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
-        ]
-    )
-    truth = Sim3(float(np.exp(rng.uniform(np.log(0.2), np.log(5.0)))), rotation, rng.uniform(-1, 1, 3) * size)
+    quat = rng.normal(size=4)  # a uniform rotation
+    scale = float(np.exp(rng.uniform(np.log(0.2), np.log(5.0))))
+    truth = Sim3.from_quaternion(scale, quat, rng.uniform(-1, 1, 3) * size)
     return TerrainCaptures(source, target.transformed(truth), truth, size * np.sqrt(2))
