@@ -30,6 +30,7 @@ from gsa.canonical import SIGNED_PERMUTATIONS
 from gsa.geometry import axis_rotation, rotation_distance_deg, super_fibonacci_rotations
 from gsa.kernels import KERNEL_LOCK
 from gsa.manhattan import turned_onto
+from gsa.render import steps
 from gsa.sim3 import Sim3
 
 
@@ -149,7 +150,7 @@ def global_search(
     def converged(init: Sim3, origin: str) -> Candidate:
         return _converged(src, dst, init, origin, (src_rows, dst_rows), w_colour, opts)
 
-    for r, s_, t_ in placed_starts(
+    placements = placed_starts(
         src,
         dst,
         rng,
@@ -162,12 +163,18 @@ def global_search(
         min_deg=k.distinct_deg,
         capture=scorer.capture,
         capture_steps=opts.capture_steps[-3:],
-    ):
-        refined.append(converged(Sim3(s_, r, t_ - s_ * r @ src.center), "placed"))
+    )
+    refined += steps.parallel(
+        [
+            lambda r=r, s_=s_, t_=t_: converged(Sim3(s_, r, t_ - s_ * r @ src.center), "placed")
+            for r, s_, t_ in placements
+        ]
+    )
     if opts.match_top:
         # their own draws: where no pose is matched, the search's later draws (the offers) stay as they were
         matching_rng = np.random.default_rng([opts.seed, 1])
-        for init in matched_poses(src, dst, matching_rng, opts.match_top, k.distinct_deg, opts.matching, w_colour):
+
+        def matched(init: Sim3) -> Candidate:
             plain = converged(init, "matched")
             start = score_pose(src, dst, init, "matched", w_colour, k)
             if plain.score < opts.matching.slid_share * start.score:
@@ -175,7 +182,10 @@ def global_search(
                 rows = (src_rows, dst_rows)
                 held = _converged(src, dst, init, "matched", rows, w_colour, opts, opts.matching.icp_reach)
                 plain = max(plain, held, key=lambda c: c.score)
-            refined.append(plain)
+            return plain
+
+        inits = matched_poses(src, dst, matching_rng, opts.match_top, k.distinct_deg, opts.matching, w_colour)
+        refined += steps.parallel([lambda i=i: matched(i) for i in inits])
     return _with_offers(src, dst, decide(dedupe(refined, k), w_colour, noise, k), w_colour, rng, opts)
 
 
@@ -224,7 +234,12 @@ def held_within_reach(
         for axis in _TURN_AXES
     ]
     held = max(
-        (_converged(src, dst, s, "held within reach", rows, w_colour, opts, opts.matching.icp_reach) for s in starts),
+        steps.parallel(
+            [
+                lambda s=s: _converged(src, dst, s, "held within reach", rows, w_colour, opts, opts.matching.icp_reach)
+                for s in starts
+            ]
+        ),
         key=lambda c: c.score,
     )
     now = score_pose(src, dst, pose, "", w_colour, k)
@@ -388,28 +403,24 @@ def _refine_starts(
     crit = opts.criteria
     src_rows = subsample(rng, len(src), opts.refine_points)
     dst_rows = subsample(rng, len(dst), opts.refine_points)
-    early = [
-        score_pose(
-            src,
-            dst,
-            bidirectional_icp(src, dst, init, src_rows, dst_rows, opts.early_iterations, w_colour, crit),
-            origin,
-            w_colour,
-            crit,
-        )
-        for origin, init in starts
-    ]
+
+    def icp(init: Sim3, origin: str, iterations: int) -> Candidate:
+        transform = bidirectional_icp(src, dst, init, src_rows, dst_rows, iterations, w_colour, crit)
+        return score_pose(src, dst, transform, origin, w_colour, crit)
+
+    # Independent ICPs run side by side where cores are free (the same poses either way).
+    early = steps.parallel([lambda o=o, i=i: icp(i, o, opts.early_iterations) for o, i in starts])
     early.sort(key=lambda c: -c.score)
-    refined: list[Candidate] = []
-    for k, c in enumerate(early):
+    finalists = early[: opts.finalists]
+    refined = steps.parallel([lambda c=c: icp(c.transform, c.origin, opts.refine_iterations) for c in finalists])
+    for c in early[opts.finalists :]:
         # Past the finalists, a start still runs to convergence if its unfinished score
         # is close to the best: a symmetric pose half-way there must not look worse
         # than it is, or a tie would pass for a clear win.
-        if k >= opts.finalists and c.score < max(r.score for r in refined) - opts.rival_window:
+        if c.score < max(r.score for r in refined) - opts.rival_window:
             refined.append(c)
             continue
-        transform = bidirectional_icp(src, dst, c.transform, src_rows, dst_rows, opts.refine_iterations, w_colour, crit)
-        refined.append(score_pose(src, dst, transform, c.origin, w_colour, crit))
+        refined.append(icp(c.transform, c.origin, opts.refine_iterations))
     return refined
 
 

@@ -13,6 +13,7 @@ from gsa.align import robust
 from gsa.align.coarse import AlignmentError
 from gsa.align.scene.options import SceneOptions
 from gsa.model import GaussianModel
+from gsa.render import steps
 from gsa.sim3 import Sim3
 
 
@@ -111,7 +112,7 @@ def translation_sweep(
     axes = [np.arange(a, b + step, step) for a, b in zip(lo, hi)]
     centres = np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3)
     src_rows, dst_rows = robust.subsample(rng, len(src), 800), robust.subsample(rng, len(dst), 800)
-    found = list(search.candidates)
+    inits: list[Sim3] = []
     for cand in search.candidates[: o.sweep_top]:
         u = cand.transform.scale * p @ cand.transform.rotation.T
         score = np.empty(len(centres))
@@ -129,10 +130,14 @@ def translation_sweep(
                 break
             if all(np.linalg.norm(centres[k] - o) > 3 * step for o in kept):
                 kept.append(centres[k])
-        for centre in kept:
-            r, sc = cand.transform.rotation, cand.transform.scale
-            init = Sim3(sc, r, centre - sc * r @ src.center)
-            pose = robust.bidirectional_icp(src, dst, init, src_rows, dst_rows, o.sweep_icp, w_colour, crit)
-            found.append(robust.score_pose(src, dst, pose, "sweep", w_colour, crit))
+        r, sc = cand.transform.rotation, cand.transform.scale
+        inits += [Sim3(sc, r, centre - sc * r @ src.center) for centre in kept]
+
+    def refined(init: Sim3) -> robust.Candidate:
+        pose = robust.bidirectional_icp(src, dst, init, src_rows, dst_rows, o.sweep_icp, w_colour, crit)
+        return robust.score_pose(src, dst, pose, "sweep", w_colour, crit)
+
+    # The ICPs are independent: run side by side where cores are free (the same poses).
+    found = list(search.candidates) + steps.parallel([lambda i=i: refined(i) for i in inits])
     # One per pose (robust.dedupe): a slid copy of a pose is that pose.
     return robust.decide(robust.dedupe(found, crit), w_colour, None, crit)

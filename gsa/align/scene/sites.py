@@ -15,6 +15,7 @@ from gsa.align.scene.common import _anchor_normals, _inner_parts, translation_sw
 from gsa.align.scene.options import SceneOptions
 from gsa.colour import linear_to_lab, srgb_to_linear
 from gsa.geometry import axis_rotation
+from gsa.render import steps
 from gsa.sim3 import Sim3
 
 
@@ -256,9 +257,7 @@ def site_search(
     # Re-scored on all anchors, so the verdict and the alternatives read what rooms' do,
     # each pose's colours compared under the exposure that pose implies.
     w, k = search.colour_weight, search.criteria
-    result = robust.decide(
-        robust.dedupe([_pose_gain_score(src, dst, c, w, k) for c in search.candidates], k), w, None, k
-    )
+    result = robust.decide(robust.dedupe(_gain_scored(src, dst, search.candidates, w, k), k), w, None, k)
     if not robust.verdict(result.best, result, criteria=verdict)["doubtful"]:
         return result
     # A doubtful answer: starts that trust no centroid (_placed) or no up axis (_matched)
@@ -266,16 +265,23 @@ def site_search(
     # them into a pose that scores higher there - climb the score, as does the best pose. Both compare
     # chromaticity alone (_chroma): where the palettes did not tell the exposure apart,
     # the full colours disagree at the truth itself.
-    starts, refined = _placed(_chroma(s_thin), _chroma(d_thin), src_site, dst_site, search, rng, o)
-    matched = _matched(src, dst, search, seed, search_options or robust.SearchOptions())
-    scored = [_pose_gain_score(src, dst, c, w, k) for c in starts + refined + matched]
+    # Independent (each its own draws): run side by side where cores are free.
+    (starts, refined), matched = steps.parallel(
+        [
+            lambda: _placed(_chroma(s_thin), _chroma(d_thin), src_site, dst_site, search, rng, o),
+            lambda: _matched(src, dst, search, seed, search_options or robust.SearchOptions()),
+        ]
+    )
+    scored = _gain_scored(src, dst, starts + refined + matched, w, k)
     result = robust.decide(robust.dedupe(result.candidates + scored, k), w, None, k)
     # the placement's own order (by chromaticity), then the matches' (by consensus)
     climbers = _apart([result.best, *starts[: o.climb_top], *matched[: o.climb_top]], src, dst, o)
     # The climbs score on a sample of the anchors: each is hundreds of scores, and a site's
     # anchors are thousands (a 1M terrain's 7k: 3.4 s a climb on all of them)
     src_chroma, dst_chroma = (_chroma(_rows_of(a, robust.subsample(rng, len(a), o.climb_anchors))) for a in (src, dst))
-    climbed = [_pose_gain_score(src, dst, _climb(src_chroma, dst_chroma, c, w, k, o), w, k) for c in climbers]
+    climbed = steps.parallel(
+        [lambda c=c: _pose_gain_score(src, dst, _climb(src_chroma, dst_chroma, c, w, k, o), w, k) for c in climbers]
+    )
     return robust.decide(robust.dedupe(climbed + result.candidates, k), w, None, k)
 
 
@@ -339,13 +345,13 @@ def _placed(
         centres=robust.box_lattice(dst.points, _site_frame(dst_site.up), o.site_place_step * dst.radius),
     )
     rows = robust.subsample(rng, len(src), 2000), robust.subsample(rng, len(dst), 2000)
-    starts, refined = [], []
-    for r, s_, t_ in placements:
-        init = Sim3(s_, r, t_ - s_ * r @ src.center)
-        pose = robust.bidirectional_icp(src, dst, init, *rows, o.sweep_icp, search.colour_weight, k)
-        starts.append(robust.Candidate(init, "placed"))
-        refined.append(robust.score_pose(src, dst, pose, "placed", search.colour_weight, k))
-    return starts, refined
+    starts = [robust.Candidate(Sim3(s_, r, t_ - s_ * r @ src.center), "placed") for r, s_, t_ in placements]
+
+    def refined(start: robust.Candidate) -> robust.Candidate:
+        pose = robust.bidirectional_icp(src, dst, start.transform, *rows, o.sweep_icp, search.colour_weight, k)
+        return robust.score_pose(src, dst, pose, "placed", search.colour_weight, k)
+
+    return starts, steps.parallel([lambda c=c: refined(c) for c in starts])
 
 
 def _matched(
@@ -422,6 +428,13 @@ def _overlap_centre(src: robust.Anchors, dst: robust.Anchors, pose: Sim3, criter
     d, _ = dst.tree.query(mapped, k=1)
     near = d <= criteria.truncation * dst.radius
     return mapped[near].mean(axis=0) if near.sum() >= 10 else pose.apply(src.center)
+
+
+def _gain_scored(
+    src: robust.Anchors, dst: robust.Anchors, cands: list, w_colour: float, criteria: robust.PoseCriteria
+) -> list[robust.Candidate]:
+    """_pose_gain_score of each pose, side by side where cores are free (the same scores)."""
+    return steps.parallel([lambda c=c: _pose_gain_score(src, dst, c, w_colour, criteria) for c in cands])
 
 
 def _pose_gain_score(
