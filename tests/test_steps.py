@@ -68,3 +68,7 @@ def test_one_core_runs_the_calls_here_in_order(monkeypatch):
     monkeypatch.setattr(steps, "_cores", lambda: 1)
     here = threading.current_thread().name
     assert steps.parallel([lambda: (1, threading.current_thread().name), lambda: (2, here)]) == [(1, here), (2, here)]
+
+
+def test_parallel_map_keeps_the_items_order(two_cores):
+    assert steps.parallel_map(lambda x: x * x, range(7)) == [0, 1, 4, 9, 16, 25, 36]

@@ -21,14 +21,16 @@ are threads, and one job's callback must not run in another job's render.
 from __future__ import annotations
 
 import contextlib
+import functools
 import os
 import threading
-from collections.abc import Callable, Iterator, Sequence
+from collections.abc import Callable, Iterable, Iterator, Sequence
 from concurrent.futures import ThreadPoolExecutor, wait
 from typing import TypeVar
 
 _LOCAL = threading.local()
 T = TypeVar("T")
+U = TypeVar("U")
 
 
 def step() -> None:
@@ -92,6 +94,11 @@ def parallel(calls: Sequence[Callable[[], T]], poll_s: float = 0.05) -> list[T]:
         return [f.result() for f in futures]
     finally:
         pool.shutdown(wait=False, cancel_futures=True)
+
+
+def parallel_map(fn: Callable[[U], T], items: Iterable[U]) -> list[T]:
+    """`parallel` of fn over each item, in order."""
+    return parallel([functools.partial(fn, item) for item in items])
 
 
 def _cores() -> int:

@@ -164,12 +164,12 @@ def global_search(
         capture=scorer.capture,
         capture_steps=opts.capture_steps[-3:],
     )
-    refined += steps.parallel(
-        [
-            lambda r=r, s_=s_, t_=t_: converged(Sim3(s_, r, t_ - s_ * r @ src.center), "placed")
-            for r, s_, t_ in placements
-        ]
-    )
+
+    def placed(placement: tuple) -> Candidate:
+        r, s_, t_ = placement
+        return converged(Sim3(s_, r, t_ - s_ * r @ src.center), "placed")
+
+    refined += steps.parallel_map(placed, placements)
     if opts.match_top:
         # their own draws: where no pose is matched, the search's later draws (the offers) stay as they were
         matching_rng = np.random.default_rng([opts.seed, 1])
@@ -185,7 +185,7 @@ def global_search(
             return plain
 
         inits = matched_poses(src, dst, matching_rng, opts.match_top, k.distinct_deg, opts.matching, w_colour)
-        refined += steps.parallel([lambda i=i: matched(i) for i in inits])
+        refined += steps.parallel_map(matched, inits)
     return _with_offers(src, dst, decide(dedupe(refined, k), w_colour, noise, k), w_colour, rng, opts)
 
 
@@ -234,11 +234,9 @@ def held_within_reach(
         for axis in _TURN_AXES
     ]
     held = max(
-        steps.parallel(
-            [
-                lambda s=s: _converged(src, dst, s, "held within reach", rows, w_colour, opts, opts.matching.icp_reach)
-                for s in starts
-            ]
+        steps.parallel_map(
+            lambda s: _converged(src, dst, s, "held within reach", rows, w_colour, opts, opts.matching.icp_reach),
+            starts,
         ),
         key=lambda c: c.score,
     )
@@ -408,11 +406,13 @@ def _refine_starts(
         transform = bidirectional_icp(src, dst, init, src_rows, dst_rows, iterations, w_colour, crit)
         return score_pose(src, dst, transform, origin, w_colour, crit)
 
+    def finished(c: Candidate) -> Candidate:
+        return icp(c.transform, c.origin, opts.refine_iterations)
+
     # Independent ICPs run side by side where cores are free (the same poses either way).
-    early = steps.parallel([lambda o=o, i=i: icp(i, o, opts.early_iterations) for o, i in starts])
+    early = steps.parallel_map(lambda start: icp(start[1], start[0], opts.early_iterations), starts)
     early.sort(key=lambda c: -c.score)
-    finalists = early[: opts.finalists]
-    refined = steps.parallel([lambda c=c: icp(c.transform, c.origin, opts.refine_iterations) for c in finalists])
+    refined = steps.parallel_map(finished, early[: opts.finalists])
     for c in early[opts.finalists :]:
         # Past the finalists, a start still runs to convergence if its unfinished score
         # is close to the best: a symmetric pose half-way there must not look worse
@@ -420,7 +420,7 @@ def _refine_starts(
         if c.score < max(r.score for r in refined) - opts.rival_window:
             refined.append(c)
             continue
-        refined.append(icp(c.transform, c.origin, opts.refine_iterations))
+        refined.append(finished(c))
     return refined
 
 

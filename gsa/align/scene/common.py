@@ -138,6 +138,6 @@ def translation_sweep(
         return robust.score_pose(src, dst, pose, "sweep", w_colour, crit)
 
     # The ICPs are independent: run side by side where cores are free (the same poses).
-    found = list(search.candidates) + steps.parallel([lambda i=i: refined(i) for i in inits])
+    found = list(search.candidates) + steps.parallel_map(refined, inits)
     # One per pose (robust.dedupe): a slid copy of a pose is that pose.
     return robust.decide(robust.dedupe(found, crit), w_colour, None, crit)

@@ -279,8 +279,8 @@ def site_search(
     # The climbs score on a sample of the anchors: each is hundreds of scores, and a site's
     # anchors are thousands (a 1M terrain's 7k: 3.4 s a climb on all of them)
     src_chroma, dst_chroma = (_chroma(_rows_of(a, robust.subsample(rng, len(a), o.climb_anchors))) for a in (src, dst))
-    climbed = steps.parallel(
-        [lambda c=c: _pose_gain_score(src, dst, _climb(src_chroma, dst_chroma, c, w, k, o), w, k) for c in climbers]
+    climbed = steps.parallel_map(
+        lambda c: _pose_gain_score(src, dst, _climb(src_chroma, dst_chroma, c, w, k, o), w, k), climbers
     )
     return robust.decide(robust.dedupe(climbed + result.candidates, k), w, None, k)
 
@@ -351,7 +351,7 @@ def _placed(
         pose = robust.bidirectional_icp(src, dst, start.transform, *rows, o.sweep_icp, search.colour_weight, k)
         return robust.score_pose(src, dst, pose, "placed", search.colour_weight, k)
 
-    return starts, steps.parallel([lambda c=c: refined(c) for c in starts])
+    return starts, steps.parallel_map(refined, starts)
 
 
 def _matched(
@@ -434,7 +434,7 @@ def _gain_scored(
     src: robust.Anchors, dst: robust.Anchors, cands: list, w_colour: float, criteria: robust.PoseCriteria
 ) -> list[robust.Candidate]:
     """_pose_gain_score of each pose, side by side where cores are free (the same scores)."""
-    return steps.parallel([lambda c=c: _pose_gain_score(src, dst, c, w_colour, criteria) for c in cands])
+    return steps.parallel_map(lambda c: _pose_gain_score(src, dst, c, w_colour, criteria), cands)
 
 
 def _pose_gain_score(
