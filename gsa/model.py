@@ -12,6 +12,7 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
+from gsa.colour import linear_to_srgb, srgb_to_linear
 from gsa.errors import GSAError
 from gsa.geometry import normalize_quats, quat_multiply, quat_to_rotation, rotation_to_quat
 from gsa.render import steps
@@ -217,6 +218,23 @@ class GaussianModel:
         # The old features' provenance does not describe the new ones; the caller sets it.
         meta = {k: v for k, v in self.metadata.items() if k != "features"}
         return replace(self, features=features, metadata=meta)
+
+    def with_exposure(self, gain) -> GaussianModel:
+        """The model as a camera with other exposure and white balance would record it:
+        base colours (SH DC, taken as sRGB) multiplied by `gain` per channel in linear RGB
+        and clipped at white, as a sensor saturates; the view-dependent SH bands scaled by
+        each Gaussian's DC ratio per channel. metadata gains `exposure_gain`."""
+        gain = np.broadcast_to(np.asarray(gain, np.float64), (3,))
+        if not np.all(gain > 0):
+            raise ValueError("exposure gains must be positive")
+        old = self.base_colors.astype(np.float64)
+        new = linear_to_srgb(srgb_to_linear(old) * gain)
+        sh = self.sh.copy()
+        sh[:, 0, :] = rgb_to_sh_dc(new)
+        if sh.shape[1] > 1:
+            ratio = np.where(old > 1e-3, new / np.maximum(old, 1e-3), 1.0)
+            sh[:, 1:, :] *= ratio[:, None, :].astype(sh.dtype)
+        return replace(self, sh=sh, metadata=dict(self.metadata) | {"exposure_gain": gain.tolist()})
 
     def with_sh_degree(self, degree: int) -> GaussianModel:
         """Truncate or zero-pad the SH coefficients to `degree`."""

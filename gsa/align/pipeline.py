@@ -16,7 +16,7 @@ import numpy as np
 from threadpoolctl import threadpool_limits
 
 from gsa import manhattan
-from gsa.align import frame_snap, guided, learned, open_ends, photo, robust, scene, spin
+from gsa.align import exposure_retry, frame_snap, guided, learned, open_ends, photo, robust, scene, spin
 from gsa.align.choices import (
     EXTRACTOR_MODES,
     FEATURE_MODES,
@@ -424,10 +424,32 @@ def _align(
     photo_match = _photo_match(source, target, opts, timings)
     if photo_match is not None and photo_match.accepted:
         return _photo_answer(source, target, opts, photo_match, timings, t_start, progress)
-    result = _align_models(source, target, opts, progress, target_cameras, timings, t_start)
+    result = _align_models(source, target, opts, _relayed(progress), target_cameras, timings, t_start)
+    if not guided.is_guided(opts) and not _needs_extractor(opts, source, target):
+        retry_progress = _relayed(progress, "exposure:")
+
+        def align_again(shifted: GaussianModel) -> AlignmentResult:
+            return _align_models(shifted, target, opts, retry_progress, target_cameras, {}, time.perf_counter())
+
+        result = exposure_retry.retried(source, target, opts, result, align_again)
+        result.timings["total"] = time.perf_counter() - t_start
     if photo_match is not None:  # why the photos did not decide it
         result.diagnostics["photo_match"] = photo_match.to_dict()
+    _report(progress, "done", 1.0)
     return result
+
+
+def _relayed(progress: Progress | None, prefix: str = "") -> Progress | None:
+    """`progress` with its stages named `prefix` + stage and its "done" held back: align()
+    reports done once, after the exposure retry (gsa.align.exposure_retry) decided."""
+    if progress is None:
+        return None
+
+    def relay(stage: str, fraction: float) -> None:
+        if stage != "done":
+            progress(prefix + stage, fraction)
+
+    return relay
 
 
 def _align_models(

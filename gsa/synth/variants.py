@@ -18,10 +18,8 @@ import colorsys
 
 import numpy as np
 
-from gsa.colour import linear_to_srgb, srgb_to_linear
 from gsa.geometry import axis_rotation, normalize_quats, rotation_distance_deg
 from gsa.model import GaussianModel, merge_models
-from gsa.sh import rgb_to_sh_dc
 from gsa.sim3 import Sim3, solve_sim3
 from gsa.synth.objects import _quats_from_normals
 from gsa.synth.shapes import Cylinder, Primitive, RegularPrism, Torus, _frame
@@ -369,19 +367,5 @@ def random_exposure(rng: np.random.Generator, stops: float = 1.0, white_balance:
 
 
 def shift_exposure(model: GaussianModel, gain) -> GaussianModel:
-    """The model as a camera with other exposure and white balance would record it:
-    base colours (SH DC, taken as sRGB) multiplied by `gain` per channel in linear RGB
-    and clipped at white, as a sensor saturates; the view-dependent SH bands scaled by
-    each Gaussian's DC ratio per channel. metadata gains `exposure_gain`."""
-    gain = np.broadcast_to(np.asarray(gain, np.float64), (3,))
-    if not np.all(gain > 0):
-        raise ValueError("exposure gains must be positive")
-    old = model.base_colors.astype(np.float64)
-    new = linear_to_srgb(srgb_to_linear(old) * gain)
-    out = model.subset(np.arange(len(model)))
-    out.sh[:, 0, :] = rgb_to_sh_dc(new)
-    if out.sh.shape[1] > 1:
-        ratio = np.where(old > 1e-3, new / np.maximum(old, 1e-3), 1.0)
-        out.sh[:, 1:, :] *= ratio[:, None, :].astype(out.sh.dtype)
-    out.metadata["exposure_gain"] = gain.tolist()
-    return out
+    """The model under another exposure and white balance (GaussianModel.with_exposure)."""
+    return model.with_exposure(gain)

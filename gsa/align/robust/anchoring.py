@@ -45,6 +45,10 @@ class PaletteOptions:
     # a colour with any linear channel at or above this was clipped at white (anchors average
     # several Gaussians, so a clipped voxel's mean sits just under 1)
     clipped_linear: float = 0.9
+    # A doubtful answer is aligned again in the exposure its own close pairs give (pose_gain,
+    # gsa.align.exposure_retry) where no gain passed match_exposure and that gain is more than
+    # this many stops in some channel (and within the bounds above).
+    retry_gain_stops: float = 0.25
 
 
 _PALETTE = PaletteOptions()
@@ -285,6 +289,23 @@ def exposure_gain(src: Anchors, dst: Anchors) -> tuple[float, float, float]:
     """The linear-RGB gains match_exposure found between the captures: the source's colours
     in the target's exposure (1 per channel where it found none)."""
     return tuple(float(s / d) for s, d in zip(src.colour_gain, dst.colour_gain, strict=True))
+
+
+def pose_gain(src: Anchors, dst: Anchors, mapped: np.ndarray, within: float, min_pairs: int = 50) -> np.ndarray | None:
+    """The linear-RGB gains (the source's colours onto the target's, per channel) that a pose's
+    close pairs give: the median ratio over the source anchors (`mapped`: posed into the target)
+    whose nearest target anchor lies within `within` of the target's radius. None without
+    colours or with fewer than min_pairs such pairs. The palettes alone (match_exposure) cannot
+    always tell an exposure change (a continuum of greens, a room's greys and browns); at the
+    true pose the pairs are the same surfaces and their ratio is the exposure's."""
+    if src.rgb is None or dst.rgb is None:
+        return None
+    d, j = dst.tree.query(mapped, k=1)
+    near = d <= within * dst.radius
+    if near.sum() < min_pairs:
+        return None
+    lin_s, lin_d = srgb_to_linear(src.rgb[near]), srgb_to_linear(dst.rgb[j[near]])
+    return np.median(lin_d / np.maximum(lin_s, 1e-4), axis=0)
 
 
 def in_one_exposure(lin_s: np.ndarray, lin_d: np.ndarray, gain: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

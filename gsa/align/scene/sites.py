@@ -450,16 +450,13 @@ def _pose_gain_score(
     plain = robust.score_pose(src, dst, cand.transform, cand.origin, w_colour, criteria)
     if src.rgb is None or dst.rgb is None or w_colour <= 0:
         return plain
-    d, j = dst.tree.query(cand.transform.apply(src.points), k=1)
-    near = d <= criteria.colour_pair_distance * dst.radius
-    if near.sum() < 50:
+    ratio = robust.pose_gain(src, dst, cand.transform.apply(src.points), criteria.colour_pair_distance)
+    if ratio is None:
         return plain
-    lin_s = srgb_to_linear(src.rgb)
-    lin_d = srgb_to_linear(dst.rgb)
-    ratio = np.median(lin_d[j[near]] / np.maximum(lin_s[near], 1e-4), axis=0)
     limit = criteria.palette.max_exposure_gain
     gain = np.clip(ratio, 1 / limit, limit)
-    in_s, in_d = robust.in_one_exposure(lin_s, lin_d, gain)  # as match_exposure compares them
+    # as match_exposure compares them
+    in_s, in_d = robust.in_one_exposure(srgb_to_linear(src.rgb), srgb_to_linear(dst.rgb), gain)
     in_one = replace(src, lab=linear_to_lab(in_s)), replace(dst, lab=linear_to_lab(in_d))
     gained = robust.score_pose(*in_one, cand.transform, cand.origin, w_colour, criteria)
     return gained if gained.score > plain.score else plain
