@@ -37,6 +37,11 @@ def _turned(pose: Sim3, deg: float) -> Sim3:
     return Sim3(pose.scale, turn @ pose.rotation, pose.translation)
 
 
+def _gain(source, target, result, opts):
+    n = opts.anchor_count
+    return exposure_retry.gain_to_try(robust.anchors(source, n), robust.anchors(target, n), result, opts)
+
+
 def _doubtful(result, transform: Sim3):
     result.transform = transform
     result.set_record(result.record() | {"doubtful": True})
@@ -57,7 +62,7 @@ def test_a_doubtful_answer_off_the_truth_is_aligned_again_in_its_exposure():
     first = align(source, target, opts)
     wrong = _turned(first.transform, 20.0)
     first = _doubtful(first, wrong)
-    gain = exposure_retry.gain_to_try(source, target, first, opts)
+    gain = _gain(source, target, first, opts)
     # even 20° off, the answer's pairs read the source's exposure (the source onto the target)
     assert gain is not None and np.allclose(gain, 1 / GAIN, rtol=0.15)
     result = exposure_retry.retried(source, target, opts, first, lambda shifted: align(shifted, target, opts))
@@ -74,13 +79,13 @@ def test_the_retry_leaves_confident_answers_and_told_exposures_alone():
     opts = _palettes_blind()
     first = align(source, target, opts)
     assert not first.verdict.doubtful
-    assert exposure_retry.gain_to_try(source, target, first, opts) is None
+    assert _gain(source, target, first, opts) is None
     # the palettes tell this exposure (the defaults): the answer was already scored under it
-    assert exposure_retry.gain_to_try(source, target, _doubtful(first, first.transform), AlignOptions()) is None
+    assert _gain(source, target, _doubtful(first, first.transform), AlignOptions()) is None
     # no gain to speak of: both captures in one exposure
     plain = make_object("car", seed=3, n_gaussians=3000, sample_seed=1)
     same = align(plain, target, opts)
-    assert exposure_retry.gain_to_try(plain, target, _doubtful(same, same.transform), opts) is None
+    assert _gain(plain, target, _doubtful(same, same.transform), opts) is None
 
 
 def test_align_reports_done_once_and_last():

@@ -27,14 +27,13 @@ RETRY = "aligned again in the answer's exposure"
 FIRST = "before the exposure retry"
 
 
-def gain_to_try(source: GaussianModel, target: GaussianModel, result: AlignmentResult, opts: AlignOptions):
-    """The linear-RGB gain (source onto target) to align again under, or None where the rule
-    does not apply: a confident answer, a pose-free gain found, too few close pairs, a gain
-    under retry_gain_stops or outside the palette's bounds."""
+def gain_to_try(src: robust.Anchors, dst: robust.Anchors, result: AlignmentResult, opts: AlignOptions):
+    """The linear-RGB gain (source onto target) to align again under, from the models' anchors
+    as recorded, or None where the rule does not apply: a confident answer, a pose-free gain
+    found, too few close pairs, a gain under retry_gain_stops or outside the palette's bounds."""
     if result.verdict is None or not result.verdict.doubtful:
         return None
     palette = opts.criteria.pose.palette
-    src, dst = robust.anchors(source, opts.anchor_count), robust.anchors(target, opts.anchor_count)
     found = robust.exposure_gain(*robust.match_exposure(src, dst, palette))
     if not np.allclose(found, 1.0):
         return None  # the palettes told the exposure; the answer was scored under it
@@ -60,15 +59,16 @@ def retried(
     """`first`, or the answer of `align_again(source in the answer's exposure)` where
     gain_to_try gives a gain and that answer scores higher; the kept one records the retry in
     metrics["exposure_retry"] and offers the other as an alternative."""
-    gain = gain_to_try(source, target, first, opts)
+    if first.verdict is None or not first.verdict.doubtful:
+        return first  # before any anchors are built: most answers end here
+    target_anchors = robust.anchors(target, opts.anchor_count)
+    gain = gain_to_try(robust.anchors(source, opts.anchor_count), target_anchors, first, opts)
     if gain is None:
         return first
     shifted = source.with_exposure(gain)
     second = align_again(shifted)
     k = opts.criteria.pose
-    src, dst = robust.match_exposure(
-        robust.anchors(shifted, opts.anchor_count), robust.anchors(target, opts.anchor_count), k.palette
-    )
+    src, dst = robust.match_exposure(robust.anchors(shifted, opts.anchor_count), target_anchors, k.palette)
     noise = 0.5 * (robust.colour_noise(src, k) + robust.colour_noise(dst, k))
     weight = robust.colour_trust(src, dst, noise, k)
     scores = {
