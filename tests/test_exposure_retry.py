@@ -88,6 +88,24 @@ def test_the_retry_leaves_confident_answers_and_told_exposures_alone():
     assert _gain(plain, target, _doubtful(same, same.transform), opts) is None
 
 
+def test_the_retry_takes_the_answers_gain_where_it_differs_from_the_one_scored_under():
+    palette = AlignOptions().criteria.pose.palette
+    quarter = 2.0**palette.retry_gain_stops
+    # the palettes found none: the answer's gain where it is more than a quarter stop off 1
+    assert np.allclose(exposure_retry.gain_to_retry(np.ones(3), GAIN, palette), GAIN)
+    assert exposure_retry.gain_to_retry(np.ones(3), np.full(3, 0.95 * quarter), palette) is None
+    # the palettes found a gain a third of a stop off the answer's (a partial half's palette)
+    found = GAIN * np.array([1.0, 1.3, 1.0])
+    assert np.allclose(exposure_retry.gain_to_retry(found, GAIN, palette), GAIN)
+    # ... or within a quarter stop of it: the answer was scored under its own exposure
+    assert exposure_retry.gain_to_retry(GAIN * 1.1, GAIN, palette) is None
+    # beyond match_exposure's bounds (two paints, not an exposure): left alone
+    too_dark = np.full(3, 0.9 / palette.max_exposure_gain)
+    assert exposure_retry.gain_to_retry(np.ones(3), too_dark, palette) is None
+    off_white = np.array([1.0, 1.0, 0.9 / palette.max_white_balance])
+    assert exposure_retry.gain_to_retry(np.ones(3), off_white, palette) is None
+
+
 def test_align_reports_done_once_and_last():
     source, target, _ = _pair(1500)
     reports = []

@@ -2,14 +2,16 @@
 
 robust.match_exposure finds an exposure change from the two palettes alone (no pose). On
 captures whose surfaces are greys and browns everywhere (a room) no gain passes its tests, and
-the colour term then counts the truth's pairs as disagreeing: under a one-stop shift the truth
-loses to a pose tens of degrees off. Even a wrong answer pairs surfaces of one kind, so its
-close pairs' colour ratio (robust.pose_gain) lies near the exposure's (docs/benchmarks.md, "The
-gain at a pose"). Where the answer is doubtful, no pose-free gain was found and the answer's
-pairs give more than PaletteOptions.retry_gain_stops in some channel, within the bounds
-match_exposure keeps (so two instances of other paints are left alone), the pair is aligned
-again with the source in that exposure; the second answer is kept where it scores higher,
-both poses scored on the second pass's anchors, and the other is offered as an alternative.
+elsewhere the palettes of two partial halves can pass a gain a fifth of a stop to most of a stop
+off the true one (a bouquet, a rock, a statue); either way the colour term then counts the
+truth's pairs as disagreeing, and the truth loses to a pose tens of degrees off. Even a wrong
+answer pairs surfaces of one kind, so its close pairs' colour ratio (robust.pose_gain) lies
+nearer the exposure's (docs/benchmarks.md, "The gain at a pose"). Where the answer is doubtful
+and its pairs' gain differs from the one it was scored under (the palettes', or none) by more
+than PaletteOptions.retry_gain_stops in some channel, within the bounds match_exposure keeps (so
+two instances of other paints are left alone), the pair is aligned again with the source in
+that exposure; the second answer is kept where it scores higher, both poses scored on the
+second pass's anchors, and the other is offered as an alternative.
 """
 
 from __future__ import annotations
@@ -29,24 +31,29 @@ FIRST = "before the exposure retry"
 
 def gain_to_try(src: robust.Anchors, dst: robust.Anchors, result: AlignmentResult, opts: AlignOptions):
     """The linear-RGB gain (source onto target) to align again under, from the models' anchors
-    as recorded, or None where the rule does not apply: a confident answer, a pose-free gain
-    found, too few close pairs, a gain under retry_gain_stops or outside the palette's bounds."""
+    as recorded, or None where the rule does not apply: a confident answer, too few close
+    pairs, or a gain the retry does not take (gain_to_retry)."""
     if result.verdict is None or not result.verdict.doubtful:
         return None
     palette = opts.criteria.pose.palette
-    found = robust.exposure_gain(*robust.match_exposure(src, dst, palette))
-    if not np.allclose(found, 1.0):
-        return None  # the palettes told the exposure; the answer was scored under it
-    gain = robust.pose_gain(src, dst, result.transform.apply(src.points), opts.criteria.pose.colour_pair_distance)
-    if gain is None:
+    found = np.asarray(robust.exposure_gain(*robust.match_exposure(src, dst, palette)))
+    at_answer = robust.pose_gain(src, dst, result.transform.apply(src.points), opts.criteria.pose.colour_pair_distance)
+    return None if at_answer is None else gain_to_retry(found, at_answer, palette)
+
+
+def gain_to_retry(found: np.ndarray, at_answer: np.ndarray, palette: robust.PaletteOptions) -> np.ndarray | None:
+    """`at_answer` (the gain the answer's close pairs give), where it differs from `found` (the
+    gain the answer was scored under: the palettes', 1 where they found none) by more than
+    palette.retry_gain_stops in some channel and stays within match_exposure's bounds (gain and
+    white balance); else None."""
+    stops = np.abs(np.log2(at_answer / found))
+    if stops.max() <= palette.retry_gain_stops:
         return None
-    stops = np.abs(np.log2(gain))
-    limit = np.log2(palette.max_exposure_gain)
-    if stops.max() <= palette.retry_gain_stops or stops.max() > limit:
+    if np.abs(np.log2(at_answer)).max() > np.log2(palette.max_exposure_gain):
         return None
-    if gain.max() / gain.min() > palette.max_white_balance:
+    if at_answer.max() / at_answer.min() > palette.max_white_balance:
         return None
-    return gain
+    return at_answer
 
 
 def retried(

@@ -46,8 +46,9 @@ class PaletteOptions:
     # several Gaussians, so a clipped voxel's mean sits just under 1)
     clipped_linear: float = 0.9
     # A doubtful answer is aligned again in the exposure its own close pairs give (pose_gain,
-    # gsa.align.exposure_retry) where no gain passed match_exposure and that gain is more than
-    # this many stops in some channel (and within the bounds above).
+    # gsa.align.exposure_retry) where that gain differs from the one the answer was scored under
+    # (match_exposure's, or none) by more than this many stops in some channel (and stays within
+    # the bounds above).
     retry_gain_stops: float = 0.25
 
 
