@@ -279,3 +279,37 @@ def test_a_doubtful_answer_beside_the_peak_is_held_before_the_chain(monkeypatch)
     assert report["held_within_reach"]["turned"] and report["held_within_reach"]["score"] > 0
     assert np.allclose(report["alternatives"][0]["transform"], answer.matrix())
     assert not seen or seen[0] is pose  # the chain, where it ran, saw the held pose
+
+
+def test_the_hypotheses_the_search_scores_best_join_the_matched_starts():
+    """With the search's score, more triples are drawn and the hypotheses most pairs agree
+    with are ranked by it: those it ranks best join the starts found by agreement alone, which
+    come first and unchanged (between two partial halves agreement is a weak proxy, the score
+    peaks at the truth). Here the score is closeness to the truth itself: the joining poses come
+    nearest first, each min_deg from every other start."""
+    src, dst, truth = _partial_chair_anchors()
+    plain = matched_poses(src, dst, np.random.default_rng(0), count=4, min_deg=10.0, colour=1.0)
+    calls: list[int] = []
+
+    def nearness(poses: list[Sim3]) -> np.ndarray:
+        calls.append(len(poses))
+        return -np.array([rre_deg(p.rotation, truth.rotation) for p in poses])
+
+    options = MatchOptions(scored_triples=50_000, scored_top=300, scored_count=2)
+    scored = matched_poses(src, dst, np.random.default_rng(0), 4, 10.0, options, 1.0, nearness)
+
+    def same(a: list[Sim3], b: list[Sim3]) -> bool:
+        return len(a) == len(b) and all(np.array_equal(x.matrix(), y.matrix()) for x, y in zip(a, b, strict=True))
+
+    assert same(scored[: len(plain)], plain)  # the agreement's starts, as before
+    joined = scored[len(plain) :]
+    assert calls == [300] and len(joined) == 2
+    errors = [rre_deg(p.rotation, truth.rotation) for p in joined]
+    assert errors[0] <= errors[1]
+    # min_deg apart from each other and from the found ones
+    assert all(
+        rre_deg(a.rotation, b.rotation) > 10.0 for a in joined for b in plain + [p for p in joined if p is not a]
+    )
+    # no score, or none to join: the plain starts
+    none = MatchOptions(scored_count=0)
+    assert same(matched_poses(src, dst, np.random.default_rng(0), 4, 10.0, none, 1.0, nearness), plain)

@@ -21,6 +21,7 @@ from gsa.features.onnx_dinov2 import OnnxWeightsError, bundled_backbone_path
 from gsa.features.vit import WeightsError, load_backbone, to_input
 from gsa.geometry import axis_rotation
 from gsa.io.ply import write_ply
+from gsa.manhattan import turned_onto
 from gsa.sim3 import Sim3
 from gsa.synth import make_object, random_sim3
 from gsa.synth.variants import make_symmetric_object
@@ -509,16 +510,52 @@ def test_a_tie_break_needs_a_tie():
     from gsa.align import pipeline
     from gsa.align.pair import _Pair
 
-    source, target, _ = _bar_sampled_twice()
+    source, target, truth = _bar_sampled_twice()
     pair = _Pair.build(source, target, AlignOptions())
     span = pair.criteria.verdict.margin_span
     whole_apart = {"overlap_estimate": 0.95, "coincident_share": 0.4}  # two instances, whole
+    # the pick the bar's half turn about its long axis: it scores as the answer does
+    long_axis = np.linalg.svd(target.means - target.means.mean(0), full_matrices=False)[2][0]
+    turned = turned_onto(truth, axis_rotation(long_axis, np.pi) @ truth.rotation, source.means.mean(0))
+
+    def search(margin: float) -> SimpleNamespace:
+        return SimpleNamespace(margin=margin, colour_weight=0.0, ranked_by="score")
+
     for margin, vetoed in ((0.5, False), (span - 0.01, False), (span, True), (float("inf"), True)):
-        why = pipeline._pick_vetoed(pair, SimpleNamespace(margin=margin), whole_apart, whole_apart)
+        why = pipeline._pick_vetoed(pair, search(margin), whole_apart, whole_apart, truth, turned)
         assert why == ("the search left no tie" if vetoed else None), margin
-    assert pipeline._pick_vetoed(pair, None, whole_apart, whole_apart) is None  # no search: nothing says it is clear
+    # no search: nothing says it is clear
+    assert pipeline._pick_vetoed(pair, None, whole_apart, whole_apart, truth, turned) is None
     # the surface vetoes speak first, whatever the margin
     one_surface = {"overlap_estimate": 0.95, "coincident_share": 0.8}
-    assert (
-        pipeline._pick_vetoed(pair, SimpleNamespace(margin=0.1), one_surface, whole_apart) == "one surface left apart"
+    assert pipeline._pick_vetoed(pair, search(0.1), one_surface, whole_apart, truth, turned) == "one surface left apart"
+
+
+def test_a_tie_break_needs_a_tie_with_the_answer_it_would_replace():
+    """Where the answer is not the search's best but a pose held within reach of it (it scores
+    above every pose the search found), the search's margin says nothing of it: the pick is
+    vetoed where the held answer outscores it by margin_span ties of the search's own measure.
+    The search's own best answer stays under the search's margin alone (across instances the
+    geometry can lead a right pick by that much)."""
+    from types import SimpleNamespace
+
+    from gsa.align import pipeline
+    from gsa.align.pair import _Pair
+
+    source, target, truth = _bar_sampled_twice()
+    pair = _Pair.build(source, target, AlignOptions())
+    tied = SimpleNamespace(margin=0.1, colour_weight=0.0, ranked_by="score")
+    whole_apart = {"overlap_estimate": 0.95, "coincident_share": 0.4}
+    held = whole_apart | {"held_within_reach": {"score_before": 0.05, "score": 0.13, "turned": True}}
+    # a pick 60 degrees off the bar's axes leaves most of it apart: the answer leads by far
+    z_turn = axis_rotation(np.array([0.0, 0.0, 1.0]), np.radians(60))
+    off = turned_onto(truth, z_turn @ truth.rotation, source.means.mean(0))
+    lead = pipeline._lead(pair, tied, truth, off)
+    assert lead >= pair.criteria.verdict.margin_span, lead
+    assert pipeline._pick_vetoed(pair, tied, held, whole_apart, truth, off) == (
+        "the answer outscores the pick by more than a tie"
     )
+    assert pipeline._pick_vetoed(pair, tied, whole_apart, whole_apart, truth, off) is None  # the search's best
+    # the other way round the pick leads: nothing vetoes it
+    assert pipeline._lead(pair, tied, off, truth) == pytest.approx(-lead)
+    assert pipeline._pick_vetoed(pair, tied, held, whole_apart, off, truth) is None
