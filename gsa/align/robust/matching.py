@@ -170,7 +170,9 @@ def matched_poses(
     """Up to `count` similarities, min_deg apart in rotation, that the most descriptor pairs
     agree with (best first), each agreed by min_consensus of the pairs at least; empty where
     none is (two instances of a category, whose local shapes do not correspond). `colour`:
-    how far the models' colours are trusted (the search's colour weight, 0..1)."""
+    how far the models' colours are trusted (the search's colour weight, 0..1). `score`: the
+    search's score of poses; with it, where poses were found, the best it ranks of more
+    triples follow (_scored)."""
     o = options or MatchOptions()
     if len(src) < 4 or len(dst) < 4:
         return []
@@ -195,7 +197,16 @@ def matched_poses(
     return out + _scored(p, q, pairs.tolerance, rng, o, score, out, min_deg)
 
 
-def _scored(p, q, tolerance, rng, o: MatchOptions, score, found: list[Sim3], min_deg: float) -> list[Sim3]:
+def _scored(
+    p: np.ndarray,
+    q: np.ndarray,
+    tolerance: float,
+    rng: np.random.Generator,
+    o: MatchOptions,
+    score: Callable[[list[Sim3]], np.ndarray],
+    found: list[Sim3],
+    min_deg: float,
+) -> list[Sim3]:
     """The scored_count hypotheses of scored_triples more triples that `score` ranks best
     among the scored_top most agreed with, min_deg apart from each other and from `found`."""
     poses, agree = _ransac(p, q, rng, tolerance, replace(o, triples=o.scored_triples))
