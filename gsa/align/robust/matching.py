@@ -69,12 +69,19 @@ class MatchOptions:
     # between two partial halves is a few degrees wide, and an answer 9-10 degrees off it is
     # outside the capped ICP's reach (the iPhone room's pair 16: 9.1° -> 0.9°).
     reach_turns: tuple[float, ...] = (6.0, 12.0)
-    # Where matched poses were found, more triples are drawn (scored_triples) and the
-    # scored_top hypotheses most pairs agree with are ranked by the search's own score, the
-    # scored_count best join the starts (0: none). Agreement with the descriptor pairs is a weak
-    # proxy between two partial halves (the iPhone room's: the truth agrees with 4.5 % of the
-    # pairs, a pose 14 degrees off with 5.4 %), and 20,000 triples leave a few hundred
-    # hypotheses; the score peaks at the truth (0.15 there, 0.03-0.07 ten degrees off).
+    # With the search's score, more triples are drawn (scored_triples) and the scored_top
+    # hypotheses most pairs agree with are ranked by it, the scored_count best join the starts
+    # (0: none). Agreement with the descriptor pairs is a weak proxy between two partial halves
+    # (the iPhone room's: the truth agrees with 4.5 % of the pairs, a pose 14 degrees off with
+    # 5.4 %), and 20,000 triples leave a few hundred hypotheses; the score peaks at the truth
+    # (0.15 there, 0.03-0.07 ten degrees off). The consensus gate does not apply to them: the
+    # score, not agreement, is what picks them (the room's pairs 21 and 25, where no pose
+    # reaches min_consensus, each had a scored hypothesis 1.6 and 5.4 degrees off) ...
+    # ... where the palettes are wholly shared (colour weight at least ungated_colour): two
+    # instances whose local shapes do not correspond share part of a palette (a rifle pair's
+    # weight 0.84), and there the score peaks off the truth (its scored starts took it 2.3 ->
+    # 114 degrees off).
+    ungated_colour: float = 1.0
     scored_triples: int = 200_000
     scored_top: int = 1000
     scored_count: int = 2
@@ -171,8 +178,8 @@ def matched_poses(
     agree with (best first), each agreed by min_consensus of the pairs at least; empty where
     none is (two instances of a category, whose local shapes do not correspond). `colour`:
     how far the models' colours are trusted (the search's colour weight, 0..1). `score`: the
-    search's score of poses; with it, where poses were found, the best it ranks of more
-    triples follow (_scored)."""
+    search's score of poses; with it, the best it ranks of more triples follow (_scored),
+    where no pose passed the consensus gate too if colour reaches ungated_colour."""
     o = options or MatchOptions()
     if len(src) < 4 or len(dst) < 4:
         return []
@@ -192,7 +199,7 @@ def matched_poses(
             out.append(pose)
             if len(out) == count:
                 break
-    if score is None or not out or not o.scored_count:
+    if score is None or not o.scored_count or (not out and colour < o.ungated_colour):
         return out
     return out + _scored(p, q, pairs.tolerance, rng, o, score, out, min_deg)
 
