@@ -74,13 +74,13 @@ class MatchOptions:
     # (0: none). Agreement with the descriptor pairs is a weak proxy between two partial halves
     # (the iPhone room's: the truth agrees with 4.5 % of the pairs, a pose 14 degrees off with
     # 5.4 %), and 20,000 triples leave a few hundred hypotheses; the score peaks at the truth
-    # (0.15 there, 0.03-0.07 ten degrees off). The consensus gate does not apply to them: the
-    # score, not agreement, is what picks them (the room's pairs 21 and 25, where no pose
-    # reaches min_consensus, each had a scored hypothesis 1.6 and 5.4 degrees off) ...
-    # ... where the palettes are wholly shared (colour weight at least ungated_colour): two
-    # instances whose local shapes do not correspond share part of a palette (a rifle pair's
-    # weight 0.84), and there the score peaks off the truth (its scored starts took it 2.3 ->
-    # 114 degrees off).
+    # (0.15 there, 0.03-0.07 ten degrees off). Where the palettes are wholly shared (colour
+    # weight at least ungated_colour) they join even where no pose passed the consensus gate:
+    # the score picks them, not agreement (the room's pairs 21 and 25, where no pose reaches
+    # min_consensus, each had a scored hypothesis 1.6 and 5.4 degrees off). Two instances whose
+    # local shapes do not correspond may share part of a palette (a rifle pair's weight 0.84),
+    # and there the score peaks off the truth (ungated, its scored starts took it 2.3 -> 114
+    # degrees off).
     ungated_colour: float = 1.0
     scored_triples: int = 200_000
     scored_top: int = 1000
