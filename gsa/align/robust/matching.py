@@ -69,19 +69,22 @@ class MatchOptions:
     # between two partial halves is a few degrees wide, and an answer 9-10 degrees off it is
     # outside the capped ICP's reach (the iPhone room's pair 16: 9.1° -> 0.9°).
     reach_turns: tuple[float, ...] = (6.0, 12.0)
-    # With the search's score, more triples are drawn (scored_triples) and the scored_top
-    # hypotheses most pairs agree with are ranked by it, the scored_count best join the starts
-    # (0: none). Agreement with the descriptor pairs is a weak proxy between two partial halves
-    # (the iPhone room's: the truth agrees with 4.5 % of the pairs, a pose 14 degrees off with
-    # 5.4 %), and 20,000 triples leave a few hundred hypotheses; the score peaks at the truth
-    # (0.15 there, 0.03-0.07 ten degrees off). Where the palettes are wholly shared (colour
-    # weight at least ungated_colour) they join even where no pose passed the consensus gate:
-    # the score picks them, not agreement (the room's pairs 21 and 25, where no pose reaches
-    # min_consensus, each had a scored hypothesis 1.6 and 5.4 degrees off). Two instances whose
-    # local shapes do not correspond may share part of a palette (a rifle pair's weight 0.84),
-    # and there the score peaks off the truth (ungated, its scored starts took it 2.3 -> 114
-    # degrees off).
-    ungated_colour: float = 1.0
+    # Where matched poses were found, more triples are drawn (scored_triples) and the
+    # scored_top hypotheses most pairs agree with are ranked by the search's own score, the
+    # scored_count best join the starts (0: none). Agreement with the descriptor pairs is a weak
+    # proxy between two partial halves (the iPhone room's: the truth agrees with 4.5 % of the
+    # pairs, a pose 14 degrees off with 5.4 %), and 20,000 triples leave a few hundred
+    # hypotheses; the score peaks at the truth (0.15 there, 0.03-0.07 ten degrees off). Only
+    # where a pose passed the consensus gate: ungated where the palettes were wholly shared
+    # (colour weight 1), they took a rifle pair of two uncoloured meshes, grey on grey and so
+    # wholly shared, 0.05 -> 178 degrees off (docs/benchmarks.md, "The scale the pairs assume").
+    # A descriptor describes a number of anchors, so two neighbourhoods alike across the models
+    # are alike at the scale their anchor spacings give (about the true scale where both models
+    # are sampled alike: 0.95 of it on the iPhone room's halves). A pose whose scale lies more
+    # than scale_spread times off that pairs neighbourhoods of unlike size, whose likeness is
+    # chance: such triples gave the room's shifted pair 16 starts at 0.13 of its scale, and
+    # the score (colours under a shifted exposure) took one 149 degrees off (1.5 before).
+    scale_spread: float = 2.0
     scored_triples: int = 200_000
     scored_top: int = 1000
     scored_count: int = 2
@@ -137,6 +140,11 @@ class DescriptorPairs:
     target: np.ndarray  # (m, 3)
     tolerance: float
     colour: float = 0.0  # the colour trust the descriptors were made with
+    scale: float = 1.0  # the target's anchor spacing over the source's: the scale the pairs assume
+
+    def scale_fits(self, pose: Sim3, spread: float) -> bool:
+        """Whether `pose`'s scale lies within a factor `spread` of the scale the pairs assume."""
+        return 1.0 / spread <= pose.scale / self.scale <= spread
 
     def agreement(self, pose: Sim3) -> float:
         """The share of the pairs `pose` maps within the tolerance."""
@@ -152,7 +160,7 @@ def descriptor_pairs(
     the source anchor is also among the target's most alike. `colour`: how far the models'
     colours are trusted (the search's colour weight, 0..1)."""
     o = options or MatchOptions()
-    f_src, _ = descriptors(src.points, o, src.lab, colour)
+    f_src, src_spacing = descriptors(src.points, o, src.lab, colour)
     steps.step()
     f_dst, spacing = descriptors(dst.points, o, dst.lab, colour)
     steps.step()
@@ -161,7 +169,9 @@ def descriptor_pairs(
     s_idx, d_idx = np.repeat(np.arange(len(src)), per), alike.reshape(-1)
     back = cKDTree(f_src).query(f_dst[d_idx], k=min(o.pairs_per_anchor, len(src)))[1].reshape(len(d_idx), -1)
     mutual = np.any(back == s_idx[:, None], axis=1)
-    return DescriptorPairs(src.points[s_idx[mutual]], dst.points[d_idx[mutual]], o.inlier_spacings * spacing, colour)
+    scale = spacing / src_spacing if src_spacing > 0 else 1.0
+    pairs = (src.points[s_idx[mutual]], dst.points[d_idx[mutual]])
+    return DescriptorPairs(*pairs, o.inlier_spacings * spacing, colour, scale)
 
 
 def matched_poses(
@@ -178,8 +188,9 @@ def matched_poses(
     agree with (best first), each agreed by min_consensus of the pairs at least; empty where
     none is (two instances of a category, whose local shapes do not correspond). `colour`:
     how far the models' colours are trusted (the search's colour weight, 0..1). `score`: the
-    search's score of poses; with it, the best it ranks of more triples follow (_scored),
-    where no pose passed the consensus gate too if colour reaches ungated_colour."""
+    search's score of poses; with it, where poses were found, the best it ranks of more
+    triples follow (_scored). Every pose keeps a scale within scale_spread of the one the pairs
+    assume."""
     o = options or MatchOptions()
     if len(src) < 4 or len(dst) < 4:
         return []
@@ -199,15 +210,13 @@ def matched_poses(
             out.append(pose)
             if len(out) == count:
                 break
-    if score is None or not o.scored_count or (not out and colour < o.ungated_colour):
-        return out
-    return out + _scored(p, q, pairs.tolerance, rng, o, score, out, min_deg)
+    if score is not None and o.scored_count and out:
+        out += _scored(pairs, rng, o, score, out, min_deg)
+    return [pose for pose in out if pairs.scale_fits(pose, o.scale_spread)]
 
 
 def _scored(
-    p: np.ndarray,
-    q: np.ndarray,
-    tolerance: float,
+    pairs: DescriptorPairs,
     rng: np.random.Generator,
     o: MatchOptions,
     score: Callable[[list[Sim3]], np.ndarray],
@@ -216,7 +225,7 @@ def _scored(
 ) -> list[Sim3]:
     """The scored_count hypotheses of scored_triples more triples that `score` ranks best
     among the scored_top most agreed with, min_deg apart from each other and from `found`."""
-    poses, agree = _ransac(p, q, rng, tolerance, replace(o, triples=o.scored_triples))
+    poses, agree = _ransac(pairs.source, pairs.target, rng, pairs.tolerance, replace(o, triples=o.scored_triples))
     if not poses:
         return []
     top = [poses[i] for i in np.argsort(-agree, kind="stable")[: o.scored_top]]
