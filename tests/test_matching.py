@@ -317,6 +317,29 @@ def test_the_hypotheses_the_search_scores_best_join_the_matched_starts():
     assert same(matched_poses(src, dst, np.random.default_rng(0), 4, 10.0, none, 1.0, nearness), plain)
 
 
+def test_the_scored_hypotheses_need_no_consensus_where_the_palettes_are_wholly_shared():
+    """The consensus gate keeps agreement's starts to poses many pairs agree with; the scored
+    hypotheses are picked by the score, not by agreement, so they join even where no pose
+    reaches the gate (the iPhone room's pairs 21 and 25), where the palettes are wholly shared.
+    Without the score nothing passes such a gate; nor, without a gated pose, where the palettes
+    are only partly shared (two instances: their local shapes do not correspond and the score
+    peaks off the truth)."""
+    src, dst, truth = _partial_chair_anchors()
+    unreachable = MatchOptions(min_consensus=1.01, scored_triples=50_000, scored_top=300, scored_count=2)
+    assert matched_poses(src, dst, np.random.default_rng(0), 4, 10.0, unreachable, 1.0) == []
+
+    def nearness(poses: list[Sim3]) -> np.ndarray:
+        return -np.array([rre_deg(p.rotation, truth.rotation) for p in poses])
+
+    joined = matched_poses(src, dst, np.random.default_rng(0), 4, 10.0, unreachable, 1.0, nearness)
+    assert len(joined) == 2
+    assert rre_deg(joined[0].rotation, truth.rotation) < 10.0
+    assert rre_deg(joined[0].rotation, joined[1].rotation) > 10.0
+    partly = replace(unreachable, ungated_colour=0.9)
+    assert matched_poses(src, dst, np.random.default_rng(0), 4, 10.0, partly, 0.85, nearness) == []
+    assert len(matched_poses(src, dst, np.random.default_rng(0), 4, 10.0, partly, 0.9, nearness)) == 2
+
+
 def test_the_pairs_assume_the_scale_their_anchor_spacings_give():
     """A descriptor describes a number of anchors, so the pairs are alike at the scale the two
     models' anchor spacings give (here within a fifth of the truth's 0.2). A pose far off that

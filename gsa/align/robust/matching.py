@@ -69,23 +69,27 @@ class MatchOptions:
     # between two partial halves is a few degrees wide, and an answer 9-10 degrees off it is
     # outside the capped ICP's reach (the iPhone room's pair 16: 9.1° -> 0.9°).
     reach_turns: tuple[float, ...] = (6.0, 12.0)
-    # Where matched poses were found, more triples are drawn (scored_triples) and the
-    # scored_top hypotheses most pairs agree with are ranked by the search's own score, the
-    # scored_count best join the starts (0: none). Agreement with the descriptor pairs is a weak
-    # proxy between two partial halves (the iPhone room's: the truth agrees with 4.5 % of the
-    # pairs, a pose 14 degrees off with 5.4 %), and 20,000 triples leave a few hundred
-    # hypotheses; the score peaks at the truth (0.15 there, 0.03-0.07 ten degrees off). Only
-    # where a pose passed the consensus gate: ungated where the palettes were wholly shared
-    # (colour weight 1), they took a rifle pair of two uncoloured meshes, grey on grey and so
-    # wholly shared, 0.05 -> 178 degrees off (docs/benchmarks.md, "The scale the pairs assume").
+    # More triples are drawn (scored_triples) and the scored_top hypotheses most pairs agree
+    # with are ranked by the search's own score, the scored_count best join the starts (0:
+    # none). Agreement with the descriptor pairs is a weak proxy between two partial halves
+    # (the iPhone room's: the truth agrees with 4.5 % of the pairs, a pose 14 degrees off with
+    # 5.4 %), and 20,000 triples leave a few hundred hypotheses; the score peaks at the truth
+    # (0.15 there, 0.03-0.07 ten degrees off). They join where a pose passed the consensus gate,
+    # and where none did if the palettes are wholly shared (colour weight at least
+    # ungated_colour): the score picks them, not agreement (the iPhone room's pairs 21 and 25,
+    # where no pose reaches min_consensus). Two instances whose palettes are only partly shared
+    # have local shapes that do not correspond, and the score peaks off the truth.
     # A descriptor describes a number of anchors, so two neighbourhoods alike across the models
     # are alike at the scale their anchor spacings give (about the true scale where both models
     # are sampled alike: 0.95 of it on the iPhone room's halves). A pose whose scale lies more
     # than scale_spread times off that pairs neighbourhoods of unlike size, whose likeness is
     # chance: such triples gave the room's shifted pair 16 starts at 0.13 of its scale, and
-    # the score (colours under a shifted exposure) took one 149 degrees off (1.5 without them).
+    # the score (colours under a shifted exposure) took one 149 degrees off (1.5 without them);
+    # ungated and unbounded, they took a rifle pair of two instances 178 degrees off (0.05
+    # with the bound; docs/benchmarks.md, "The ungated hypotheses back, within the scale").
     # Such a pose is dropped, not replaced: a next-best in its place took the street's shifted
     # pair 0 from 2.2 to 9.2 degrees.
+    ungated_colour: float = 1.0
     scale_spread: float = 2.0
     scored_triples: int = 200_000
     scored_top: int = 1000
@@ -190,9 +194,9 @@ def matched_poses(
     agree with (best first), each agreed by min_consensus of the pairs at least; empty where
     none is (two instances of a category, whose local shapes do not correspond). `colour`:
     how far the models' colours are trusted (the search's colour weight, 0..1). `score`: the
-    search's score of poses; with it, where poses were found, the best it ranks of more
-    triples follow (_scored). Every pose keeps a scale within scale_spread of the one the pairs
-    assume."""
+    search's score of poses; with it, where poses were found or colour reaches ungated_colour,
+    the best it ranks of more triples follow (_scored). Every pose keeps a scale within
+    scale_spread of the one the pairs assume."""
     o = options or MatchOptions()
     if len(src) < 4 or len(dst) < 4:
         return []
@@ -212,7 +216,7 @@ def matched_poses(
             out.append(pose)
             if len(out) == count:
                 break
-    if score is not None and o.scored_count and out:
+    if score is not None and o.scored_count and (out or colour >= o.ungated_colour):
         out += _scored(pairs, rng, o, score, out, min_deg)
     return [pose for pose in out if pairs.scale_fits(pose, o.scale_spread)]
 
