@@ -13,6 +13,9 @@ record it. Success: RRE < 5° (strict: a real capture has no known symmetry).
 GSA_REAL_PAIRS=N sets the pairs per capture (default PAIRS_PER_CAPTURE, full or --quick; FIRST:END
 deals pairs FIRST..END-1 only, to continue a run), GSA_REAL_CAPTURES=GLOB[,GLOB] runs the captures
 whose file names match (their pairs unchanged), and
+GSA_REAL_GAUSSIANS=N draws each capture down to N Gaussians before the split, full or --quick
+(--quick alone: QUICK_GAUSSIANS), as small as the captures whose pairs missed (4.6k-45k
+Gaussians a half);
 GSA_REAL_VARIANTS=as-captured or exposure runs one variant only (default both), for a long run
 over many captures (benchmarks.fetch_captures). The report gives a table per capture
 (per_capture_table): success, the misses with their RRE and whether align() flagged them
@@ -51,6 +54,17 @@ def pair_range(quick: bool) -> range:
     if not (first.isdigit() and end.isdigit()) or int(end) <= int(first):
         raise ValueError(f"GSA_REAL_PAIRS={value!r}: give a number of pairs per capture, or FIRST:END (END > FIRST)")
     return range(int(first), int(end))
+
+
+def gaussian_cap(quick: bool) -> int | None:
+    """The Gaussians a capture is drawn down to before it is split: GSA_REAL_GAUSSIANS=N in
+    either mode, else QUICK_GAUSSIANS with --quick, else none (the capture as exported)."""
+    value = os.environ.get("GSA_REAL_GAUSSIANS", "").strip()
+    if not value:
+        return QUICK_GAUSSIANS if quick else None
+    if not value.isdigit() or int(value) < 100:
+        raise ValueError(f"GSA_REAL_GAUSSIANS={value!r}: give the Gaussians per capture, at least 100")
+    return int(value)
 
 
 def chosen(name: str) -> bool:
@@ -100,6 +114,7 @@ def real_split_pairs(
     if not captures:
         raise ValueError(f"{data}: no 3DGS files found ({', '.join(sorted(set(EXTENSIONS.values())))})")
     ks = pair_range(quick)
+    cap = gaussian_cap(quick)
     pairs: list[Pair] = []
     # c counts every capture of the folder, so a capture's pairs stay the same when others are left out
     for c, path in enumerate(captures):
@@ -110,8 +125,8 @@ def real_split_pairs(
             def make(c=c, k=k, path=path, label=f"{path.name}-{k}"):
                 rng = np.random.default_rng([seed, 26, c, k])
                 model = _load(path)
-                if quick and len(model) > QUICK_GAUSSIANS:
-                    model = model.subset(np.sort(rng.choice(len(model), QUICK_GAUSSIANS, replace=False)))
+                if cap is not None and len(model) > cap:
+                    model = model.subset(np.sort(rng.choice(len(model), cap, replace=False)))
                 source, target = split_pair(model, rng)
                 truth = random_sim3(rng)
                 if exposure:

@@ -87,6 +87,20 @@ def test_pairs_per_capture_and_variants_follow_the_environment(captures, monkeyp
     )
     monkeypatch.setenv("GSA_REAL_VARIANTS", "exposure")
     assert rc.variants() == [True]
+    monkeypatch.delenv("GSA_REAL_GAUSSIANS", raising=False)
+    assert rc.gaussian_cap(False) is None and rc.gaussian_cap(True) == rc.QUICK_GAUSSIANS
+    whole = dict(real_split_pairs(captures, quick=False, seed=0))["car.ply-3"]()
+    monkeypatch.setenv("GSA_REAL_GAUSSIANS", "1000")
+    small = dict(real_split_pairs(captures, quick=False, seed=0))["car.ply-3"]()
+    assert len(small[0]) + len(small[1]) <= 1000 < len(whole[0]) + len(whole[1])
+    quick_small = dict(real_split_pairs(captures, quick=True, seed=0))["car.ply-3"]()
+    assert np.allclose(small[2].matrix(), quick_small[2].matrix())  # drawn down alike in either mode
+    assert np.array_equal(small[0].means, quick_small[0].means)
+    for bad in ("x", "50", "-3"):
+        monkeypatch.setenv("GSA_REAL_GAUSSIANS", bad)
+        with pytest.raises(ValueError, match="GSA_REAL_GAUSSIANS"):
+            rc.gaussian_cap(False)
+    monkeypatch.delenv("GSA_REAL_GAUSSIANS")
     for bad in ("0", "x", "5:5", "a:3"):
         monkeypatch.setenv("GSA_REAL_PAIRS", bad)
         with pytest.raises(ValueError, match="GSA_REAL_PAIRS"):

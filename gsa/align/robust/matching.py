@@ -21,7 +21,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 from scipy.spatial import cKDTree
 
-from gsa.align.robust.anchoring import Anchors
+from gsa.align.robust.anchoring import Anchors, PaletteOptions
 from gsa.geometry import rotation_distance_deg
 from gsa.render import steps
 from gsa.sim3 import DegenerateCorrespondencesError, Sim3, solve_sim3
@@ -75,10 +75,12 @@ class MatchOptions:
     # (the iPhone room's: the truth agrees with 4.5 % of the pairs, a pose 14 degrees off with
     # 5.4 %), and 20,000 triples leave a few hundred hypotheses; the score peaks at the truth
     # (0.15 there, 0.03-0.07 ten degrees off). They join where a pose passed the consensus gate,
-    # and where none did if the palettes are wholly shared (colour weight at least
-    # ungated_colour): the score picks them, not agreement (the iPhone room's pairs 21 and 25,
-    # where no pose reaches min_consensus). Two instances whose palettes are only partly shared
-    # have local shapes that do not correspond, and the score peaks off the truth.
+    # and where none did if the palettes agree as two captures of one object's do (colour weight
+    # at least ungated_colour, the weight PaletteOptions.exposure_explains' shared fraction
+    # gives): the score picks them, not agreement (the iPhone room's pairs 21 and 25, where no
+    # pose reaches min_consensus; its halves drawn from 12k Gaussians share 0.85-0.95 of their
+    # palettes, not all). Two instances whose palettes are only partly shared have local shapes
+    # that do not correspond, and the score peaks off the truth.
     # A descriptor describes a number of anchors, so two neighbourhoods alike across the models
     # are alike at the scale their anchor spacings give (about the true scale where both models
     # are sampled alike: 0.95 of it on the iPhone room's halves). A pose whose scale lies more
@@ -89,7 +91,7 @@ class MatchOptions:
     # with the bound; docs/benchmarks.md, "The ungated hypotheses back, within the scale").
     # Such a pose is dropped, not replaced: a next-best in its place took the street's shifted
     # pair 0 from 2.2 to 9.2 degrees.
-    ungated_colour: float = 1.0
+    ungated_colour: float = PaletteOptions().one_object_weight  # 0.9
     scale_spread: float = 2.0
     scored_triples: int = 200_000
     scored_top: int = 1000
