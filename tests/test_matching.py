@@ -9,7 +9,6 @@ import numpy as np
 import pytest
 
 from gsa.align import robust
-from gsa.align.robust.anchoring import PaletteOptions
 from gsa.align.robust.matching import MatchOptions, descriptors, matched_poses
 from gsa.geometry import axis_rotation
 from gsa.metrics import rre_deg
@@ -318,29 +317,24 @@ def test_the_hypotheses_the_search_scores_best_join_the_matched_starts():
     assert same(matched_poses(src, dst, np.random.default_rng(0), 4, 10.0, none, 1.0, nearness), plain)
 
 
-def test_the_scored_hypotheses_need_no_consensus_where_the_palettes_agree_as_one_objects_do():
+def test_the_scored_hypotheses_need_no_consensus():
     """The consensus gate keeps agreement's starts to poses many pairs agree with; the scored
     hypotheses are picked by the score, not by agreement, so they join even where no pose
-    reaches the gate (the iPhone room's pairs 21 and 25), where the palettes agree as two
-    captures of one object's do (the colour weight PaletteOptions calls so: 0.9; the room's
-    halves drawn from 12k Gaussians share 0.85-0.95, not all). Without the score nothing passes
-    such a gate; nor, without a gated pose, where the palettes are shared less (two instances:
-    their local shapes do not correspond and the score peaks off the truth)."""
+    reaches the gate (the iPhone room's pairs 21 and 25), however far the palettes are shared
+    (the caller passes a score only where colours are trusted; halves of a small capture share
+    0.85-0.95 of their palettes). Without the score nothing passes such a gate."""
     src, dst, truth = _partial_chair_anchors()
     unreachable = MatchOptions(min_consensus=1.01, scored_triples=50_000, scored_top=300, scored_count=2)
-    assert unreachable.ungated_colour == pytest.approx(PaletteOptions().one_object_weight)
-    assert unreachable.ungated_colour == pytest.approx(0.9)
     assert matched_poses(src, dst, np.random.default_rng(0), 4, 10.0, unreachable, 1.0) == []
 
     def nearness(poses: list[Sim3]) -> np.ndarray:
         return -np.array([rre_deg(p.rotation, truth.rotation) for p in poses])
 
-    joined = matched_poses(src, dst, np.random.default_rng(0), 4, 10.0, unreachable, 1.0, nearness)
-    assert len(joined) == 2
-    assert rre_deg(joined[0].rotation, truth.rotation) < 10.0
-    assert rre_deg(joined[0].rotation, joined[1].rotation) > 10.0
-    assert matched_poses(src, dst, np.random.default_rng(0), 4, 10.0, unreachable, 0.85, nearness) == []
-    assert len(matched_poses(src, dst, np.random.default_rng(0), 4, 10.0, unreachable, 0.9, nearness)) == 2
+    for colour in (1.0, 0.6):
+        joined = matched_poses(src, dst, np.random.default_rng(0), 4, 10.0, unreachable, colour, nearness)
+        assert len(joined) == 2
+        assert rre_deg(joined[0].rotation, truth.rotation) < 10.0
+        assert rre_deg(joined[0].rotation, joined[1].rotation) > 10.0
 
 
 def test_the_pairs_assume_the_scale_their_anchor_spacings_give():

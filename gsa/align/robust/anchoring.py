@@ -51,12 +51,6 @@ class PaletteOptions:
     # the bounds above).
     retry_gain_stops: float = 0.25
 
-    @property
-    def one_object_weight(self) -> float:
-        """The colour weight (colour_weight) of two palettes that agree as two captures of one
-        object's do: exposure_explains' shared fraction."""
-        return (self.exposure_explains - self.shared_floor) / self.shared_span
-
 
 _PALETTE = PaletteOptions()
 

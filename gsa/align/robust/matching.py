@@ -21,7 +21,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 from scipy.spatial import cKDTree
 
-from gsa.align.robust.anchoring import Anchors, PaletteOptions
+from gsa.align.robust.anchoring import Anchors
 from gsa.geometry import rotation_distance_deg
 from gsa.render import steps
 from gsa.sim3 import DegenerateCorrespondencesError, Sim3, solve_sim3
@@ -74,13 +74,14 @@ class MatchOptions:
     # none). Agreement with the descriptor pairs is a weak proxy between two partial halves
     # (the iPhone room's: the truth agrees with 4.5 % of the pairs, a pose 14 degrees off with
     # 5.4 %), and 20,000 triples leave a few hundred hypotheses; the score peaks at the truth
-    # (0.15 there, 0.03-0.07 ten degrees off). They join where a pose passed the consensus gate,
-    # and where none did if the palettes agree as two captures of one object's do (colour weight
-    # at least ungated_colour, the weight PaletteOptions.exposure_explains' shared fraction
-    # gives): the score picks them, not agreement (the iPhone room's pairs 21 and 25, where no
-    # pose reaches min_consensus; its halves drawn from 12k Gaussians share 0.85-0.95 of their
-    # palettes, not all). Two instances whose palettes are only partly shared have local shapes
-    # that do not correspond, and the score peaks off the truth.
+    # (0.15 there, 0.03-0.07 ten degrees off). They join whether or not a pose passed the
+    # consensus gate: the score picks them, not agreement (the iPhone room's pairs 21 and 25,
+    # where no pose reaches min_consensus), and the caller passes a score only where it compares
+    # colours (the search's colour trust). An earlier rule also asked the palettes to be wholly
+    # shared where no pose passed, for two instances, whose local shapes do not correspond; the
+    # scale bound below is what kept their hypotheses off (a rifle pair's), and halves of a
+    # small capture share 0.85-0.95 of their palettes, not all (docs/benchmarks.md, "Small
+    # captures: the scored hypotheses wherever colours are trusted").
     # A descriptor describes a number of anchors, so two neighbourhoods alike across the models
     # are alike at the scale their anchor spacings give (about the true scale where both models
     # are sampled alike: 0.95 of it on the iPhone room's halves). A pose whose scale lies more
@@ -91,7 +92,6 @@ class MatchOptions:
     # with the bound; docs/benchmarks.md, "The ungated hypotheses back, within the scale").
     # Such a pose is dropped, not replaced: a next-best in its place took the street's shifted
     # pair 0 from 2.2 to 9.2 degrees.
-    ungated_colour: float = PaletteOptions().one_object_weight  # 0.9
     scale_spread: float = 2.0
     scored_triples: int = 200_000
     scored_top: int = 1000
@@ -196,9 +196,9 @@ def matched_poses(
     agree with (best first), each agreed by min_consensus of the pairs at least; empty where
     none is (two instances of a category, whose local shapes do not correspond). `colour`:
     how far the models' colours are trusted (the search's colour weight, 0..1). `score`: the
-    search's score of poses; with it, where poses were found or colour reaches ungated_colour,
-    the best it ranks of more triples follow (_scored). Every pose keeps a scale within
-    scale_spread of the one the pairs assume."""
+    search's score of poses (given only where it compares colours); with it, the best it ranks
+    of more triples follow (_scored). Every pose keeps a scale within scale_spread of the one
+    the pairs assume."""
     o = options or MatchOptions()
     if len(src) < 4 or len(dst) < 4:
         return []
@@ -218,7 +218,7 @@ def matched_poses(
             out.append(pose)
             if len(out) == count:
                 break
-    if score is not None and o.scored_count and (out or colour >= o.ungated_colour):
+    if score is not None and o.scored_count:
         out += _scored(pairs, rng, o, score, out, min_deg)
     return [pose for pose in out if pairs.scale_fits(pose, o.scale_spread)]
 
