@@ -322,7 +322,7 @@ def test_the_scored_hypotheses_need_no_consensus():
     hypotheses are picked by the score, not by agreement, so they join even where no pose
     reaches the gate (the iPhone room's pairs 21 and 25), however far the palettes are shared
     (the caller passes a score only where colours are trusted; halves of a small capture share
-    0.85-0.95 of their palettes). Without the score nothing passes such a gate."""
+    less than all of their palettes: weights 0.74-0.96). Without the score nothing passes such a gate."""
     src, dst, truth = _partial_chair_anchors()
     unreachable = MatchOptions(min_consensus=1.01, scored_triples=50_000, scored_top=300, scored_count=2)
     assert matched_poses(src, dst, np.random.default_rng(0), 4, 10.0, unreachable, 1.0) == []

@@ -80,7 +80,7 @@ class MatchOptions:
     # colours (the search's colour trust). An earlier rule also asked the palettes to be wholly
     # shared where no pose passed, for two instances, whose local shapes do not correspond; the
     # scale bound below is what kept their hypotheses off (a rifle pair's), and halves of a
-    # small capture share 0.85-0.95 of their palettes, not all (docs/benchmarks.md, "Small
+    # small capture weigh 0.74-0.96, not 1 (docs/benchmarks.md, "Small
     # captures: the scored hypotheses wherever colours are trusted").
     # A descriptor describes a number of anchors, so two neighbourhoods alike across the models
     # are alike at the scale their anchor spacings give (about the true scale where both models
