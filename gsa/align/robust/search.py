@@ -205,15 +205,23 @@ def _converged(
     rows: tuple,
     w_colour: float,
     opts: SearchOptions,
-    reach: float | None = None,
+    reaches: tuple[float, ...] = (),
 ) -> Candidate:
     """A start taken by the anchors' ICP to convergence (the early and the refine budgets) and
-    scored: the widened search's placed and matched starts, and the offers' half turns. `reach`:
-    bidirectional_icp's cap on its cut-off."""
+    scored: the widened search's placed and matched starts, and the offers' half turns.
+    `reaches`: bidirectional_icp's caps on its cut-off, run in turn, each from where the last
+    ended, the best scoring kept (MatchOptions.icp_reach); none: the plain cut-off."""
     k = opts.criteria
     iterations = opts.early_iterations + opts.refine_iterations
-    transform = bidirectional_icp(src, dst, init, rows[0], rows[1], iterations, w_colour, k, reach)
-    return score_pose(src, dst, transform, origin, w_colour, k)
+    if not reaches:
+        transform = bidirectional_icp(src, dst, init, rows[0], rows[1], iterations, w_colour, k)
+        return score_pose(src, dst, transform, origin, w_colour, k)
+    held, best = init, None
+    for reach in reaches:
+        held = bidirectional_icp(src, dst, held, rows[0], rows[1], iterations, w_colour, k, reach)
+        scored = score_pose(src, dst, held, origin, w_colour, k)
+        best = scored if best is None or scored.score > best.score else best
+    return best
 
 
 # Unit axes the turned starts of held_within_reach turn about: the cube's 6 faces, 12 edges, 8 corners.
