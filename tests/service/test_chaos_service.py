@@ -17,7 +17,9 @@ def test_every_job_ends_exactly_once_through_the_faults(tmp_path, pair):
     small = {"source": pair["source2"], "target": pair["target"]}
     run = ChaosRun(tmp_path, small, jobs=50, workers=3, seed=1, gap_s=3.0)
     try:
-        rep = run.run(DEFAULT_FAULTS, deadline_s=420)  # ~3 min; the rest is slack for a loaded machine
+        # ~3 min where the machine is quick; the deadline bounds a hang, it does not time the service
+        # (on 2026-12-07's machine, idle, the same code before and after ended 43 of 50 jobs in 420 s)
+        rep = run.run(DEFAULT_FAULTS, deadline_s=900)
     finally:
         run.close()
     why = (rep, run.dep.logs(800))
