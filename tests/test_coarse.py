@@ -209,6 +209,21 @@ def test_pipeline_runs_the_fine_stage_after_coarse():
     assert "coarse_verdict" not in align(source, target, AlignOptions(stages=("coarse",))).diagnostics
 
 
+def test_the_fine_stage_starts_where_the_doubtful_chain_ends():
+    """A bent copy of a chair whose doubtful coarse answer the frame snap turns 8 degrees onto
+    the truth: asking for the fine stage too must not skip that chain (it did: the fine stage
+    started 8 degrees off), and the doubt stays on the fine stage's answer."""
+    from benchmarks.pairs import deform_pairs
+
+    source, target, truth = deform_pairs(False, 1)[10][1]()
+    opts = AlignOptions(stages=("coarse", "fine"), fine_iterations=2, fine_image_size=32, fine_views=2)
+    result = align(source, target, opts)
+    assert result.diagnostics["frame_snap"]["used"]
+    assert rre_deg(result.coarse.transform.rotation, truth.rotation) < 0.5
+    assert result.diagnostics["coarse_verdict"]["doubtful"] and result.verdict.doubtful
+    assert result.to_dict()["stages"]["fine"]["loss_history"]
+
+
 def test_auto_stages_add_fine_only_after_the_feature_stage():
     """auto = coarse+fine where the coarse stage is the paper's feature-guided ICP (here:
     refine off), coarse alone after the NN refinement (see AlignOptions.stages)."""
