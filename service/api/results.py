@@ -144,7 +144,8 @@ class Metrics(_Open):
     feature_agreement: float | None = None
     feature_distance_median: float | None = None
     coarse_verdict: CoarseVerdict | None = Field(
-        None, description="confidence, ambiguous, doubtful at the coarse pose, where the fine stage ran"
+        None,
+        description="confidence, ambiguous, doubtful where the fine stage started (the coarse answer, after a doubtful answer's chain), where it ran",
     )
     scene: SceneMetrics | None = None
     guidance: Guidance | None = Field(None, description="present when the job was given hints (guided alignment)")
