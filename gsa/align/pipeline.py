@@ -579,7 +579,7 @@ def _align_models(
     metrics = _judged(pair, best, search, transform, held)
     # The doubtful chain runs on the coarse answer and the fine stage starts where it ends: a
     # fine stage asked for must not cost a doubtful answer its chain (deformed copies: 23 / 30
-    # without it against 30 / 30, docs/benchmarks.md "The fine stage after the doubtful chain").
+    # without it against 29 / 30, docs/benchmarks.md "The fine stage after the doubtful chain").
     chained = search is not None and bool(metrics.get("doubtful"))
     if chained:
         leash = (start[1], symmetries) if start is not None else None
