@@ -213,11 +213,8 @@ def _converged(
     ended, the best scoring kept (MatchOptions.icp_reach); none: the plain cut-off."""
     k = opts.criteria
     iterations = opts.early_iterations + opts.refine_iterations
-    if not reaches:
-        transform = bidirectional_icp(src, dst, init, rows[0], rows[1], iterations, w_colour, k)
-        return score_pose(src, dst, transform, origin, w_colour, k)
     held, best = init, None
-    for reach in reaches:
+    for reach in reaches or (None,):
         held = bidirectional_icp(src, dst, held, rows[0], rows[1], iterations, w_colour, k, reach)
         scored = score_pose(src, dst, held, origin, w_colour, k)
         best = scored if best is None or scored.score > best.score else best
