@@ -528,6 +528,21 @@ def test_decide_ranks_by_geometry_where_no_pose_agrees_in_colour():
     assert robust.decide([agreeing, truth], w_colour=0.7, noise=noise).ranked_by == "score"
 
 
+def test_decide_ranks_by_geometry_where_the_best_score_ties_with_overlapping_nothing():
+    # The statue massa drawn to 12k, exposure-shifted (held-out pair 10 as traced): every close
+    # pair disagrees about as much as the noise or more, so every pose scores near or below zero
+    # and a pose that barely overlaps leads the truth, which overlaps five times as much.
+    noise = 0.49
+    sliver = robust.Candidate(Sim3.identity(), "matched", score=0.001, geometry=0.064, colour=0.559)
+    truth = _candidate(-0.031, 0.451, 180.0)
+    truth.geometry = 0.369
+    chosen = robust.decide([sliver, truth], w_colour=1.0, noise=noise)
+    assert chosen.ranked_by == "geometry" and chosen.best.transform is truth.transform
+    # A best score a tie above zero is evidence: the coloured score still ranks.
+    leading = robust.Candidate(Sim3.identity(), "grid", score=0.05, geometry=0.064, colour=0.559)
+    assert robust.decide([leading, truth], w_colour=1.0, noise=noise).best is leading
+
+
 REAL_DEV = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "real-dev"
 
 
